@@ -1,0 +1,205 @@
+"""The backend contract: a rod held by two 6-DoF kinematic grippers, stepped at control rate.
+
+Conventions (DESIGN.md):
+- World frame, metres, z up, gravity -9.81 z. No floor: the rod hangs in the air.
+- Rod of ``n_segments`` rigid segments. Segment i's frame has its x axis along the rod
+  (from the left end towards the right end) and its origin at the segment centre.
+- ``segment_positions()`` (N,3) centres; ``segment_quaternions()`` (N,4) unit (w,x,y,z).
+- Gripper 0 ("left") holds the start of segment 0, gripper 1 ("right") the end of segment N-1.
+  A gripper pose is (x, y, z, qw, qx, qy, qz): the held rod end point and the held segment's
+  orientation at rest (the rod leaves the left gripper along its +x, enters the right one
+  along its +x).
+- ``step(velocities)`` takes (2,6) gripper twists in physical units — linear velocity (m/s)
+  then world-frame angular velocity (rad/s) about the gripper position — and advances one
+  control period. Translations are clipped to the workspace and the separation limits here,
+  once, for every backend, so the rod cannot be torn (a taut rod blows up MuJoCo's cable and
+  makes PyBullet let go; see FINDINGS.md).
+- ``reset()`` puts the rod at rest in its nominal configuration: grippers on the x axis,
+  ``initial_separation`` apart, centred at (0, 0, ``rest_height``), the rod sagging between
+  them. Randomisation of the start is the task's job (it moves the grippers).
+- A diverged simulation (NaN, explosion) sets ``diverged`` and makes further steps no-ops.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from dlocli.rotations import quat_from_rotvec, quat_multiply, quat_normalize
+from dlocli.specs import BackendSpec
+
+REST_HEIGHT = 0.8
+INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (FINDINGS gotcha 1)
+
+
+@dataclass
+class GripperLimits:
+    """Where grippers may go: a workspace box and gripper separation bounds (metres)."""
+
+    low: np.ndarray
+    high: np.ndarray
+    min_separation: float
+    max_separation: float
+
+    @classmethod
+    def default(cls, rod_length: float) -> GripperLimits:
+        return cls(
+            low=np.array([-0.8, -0.6, 0.3]) * rod_length,
+            high=np.array([0.8, 0.6, 1.4]) * rod_length,
+            min_separation=0.2 * rod_length,
+            max_separation=0.95 * rod_length,
+        )
+
+
+def _largest_feasible_fraction(d0: np.ndarray, dd: np.ndarray, lo: float, hi: float) -> float:
+    """Largest a in [0,1] with lo <= |d0 + a dd| <= hi, by bisection (steps are millimetres)."""
+
+    def feasible(a: float) -> bool:
+        dist = float(np.linalg.norm(d0 + a * dd))
+        return lo - 1e-12 <= dist <= hi + 1e-12
+
+    if feasible(1.0):
+        return 1.0
+    good, bad = 0.0, 1.0
+    for _ in range(30):
+        mid = 0.5 * (good + bad)
+        good, bad = (mid, bad) if feasible(mid) else (good, mid)
+    return good
+
+
+def integrate_gripper_poses(
+    poses: np.ndarray, velocities: np.ndarray, dt: float, limits: GripperLimits, moving: np.ndarray
+) -> np.ndarray:
+    """Advance (2,7) gripper poses by (2,6) twists over dt, respecting the limits.
+
+    ``moving`` (2,) bool masks grippers that may move (a free rod end has no gripper).
+    """
+    velocities = np.where(moving[:, None], velocities, 0.0)
+    new = poses.copy()
+    target = np.clip(poses[:, :3] + velocities[:, :3] * dt, limits.low, limits.high)
+    delta = target - poses[:, :3]
+    if moving.all():
+        d0 = poses[1, :3] - poses[0, :3]
+        frac = _largest_feasible_fraction(
+            d0, delta[1] - delta[0], limits.min_separation, limits.max_separation
+        )
+        delta = delta * frac
+    new[:, :3] = poses[:, :3] + delta
+    spin = quat_from_rotvec(velocities[:, 3:] * dt)
+    new[:, 3:] = quat_normalize(quat_multiply(spin, poses[:, 3:]))
+    return new
+
+
+class Backend(ABC):
+    """A simulated rod held by grippers. Subclasses implement the physics hooks (``_*``)."""
+
+    #: registry name, set by subclasses
+    name: str = ""
+
+    def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
+        self.spec = spec or BackendSpec(name=self.name)
+        self.rod = self.spec.rod
+        self.n_segments = self.rod.n_segments
+        self.control_dt = control_dt
+        self.limits = GripperLimits.default(self.rod.length)
+        self.moving = np.array([self.spec.held_ends == "both", True])
+        self.diverged = False
+        self._gripper_poses = self.rest_gripper_poses()
+
+    # ----------------------------------------------------------------- public API
+    def rest_gripper_poses(self) -> np.ndarray:
+        """(2,7) nominal gripper poses: on the x axis, slack separation, rod along +x."""
+        half = 0.5 * INITIAL_SEPARATION * self.rod.length
+        if self.spec.held_ends == "left":
+            half = 0.5 * self.rod.length  # cantilever: straight out from the left gripper
+        poses = np.zeros((2, 7))
+        poses[:, 3] = 1.0
+        poses[0, :3] = (-half, 0.0, REST_HEIGHT)
+        poses[1, :3] = (half, 0.0, REST_HEIGHT)
+        return poses
+
+    def reset(self, seed: int | None = None) -> None:
+        """Rest configuration (deterministic); ``seed`` seeds any backend-internal noise."""
+        self.diverged = False
+        self._gripper_poses = self.rest_gripper_poses()
+        self._reset_physics(seed)
+
+    def step(self, velocities: np.ndarray) -> bool:
+        """Advance one control period with (2,6) gripper twists; return False if diverged."""
+        if self.diverged:
+            return False
+        velocities = np.asarray(velocities, dtype=np.float64).reshape(2, 6)
+        if not np.all(np.isfinite(velocities)):
+            raise ValueError("gripper velocities must be finite")
+        start = self._gripper_poses
+        end = integrate_gripper_poses(start, velocities, self.control_dt, self.limits, self.moving)
+        self._gripper_poses = end
+        ok = self._advance(start, end)
+        if not ok or not self._state_is_sane():
+            self.diverged = True
+        return not self.diverged
+
+    def gripper_poses(self) -> np.ndarray:
+        """(2,7) gripper poses (position, quaternion w x y z)."""
+        return self._gripper_poses.copy()
+
+    def get_state(self) -> np.ndarray:
+        """Full simulator state as a flat float64 vector (gripper poses included)."""
+        return np.concatenate(
+            [self._gripper_poses.ravel(), [float(self.diverged)], self._get_physics_state()]
+        )
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Restore a state from :meth:`get_state` exactly (same future under same actions)."""
+        state = np.asarray(state, dtype=np.float64)
+        self._gripper_poses = state[:14].reshape(2, 7).copy()
+        self.diverged = bool(state[14])
+        self._set_physics_state(state[15:])
+
+    def _state_is_sane(self) -> bool:
+        pos = self.segment_positions()
+        if not np.all(np.isfinite(pos)) or not np.all(np.isfinite(self.segment_quaternions())):
+            return False
+        anchor = self._gripper_poses[0, :3]
+        return bool(np.max(np.linalg.norm(pos - anchor, axis=1)) < 3.0 * self.rod.length)
+
+    # ----------------------------------------------------------------- subclass hooks
+    @abstractmethod
+    def _reset_physics(self, seed: int | None) -> None:
+        """Rebuild the rest configuration for ``self._gripper_poses``."""
+
+    @abstractmethod
+    def _advance(self, start: np.ndarray, end: np.ndarray) -> bool:
+        """Move grippers from ``start`` to ``end`` (2,7) over one control period; False if NaN."""
+
+    @abstractmethod
+    def _get_physics_state(self) -> np.ndarray: ...
+
+    @abstractmethod
+    def _set_physics_state(self, state: np.ndarray) -> None: ...
+
+    @abstractmethod
+    def segment_positions(self) -> np.ndarray:
+        """(N,3) segment centre positions in metres."""
+
+    @abstractmethod
+    def segment_quaternions(self) -> np.ndarray:
+        """(N,4) segment orientations, unit quaternions (w,x,y,z)."""
+
+    @abstractmethod
+    def render(
+        self, width: int = 480, height: int = 360, goal: np.ndarray | None = None
+    ) -> np.ndarray:
+        """RGB image (height, width, 3) uint8 of the rod (and the goal shape, if given)."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release simulator resources."""
+
+    @property
+    def physics_dt(self) -> float:
+        return self.spec.physics_dt or self.default_physics_dt
+
+    #: subclasses: the physics step that keeps the rod stable at the maximum gripper speeds
+    default_physics_dt: float = 0.002

@@ -1,0 +1,37 @@
+"""`dlo list`: what is registered (backends, tasks, models, controllers)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from dlocli.cli.common import handle_errors
+
+
+@handle_errors
+def list_plugins(
+    json_out: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+) -> None:
+    """List registered backends, tasks, models and controllers."""
+    import json
+
+    from dlocli import registry
+
+    kinds = {
+        "backends": registry.backends, "tasks": registry.tasks,
+        "models": registry.models, "controllers": registry.controllers,
+    }
+    if json_out:
+        print(json.dumps({k: {n: r.summary(n) for n in r.names()} for k, r in kinds.items()}))
+        return
+    table = Table(title="dlocli registry")
+    table.add_column("kind")
+    table.add_column("name")
+    table.add_column("what")
+    for kind, reg in kinds.items():
+        for name in reg.names():
+            table.add_row(kind, name, reg.summary(name))
+    Console().print(table)

@@ -1,0 +1,240 @@
+"""Trajectory datasets: the documented HDF5 format every command reads and writes.
+
+File ``dataset.h5`` (format ``dlocli-dataset`` version 1). E episodes, episode e has T_e
+transitions and T_e + 1 states; S = sum(T_e + 1), M = sum(T_e); N segments:
+
+=================  ==============  ==================================================
+dataset            shape, dtype    meaning
+=================  ==============  ==================================================
+episode_lengths    (E,) int64      T_e, transitions per episode
+positions          (S, N, 3) f32   segment centres, metres, world frame
+quaternions        (S, N, 4) f32   segment orientations, unit (w, x, y, z)
+grippers           (S, 2, 7) f32   gripper poses (x, y, z, qw, qx, qy, qz), left, right
+actions            (M, 2, 6) f32   per-gripper commands in [-1, 1] (linear, angular);
+                                   a static gripper's row is zero
+rewards            (M,) f32        paper eq. 12 reward of each transition
+goals              (E, N, 3) f32   the episode's goal shape
+diverged           (E,) bool       the episode ended because the physics diverged
+                                   (the diverged step itself is never stored)
+=================  ==============  ==================================================
+
+Attributes: ``format``, ``format_version``, ``n_segments``, ``spec`` (JSON of the resolved
+run spec), ``rod`` (JSON material), ``versions`` (JSON), ``max_linear_velocity``,
+``max_angular_velocity`` (what action 1 means, m/s and rad/s).
+
+Read it with :func:`load_dataset`; the state of a segment used by the models is
+``concat(position, quaternion)`` (7 numbers), see :meth:`Dataset.transitions`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dlocli.errors import BadInput
+from dlocli.io import atomic_path
+
+FORMAT = "dlocli-dataset"
+FORMAT_VERSION = 1
+DATASET_FILE = "dataset.h5"
+STATE_ARRAYS = ("positions", "quaternions", "grippers")
+EPISODE_ARRAYS = ("actions", "rewards")
+
+
+@dataclass
+class Episode:
+    """One trajectory: T+1 states and T actions."""
+
+    positions: np.ndarray  # (T+1, N, 3)
+    quaternions: np.ndarray  # (T+1, N, 4)
+    grippers: np.ndarray  # (T+1, 2, 7)
+    actions: np.ndarray  # (T, 2, 6)
+    rewards: np.ndarray  # (T,)
+    goal: np.ndarray  # (N, 3)
+    diverged: bool = False
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+@dataclass
+class Dataset:
+    """Episodes held in memory as concatenated arrays (see the module docstring)."""
+
+    episode_lengths: np.ndarray
+    positions: np.ndarray
+    quaternions: np.ndarray
+    grippers: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    goals: np.ndarray
+    diverged: np.ndarray
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ building
+    @classmethod
+    def from_episodes(cls, episodes: list[Episode], attrs: dict[str, Any] | None = None) -> Dataset:
+        if not episodes:
+            raise BadInput("no episodes to store")
+
+        def cat(name: str, dtype: type = np.float32) -> np.ndarray:
+            return np.concatenate([np.asarray(getattr(e, name), dtype=dtype) for e in episodes])
+
+        return cls(
+            episode_lengths=np.array([len(e) for e in episodes], dtype=np.int64),
+            positions=cat("positions"),
+            quaternions=cat("quaternions"),
+            grippers=cat("grippers"),
+            actions=cat("actions"),
+            rewards=cat("rewards"),
+            goals=np.stack([np.asarray(e.goal, dtype=np.float32) for e in episodes]),
+            diverged=np.array([e.diverged for e in episodes], dtype=bool),
+            attrs=dict(attrs or {}),
+        )
+
+    def concat(self, other: Dataset) -> Dataset:
+        """A new dataset with ``other``'s episodes appended (attrs of ``self`` kept)."""
+        if other.n_segments != self.n_segments:
+            raise BadInput(
+                f"cannot join datasets of {self.n_segments} and {other.n_segments} segments"
+            )
+        arrays = {
+            name: np.concatenate([getattr(self, name), getattr(other, name)])
+            for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
+        }
+        return Dataset(**arrays, attrs=dict(self.attrs))
+
+    # ------------------------------------------------------------------ views
+    @property
+    def n_segments(self) -> int:
+        return int(self.positions.shape[1])
+
+    @property
+    def n_episodes(self) -> int:
+        return int(len(self.episode_lengths))
+
+    @property
+    def n_transitions(self) -> int:
+        return int(self.episode_lengths.sum())
+
+    def state_offsets(self) -> np.ndarray:
+        """Index of each episode's first state in the state arrays, (E,)."""
+        return np.concatenate([[0], np.cumsum(self.episode_lengths + 1)[:-1]]).astype(np.int64)
+
+    def action_offsets(self) -> np.ndarray:
+        """Index of each episode's first action in the action arrays, (E,)."""
+        return np.concatenate([[0], np.cumsum(self.episode_lengths)[:-1]]).astype(np.int64)
+
+    def states(self) -> np.ndarray:
+        """(S, N, 7) segment states: position then quaternion."""
+        return np.concatenate([self.positions, self.quaternions], axis=-1)
+
+    def transition_index(self, episodes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(state index of s_t, action index of a_t) for every transition of ``episodes``."""
+        episodes = np.arange(self.n_episodes) if episodes is None else np.asarray(episodes)
+        s_off, a_off = self.state_offsets(), self.action_offsets()
+        s_idx = [s_off[e] + np.arange(self.episode_lengths[e]) for e in episodes]
+        a_idx = [a_off[e] + np.arange(self.episode_lengths[e]) for e in episodes]
+        if not s_idx:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate(s_idx), np.concatenate(a_idx)
+
+    def transitions(self, episodes: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Arrays ``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7), ``reward``."""
+        s_idx, a_idx = self.transition_index(episodes)
+        states = self.states()
+        return {
+            "state": states[s_idx],
+            "action": self.actions[a_idx],
+            "next_state": states[s_idx + 1],
+            "reward": self.rewards[a_idx],
+        }
+
+    def episode(self, e: int) -> Episode:
+        s0, a0 = self.state_offsets()[e], self.action_offsets()[e]
+        t = int(self.episode_lengths[e])
+        return Episode(
+            positions=self.positions[s0 : s0 + t + 1],
+            quaternions=self.quaternions[s0 : s0 + t + 1],
+            grippers=self.grippers[s0 : s0 + t + 1],
+            actions=self.actions[a0 : a0 + t],
+            rewards=self.rewards[a0 : a0 + t],
+            goal=self.goals[e],
+            diverged=bool(self.diverged[e]),
+        )
+
+    def subset(self, episodes: np.ndarray) -> Dataset:
+        return Dataset.from_episodes([self.episode(int(e)) for e in episodes], self.attrs)
+
+    # ------------------------------------------------------------------ I/O
+    def save(self, path: Path) -> Path:
+        """Write atomically (temp file, then rename): a crash leaves the old file or none."""
+        import h5py
+
+        path = Path(path)
+        with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+            f.attrs["format"] = FORMAT
+            f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["n_segments"] = self.n_segments
+            for key, value in self.attrs.items():
+                f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
+            for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged"):
+                f.create_dataset(name, data=getattr(self, name))
+        return path
+
+
+def load_dataset(path: Path) -> Dataset:
+    """Load a dataset file (or a run directory holding ``dataset.h5``); BadInput if it is not one."""
+    import h5py
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / DATASET_FILE
+    if not path.is_file():
+        raise BadInput(f"dataset {path} does not exist; make one with `dlo collect --random --out DIR`")
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != FORMAT:
+                raise BadInput(f"{path} is not a dlocli dataset (no format={FORMAT} attribute)")
+            names = ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
+            missing = [n for n in names if n not in f]
+            if missing:
+                raise BadInput(f"dataset {path} lacks {', '.join(missing)}; re-collect it")
+            arrays = {n: f[n][()] for n in names}
+            attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
+    except OSError as exc:
+        raise BadInput(f"dataset {path} is not a readable HDF5 file ({exc}); re-collect it") from exc
+    data = Dataset(**arrays, attrs=attrs)
+    _check_consistent(data, path)
+    return data
+
+
+def _decode_attr(value: Any) -> Any:
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, str) and value[:1] in "[{":
+        try:
+            return json.loads(value)
+        except ValueError:
+            return value
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _check_consistent(data: Dataset, path: Path) -> None:
+    n_states = int((data.episode_lengths + 1).sum())
+    ok = (
+        data.positions.shape[0] == n_states
+        and data.quaternions.shape[0] == n_states
+        and data.grippers.shape[0] == n_states
+        and data.actions.shape[0] == data.n_transitions
+        and data.positions.shape[2:] == (3,)
+        and data.quaternions.shape[2:] == (4,)
+        and data.actions.shape[1:] == (2, 6)
+        and data.goals.shape == (data.n_episodes, data.n_segments, 3)
+    )
+    if not ok:
+        raise BadInput(f"dataset {path} has inconsistent array shapes; re-collect it")

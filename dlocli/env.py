@@ -1,0 +1,250 @@
+"""DLOShapeEnv: the Gymnasium shape-control task on top of any backend.
+
+Observation (flat float32 Box): segment positions (N*3), segment quaternions (N*4), gripper
+poses (2*7), goal positions (N*3). Use :meth:`DLOShapeEnv.split_observation` to get them back.
+Action: Box(-1, 1, (6,)) for ``single`` or (12,) for ``bimanual``, scaled to the task's
+maximum gripper velocities. Reward: paper eq. 12. An episode ends (terminated, with
+``info["diverged"] = True``) if the physics diverges, and is truncated after T steps.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from dlocli.backends.base import Backend
+from dlocli.errors import BadInput
+from dlocli.metrics import reward as shape_reward
+from dlocli.metrics import shape_error_mm
+from dlocli.registry import backends as backend_registry
+from dlocli.specs import BackendSpec, EnvSpec, TaskSpec
+from dlocli.tasks import Task, make_task
+
+#: how many control steps a random reset motion keeps one velocity before drawing the next
+MOTION_HOLD_STEPS = 10
+
+
+def make_backend(spec: BackendSpec, control_dt: float = 0.02) -> Backend:
+    """Build the registered backend named by ``spec.name``."""
+    cls = backend_registry.get(spec.name)
+    return cls(spec, control_dt=control_dt)
+
+
+def load_goal(path: Path, n_segments: int) -> np.ndarray:
+    """Read a goal file: .npy, float (N,3), finite. BadInput naming the expected format."""
+    path = Path(path)
+    expected = f"expected a .npy file holding a float array of shape ({n_segments}, 3) in metres"
+    if path.suffix != ".npy":
+        raise BadInput(f"goal {path} is not a .npy file; {expected}")
+    if not path.is_file():
+        raise BadInput(f"goal {path} does not exist; {expected} (make one with `dlo goal`)")
+    try:
+        goal = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise BadInput(f"goal {path} could not be read as .npy ({exc}); {expected}") from exc
+    if not np.issubdtype(goal.dtype, np.number) or goal.shape != (n_segments, 3):
+        raise BadInput(f"goal {path} has dtype {goal.dtype} and shape {goal.shape}; {expected}")
+    if not np.all(np.isfinite(goal)):
+        raise BadInput(f"goal {path} contains NaN or inf; {expected}")
+    return goal.astype(np.float64)
+
+
+def check_goal_reachable(goal: np.ndarray, backend: Backend, limits_margin: float = 0.2) -> None:
+    """Refuse goals the rod cannot take: segments too far apart or outside the workspace."""
+    length = backend.rod.length
+    seg = length / backend.n_segments
+    gaps = np.linalg.norm(np.diff(goal, axis=0), axis=1)
+    if np.any(gaps > 1.5 * seg) or np.any(gaps < 0.5 * seg):
+        raise BadInput(
+            f"goal segments are {gaps.min():.3f}-{gaps.max():.3f} m apart but the rod's segments "
+            f"are {seg:.3f} m long; the rod cannot take this shape (make one with `dlo goal`)"
+        )
+    low = backend.limits.low - limits_margin - length
+    high = backend.limits.high + limits_margin
+    if np.any(goal < low) or np.any(goal > high):
+        raise BadInput(
+            "goal lies outside the grippers' reach (workspace "
+            f"{np.round(backend.limits.low, 2).tolist()}..{np.round(backend.limits.high, 2).tolist()} m)"
+        )
+
+
+class DLOShapeEnv(gym.Env):
+    """Drive a rod held by grippers to a goal shape. See the module docstring."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        backend: BackendSpec | str = "mujoco",
+        task: TaskSpec | str = "single",
+        goal: np.ndarray | Path | str | None = None,
+        seed: int = 0,
+        render_mode: str | None = "rgb_array",
+    ) -> None:
+        self.backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
+        self.task_spec = TaskSpec(name=task) if isinstance(task, str) else task
+        self.task: Task = make_task(self.task_spec.name)
+        self.backend = make_backend(self.backend_spec, self.task_spec.control_dt)
+        self._apply_limits()
+        self.n_segments = self.backend.n_segments
+        self.render_mode = render_mode
+        self.seed_value = seed
+        n = self.n_segments
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n * 3 + n * 4 + 14 + n * 3,), np.float32)
+        self._goal_rng = np.random.default_rng([seed, 1])
+        self._goal_given = goal is not None or self.task_spec.goal_file is not None
+        self._seeded = False
+        self.goal = self._initial_goal(goal)
+        self._scale = np.array(
+            [self.task_spec.max_linear_velocity] * 3 + [self.task_spec.max_angular_velocity] * 3
+        )
+        self._t = 0
+
+    # ------------------------------------------------------------------ setup
+    def _apply_limits(self) -> None:
+        spec, length = self.task_spec, self.backend.rod.length
+        limits = self.backend.limits
+        limits.low = np.array(spec.workspace_low) * length
+        limits.high = np.array(spec.workspace_high) * length
+        limits.min_separation = spec.min_separation * length
+        limits.max_separation = spec.max_separation * length
+
+    def _initial_goal(self, goal: np.ndarray | Path | str | None) -> np.ndarray | None:
+        if goal is None and self.task_spec.goal_file is not None:
+            goal = self.task_spec.goal_file
+        if isinstance(goal, (str, Path)):
+            goal = load_goal(Path(goal), self.n_segments)
+        if goal is not None:
+            goal = np.asarray(goal, dtype=np.float64)
+            if goal.shape != (self.n_segments, 3) or not np.all(np.isfinite(goal)):
+                raise BadInput(f"goal must be a finite ({self.n_segments}, 3) array, got {goal.shape}")
+            check_goal_reachable(goal, self.backend)
+            return goal
+        if self.task_spec.goal == "fixed":
+            return self.sample_goal(self._goal_rng)
+        return None
+
+    # ------------------------------------------------------------------ random shapes
+    def _random_motion(self, rng: np.random.Generator, steps: int, moving: np.ndarray) -> None:
+        """Piecewise-constant random gripper twists, then zero-velocity settling."""
+        velocities = np.zeros((2, 6))
+        for t in range(steps):
+            if t % MOTION_HOLD_STEPS == 0:
+                velocities = rng.uniform(-1.0, 1.0, (2, 6)) * self._scale_or_default()
+                velocities[~moving] = 0.0
+            if not self.backend.step(velocities):
+                return
+        for _ in range(self.task_spec.reset_settle_steps):
+            if not self.backend.step(np.zeros((2, 6))):
+                return
+
+    def _scale_or_default(self) -> np.ndarray:
+        spec = self.task_spec
+        return np.array([spec.max_linear_velocity] * 3 + [spec.max_angular_velocity] * 3)
+
+    def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
+        """A reachable goal: move the grippers randomly from rest, let the rod settle."""
+        for _ in range(10):
+            self.backend.reset(int(rng.integers(2**31)))
+            self._random_motion(rng, 2 * self.task_spec.reset_motion_steps, self.task.moving)
+            if not self.backend.diverged:
+                return self.backend.segment_positions().copy()
+        raise RuntimeError("could not generate a goal: the simulation diverged 10 times")
+
+    # ------------------------------------------------------------------ gym API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is None and not self._seeded:
+            seed = self.seed_value  # make_env(seed=...) alone makes episodes reproducible
+        self._seeded = True
+        super().reset(seed=seed)
+        if self.task_spec.goal == "random" and not self._goal_given:
+            self.goal = self.sample_goal(self.np_random)
+        for _ in range(10):
+            self.backend.reset(int(self.np_random.integers(2**31)))
+            self._random_motion(self.np_random, self.task_spec.reset_motion_steps, self.task.moving)
+            if not self.backend.diverged:
+                break
+        self._t = 0
+        return self._observation(), self._info(diverged=False)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        commands = self.task.to_grippers(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
+        ok = self.backend.step(commands * self._scale)
+        self._t += 1
+        positions = self.backend.segment_positions()
+        reward = -1.5 if not ok else float(shape_reward(positions, self.goal))
+        truncated = self._t >= self.task_spec.episode_steps
+        info = self._info(diverged=not ok)
+        info["commands"] = commands
+        return self._observation(), reward, not ok, truncated, info
+
+    def _info(self, diverged: bool) -> dict[str, Any]:
+        error = float(shape_error_mm(self.backend.segment_positions(), self.goal))
+        return {"shape_error_mm": error, "diverged": diverged, "t": self._t}
+
+    def _observation(self) -> np.ndarray:
+        parts = [
+            self.backend.segment_positions().ravel(),
+            self.backend.segment_quaternions().ravel(),
+            self.backend.gripper_poses().ravel(),
+            np.asarray(self.goal).ravel(),
+        ]
+        return np.concatenate(parts).astype(np.float32)
+
+    def split_observation(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+        """Inverse of the flat observation: positions, quaternions, grippers, goal."""
+        n = self.n_segments
+        obs = np.asarray(obs)
+        cuts = np.cumsum([n * 3, n * 4, 14])
+        pos, quat, grip, goal = np.split(obs, cuts, axis=-1)
+        lead = obs.shape[:-1]
+        return {
+            "positions": pos.reshape(*lead, n, 3),
+            "quaternions": quat.reshape(*lead, n, 4),
+            "grippers": grip.reshape(*lead, 2, 7),
+            "goal": goal.reshape(*lead, n, 3),
+        }
+
+    def render(self) -> np.ndarray:
+        return self.backend.render(goal=self.goal)
+
+    def close(self) -> None:
+        self.backend.close()
+
+    # ------------------------------------------------------------------ state for planners
+    def get_state(self) -> np.ndarray:
+        return np.concatenate([self.backend.get_state(), [self._t]])
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.backend.set_state(state[:-1])
+        self._t = int(state[-1])
+
+
+def make_env(
+    backend: str | BackendSpec = "mujoco",
+    task: str | TaskSpec = "single",
+    goal: np.ndarray | Path | str | None = None,
+    seed: int = 0,
+    **task_overrides: Any,
+) -> DLOShapeEnv:
+    """Build a shape-control environment; ``task_overrides`` set TaskSpec fields."""
+    backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
+    backend_registry.check(backend_spec.name)
+    task_spec = TaskSpec(name=task) if isinstance(task, str) else task
+    if task_overrides:
+        task_spec = task_spec.model_copy(update=task_overrides)
+        task_spec = TaskSpec.model_validate(task_spec.model_dump())
+    from dlocli.registry import tasks as task_registry
+
+    task_registry.check(task_spec.name)
+    return DLOShapeEnv(backend_spec, task_spec, goal=goal, seed=seed)
+
+
+def make_env_from_spec(spec: EnvSpec, goal: np.ndarray | Path | str | None = None) -> DLOShapeEnv:
+    return make_env(spec.backend, spec.task, goal=goal, seed=spec.seed)

@@ -1,0 +1,66 @@
+"""Atomic writes and run directories: results are never left half-written or clobbered."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from dlocli.errors import BadInput
+
+
+@contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it over ``path`` only on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    write_text_atomic(path, json.dumps(data, indent=2, default=str) + "\n")
+
+
+def prepare_run_dir(out: Path, overwrite: bool) -> Path:
+    """Create the run directory; refuse an existing non-empty one unless ``overwrite``.
+
+    Nothing is deleted here even with ``overwrite``: files are replaced atomically as the
+    run writes them, so an interrupted run never leaves a half-emptied directory.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out} is a file; pass a directory path")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise BadInput(f"--out {out} exists and is not empty; pass --overwrite or another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def versions() -> dict[str, str]:
+    """Versions of the packages that determine results (for dataset and checkpoint metadata)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    found = {}
+    for name in ("dlocli", "mujoco", "pybullet", "torch", "numpy", "gymnasium", "stable-baselines3"):
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            continue
+    return found

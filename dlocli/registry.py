@@ -1,0 +1,103 @@
+"""One registry mechanism for every plugin kind (backends, models, controllers).
+
+Entries are lazy ``"module:attr"`` strings, so an optional dependency costs nothing until the
+entry is used. Third-party packages can add entries through the entry-point groups
+``dlocli.backends``, ``dlocli.models`` and ``dlocli.controllers``.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+from collections.abc import Callable, Iterator
+from importlib.metadata import entry_points
+from typing import Any
+
+from dlocli.errors import UnknownName
+
+
+class Registry:
+    """Maps names to lazily imported factories of one plugin kind."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self._targets: dict[str, str | Callable[..., Any]] = {}
+        self._summaries: dict[str, str] = {}
+        self._loaded_entry_points = False
+
+    def register(self, name: str, target: str | Callable[..., Any], summary: str = "") -> None:
+        """Register ``target`` (a ``"module:attr"`` string or a callable) under ``name``."""
+        self._targets[name] = target
+        self._summaries[name] = summary
+
+    def decorator(self, name: str, summary: str = "") -> Callable[[Any], Any]:
+        """``@registry.decorator("name")`` registers a class or function where it is defined."""
+
+        def wrap(obj: Any) -> Any:
+            self.register(name, obj, summary or (obj.__doc__ or "").strip().split("\n")[0])
+            return obj
+
+        return wrap
+
+    def names(self) -> list[str]:
+        self._load_entry_points()
+        return sorted(self._targets)
+
+    def summary(self, name: str) -> str:
+        return self._summaries.get(name, "")
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.names()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    def get(self, name: str) -> Any:
+        """Return the factory registered under ``name``, importing it on first use."""
+        self.check(name)
+        target = self._targets[name]
+        if isinstance(target, str):
+            module_name, _, attr = target.partition(":")
+            target = getattr(importlib.import_module(module_name), attr)
+            self._targets[name] = target
+        return target
+
+    def check(self, name: str) -> None:
+        """Raise :class:`UnknownName` listing the valid names if ``name`` is not registered."""
+        names = self.names()
+        if name in names:
+            return
+        close = difflib.get_close_matches(name, names, n=1)
+        hint = f" Did you mean '{close[0]}'?" if close else ""
+        raise UnknownName(
+            f"unknown {self.kind} '{name}'; valid {self.kind}s: {', '.join(names)}.{hint}"
+        )
+
+    def _load_entry_points(self) -> None:
+        if self._loaded_entry_points:
+            return
+        self._loaded_entry_points = True
+        for ep in entry_points(group=f"dlocli.{self.kind}s"):
+            self._targets.setdefault(ep.name, ep.value)
+
+
+backends = Registry("backend")
+models = Registry("model")
+controllers = Registry("controller")
+tasks = Registry("task")
+
+backends.register("mujoco", "dlocli.backends.mujoco_cable:MujocoCable",
+                  "MuJoCo 3.x composite cable (elasticity plugin), grippers as mocap bodies")
+backends.register("pybullet", "dlocli.backends.pybullet_chain:PybulletChain",
+                  "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l")
+tasks.register("single", "dlocli.tasks:SingleGripperTask", "6-D action: right gripper moves")
+tasks.register("bimanual", "dlocli.tasks:BimanualTask", "12-D action: both grippers move")
+models.register("in-bilstm", "dlocli.models.in_bilstm:INBiLSTM",
+                "Interaction Network + bi-LSTM along the rod (the paper's model)")
+models.register("mlp", "dlocli.models.mlp:MLPDynamics", "flattened state + action MLP baseline")
+controllers.register("mpc", "dlocli.controllers.mpc:GradientMPC",
+                     "gradient-based shooting MPC through the learned model (paper eqs. 8-10)")
+controllers.register("mppi", "dlocli.controllers.mppi:MPPI",
+                     "sampling MPC (MPPI) through the learned model")
+controllers.register("random", "dlocli.controllers.base:RandomController",
+                     "uniform random actions")

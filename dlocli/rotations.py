@@ -1,0 +1,47 @@
+"""Small quaternion helpers (w, x, y, z), numpy, vectorised over leading axes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_multiply(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = np.moveaxis(q1, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(q2, -1, 0)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        axis=-1,
+    )
+
+
+def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """Unit quaternion of a rotation vector (axis * angle, radians)."""
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(x)/x -> 1/2 scale near zero without dividing by zero
+    scale = np.where(angle > 1e-12, np.sin(half) / np.maximum(angle, 1e-12), 0.5)
+    return np.concatenate([np.cos(half), rotvec * scale], axis=-1)
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    # canonical sign (w >= 0) so equal rotations compare equal
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v (...,3) by unit quaternions q (...,4)."""
+    w = q[..., :1]
+    u = q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    eye = np.eye(3)
+    return np.stack([quat_rotate(q, eye[i]) for i in range(3)], axis=-1)

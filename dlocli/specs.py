@@ -1,0 +1,200 @@
+"""Run specs: one pydantic model per command, the single source of truth of a run.
+
+Every field has a description; the CLI turns it into ``--help`` text, and flags override
+fields of the same name. The resolved spec is saved as ``spec.json`` in every run directory,
+so ``dlo <command> --spec RUN/spec.json`` re-runs it. Units: metres, seconds, radians, Pa.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from dlocli.errors import BadInput
+
+
+class Spec(BaseModel):
+    """Base of all specs: unknown fields are refused, values validated on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+# --------------------------------------------------------------------------- physics
+class RodSpec(Spec):
+    """The deformable linear object. Defaults are the paper's material (DESIGN.md)."""
+
+    length: float = Field(1.0, gt=0, description="Rod length in metres.")
+    n_segments: int = Field(20, ge=4, le=200, description="Number of rigid segments.")
+    radius: float = Field(0.01, gt=0, description="Rod cross-section radius in metres.")
+    density: float = Field(1000.0, gt=0, description="Material density in kg/m^3.")
+    young_tension: float = Field(1e8, gt=0, description="Young's modulus in tension (Pa).")
+    young_bending: float = Field(1e7, gt=0, description="Young's modulus in bending/twist (Pa).")
+    poisson: float = Field(0.33, gt=-1, lt=0.5, description="Poisson's ratio.")
+
+    @property
+    def segment_length(self) -> float:
+        return self.length / self.n_segments
+
+    @property
+    def area(self) -> float:
+        return 3.141592653589793 * self.radius**2
+
+    @property
+    def second_moment(self) -> float:
+        """Area second moment I = pi r^4 / 4 (m^4)."""
+        return 3.141592653589793 * self.radius**4 / 4
+
+    @property
+    def bending_stiffness(self) -> float:
+        """EI in N m^2, with E the bending modulus."""
+        return self.young_bending * self.second_moment
+
+    @property
+    def torsional_stiffness(self) -> float:
+        """GJ in N m^2, G = E / (2 (1 + nu)), J = 2 I."""
+        shear = self.young_bending / (2 * (1 + self.poisson))
+        return shear * 2 * self.second_moment
+
+    @property
+    def mass(self) -> float:
+        return self.density * self.area * self.length
+
+
+class BackendSpec(Spec):
+    """Which simulator holds the rod, and how finely it integrates."""
+
+    name: str = Field("mujoco", description="Simulator backend (see `dlo list`).")
+    physics_dt: float | None = Field(
+        None, gt=0, le=0.02, description="Physics step in seconds; None = the backend's stable default."
+    )
+    held_ends: Literal["both", "left"] = Field(
+        "both", description="Which rod ends the grippers hold ('left' leaves a free cantilever)."
+    )
+    rod: RodSpec = Field(default_factory=RodSpec, description="Rod geometry and material.")
+
+
+class TaskSpec(Spec):
+    """The shape-control task on top of a backend (DLOShapeEnv)."""
+
+    name: str = Field("single", description="'single' (6-D action, right gripper) or 'bimanual' (12-D).")
+    goal: Literal["fixed", "random"] = Field(
+        "fixed", description="'fixed': one goal for the whole run (paper); 'random': new each episode."
+    )
+    goal_file: Path | None = Field(None, description="Goal shape .npy (N,3) in metres; overrides `goal`.")
+    episode_steps: int = Field(200, gt=0, description="Control steps per episode (T).")
+    control_dt: float = Field(0.02, gt=0, description="Control period in seconds (50 Hz).")
+    max_linear_velocity: float = Field(0.1, gt=0, description="Gripper speed at action 1 (m/s).")
+    max_angular_velocity: float = Field(0.5, gt=0, description="Gripper angular speed at action 1 (rad/s).")
+    max_separation: float = Field(
+        0.95, gt=0, lt=1, description="Largest gripper separation as a fraction of the rod length."
+    )
+    min_separation: float = Field(
+        0.2, ge=0, lt=1, description="Smallest gripper separation as a fraction of the rod length."
+    )
+    workspace_low: tuple[float, float, float] = Field(
+        (-0.8, -0.6, 0.3), description="Gripper workspace lower corner (x, y, z) in metres."
+    )
+    workspace_high: tuple[float, float, float] = Field(
+        (0.8, 0.6, 1.4), description="Gripper workspace upper corner (x, y, z) in metres."
+    )
+    reset_motion_steps: int = Field(
+        40, ge=0, description="Random gripper-motion steps that make a random start (then settle)."
+    )
+    reset_settle_steps: int = Field(40, ge=0, description="Zero-velocity steps to let the rod settle.")
+
+
+# --------------------------------------------------------------------------- commands
+class EnvSpec(Spec):
+    """Backend + task: everything needed to build a DLOShapeEnv."""
+
+    backend: BackendSpec = Field(default_factory=BackendSpec, description="Simulator.")
+    task: TaskSpec = Field(default_factory=TaskSpec, description="Task.")
+    seed: int = Field(0, ge=0, description="Seed of every random stream of the run.")
+
+
+class GoalSpec(EnvSpec):
+    """`dlo goal`: a reachable goal shape from moving the grippers and letting the rod settle."""
+
+    out: Path = Field(Path("goal.npy"), description="Output .npy file (N,3), metres.")
+
+
+class CollectSpec(EnvSpec):
+    """`dlo collect --random`: random-action trajectories into an HDF5 dataset."""
+
+    episodes: int = Field(10, gt=0, description="Number of episodes.")
+    steps: int = Field(200, gt=0, description="Control steps per episode.")
+    workers: int = Field(1, gt=0, description="Parallel worker processes (same data as 1 worker).")
+    out: Path = Field(Path("runs/collect"), description="Run directory for the dataset.")
+
+
+SpecT = TypeVar("SpecT", bound=Spec)
+
+
+def load_spec_file(path: Path) -> dict[str, Any]:
+    """Read a YAML or JSON spec file with safe loaders; BadInput on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise BadInput(f"spec file {path} does not exist; pass an existing .yaml/.json file")
+    try:
+        text = path.read_text()
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise BadInput(f"spec file {path} is not valid YAML/JSON ({first}); fix or remove it") from exc
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise BadInput(f"spec file {path} must hold a mapping of fields, not {type(data).__name__}")
+    return data
+
+
+def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+    keys = dotted.split(".")
+    for key in keys[:-1]:
+        node = data.get(key)
+        if not isinstance(node, dict):
+            node = {}
+            data[key] = node
+        data = node
+    data[keys[-1]] = value
+
+
+def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
+    """One line naming the first bad field and what is expected."""
+    err = exc.errors()[0]
+    field = ".".join(str(p) for p in err["loc"]) or "(root)"
+    if err["type"] == "extra_forbidden":
+        return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
+    return f"{source}: field '{field}': {err['msg']} (got {err.get('input')!r})"
+
+
+def resolve_spec(
+    cls: type[SpecT], spec_file: Path | None = None, overrides: dict[str, Any] | None = None
+) -> SpecT:
+    """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths)."""
+    data: dict[str, Any] = load_spec_file(spec_file) if spec_file is not None else {}
+    for dotted, value in (overrides or {}).items():
+        if value is not None:
+            _set_dotted(data, dotted, value)
+    try:
+        return cls.model_validate(data)
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
+
+
+def field_help(cls: type[Spec], dotted: str) -> str:
+    """The description (and default) of a possibly nested field: the CLI's --help text."""
+    model: Any = cls
+    info = None
+    for key in dotted.split("."):
+        info = model.model_fields[key]
+        model = info.annotation
+        if info.default_factory is not None:
+            model = info.default_factory
+    assert info is not None
+    default = "" if info.default_factory is not None else f" [spec default: {info.default}]"
+    return f"{info.description}{default}"
