@@ -194,6 +194,22 @@ class Backend(ABC):
     ) -> np.ndarray:
         """RGB image (height, width, 3) uint8 of the rod (and the goal shape, if given)."""
 
+    def raw_physics_seconds(self, control_steps: int) -> float:
+        """Seconds per control step of bare physics stepping (no wrapper), for benchmarks.
+
+        Runs from a copy of the current state and restores it afterwards.
+        """
+        state = self.get_state()
+        seconds = self._time_raw_physics(control_steps)
+        self.set_state(state)
+        return seconds
+
+    def _time_raw_physics(self, control_steps: int) -> float:
+        """Step the simulator's physics for ``control_steps`` control periods, grippers still,
+        with nothing but the simulator's own stepping call in the loop; return seconds per
+        control period."""
+        raise NotImplementedError
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release simulator resources."""
 
