@@ -48,7 +48,9 @@ def time_collect(workers: int, episodes: int, steps: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--backends", default="mujoco,pybullet")
     parser.add_argument("--workers", action="store_true", help="also time --workers 1 vs 2")
@@ -57,13 +59,17 @@ def main() -> None:
     for backend in args.backends.split(","):
         for task in ("single", "bimanual"):
             env_s, raw_s = time_env(backend, task, args.steps)
-            print(f"{backend:10} {task:9} {1 / env_s:12.0f} {1 / raw_s:12.0f} "
-                  f"{100 * (env_s / raw_s - 1):8.1f}%")
+            print(
+                f"{backend:10} {task:9} {1 / env_s:12.0f} {1 / raw_s:12.0f} "
+                f"{100 * (env_s / raw_s - 1):8.1f}%"
+            )
     if args.workers:
         one = time_collect(1, 8, 200)
         two = time_collect(2, 8, 200)
-        print(f"collect mujoco single, 8 episodes x 200 steps: 1 worker {one:.0f} transitions/s, "
-              f"2 workers {two:.0f} transitions/s, speed-up {two / one:.2f}x")
+        print(
+            f"collect mujoco single, 8 episodes x 200 steps: 1 worker {one:.0f} transitions/s, "
+            f"2 workers {two:.0f} transitions/s, speed-up {two / one:.2f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -101,3 +101,9 @@ controllers.register("mppi", "dlocli.controllers.mppi:MPPI",
                      "sampling MPC (MPPI) through the learned model")
 controllers.register("random", "dlocli.controllers.base:RandomController",
                      "uniform random actions")
+controllers.register("sac", "dlocli.controllers.sb3_agents:SACAgent",
+                     "Soft Actor-Critic (stable-baselines3) on the flat observation")
+controllers.register("td3", "dlocli.controllers.sb3_agents:TD3Agent",
+                     "TD3 (stable-baselines3) with Gaussian exploration noise")
+controllers.register("pilco", "dlocli.controllers.pilco:PilcoAgent",
+                     "PILCO: GP dynamics, moment matching, RBF policy (Deisenroth 2011)")

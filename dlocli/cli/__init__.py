@@ -23,6 +23,7 @@ COMMANDS = [
     ("list", "dlocli.cli.listing:list_plugins"),
     ("goal", "dlocli.cli.goal:goal"),
     ("collect", "dlocli.cli.collect:collect"),
+    ("control", "dlocli.cli.control:control"),
 ]
 
 

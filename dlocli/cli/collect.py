@@ -8,7 +8,14 @@ from typing import Annotated
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, build_spec, emit_summary, handle_errors
+from dlocli.cli.common import (
+    JsonFlag,
+    OverwriteFlag,
+    SpecFile,
+    build_spec,
+    emit_summary,
+    handle_errors,
+)
 from dlocli.cli.common import opt_help as h
 from dlocli.specs import CollectSpec as S
 

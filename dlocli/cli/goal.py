@@ -7,7 +7,14 @@ from typing import Annotated
 
 import typer
 
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, build_spec, emit_summary, handle_errors
+from dlocli.cli.common import (
+    JsonFlag,
+    OverwriteFlag,
+    SpecFile,
+    build_spec,
+    emit_summary,
+    handle_errors,
+)
 from dlocli.cli.common import opt_help as h
 from dlocli.errors import BadInput
 from dlocli.specs import GoalSpec as S

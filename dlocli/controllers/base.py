@@ -3,22 +3,35 @@
 A controller is built for one environment (its task fixes the action size), is reset with a
 goal shape (N,3) in metres, and maps the env's flat observation to an action in [-1, 1]^A.
 ``last_latency_ms`` is the wall time of the latest :meth:`act`, for live displays and the
-latency statistics of ``dlo control``.
+latency statistics of ``dlo control``; ``last_stats`` holds the controller's own numbers about
+that step (e.g. a planner's iterations and model time), empty if it has none.
+
+Build one by registry name with :func:`make_controller`: a class declares what it needs
+besides the env in ``needs`` (e.g. ``("model",)`` for planners through a learned model) and
+its options as a pydantic ``spec_cls``.
 """
 
 from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import ValidationError
+
+from dlocli.errors import BadInput
+from dlocli.specs import Spec, format_validation_error
 
 
 class Controller(ABC):
     """Observation in, action out. Subclasses implement :meth:`_act`."""
 
     name: str = ""
+    #: what the constructor needs besides the env, as keyword arguments (e.g. "model")
+    needs: ClassVar[tuple[str, ...]] = ()
+    #: the options of this controller (passed as ``spec=``); None if it has none
+    spec_cls: ClassVar[type[Spec] | None] = None
 
     def __init__(self, env: Any) -> None:
         self.env = env
@@ -26,6 +39,7 @@ class Controller(ABC):
         self.action_dim = int(env.action_space.shape[0])
         self.goal: np.ndarray | None = None
         self.last_latency_ms = 0.0
+        self.last_stats: dict[str, float] = {}
 
     def reset(self, goal: np.ndarray) -> None:
         """Start a new episode towards ``goal`` (N,3) metres."""
@@ -53,3 +67,65 @@ class RandomController(Controller):
 
     def _act(self, obs: np.ndarray) -> np.ndarray:
         return self.rng.uniform(-1.0, 1.0, self.action_dim)
+
+
+class LearningAgent(Controller):
+    """A controller that learns from its own interaction with ``env`` (benchmark agents).
+
+    ``learn(n)`` interacts with the training env for exactly ``n`` more transitions (env
+    steps) and updates the agent; ``transitions`` counts all transitions used so far. The
+    benchmark alternates ``learn`` with evaluation episodes on a separate env (evaluation
+    transitions are not counted), so every agent gets the same transition budget.
+    """
+
+    def __init__(self, env: Any, seed: int = 0) -> None:
+        super().__init__(env)
+        self.seed = seed
+        self.transitions = 0
+
+    @abstractmethod
+    def learn(self, transitions: int) -> None:
+        """Use ``transitions`` more env steps of ``self.env`` to improve the agent."""
+
+
+def controller_spec(name: str, options: dict[str, Any] | None = None) -> Spec | None:
+    """Validate ``options`` against the registered controller's ``spec_cls`` (BadInput if wrong)."""
+    from dlocli.registry import controllers
+
+    cls = controllers.get(name)
+    if cls.spec_cls is None:
+        if options:
+            raise BadInput(f"controller '{name}' takes no options; remove {sorted(options)}")
+        return None
+    try:
+        return cls.spec_cls.model_validate(options or {})
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, f"controller '{name}' options")) from exc
+
+
+def make_controller(
+    name: str,
+    env: Any,
+    *,
+    options: dict[str, Any] | Spec | None = None,
+    seed: int = 0,
+    **provided: Any,
+) -> Controller:
+    """Build the registered controller ``name`` for ``env``.
+
+    ``options`` are its spec's fields (dict or spec instance); ``provided`` holds what
+    controllers may need (``model=``); only the names in the class's ``needs`` are passed on.
+    """
+    from dlocli.registry import controllers
+
+    cls = controllers.get(name)
+    missing = [need for need in cls.needs if provided.get(need) is None]
+    if missing:
+        needed = " and a ".join(missing)
+        raise BadInput(f"controller '{name}' needs a {needed}; pass --{missing[0]}")
+    kwargs: dict[str, Any] = {need: provided[need] for need in cls.needs}
+    if isinstance(options, Spec):
+        options = options.model_dump()
+    if cls.spec_cls is not None:
+        kwargs["spec"] = controller_spec(name, options)
+    return cls(env, seed=seed, **kwargs)

@@ -9,22 +9,293 @@ Shapes and units (every model, every device):
 - ``forward`` returns the next state ``(B, N, 7)`` with unit quaternions.
 - ``rollout(state, actions (B, H, 2, 6))`` returns ``(B, H, N, 7)``, differentiable with
   respect to ``actions``.
+
+Every model predicts the change of the state in normalised units (dataset statistics held in
+buffers, so they travel with the checkpoint), adds it to the state and renormalises the
+quaternions. Build one with :func:`build_model`, load a trained one with :func:`load_model`.
 """
 
 from __future__ import annotations
 
-from pydantic import Field
+import pickle
+import zipfile
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import Any
 
-from dlocli.specs import Spec
+import numpy as np
+import torch
+from pydantic import ValidationError
+from torch import Tensor
+
+from dlocli.errors import BadInput
+from dlocli.io import atomic_path, versions
+from dlocli.models.spec import ModelSpec
+from dlocli.specs import format_validation_error
+
+STATE_DIM = 7  # position (3) + quaternion (4)
+ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
+CHECKPOINT_FORMAT = "dlocli-checkpoint"
+CHECKPOINT_VERSION = 1
+FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
+_STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
 
 
-class ModelSpec(Spec):
-    """Which dynamics model, and its sizes (paper defaults)."""
+def mlp(sizes: list[int]) -> torch.nn.Sequential:
+    """Fully connected layers ``sizes[0] -> ... -> sizes[-1]``, ReLU between, linear output.
 
-    name: str = Field("in-bilstm", description="Dynamics model (see `dlo list`).")
-    hidden: int = Field(150, gt=0, description="Width of every hidden layer and of the LSTM.")
-    edge_layers: int = Field(4, gt=0, description="Layers of the relation-centric network f_e.")
-    node_layers: int = Field(4, gt=0, description="Layers of the object-centric network f_v.")
-    lstm_layers: int = Field(2, gt=0, description="Layers of the bidirectional LSTM along the rod.")
-    mlp_layers: int = Field(4, gt=0, description="Hidden layers of the `mlp` baseline.")
-    mlp_hidden: int = Field(512, gt=0, description="Width of the `mlp` baseline's hidden layers.")
+    He initialisation (weights N(0, 2/fan_in), zero biases) keeps the signal's scale through
+    deep stacks such as f_e -> LSTM -> f_v; PyTorch's default shrinks it layer by layer.
+    """
+    layers: list[torch.nn.Module] = []
+    for k in range(len(sizes) - 1):
+        linear = torch.nn.Linear(sizes[k], sizes[k + 1])
+        torch.nn.init.kaiming_normal_(linear.weight, nonlinearity="relu")
+        torch.nn.init.zeros_(linear.bias)
+        layers.append(linear)
+        if k < len(sizes) - 2:
+            layers.append(torch.nn.ReLU())
+    return torch.nn.Sequential(*layers)
+
+
+class DynamicsModel(torch.nn.Module, ABC):
+    """A learned one-step model of the rod. Subclasses implement :meth:`predict_delta`.
+
+    Buffers (saved with the weights): ``state_mean``/``state_std`` (7,) normalise the input
+    state per feature over all segments; ``delta_mean``/``delta_std`` (7,) the predicted change;
+    ``action_scale`` (6,) divides the commands (no shift, so "no gripper" stays zero).
+    """
+
+    def __init__(self, spec: ModelSpec, n_segments: int) -> None:
+        super().__init__()
+        if n_segments < 2:
+            raise BadInput(f"a rod model needs at least 2 segments, got {n_segments}")
+        self.spec = spec
+        self.n_segments = int(n_segments)
+        #: use the plain PyTorch implementation (the benchmarks' eager reference)
+        self.reference = False
+        for name, size, value in (
+            ("state_mean", STATE_DIM, 0.0),
+            ("state_std", STATE_DIM, 1.0),
+            ("delta_mean", STATE_DIM, 0.0),
+            ("delta_std", STATE_DIM, 1.0),
+            ("action_scale", ACTION_DIM, 1.0),
+        ):
+            self.register_buffer(name, torch.full((size,), value))
+        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+
+    # ------------------------------------------------------------------ subclass hook
+    @abstractmethod
+    def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:
+        """Normalised state change (B, N, 7) from the normalised state (B, N, 7) and the
+        normalised per-gripper commands (B, 2, 6)."""
+
+    # ------------------------------------------------------------------ normalisation
+    def fit_normalization(self, transitions: dict[str, np.ndarray]) -> None:
+        """Set the normalisation buffers from ``Dataset.transitions()`` arrays."""
+        state = np.asarray(transitions["state"], dtype=np.float64)
+        delta = target_delta(state, np.asarray(transitions["next_state"], dtype=np.float64))
+        action = np.asarray(transitions["action"], dtype=np.float64).reshape(-1, ACTION_DIM)
+        active = action[np.any(action != 0, axis=1)]
+        scale = np.sqrt(np.mean(active**2, axis=0)) if len(active) else np.ones(ACTION_DIM)
+        flat_s, flat_d = state.reshape(-1, STATE_DIM), delta.reshape(-1, STATE_DIM)
+        values = {
+            "state_mean": flat_s.mean(0),
+            "state_std": np.maximum(flat_s.std(0), _STD_FLOOR["state"]),
+            "delta_mean": flat_d.mean(0),
+            "delta_std": np.maximum(flat_d.std(0), _STD_FLOOR["delta"]),
+            "action_scale": np.where(scale > 1e-6, scale, 1.0),
+        }
+        for name, value in values.items():
+            getattr(self, name).copy_(torch.as_tensor(value, dtype=torch.float32))
+        self.fitted.fill_(True)
+
+    def normalize(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
+        return (state - self.state_mean) / self.state_std, action / self.action_scale
+
+    # ------------------------------------------------------------------ the contract
+    def forward(self, state: Tensor, action: Tensor) -> Tensor:
+        """Next state (B, N, 7) from state (B, N, 7) and action (B, 2, 6); unit quaternions."""
+        self._check(state, action)
+        delta_n = self.predict_delta(*self.normalize(state, action))
+        return apply_delta(state, delta_n * self.delta_std + self.delta_mean)
+
+    def rollout(self, state: Tensor, actions: Tensor) -> Tensor:
+        """Open-loop prediction: (B, N, 7) and (B, H, 2, 6) -> (B, H, N, 7).
+
+        Differentiable with respect to ``actions`` (and ``state``); the batch dimension can
+        carry independent plans (e.g. MPC restarts).
+        """
+        if actions.dim() != 4:
+            raise BadInput(f"actions must be (B, H, 2, 6), got {tuple(actions.shape)}")
+        states = []
+        for t in range(actions.shape[1]):
+            state = self(state, actions[:, t])
+            states.append(state)
+        return torch.stack(states, 1)
+
+    def loss(
+        self, state: Tensor, action: Tensor, next_state: Tensor, noise: Tensor | None = None
+    ) -> Tensor:
+        """Mean squared error of the normalised state change (the training objective).
+
+        ``noise`` (B, N, 7), in normalised units, is added to the input state (paper
+        Sec. IV-C); the target is the change from the noisy state, so the model learns to
+        pull a perturbed state back onto the data.
+        """
+        state_n, action_n = self.normalize(state, action)
+        if noise is not None:
+            state_n = state_n + noise
+            state = state_n * self.state_std + self.state_mean
+        target = (target_delta(state, next_state) - self.delta_mean) / self.delta_std
+        return torch.mean((self.predict_delta(state_n, action_n) - target) ** 2)
+
+    def _check(self, state: Tensor, action: Tensor) -> None:
+        n = self.n_segments
+        if state.dim() != 3 or state.shape[1:] != (n, STATE_DIM):
+            raise BadInput(f"state must be (B, {n}, 7), got {tuple(state.shape)}")
+        if action.dim() != 3 or action.shape[1:] != (2, ACTION_DIM) or len(action) != len(state):
+            raise BadInput(f"action must be ({len(state)}, 2, 6), got {tuple(action.shape)}")
+
+    @property
+    def device(self) -> torch.device:
+        return self.state_mean.device
+
+
+# ---------------------------------------------------------------------- state algebra
+def target_delta(state: Any, next_state: Any) -> Any:
+    """next_state - state with the next quaternion's sign aligned to the current one.
+
+    q and -q are the same rotation; aligning keeps the change small and continuous.
+    Works on numpy arrays and torch tensors of shape (..., 7).
+    """
+    dot = (state[..., 3:] * next_state[..., 3:]).sum(-1, keepdims=True)
+    sign = (dot >= 0) * 2.0 - 1.0
+    pos = next_state[..., :3] - state[..., :3]
+    quat = next_state[..., 3:] * sign - state[..., 3:]
+    if isinstance(state, Tensor):
+        return torch.cat([pos, quat], -1)
+    return np.concatenate([pos, quat], -1)
+
+
+def apply_delta(state: Tensor, delta: Tensor) -> Tensor:
+    """state + delta with the quaternion renormalised to unit length and w >= 0."""
+    nxt = state + delta
+    quat = torch.nn.functional.normalize(nxt[..., 3:], dim=-1)
+    quat = quat * torch.where(quat[..., :1] < 0, -1.0, 1.0)
+    return torch.cat([nxt[..., :3], quat], -1)
+
+
+def node_actions(action: Tensor, n_segments: int) -> Tensor:
+    """(B, 2, 6) gripper commands -> (B, N, 6): left on segment 0, right on N-1, else zero."""
+    middle = action.new_zeros(action.shape[0], n_segments - 2, ACTION_DIM)
+    return torch.cat([action[:, :1], middle, action[:, 1:]], 1)
+
+
+# ---------------------------------------------------------------------- building, devices
+def build_model(spec: ModelSpec, n_segments: int) -> DynamicsModel:
+    """A fresh (untrained) model of the registered kind ``spec.name``."""
+    from dlocli.registry import models
+
+    return models.get(spec.name)(spec, n_segments)
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """"auto" (CUDA if present, else CPU), "cpu", "cuda", "cuda:K"; BadInput if unavailable."""
+    name = str(device)
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:
+        raise BadInput(f"--device '{name}' is not a device; use auto, cpu, cuda or cuda:K") from exc
+    if dev.type == "cpu":
+        return torch.device("cpu")
+    if dev.type != "cuda":
+        raise BadInput(f"--device '{name}' is not supported; use auto, cpu, cuda or cuda:K")
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    index = 0 if dev.index is None else dev.index
+    if index >= count:
+        have = f"{count} CUDA device(s)" if count else "no CUDA device"
+        raise BadInput(f"--device '{name}' does not exist (this machine has {have}); use cpu")
+    return torch.device("cuda", index)
+
+
+# ---------------------------------------------------------------------- checkpoints
+def save_checkpoint(model: DynamicsModel, path: Path, extra: dict[str, Any] | None = None) -> Path:
+    """Write weights, model spec, normalisation and versions atomically to ``path``.
+
+    ``extra`` must hold only what ``torch.load(weights_only=True)`` accepts (tensors, numbers,
+    strings, lists, dicts: e.g. an optimizer's ``state_dict()``).
+    """
+    payload = {
+        **(extra or {}),
+        "format": CHECKPOINT_FORMAT,
+        "format_version": CHECKPOINT_VERSION,
+        "model_spec": model.spec.model_dump(mode="json"),
+        "n_segments": model.n_segments,
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "versions": versions(),
+    }
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return path
+
+
+def checkpoint_path(path: Path) -> Path:
+    """A checkpoint file, or a run directory's ``checkpoints/final.pt``."""
+    path = Path(path)
+    if path.is_dir():
+        final = path / FINAL_CHECKPOINT
+        if not final.is_file():
+            raise BadInput(f"run directory {path} has no {FINAL_CHECKPOINT}; run `dlo train`")
+        return final
+    if not path.is_file():
+        raise BadInput(f"model checkpoint {path} does not exist; pass a .pt file or run directory")
+    return path
+
+
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """The checkpoint's payload (CPU tensors), loaded with ``weights_only=True``; BadInput if
+    it is not a dlocli checkpoint."""
+    path = checkpoint_path(path)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, pickle.UnpicklingError, EOFError, OSError, ValueError,
+            zipfile.BadZipFile) as exc:  # fmt: skip
+        first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else type(exc).__name__
+        raise BadInput(f"{path} is not a readable checkpoint ({first}); retrain it") from exc
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise BadInput(f"{path} is not a dlocli model checkpoint; pass one written by `dlo train`")
+    if not isinstance(payload.get("state_dict"), dict) or not isinstance(
+        payload.get("n_segments"), int
+    ):
+        raise BadInput(f"checkpoint {path} lacks weights or segment count; retrain it")
+    return payload
+
+
+def load_model(
+    path: Path, device: str | torch.device = "cpu", expect: ModelSpec | None = None
+) -> DynamicsModel:
+    """A trained model from a checkpoint or run directory, in eval mode on ``device``.
+
+    ``expect``: the model spec the caller asked for; a different one in the file is refused.
+    """
+    payload = read_checkpoint(path)
+    try:
+        spec = ModelSpec.model_validate(payload.get("model_spec"))
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
+    if expect is not None and expect != spec:
+        raise BadInput(
+            f"checkpoint {path} holds model {spec.model_dump()} but {expect.model_dump()} "
+            "was requested; pass the matching --model or another checkpoint"
+        )
+    model = build_model(spec, payload["n_segments"])
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()[0][:160]
+        raise BadInput(f"checkpoint {path} weights do not fit {spec.name} ({first})") from exc
+    return model.to(resolve_device(device)).eval()

@@ -1,0 +1,149 @@
+"""Latency per control step of the model-based planners, and the share spent in the model.
+
+    python benchmarks/mpc_latency.py [--model CKPT] [--hidden 150] [--steps 12] [--threads 2]
+                                     [--quick] [--json]
+
+Each setting runs ``--steps`` closed-loop control steps of the MuJoCo single-gripper task
+(the first two are warm-up and not counted) and reports the median and 95th percentile of
+``Controller.last_latency_ms``. "model %" is the share of that median spent in the model
+itself: the median time of ``iterations`` bare rollouts (+ gradient for ``mpc``) at the
+setting's batch size, divided by the step's median latency; the rest is the planner's own
+work (tensors from the observation, optimiser updates, bookkeeping).
+
+Without ``--model`` an untrained in-bilstm of ``--hidden`` width is used: latency does not
+depend on the weights. The row marked ``paper-like`` is the slow reference setting (50
+cold-start Adam iterations per step, no warm start).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import dlocli
+from dlocli.controllers.base import Controller, make_controller
+from dlocli.controllers.planning import ModelPlanner
+from dlocli.models.base import ModelSpec, build_model, load_model
+
+PAPER_LIKE = {"iterations": 50, "warm_start": False, "restarts": 1}
+
+SETTINGS: list[tuple[str, dict[str, Any]]] = [
+    ("mpc", {}),  # defaults
+    ("mpc", {"iterations": 1}),
+    ("mpc", {"iterations": 3}),
+    ("mpc", {"iterations": 5}),
+    ("mpc", {"iterations": 2, "restarts": 4}),
+    ("mpc", {"iterations": 2, "restarts": 16}),
+    ("mpc", {"iterations": 2, "replan_every": 2}),
+    ("mpc", {"iterations": 20}),
+    ("mpc", PAPER_LIKE),
+    ("mppi", {}),  # defaults
+    ("mppi", {"samples": 16}),
+    ("mppi", {"samples": 64}),
+    ("mppi", {"samples": 256, "iterations": 3}),
+]
+QUICK = [s for s in SETTINGS if s[1].get("iterations", 0) < 20 and s[1].get("samples", 0) < 256]
+
+
+def get_model(path: Path | None, hidden: int, n_segments: int, device: torch.device) -> Any:
+    """The checkpoint at ``path``, or an untrained in-bilstm of width ``hidden``."""
+    if path is not None:
+        return load_model(path, device)
+    return build_model(ModelSpec(hidden=hidden), n_segments).to(device).eval()
+
+
+def model_ms(
+    controller: ModelPlanner, obs: np.ndarray, name: str, options: dict[str, Any]
+) -> float:
+    """Median ms of the bare model work of one re-plan at this setting's batch size."""
+    spec = controller.spec
+    batch = getattr(spec, "restarts", None) or getattr(spec, "samples", 1)
+    iterations = spec.iterations  # type: ignore[attr-defined]
+    state = controller.state_tensor(obs)
+    plans = controller.random_plans(batch)
+    times = []
+    for _ in range(5):
+        start = time.perf_counter()
+        for _ in range(iterations):
+            if name == "mpc":
+                plans.requires_grad_(True)
+                torch.autograd.grad(controller.predict_cost(state, plans).sum(), plans)
+            else:
+                with torch.inference_mode():
+                    controller.predict_cost(state, plans)
+        times.append(time.perf_counter() - start)
+    return 1000.0 * float(np.median(times))
+
+
+def time_setting(
+    env: Any, model: Any, name: str, options: dict[str, Any], steps: int
+) -> dict[str, Any]:
+    """Closed-loop latency of one planner setting; the env restarts from the same state."""
+    obs, _ = env.reset(seed=0)
+    controller: Controller = make_controller(name, env, options=options, model=model)
+    controller.reset(env.goal)
+    latencies, cpu = [], []
+    for _ in range(steps):
+        start = time.process_time()
+        action = controller.act(obs)
+        cpu.append(1000.0 * (time.process_time() - start))
+        latencies.append(controller.last_latency_ms)
+        obs, *_ = env.step(action)
+    measured = np.array(latencies[2:])
+    median = float(np.median(measured))
+    assert isinstance(controller, ModelPlanner)
+    in_model = model_ms(controller, obs, name, options) / max(controller.spec.replan_every, 1)
+    resolved = controller.spec.model_dump()
+    return {
+        "controller": name,
+        "options": options,
+        "resolved": resolved,
+        "paper_like": name == "mpc" and all(resolved[k] == v for k, v in PAPER_LIKE.items()),
+        "latency_ms_median": round(median, 2),
+        "latency_ms_p95": round(float(np.percentile(measured, 95)), 2),
+        "cpu_ms_median": round(float(np.median(cpu[2:])), 2),
+        "hz": round(1000.0 / median, 1),
+        "model_share": round(min(in_model / median, 1.0), 3),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
+    parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: untrained)")
+    parser.add_argument("--hidden", type=int, default=150, help="width of the untrained model")
+    parser.add_argument("--steps", type=int, default=12, help="control steps per setting")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (dlo control: 1)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--quick", action="store_true", help="skip the settings slower than ~0.5 s")
+    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    env = dlocli.make_env(backend="mujoco", task="single", seed=0, episode_steps=10**6)
+    model = get_model(args.model, args.hidden, env.n_segments, torch.device(args.device))
+    rows = [
+        time_setting(env, model, n, o, args.steps) for n, o in (QUICK if args.quick else SETTINGS)
+    ]
+    env.close()
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return
+    header = f"{'controller':10} {'options':46} {'median ms':>9} {'p95 ms':>7} {'cpu ms':>7}"
+    print(f"{header} {'Hz':>6} {'model %':>7}")
+    for row in rows:
+        label = ", ".join(f"{k}={v}" for k, v in row["options"].items()) or "(defaults)"
+        label += "  <- paper-like" if row["paper_like"] else ""
+        print(f"{row['controller']:10} {label:46} {row['latency_ms_median']:9.1f} "
+              f"{row['latency_ms_p95']:7.1f} {row['cpu_ms_median']:7.1f} {row['hz']:6.1f} "
+              f"{100 * row['model_share']:6.0f}%")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,500 @@
+"""PyBullet backend: the rod as a chain of rigid capsules joined by elastic spherical joints.
+
+Model (SI units throughout)
+- One multibody of ``N`` capsule links, each of length ``l = L / N`` and mass
+  ``rho * A * l``. Link frames sit at segment starts (the joint pivots); the inertial frame
+  sits at the segment centre with its x axis along the rod, so PyBullet's link "world
+  position" *is* the segment centre of base.py's convention.
+- Elasticity: every spherical joint carries a linear spring-damper on its rotation vector
+  ``theta`` (log map of the joint quaternion, child frame, x = rod axis):
+  ``tau = -diag(k_t, k_b, k_b) theta - beta diag(k_t, k_b, k_b) omega`` with
+  ``k_b = EI / l`` and ``k_t = GJ / l`` exactly, so static shapes (the cantilever) are the
+  discrete Euler-Bernoulli rod's.
+- Why explicit torques plus armature: PyBullet 3.2.7 offers no calibrated implicit joint
+  spring (measured: ``STABLE_PD_CONTROL`` gives static joint deflections 300x to 3e7x off
+  ``tau / kp``, changing with kd; the spherical ``POSITION_CONTROL`` motor is a velocity
+  constraint, not a spring). Explicit torques at 2 ms are unstable for the physical rotary
+  inertia (the twist "zig-zag" mode of a 5 cm segment is ~2400 rad/s). So the segments'
+  rotary inertia is raised (an armature, as in MuJoCo) just enough that the fastest
+  discrete modes satisfy ``omega_max * dt <= COURANT`` (unstable from ~0.85). Masses and
+  stiffnesses stay physical and statics are exact; for the default rod at 2 ms the
+  armature is ~96x (twist) and ~25x (bending) the physical rotary inertia, and random-motion
+  trajectories stay within 2.9 mm (mean over segments and time) of a 0.5 ms run with almost
+  no armature. The spring-proportional damping ``beta = DAMPING_STEPS * dt`` damps the
+  fastest modes (damping ratio ~0.5) and little else.
+- Discretisation: the held segment 0 is rigid, so a cantilever of N segments deflects
+  ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at N = 20).
+- Damping: besides the joint damping above, PyBullet's velocity damping (``AIR_DAMPING``
+  = 5/s, acceleration ``-d (1 + |v|) v`` on every link, like a strong air drag) lets the
+  rod settle: after random gripper motion stops, segments slow below 1 mm/s within ~1.2 s.
+  At the largest gripper speed (0.1 m/s) the drag is ~6% of the rod's weight.
+- Left gripper: the multibody's floating base is segment 0, made very heavy and driven
+  kinematically: its pose and twist are set at each control step, and an external wrench
+  cancels gravity and damping on it every physics step, so it keeps the gripper's twist
+  exactly (drift ~1e-6 m per period) and the chain sees a moving clamp with correct
+  inertial effects.
+- Right gripper: a ``JOINT_FIXED`` constraint between the end of the last link and a world
+  frame moved every physics step (``changeConstraint``, global ERP 1: no lag).
+  ``held_ends == "left"`` omits it (a free cantilever end).
+- Limits: PyBullet reports at most 128 joint coordinates, i.e. 31 spherical joints: the
+  chain has at most ``MAX_SEGMENTS`` = 32 segments.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import pybullet as p
+
+from dlocli.backends.base import REST_HEIGHT, Backend
+from dlocli.errors import BadInput, SimulationDiverged
+from dlocli.rotations import quat_normalize
+from dlocli.specs import BackendSpec, RodSpec
+
+COURANT = 0.5  # target omega_max * dt of the fastest chain mode (explicit stability < 2)
+DAMPING_STEPS = 2.0  # joint damping time beta, in physics steps (damps the fastest modes)
+AIR_DAMPING = 5.0  # 1/s, PyBullet linear/angular velocity damping of every link
+SETTLE_DAMPING = 20.0  # 1/s, air damping while the rest shape settles in reset()
+SETTLE_TIME = 3.0  # s of simulated settling for the rest shape
+BASE_MASS_RATIO = 1e4  # base (left clamp) mass / rod mass: a kinematic clamp to the chain
+HOLD_FORCE = 1e4  # N, maximum force of the right gripper's fixed constraint
+HOLD_ERP = 1.0  # fraction of the right gripper's pose error removed per physics step
+SOLVER_ITERATIONS = 10  # PGS sweeps; one 6-row constraint converges in a few
+MAX_SEGMENTS = 32  # PyBullet's 128 joint coordinates: 7 (base) + 4 per spherical joint
+GRAVITY = 9.81  # m/s^2
+MAX_JOINT_SPEED = 100.0  # rad/s; random gripper motion stays under 3, faster means a blow-up
+
+
+def _xyzw(q: np.ndarray) -> np.ndarray:
+    """(w,x,y,z) -> PyBullet's (x,y,z,w)."""
+    return q[..., [1, 2, 3, 0]]
+
+
+def _wxyz(q: np.ndarray) -> np.ndarray:
+    """PyBullet's (x,y,z,w) -> (w,x,y,z)."""
+    return q[..., [3, 0, 1, 2]]
+
+
+def _right_product(q: np.ndarray) -> np.ndarray:
+    """4x4 matrix M with ``a * q = M @ a`` for quaternions (w,x,y,z)."""
+    w, x, y, z = q
+    return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
+
+
+def _spin(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """Rotation vector r (radians, world frame) of the shortest spin with q1 = exp(r) q0."""
+    rel = _right_product(q0 * np.array([1.0, -1, -1, -1])) @ q1  # q1 * conj(q0)
+    if rel[0] < 0:
+        rel = -rel
+    sin_half = float(np.linalg.norm(rel[1:]))
+    if sin_half < 1e-15:
+        return np.zeros(3)
+    return rel[1:] * (2.0 * math.atan2(sin_half, rel[0]) / sin_half)
+
+
+class _Targets(NamedTuple):
+    """Gripper drive for one control period (PyBullet lists, x y z w quaternions)."""
+
+    base_pose: tuple[list[float], ...]  # base centre, orientation, velocity, omega
+    base_com: list[list[float]]  # (n,3) base centre at each physics step's start
+    base_wrench: tuple[list[float], list[float]]  # cancels gravity and damping on the base
+    hold_pos: list[list[float]]  # (n,3) right gripper position at each physics step's end
+    hold_orn: list[list[float]]  # (n,4) right gripper orientation at each physics step's end
+
+
+@dataclass(frozen=True)
+class ChainModel:
+    """Per-segment parameters of the discretised rod (SI units)."""
+
+    seg_length: float  # m
+    seg_mass: float  # kg
+    stiffness: np.ndarray  # (3,) N m/rad about (rod axis, bend y, bend z): (k_t, k_b, k_b)
+    damping: np.ndarray  # (3,) N m s/rad, stiffness-proportional
+    inertia: np.ndarray  # (3,) kg m^2 about the segment centre, armature included
+
+    @classmethod
+    def from_rod(cls, rod: RodSpec, dt: float) -> ChainModel:
+        """Physical mass and stiffness; rotary inertia raised to keep explicit springs stable."""
+        seg, r = rod.segment_length, rod.radius
+        m = rod.density * rod.area * seg
+        k_b = rod.bending_stiffness / seg
+        k_t = rod.torsional_stiffness / seg
+        h = dt / COURANT
+        # zig-zag modes (neighbours alternate): twist omega^2 = 4 k_t / J_t,
+        # bending omega^2 = 16 k_b / (m l^2 + 4 J_b); J >= bound <=> omega * dt <= COURANT
+        j_twist = max(0.5 * m * r**2, 4.0 * k_t * h**2)
+        j_bend = max(m * (3 * r**2 + seg**2) / 12.0, (16.0 * k_b * h**2 - m * seg**2) / 4.0)
+        stiffness = np.array([k_t, k_b, k_b])
+        return cls(
+            seg_length=seg,
+            seg_mass=m,
+            stiffness=stiffness,
+            damping=DAMPING_STEPS * dt * stiffness,
+            inertia=np.array([j_twist, j_bend, j_bend]),
+        )
+
+
+class PybulletChain(Backend):
+    """PyBullet chain of capsules, joint stiffness from EI/l and GJ/l (see module docstring)."""
+
+    name = "pybullet"
+    #: every dt is stable (the armature scales with dt^2); 2 ms keeps dynamics within ~3 mm of
+    #: a converged run (4 ms: 5.4 mm, 10 ms: 10 mm) at >= 250 env steps/s on 2 cores
+    default_physics_dt = 0.002
+
+    def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
+        super().__init__(spec, control_dt)
+        if self.n_segments > MAX_SEGMENTS:
+            raise BadInput(
+                f"the pybullet backend supports at most {MAX_SEGMENTS} rod segments (PyBullet "
+                f"reports 128 joint coordinates), got {self.n_segments}; use fewer segments "
+                "or the mujoco backend"
+            )
+        self._n_sub = max(1, round(control_dt / self.physics_dt))
+        self._dt = control_dt / self._n_sub  # divides the control period exactly
+        self.model = ChainModel.from_rod(self.rod, self._dt)
+        self._client = p.connect(p.DIRECT)  # private server: several envs per process
+        if self._client < 0:
+            raise RuntimeError("could not start a PyBullet DIRECT physics server")
+        self._body = -1
+        self._hold = -1  # right gripper constraint id, -1 when the right end is free
+        self._joints = list(range(self.n_segments - 1))
+        self._base_mass = BASE_MASS_RATIO * self.rod.mass
+        self._base_inertia = self._base_mass * self.rod.length**2
+        k, d = self.model.stiffness, self.model.damping  # (twist, bend, bend)
+        self._gains = (float(k[0]), float(k[1]), float(d[0]), float(d[1]))
+        self._frames: tuple[np.ndarray, np.ndarray] | None = None  # cached link frames
+        self._visuals: dict[str, int] = {}  # render-only visual shapes, by kind
+        self._build()
+        self._rest_state = self._settle_rest()
+
+    # ----------------------------------------------------------------- construction
+    def _build(self) -> None:
+        c = self._client
+        p.resetSimulation(physicsClientId=c)
+        p.setGravity(0, 0, -GRAVITY, physicsClientId=c)
+        p.setTimeStep(self._dt, physicsClientId=c)
+        # the multibody fixed constraint uses the global ERP; the default 0.2 lags a moving
+        # gripper by (1 - erp) / erp physics steps of travel (0.8 mm at 0.1 m/s)
+        p.setPhysicsEngineParameter(
+            erp=HOLD_ERP, numSolverIterations=SOLVER_ITERATIONS, physicsClientId=c
+        )
+        seg, r, n = self.model.seg_length, self.rod.radius, self.n_segments - 1
+        along_x = p.getQuaternionFromEuler([0, math.pi / 2, 0])  # capsules are along z
+        # no collision shapes (no floor, no self-collision): 35-60% faster steps; the
+        # inertias are set explicitly in _set_dynamics
+        vis = p.createVisualShape(
+            p.GEOM_CAPSULE, radius=r, length=seg, visualFramePosition=[seg / 2, 0, 0],
+            visualFrameOrientation=along_x, rgbaColor=[0.85, 0.35, 0.1, 1], physicsClientId=c,
+        )
+        self._body = p.createMultiBody(
+            baseMass=self._base_mass, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vis,
+            basePosition=[0, 0, REST_HEIGHT], baseInertialFramePosition=[seg / 2, 0, 0],
+            linkMasses=[self.model.seg_mass] * n, linkCollisionShapeIndices=[-1] * n,
+            linkVisualShapeIndices=[vis] * n, linkPositions=[[seg, 0, 0]] * n,
+            linkOrientations=[[0, 0, 0, 1]] * n, linkInertialFramePositions=[[seg / 2, 0, 0]] * n,
+            linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=list(range(n)),
+            linkJointTypes=[p.JOINT_SPHERICAL] * n, linkJointAxis=[[0, 0, 1]] * n,
+            physicsClientId=c,
+        )
+        self._set_dynamics(AIR_DAMPING)
+        # switch off the default joint motors: the joints are driven by our spring torques
+        p.setJointMotorControlMultiDofArray(
+            self._body, self._joints, p.POSITION_CONTROL, targetPositions=[[0, 0, 0, 1]] * n,
+            forces=[[0, 0, 0]] * n, physicsClientId=c,
+        )
+        if self.spec.held_ends == "both":
+            self._hold = p.createConstraint(
+                self._body, n - 1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [seg / 2, 0, 0],
+                [0, 0, REST_HEIGHT], physicsClientId=c,
+            )
+            p.changeConstraint(self._hold, maxForce=HOLD_FORCE, physicsClientId=c)
+
+    def _set_dynamics(self, air_damping: float) -> None:
+        """Sets the (armature) inertias and the multibody-wide velocity damping (1/s)."""
+        c, b = self._client, self._body
+        for link in [-1, *self._joints]:
+            inertia = [self._base_inertia] * 3 if link < 0 else self.model.inertia.tolist()
+            # separate calls: PyBullet drops the inertia when damping is in the same call
+            p.changeDynamics(b, link, localInertiaDiagonal=inertia, physicsClientId=c)
+            p.changeDynamics(
+                b, link, linearDamping=air_damping, angularDamping=air_damping, physicsClientId=c
+            )
+        self._air_damping = air_damping
+
+    def _arc_joint_state(self) -> np.ndarray:
+        """Joint quaternions (x,y,z,w) of a slack vertical-plane arc with level end segments.
+
+        Segment k points along (cos b_k, 0, -sin b_k), b_k = A sin(2 pi (k + 1/2) / N) with
+        the end segments level (they are clamped), A found by bisection so the chord matches
+        the gripper separation.
+        """
+        n, seg = self.n_segments, self.model.seg_length
+        chord = np.linalg.norm(self._gripper_poses[1, :3] - self._gripper_poses[0, :3])
+        shape = np.sin(2 * np.pi * (np.arange(n) + 0.5) / n)
+        shape[[0, -1]] = 0.0
+
+        def span(amplitude: float) -> float:
+            return float(seg * np.cos(amplitude * shape).sum())
+
+        lo, hi = 0.0, 1.5
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if span(mid) > chord else (lo, mid)
+        bend = np.diff(lo * shape)  # rotation of joint k about y, radians
+        quats = np.zeros((n - 1, 4))
+        quats[:, 1], quats[:, 3] = np.sin(bend / 2), np.cos(bend / 2)
+        return quats
+
+    def _settle_rest(self) -> np.ndarray:
+        """Lay the rod out (arc or straight), let it settle with heavy damping, snapshot."""
+        c, b, n = self._client, self._body, self.n_segments - 1
+        straight = np.tile([0.0, 0, 0, 1], (n, 1))
+        quats = self._arc_joint_state() if self._hold >= 0 else straight
+        p.resetJointStatesMultiDof(
+            b, self._joints, targetValues=quats.tolist(), targetVelocities=[[0, 0, 0]] * n,
+            physicsClientId=c,
+        )
+        self._set_dynamics(SETTLE_DAMPING)
+        rest = self._gripper_poses
+        for _ in range(round(SETTLE_TIME / self.control_dt)):
+            if not self._advance(rest, rest):
+                raise SimulationDiverged(f"pybullet: the rest shape of {self.rod} diverged")
+        self._set_dynamics(AIR_DAMPING)
+        state = self._get_physics_state()
+        state[7:13] = 0.0  # at rest: exactly zero base and joint velocities
+        state[13 + 4 * n : 13 + 7 * n] = 0.0
+        self._set_physics_state(state)
+        return state
+
+    # ----------------------------------------------------------------- stepping
+    def _reset_physics(self, seed: int | None) -> None:
+        self._set_physics_state(self._rest_state)
+
+    def _substep_targets(self, start: np.ndarray, end: np.ndarray) -> _Targets:
+        """Gripper motion over one control period, sampled at the physics steps.
+
+        Positions move linearly and orientations spin at the constant world angular velocity
+        that :func:`integrate_gripper_poses` applied (``end = exp(w T) start``).
+        """
+        n, T = self._n_sub, self.control_dt
+        frac = np.arange(1, n + 1)[:, None] / n  # ends of the physics steps
+        # left gripper = base: pose and twist at the start of the period
+        omega = _spin(start[0, 3:], end[0, 3:]) / T  # rad/s, world frame
+        w, x, y, z = start[0, 3:]
+        lever = 0.5 * self.model.seg_length * np.array(  # half a segment along its x axis
+            [1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)]
+        )
+        com_vel = (end[0, :3] - start[0, :3]) / T + np.cross(omega, lever)
+        com = start[0, :3] + lever + (frac - 1.0 / n) * T * com_vel  # at each step's start
+        # cancel gravity and PyBullet's velocity damping on the heavy base, so that it keeps
+        # the gripper's twist (the chain's reaction on it is ~1e-4 of its weight)
+        d = self._air_damping
+        speed, spin_rate = float(np.linalg.norm(com_vel)), float(np.linalg.norm(omega))
+        force = self._base_mass * (np.array([0.0, 0.0, GRAVITY]) + d * (1 + speed) * com_vel)
+        torque = self._base_inertia * d * (1 + spin_rate) * omega
+        # right gripper: target pose at the end of every physics step
+        rotvec = _spin(start[1, 3:], end[1, 3:])
+        angle = float(np.linalg.norm(rotvec))
+        axis = rotvec / angle if angle > 1e-15 else np.zeros(3)
+        half = 0.5 * angle * frac
+        spins = np.hstack([np.cos(half), np.sin(half) * axis])  # (n,4) w x y z
+        hold_quats = spins @ _right_product(start[1, 3:]).T
+        hold_pos = start[1, :3] + frac * (end[1, :3] - start[1, :3])
+        return _Targets(
+            base_pose=(
+                com[0].tolist(), _xyzw(start[0, 3:]).tolist(), com_vel.tolist(), omega.tolist()
+            ),
+            base_com=com.tolist(),
+            base_wrench=(force.tolist(), torque.tolist()),
+            hold_pos=hold_pos.tolist(),
+            hold_orn=_xyzw(hold_quats).tolist(),
+        )
+
+    def _spring_torques(self, states: list) -> list[tuple[float, float, float]] | None:
+        """Joint torques (N m, child frame) from PyBullet's multi-DoF joint states.
+
+        ``tau = -K theta - C omega`` with ``theta`` the rotation vector of the joint
+        quaternion. Plain Python: for ~20 joints it is twice as fast as numpy. None when a
+        joint spins faster than ``MAX_JOINT_SPEED`` (or is NaN): the rod blew up.
+        """
+        kt, kb, ct, cb = self._gains
+        torques = []
+        for (x, y, z, w), (ox, oy, oz) in ((s[0], s[1]) for s in states):
+            if not abs(ox) + abs(oy) + abs(oz) < MAX_JOINT_SPEED:
+                return None
+            sin_half = math.sqrt(x * x + y * y + z * z)
+            # theta = 2 asin(|v|) v / |v| for the shorter rotation (sign of w); -> 2 v at 0
+            f = math.asin(min(sin_half, 1.0)) / sin_half if sin_half > 1e-12 else 1.0
+            f = math.copysign(2.0 * f, w)
+            torques.append((-kt * f * x - ct * ox, -kb * f * y - cb * oy, -kb * f * z - cb * oz))
+        return torques
+
+    def _advance(self, start: np.ndarray, end: np.ndarray) -> bool:
+        c, b, joints, hold = self._client, self._body, self._joints, self._hold
+        targets = self._substep_targets(start, end)
+        force, torque = targets.base_wrench
+        # the heavy, compensated base keeps this twist through the period (drift ~1e-6 m),
+        # so it is set once per control step instead of every physics step
+        com, orn, vel, omega = targets.base_pose
+        p.resetBasePositionAndOrientation(b, com, orn, physicsClientId=c)
+        p.resetBaseVelocity(b, vel, omega, physicsClientId=c)
+        self._frames = None
+        for i in range(self._n_sub):
+            tau = self._spring_torques(p.getJointStatesMultiDof(b, joints, physicsClientId=c))
+            if tau is None:
+                return False
+            p.setJointMotorControlMultiDofArray(
+                b, joints, p.TORQUE_CONTROL, forces=tau, physicsClientId=c
+            )
+            p.applyExternalForce(
+                b, -1, force, targets.base_com[i], p.WORLD_FRAME, physicsClientId=c
+            )
+            p.applyExternalTorque(b, -1, torque, p.WORLD_FRAME, physicsClientId=c)
+            if hold >= 0:
+                p.changeConstraint(
+                    hold, targets.hold_pos[i], jointChildFrameOrientation=targets.hold_orn[i],
+                    maxForce=HOLD_FORCE, physicsClientId=c,
+                )
+            p.stepSimulation(physicsClientId=c)
+        return True
+
+    # ----------------------------------------------------------------- state
+    def _get_physics_state(self) -> np.ndarray:
+        """[base pos 3, base quat xyzw 4, base lin vel 3, ang vel 3, joint quats 4n,
+        joint vels 3n, right-gripper constraint target (pos 3, quat xyzw 4)]."""
+        c, b = self._client, self._body
+        pos, orn = p.getBasePositionAndOrientation(b, physicsClientId=c)
+        lin, ang = p.getBaseVelocity(b, physicsClientId=c)
+        states = p.getJointStatesMultiDof(b, self._joints, physicsClientId=c)
+        target = np.zeros(7)
+        if self._hold >= 0:
+            info = p.getConstraintInfo(self._hold, physicsClientId=c)
+            target = np.concatenate([info[7], info[9]])
+        return np.concatenate(
+            [pos, orn, lin, ang, np.ravel([s[0] for s in states]),
+             np.ravel([s[1] for s in states]), target]
+        ).astype(np.float64)
+
+    def _set_physics_state(self, state: np.ndarray) -> None:
+        c, b, n = self._client, self._body, self.n_segments - 1
+        self._frames = None
+        state = np.asarray(state, dtype=np.float64)
+        quats = state[13 : 13 + 4 * n].reshape(n, 4)
+        vels = state[13 + 4 * n : 13 + 7 * n].reshape(n, 3)
+        p.resetBasePositionAndOrientation(
+            b, state[:3].tolist(), state[3:7].tolist(), physicsClientId=c
+        )
+        p.resetBaseVelocity(b, state[7:10].tolist(), state[10:13].tolist(), physicsClientId=c)
+        p.resetJointStatesMultiDof(
+            b, self._joints, targetValues=quats.tolist(), targetVelocities=vels.tolist(),
+            physicsClientId=c,
+        )
+        if self._hold >= 0:
+            target = state[13 + 7 * n : 20 + 7 * n]
+            p.changeConstraint(
+                self._hold, target[:3].tolist(), jointChildFrameOrientation=target[3:].tolist(),
+                maxForce=HOLD_FORCE, physicsClientId=c,
+            )
+
+    # ----------------------------------------------------------------- observations
+    def _link_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """Segment centres (N,3) and orientations (N,4, x y z w), cached until the next change."""
+        if self._frames is None:
+            self._frames = self._read_link_frames()
+        return self._frames
+
+    def _read_link_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        c, b = self._client, self._body
+        base_pos, base_orn = p.getBasePositionAndOrientation(b, physicsClientId=c)
+        links = p.getLinkStates(b, self._joints, computeForwardKinematics=1, physicsClientId=c)
+        pos = np.array([base_pos, *(s[0] for s in links)], dtype=np.float64)
+        orn = np.array([base_orn, *(s[1] for s in links)], dtype=np.float64)
+        return pos, orn
+
+    def segment_positions(self) -> np.ndarray:
+        return self._link_frames()[0].copy()
+
+    def segment_quaternions(self) -> np.ndarray:
+        return quat_normalize(_wxyz(self._link_frames()[1]))  # unit, w >= 0
+
+    # ----------------------------------------------------------------- rendering
+    def render(
+        self, width: int = 480, height: int = 360, goal: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Tiny-renderer image of the rod, grippers (grey boxes) and goal (green spheres)."""
+        width, height = max(1, int(width)), max(1, int(height))
+        markers: list[int] = []
+        try:
+            markers = self._add_markers(goal)
+            return self._camera_image(width, height)
+        except Exception:  # noqa: BLE001 - rendering must never crash a run
+            return self._fallback_image(width, height, goal)
+        finally:
+            # markers live only while rendering: static bodies still cost physics time
+            for body in markers:
+                with contextlib.suppress(Exception):
+                    p.removeBody(body, physicsClientId=self._client)
+
+    def _visual(self, kind: str, **shape: object) -> int:
+        """A visual shape (``createVisualShape`` arguments), created once per kind."""
+        if kind not in self._visuals:
+            self._visuals[kind] = p.createVisualShape(physicsClientId=self._client, **shape)
+        return self._visuals[kind]
+
+    def _add_markers(self, goal: np.ndarray | None) -> list[int]:
+        """Visual-only bodies (no mass, no collision) at the grippers and goal points."""
+        r = self.rod.radius
+        box = self._visual(
+            "gripper", shapeType=p.GEOM_BOX, halfExtents=[2 * r] * 3, rgbaColor=[0.4, 0.4, 0.45, 1]
+        )
+        ball = self._visual(
+            "goal", shapeType=p.GEOM_SPHERE, radius=1.2 * r, rgbaColor=[0.1, 0.7, 0.2, 1]
+        )
+        grips = self._gripper_poses if self.spec.held_ends == "both" else self._gripper_poses[:1]
+        places = [(box, pose[:3], _xyzw(pose[3:])) for pose in grips]  # a free end: no gripper
+        try:
+            points = np.asarray(goal, dtype=np.float64).reshape(-1, 3)
+        except (TypeError, ValueError):  # None or not (N,3)-like: draw no goal
+            points = np.zeros((0, 3))
+        places += [(ball, pt, [0, 0, 0, 1]) for pt in points if np.isfinite(pt).all()]
+        return [
+            p.createMultiBody(
+                baseMass=0, baseVisualShapeIndex=vis, basePosition=list(pos),
+                baseOrientation=list(orn), physicsClientId=self._client,
+            )
+            for vis, pos, orn in places
+        ]
+
+    def _camera_image(self, width: int, height: int) -> np.ndarray:
+        """A fixed camera in front of the workspace (-y side), slightly above, looking at it."""
+        L = self.rod.length
+        target = [0.0, 0.0, REST_HEIGHT - 0.2 * L]
+        view = p.computeViewMatrix([0.0, -1.6 * L, REST_HEIGHT + 0.3 * L], target, [0, 0, 1])
+        proj = p.computeProjectionMatrixFOV(50.0, width / height, 0.05 * L, 10.0 * L)
+        _, _, rgba, _, _ = p.getCameraImage(
+            width, height, view, proj, renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self._client,
+        )
+        return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[..., :3].copy()
+
+    def _fallback_image(self, width: int, height: int, goal: np.ndarray | None) -> np.ndarray:
+        try:
+            from dlocli.render import render_rod
+
+            return render_rod(self.segment_positions(), self.gripper_poses(), goal, width, height)
+        except Exception:  # noqa: BLE001 - last resort: a blank frame, never a crash
+            return np.full((height, width, 3), 255, dtype=np.uint8)
+
+    def close(self) -> None:
+        if self._client >= 0 and p.isConnected(physicsClientId=self._client):
+            p.disconnect(physicsClientId=self._client)
+        self._client = -1
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):  # interpreter shutdown: pybullet may be gone
+            self.close()

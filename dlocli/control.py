@@ -1,0 +1,271 @@
+"""Closed-loop shape control (``dlo control``): drive the rod to a goal shape in the simulator.
+
+From a seeded random start, a registered controller (default: the paper's gradient MPC through
+a learned model) acts at every control step. The run directory holds:
+
+=====================  ==========================================================
+spec.json              the resolved :class:`ControlSpec` (controller options filled in)
+metrics.csv            per step: shape error (mm), reward, latency (ms), controller stats
+summary.json           ``initial_error_mm``, ``final_error_mm``, ``best_error_mm``,
+                       ``cumulative_reward``, ``latency_ms_median``, ``latency_ms_p95``,
+                       ``steps`` and the run's context
+plots/error.png        shape error and controller latency over the steps
+=====================  ==========================================================
+
+plus, with ``video``, frames of the rod and the goal from the backend's renderer.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from dlocli.controllers.base import Controller, controller_spec, make_controller
+from dlocli.env import DLOShapeEnv, load_goal, make_env
+from dlocli.errors import BadInput
+from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
+from dlocli.specs import EnvSpec
+
+VIDEO_SUFFIXES = (".gif", ".mp4")
+
+Progress = Callable[[dict[str, float]], None]
+
+
+class ControlSpec(EnvSpec):
+    """`dlo control`: closed-loop control to a goal shape. The goal is ``task.goal_file``."""
+
+    model: Path | None = Field(
+        None, description="Dynamics model checkpoint (.pt file or `dlo train` run directory)."
+    )
+    device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
+    threads: int = Field(
+        1, ge=1, description="Torch CPU threads while controlling (1 is fastest at the planners' "
+        "small batches and robust on a shared CPU).",
+    )  # fmt: skip
+    controller: str = Field("mpc", description="Controller (see `dlo list`).")
+    controller_options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="The controller's options, fields of its spec (e.g. {iterations: 50, "
+        "warm_start: false} for mpc); spec.json holds them all, resolved.",
+    )
+    steps: int = Field(200, gt=0, description="Closed-loop control steps.")
+    video: Path | None = Field(
+        None, description="Write frames of the rod and the goal to this .mp4 or .gif."
+    )
+    video_every: int = Field(2, gt=0, description="Record every k-th control step in the video.")
+    out: Path = Field(Path("runs/control"), description="Run directory.")
+
+
+# --------------------------------------------------------------------------- input checks
+def check_video_path(path: Path | None) -> None:
+    """BadInput unless ``path`` is None, a .gif, or a .mp4 with an mp4 writer installed."""
+    if path is None:
+        return
+    if path.suffix not in VIDEO_SUFFIXES:
+        raise BadInput(f"--video {path} must end in .gif or .mp4")
+    if path.suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise BadInput(
+            f"--video {path}: writing .mp4 needs `pip install imageio-ffmpeg`; or use a .gif"
+        )
+
+
+def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
+    """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
+    if spec.model is None:
+        return None
+    from dlocli.models.base import load_model, resolve_device
+
+    model = load_model(spec.model, resolve_device(spec.device))
+    found = model.n_segments
+    if found != n_segments:
+        raise BadInput(
+            f"model {spec.model} is for {found} segments but the rod has {n_segments}; "
+            f"train one on {n_segments}-segment data or set backend.rod.n_segments={found}"
+        )
+    return model
+
+
+def prepare(spec: ControlSpec) -> tuple[DLOShapeEnv, Controller, ControlSpec]:
+    """Check every input, build env and controller; the spec comes back fully resolved."""
+    if spec.task.goal_file is None:
+        raise BadInput(
+            "no goal: pass --goal shape.npy, a (N,3) float .npy in metres "
+            "(make one with `dlo goal`)"
+        )
+    check_video_path(spec.video)
+    options = controller_spec(spec.controller, spec.controller_options)
+    goal = load_goal(spec.task.goal_file, spec.backend.rod.n_segments)
+    env = make_env(spec.backend, spec.task, goal=goal, seed=spec.seed)
+    try:
+        model = load_control_model(spec, env.n_segments)
+        controller = make_controller(
+            spec.controller, env, options=options, seed=spec.seed, model=model
+        )
+    except BaseException:
+        env.close()
+        raise
+    resolved = spec.model_copy(
+        update={"controller_options": options.model_dump() if options else {}}
+    )
+    return env, controller, resolved
+
+
+# --------------------------------------------------------------------------- closed loop
+@contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Run the block with ``threads`` torch CPU threads, then restore the previous number."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def run_control(
+    spec: ControlSpec, progress: Progress | None = None, *, overwrite: bool = False
+) -> dict[str, Any]:
+    """Run the closed loop of ``spec``, write the run directory, return the summary.
+
+    ``progress`` is called after every step with that step's record (step, shape_error_mm,
+    reward, latency_ms and the controller's stats).
+    """
+    env, controller, spec = prepare(spec)
+    try:
+        out = prepare_run_dir(spec.out, overwrite)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        start = time.perf_counter()
+        with torch_threads(spec.threads):
+            records, initial_error, frames, diverged = closed_loop(env, controller, spec, progress)
+        wall = time.perf_counter() - start
+    finally:
+        env.close()
+    summary = summarise(records, initial_error, spec, diverged, wall)
+    write_metrics(out / "metrics.csv", records)
+    plot_errors(out / "plots" / "error.png", records, initial_error, spec.controller)
+    if spec.video is not None:
+        write_video(spec.video, frames, fps=env.metadata["render_fps"] / spec.video_every)
+        summary["video"] = str(spec.video)
+    write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+def closed_loop(
+    env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Progress | None
+) -> tuple[list[dict[str, float]], float, list[np.ndarray], bool]:
+    """Step ``env`` with ``controller`` from a seeded random start.
+
+    Returns per-step records, the initial shape error (mm), video frames, diverged flag.
+    """
+    obs, info = env.reset(seed=spec.seed)
+    initial_error = float(info["shape_error_mm"])
+    controller.reset(env.goal)
+    frames = [env.render()] if spec.video is not None else []
+    records: list[dict[str, float]] = []
+    for step in range(1, spec.steps + 1):
+        cpu = time.process_time()
+        action = controller.act(obs)
+        cpu_ms = 1000.0 * (time.process_time() - cpu)
+        obs, reward, terminated, _, info = env.step(action)
+        record = {
+            "step": step,
+            "shape_error_mm": float(info["shape_error_mm"]),
+            "reward": float(reward),
+            "latency_ms": controller.last_latency_ms,
+            "cpu_ms": cpu_ms,
+            **controller.last_stats,
+        }
+        records.append(record)
+        if spec.video is not None and step % spec.video_every == 0:
+            frames.append(env.render())
+        if progress is not None:
+            progress(record)
+        if terminated:
+            return records, initial_error, frames, True
+    return records, initial_error, frames, False
+
+
+def summarise(
+    records: list[dict[str, float]],
+    initial_error: float,
+    spec: ControlSpec,
+    diverged: bool,
+    wall_s: float,
+) -> dict[str, Any]:
+    """The run's summary: errors in mm, latencies in ms, and what produced them."""
+    errors = np.array([r["shape_error_mm"] for r in records])
+    latency = np.array([r["latency_ms"] for r in records])
+    return {
+        "initial_error_mm": round(initial_error, 3),
+        "final_error_mm": round(float(errors[-1]), 3),
+        "best_error_mm": round(float(min(errors.min(), initial_error)), 3),
+        "cumulative_reward": round(float(sum(r["reward"] for r in records)), 4),
+        "latency_ms_median": round(float(np.median(latency)), 3),
+        "latency_ms_p95": round(float(np.percentile(latency, 95)), 3),
+        "cpu_ms_median": round(float(np.median([r["cpu_ms"] for r in records])), 3),
+        "steps": len(records),
+        "diverged": diverged,
+        "controller": spec.controller,
+        "goal": str(spec.task.goal_file),
+        "model": None if spec.model is None else str(spec.model),
+        "seed": spec.seed,
+        "wall_s": round(wall_s, 2),
+        "versions": versions(),
+    }
+
+
+# --------------------------------------------------------------------------- outputs
+def write_metrics(path: Path, records: list[dict[str, float]]) -> None:
+    """Per-step records as CSV (columns: the union of the records' keys, in first-seen order)."""
+    columns = list(dict.fromkeys(key for record in records for key in record))
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(records)
+
+
+def plot_errors(
+    path: Path, records: list[dict[str, float]], initial_error: float, label: str
+) -> None:
+    """Shape error (mm) and controller latency (ms) over the control steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [0] + [r["step"] for r in records]
+    errors = [initial_error] + [r["shape_error_mm"] for r in records]
+    fig, (ax_err, ax_lat) = plt.subplots(2, 1, figsize=(6, 5), sharex=True, height_ratios=(2, 1))
+    ax_err.plot(steps, errors, label=label)
+    ax_err.set_ylabel("shape error (mm)")
+    ax_err.set_ylim(bottom=0)
+    ax_err.legend()
+    ax_lat.plot(steps[1:], [r["latency_ms"] for r in records], lw=0.8)
+    ax_lat.set_ylabel("latency (ms)")
+    ax_lat.set_xlabel("control step")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
+    """Frames (H, W, 3) uint8 to a .gif or .mp4 (suffix checked by :func:`check_video_path`)."""
+    import imageio.v2 as imageio
+
+    with atomic_path(path) as tmp:
+        if path.suffix == ".gif":
+            imageio.mimwrite(tmp, frames, format="GIF", duration=1000.0 / fps, loop=0)
+        else:
+            imageio.mimwrite(tmp, frames, format="FFMPEG", fps=fps)

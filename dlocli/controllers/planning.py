@@ -1,0 +1,147 @@
+"""What every planner through a learned dynamics model shares (gradient MPC, MPPI).
+
+A :class:`ModelPlanner` keeps a plan of H actions (H, A) in task space, optimises it through
+``model.rollout`` at every re-plan, executes its first action, and warm-starts the next
+re-plan from the remaining actions shifted forward (the tail repeats the last action).
+Subclasses implement :meth:`ModelPlanner._optimise` only.
+
+Shapes: B candidate plans, H horizon steps, A = task action size (6 or 12), N segments.
+Plans live on the model's device; nothing here assumes a CPU.
+"""
+
+from __future__ import annotations
+
+import time
+from abc import abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from dlocli.controllers.base import Controller
+from dlocli.specs import Spec
+
+
+class PlannerSpec(Spec):
+    """Options every model-based planner shares."""
+
+    horizon: int = Field(
+        5, ge=1, le=100, description="Planning horizon H in control steps (paper: 5)."
+    )
+    replan_every: int = Field(
+        1,
+        ge=1,
+        description="Re-optimise every k control steps; in between, execute the plan's next "
+        "actions.",
+    )
+    warm_start: bool = Field(
+        True,
+        description="Start each re-plan from the previous plan shifted by the executed steps "
+        "(else from zeros).",
+    )
+
+
+def shape_cost(predicted: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """Summed squared shape error of predicted rollouts (the paper's MPC objective).
+
+    ``predicted`` (B, H, N, 7) model states, ``goal`` (N, 3) metres ->
+    ``sum_{k=1..H} ||p_hat_{t+k} - p_goal||_2^2`` per candidate, (B,) in m^2.
+    """
+    return (predicted[..., :3] - goal).square().sum(dim=(1, 2, 3))
+
+
+def shift_plan(plan: torch.Tensor, steps: int) -> torch.Tensor:
+    """Drop the first ``steps`` actions of (..., H, A) and repeat the last one to refill H."""
+    horizon = plan.shape[-2]
+    steps = min(steps, horizon - 1)
+    tail = plan[..., -1:, :].expand(*plan.shape[:-2], steps, plan.shape[-1])
+    return torch.cat([plan[..., steps:, :], tail], dim=-2)
+
+
+def model_device(model: torch.nn.Module) -> torch.device:
+    """The device of the model's parameters (CPU for a parameter-free model)."""
+    param = next(iter(model.parameters()), None)
+    return param.device if param is not None else torch.device("cpu")
+
+
+class ModelPlanner(Controller):
+    """Receding-horizon planning through ``model.rollout``; subclasses optimise the plan."""
+
+    needs: ClassVar[tuple[str, ...]] = ("model",)
+    spec_cls: ClassVar[type[PlannerSpec]] = PlannerSpec
+
+    def __init__(
+        self, env: Any, model: torch.nn.Module, spec: PlannerSpec | None = None, seed: int = 0
+    ) -> None:
+        super().__init__(env)
+        self.spec = spec if spec is not None else self.spec_cls()
+        self.model = model.eval()
+        self.device = model_device(model)
+        self.generator = torch.Generator(device="cpu").manual_seed(seed)
+        self._goal: torch.Tensor | None = None
+        self._plan: torch.Tensor | None = None  # (H, A), the latest optimised plan
+        self._cursor = 0  # actions of self._plan already executed
+
+    def reset(self, goal: np.ndarray) -> None:
+        """New episode towards ``goal`` (N, 3) metres: forget the plan."""
+        super().reset(goal)
+        self._goal = torch.as_tensor(self.goal, dtype=torch.float32, device=self.device)
+        self._plan = None
+        self._cursor = 0
+
+    @property
+    def plan(self) -> torch.Tensor | None:
+        """The latest optimised plan (H, A) on the model's device, None before the first act."""
+        return self._plan
+
+    # ------------------------------------------------------------------ control loop
+    def _act(self, obs: np.ndarray) -> np.ndarray:
+        if self._goal is None:
+            raise RuntimeError("call reset(goal) before act()")
+        if self._plan is not None and self._cursor < min(self.spec.replan_every, self.spec.horizon):
+            action = self._plan[self._cursor]
+            self._cursor += 1
+            self.last_stats = {"replanned": 0.0}
+            return action.cpu().numpy()
+        init = self._initial_plan()
+        start = time.perf_counter()
+        plan, stats = self._optimise(self.state_tensor(obs), init)
+        stats["plan_ms"] = 1000.0 * (time.perf_counter() - start)
+        stats["replanned"] = 1.0
+        self._plan, self._cursor = plan.detach(), 1
+        self.last_stats = stats
+        return self._plan[0].cpu().numpy()
+
+    def state_tensor(self, obs: np.ndarray) -> torch.Tensor:
+        """Model state (1, N, 7) = concat(positions, quaternions) from a flat observation."""
+        parts = self.env.split_observation(obs)
+        state = np.concatenate([parts["positions"], parts["quaternions"]], axis=-1)
+        return torch.as_tensor(state[None], dtype=torch.float32, device=self.device)
+
+    def _initial_plan(self) -> torch.Tensor:
+        """(H, A) start of the optimisation: the shifted previous plan, or zeros."""
+        if self._plan is None or not self.spec.warm_start:
+            return torch.zeros(self.spec.horizon, self.action_dim, device=self.device)
+        return shift_plan(self._plan, self._cursor)
+
+    def random_plans(self, count: int) -> torch.Tensor:
+        """(count, H, A) plans uniform in [-1, 1] from the controller's seeded generator."""
+        plans = torch.rand(count, self.spec.horizon, self.action_dim, generator=self.generator)
+        return (2.0 * plans - 1.0).to(self.device)
+
+    def predict_cost(self, state: torch.Tensor, plans: torch.Tensor) -> torch.Tensor:
+        """Shape cost (B,) of plans (B, H, A) rolled out by the model from state (1, N, 7)."""
+        commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
+        predicted = self.model.rollout(state.expand(plans.shape[0], -1, -1), commands)
+        assert self._goal is not None
+        return shape_cost(predicted, self._goal)
+
+    @abstractmethod
+    def _optimise(
+        self, state: torch.Tensor, init: torch.Tensor
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Optimise the plan from ``init`` (H, A) for ``state`` (1, N, 7).
+
+        Returns the plan (H, A) in [-1, 1] and statistics for ``last_stats`` (numbers only).
+        """

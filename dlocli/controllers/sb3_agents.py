@@ -1,0 +1,200 @@
+"""SAC and TD3 benchmark agents: stable-baselines3 behind the :class:`LearningAgent` contract.
+
+One adapter, :class:`SB3Agent`, drives any SB3 off-policy algorithm on the env's flat Box
+observation (rod positions, quaternions, gripper poses and the goal, so a policy trained on a
+fixed goal can be evaluated on random goals, paper Fig. 6). The reward is the env's paper
+eq. 12, already clipped to [-1.5, 0]. ``learn(n)`` consumes exactly ``n`` env transitions of
+the training env; the episode in progress carries over between calls.
+
+Hyperparameters are SB3's defaults (Haarnoja et al. 2018 for SAC, Fujimoto et al. 2018 for
+TD3) except ``learning_starts``: SB3's 100 random steps are kept, which is 5% of a budget of a
+few thousand transitions; set it in the spec for longer runs (SAC papers use 1e4).
+
+Seeding: SB3's ``seed=`` seeds Python's, NumPy's and torch's global generators, the action
+space and the env's first reset, so the same seed on CPU gives the same agent. Torch's thread
+count is the caller's choice; on a busy 2-core CPU one thread learns several times faster.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+from pydantic import Field, ValidationError
+
+from dlocli.controllers.base import LearningAgent
+from dlocli.errors import BadInput
+from dlocli.specs import Spec, format_validation_error
+
+SpecT = TypeVar("SpecT", bound=Spec)
+
+
+def resolve_agent_spec(cls: type[SpecT], spec: Spec | None, fields: dict[str, Any]) -> SpecT:
+    """The agent's spec from a spec instance and/or keyword fields (fields override)."""
+    data = spec.model_dump() if spec is not None else {}
+    try:
+        return cls.model_validate({**data, **fields})
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, f"{cls.__name__} options")) from exc
+
+
+class SB3Spec(Spec):
+    """Fields shared by the SB3 off-policy algorithms (constructor keywords of SB3)."""
+
+    learning_rate: float = Field(3e-4, gt=0, description="Adam learning rate of actor and critics.")
+    buffer_size: int = Field(1_000_000, gt=0, description="Replay buffer capacity (transitions).")
+    learning_starts: int = Field(
+        100, ge=0, description="Uniform random transitions before the first gradient step."
+    )
+    batch_size: int = Field(256, gt=0, description="Minibatch size of each gradient step.")
+    gamma: float = Field(0.99, gt=0, le=1, description="Discount factor.")
+    tau: float = Field(0.005, gt=0, le=1, description="Polyak coefficient of the target networks.")
+    train_freq: int = Field(1, gt=0, description="Env steps between updates.")
+    gradient_steps: int = Field(
+        1, ge=-1, description="Gradient steps per update (-1: one per env step)."
+    )
+    net_arch: list[int] = Field(
+        default_factory=lambda: [256, 256], description="Hidden layer sizes of actor and critics."
+    )
+    device: str = Field("auto", description="Torch device: 'auto', 'cpu' or 'cuda'.")
+
+    def sb3_kwargs(self, action_dim: int) -> dict[str, Any]:
+        """Keyword arguments for the SB3 algorithm's constructor (``action_dim``: |A|)."""
+        data = self.model_dump(exclude={"net_arch"})
+        data["policy_kwargs"] = {"net_arch": list(self.net_arch)}
+        return data
+
+
+class SACSpec(SB3Spec):
+    """Soft Actor-Critic (SB3 defaults; automatic entropy tuning)."""
+
+    ent_coef: str | float = Field(
+        "auto", description="Entropy coefficient, or 'auto' to learn it (target -|A|)."
+    )
+
+
+class TD3Spec(SB3Spec):
+    """Twin Delayed DDPG (SB3 defaults: lr 1e-3, networks [400, 300], Gaussian noise 0.1)."""
+
+    learning_rate: float = Field(1e-3, gt=0, description="Adam learning rate of actor and critics.")
+    net_arch: list[int] = Field(
+        default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
+    )
+    action_noise: float = Field(
+        0.1, ge=0, description="Std of the Gaussian exploration noise on actions in [-1, 1]."
+    )
+    policy_delay: int = Field(2, gt=0, description="Critic updates per actor update.")
+    target_policy_noise: float = Field(0.2, ge=0, description="Std of target policy smoothing.")
+    target_noise_clip: float = Field(0.5, ge=0, description="Clip of target policy smoothing.")
+
+    def sb3_kwargs(self, action_dim: int) -> dict[str, Any]:
+        from stable_baselines3.common.noise import NormalActionNoise
+
+        data = super().sb3_kwargs(action_dim)
+        sigma = data.pop("action_noise")
+        noise = NormalActionNoise(np.zeros(action_dim), np.full(action_dim, sigma))
+        data["action_noise"] = noise if sigma > 0 else None
+        return data
+
+
+class SB3Agent(LearningAgent):
+    """Adapter for one SB3 off-policy algorithm; subclasses name the algorithm and spec."""
+
+    algorithm: ClassVar[str] = ""
+    spec_cls: ClassVar[type[SB3Spec]] = SB3Spec
+
+    def __init__(
+        self, env: Any, seed: int = 0, spec: SB3Spec | None = None, **spec_fields: Any
+    ) -> None:
+        super().__init__(env, seed=seed)
+        self.spec: SB3Spec = resolve_agent_spec(self.spec_cls, spec, spec_fields)
+        self.model = self._build_model()
+
+    # ------------------------------------------------------------------ construction
+    def _algorithm_class(self) -> Any:
+        import stable_baselines3
+
+        return getattr(stable_baselines3, self.algorithm)
+
+    def _build_model(self) -> Any:
+        from stable_baselines3.common.monitor import Monitor
+
+        kwargs = self.spec.sb3_kwargs(self.action_dim)
+        return self._algorithm_class()(
+            "MlpPolicy", Monitor(self.env), seed=self.seed, verbose=0, **kwargs
+        )
+
+    # ------------------------------------------------------------------ LearningAgent
+    def learn(self, transitions: int) -> None:
+        """Run SB3's learner for exactly ``transitions`` more env steps."""
+        if transitions <= 0:
+            return
+        start = self.model.num_timesteps
+        full = transitions - transitions % self.spec.train_freq
+        if full:
+            self.model.learn(full, reset_num_timesteps=False)
+        if transitions - full:
+            self._learn_remainder(transitions - full)
+        used = self.model.num_timesteps - start
+        if used != transitions:
+            raise RuntimeError(f"{self.name} used {used} transitions instead of {transitions}")
+        self.transitions += used
+
+    def _learn_remainder(self, steps: int) -> None:
+        """Collect a last, shorter update period so the total is exact (train_freq > 1)."""
+        from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
+
+        saved = self.model.train_freq
+        self.model.train_freq = TrainFreq(steps, TrainFrequencyUnit.STEP)
+        try:
+            self.model.learn(steps, reset_num_timesteps=False)
+        finally:
+            self.model.train_freq = saved
+
+    def _act(self, obs: np.ndarray) -> np.ndarray:
+        action, _ = self.model.predict(np.asarray(obs, dtype=np.float32), deterministic=True)
+        return action
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, directory: Path) -> None:
+        """Write ``model.zip``, ``replay_buffer.pkl`` and ``agent.json`` into ``directory``."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        self.model.save(directory / "model.zip")
+        self.model.save_replay_buffer(directory / "replay_buffer.pkl")
+        meta = {"algorithm": self.algorithm, "transitions": self.transitions, "seed": self.seed}
+        (directory / "agent.json").write_text(json.dumps(meta))
+
+    def load(self, directory: Path) -> None:
+        """Resume from :meth:`save` output (SB3 formats: load only your own run directories)."""
+        directory = Path(directory)
+        meta_path = directory / "agent.json"
+        if not meta_path.is_file():
+            raise BadInput(f"{directory} holds no agent.json; pass a directory written by save()")
+        meta = json.loads(meta_path.read_text())
+        if meta.get("algorithm") != self.algorithm:
+            found = meta.get("algorithm")
+            raise BadInput(f"{directory} holds a {found} agent, not {self.algorithm}")
+        self.model = self._algorithm_class().load(
+            directory / "model.zip", env=self.model.get_env(), device=self.spec.device
+        )
+        self.model.load_replay_buffer(directory / "replay_buffer.pkl")
+        self.transitions = int(meta["transitions"])
+
+
+class SACAgent(SB3Agent):
+    """Soft Actor-Critic (stable-baselines3) on the flat observation."""
+
+    name = "sac"
+    algorithm = "SAC"
+    spec_cls = SACSpec
+
+
+class TD3Agent(SB3Agent):
+    """TD3 (stable-baselines3) with Gaussian exploration noise on the flat observation."""
+
+    name = "td3"
+    algorithm = "TD3"
+    spec_cls = TD3Spec

@@ -1,0 +1,168 @@
+"""How good is a learned model: one-step and open-loop errors next to "nothing moves".
+
+Errors are in millimetres: the mean over segments of the Euclidean distance between the
+predicted and the true segment centre (as the shape error of DESIGN.md). The H-step error is
+the error of the state predicted H steps ahead from a true start state, feeding the model its
+own predictions and the recorded actions (open loop). The persistence baseline predicts that
+nothing moves (s_{t+k} = s_t); a useful model beats it by far.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dlocli.data import Dataset
+from dlocli.io import atomic_path
+from dlocli.models.base import DynamicsModel
+
+HORIZONS = (5, 50)
+ROLL_BATCH = 256
+
+
+def position_error_mm(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(..., N, >=3) states -> (...) mean over segments of the position error, millimetres."""
+    return 1000.0 * np.linalg.norm(pred[..., :3] - true[..., :3], axis=-1).mean(-1)
+
+
+@torch.no_grad()
+def predict(model: DynamicsModel, state: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Open-loop rollout in batches: (S, N, 7), (S, H, 2, 6) -> (S, H, N, 7) numpy."""
+    out = []
+    for i in range(0, len(state), ROLL_BATCH):
+        s = torch.as_tensor(state[i : i + ROLL_BATCH], dtype=torch.float32, device=model.device)
+        a = torch.as_tensor(actions[i : i + ROLL_BATCH], dtype=torch.float32, device=model.device)
+        out.append(model.rollout(s, a).cpu().numpy())
+    n, h = actions.shape[:2]
+    return np.concatenate(out) if out else np.zeros((0, h, model.n_segments, 7), np.float32)
+
+
+def rollout_starts(dataset: Dataset, episodes: np.ndarray, horizon: int, max_starts: int) -> list:
+    """(episode, t) start pairs with t + horizon <= T_e, evenly thinned to ``max_starts``."""
+    lengths = dataset.episode_lengths
+    pairs = [(int(e), t) for e in episodes for t in range(int(lengths[e]) - horizon + 1)]
+    if len(pairs) > max_starts:
+        keep = np.linspace(0, len(pairs) - 1, max_starts).round().astype(int)
+        pairs = [pairs[k] for k in keep]
+    return pairs
+
+
+def windows(dataset: Dataset, starts: list, horizon: int) -> tuple[np.ndarray, ...]:
+    """States (S, N, 7), actions (S, H, 2, 6) and true future states (S, H, N, 7)."""
+    states = dataset.states()
+    s_off, a_off = dataset.state_offsets(), dataset.action_offsets()
+    s_idx = np.array([s_off[e] + t for e, t in starts], dtype=np.int64).reshape(-1, 1)
+    a_idx = np.array([a_off[e] + t for e, t in starts], dtype=np.int64).reshape(-1, 1)
+    steps = np.arange(horizon)
+    return states[s_idx[:, 0]], dataset.actions[a_idx + steps], states[s_idx + 1 + steps]
+
+
+def evaluate_model(
+    model: DynamicsModel,
+    dataset: Dataset,
+    episodes: np.ndarray | None = None,
+    horizons: tuple[int, ...] = HORIZONS,
+    max_starts: int = 512,
+) -> dict[str, Any]:
+    """One-step and H-step errors (mm) of ``model`` and of persistence on ``episodes``.
+
+    Keys: ``one_step_mm``, ``rollout{H}_mm``, ``persistence_one_step_mm``,
+    ``persistence_rollout{H}_mm`` (None where no episode is long enough), plus the counts
+    ``eval_episodes``, ``eval_transitions``. At most ``max_starts`` evenly spread start
+    states per horizon (all transitions for the one-step error).
+    """
+    episodes = np.arange(dataset.n_episodes) if episodes is None else np.asarray(episodes)
+    model.eval()
+    tr = dataset.transitions(episodes)
+    result: dict[str, Any] = {
+        "eval_episodes": len(episodes),
+        "eval_transitions": len(tr["state"]),
+    }
+    pred = predict(model, tr["state"], tr["action"][:, None])[:, 0]
+    result["one_step_mm"] = _mean(position_error_mm(pred, tr["next_state"]))
+    result["persistence_one_step_mm"] = _mean(position_error_mm(tr["state"], tr["next_state"]))
+    for h in horizons:
+        starts = rollout_starts(dataset, episodes, h, max_starts)
+        state, actions, truth = windows(dataset, starts, h)
+        final = predict(model, state, actions)[:, -1] if starts else state
+        result[f"rollout{h}_mm"] = _mean(position_error_mm(final, truth[:, -1])) if starts else None
+        result[f"persistence_rollout{h}_mm"] = (
+            _mean(position_error_mm(state, truth[:, -1])) if starts else None
+        )
+    return result
+
+
+def _mean(values: np.ndarray) -> float | None:
+    return float(np.mean(values)) if len(values) and not math.isnan(np.mean(values)) else None
+
+
+# ---------------------------------------------------------------------- plots
+def plot_rollout(
+    model: DynamicsModel, dataset: Dataset, episode: int, path: Path, horizon: int = 50
+) -> Path:
+    """PNG: true vs predicted rod over an open-loop rollout from the episode's first state,
+    at a few instants (3D), and the error per step next to persistence's."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = int(min(horizon, dataset.episode_lengths[episode]))
+    state, actions, truth = windows(dataset, [(episode, 0)], h)
+    pred = predict(model, state, actions)[0]
+    fig = plt.figure(figsize=(11, 4.5))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    shown = sorted({0, h // 3, (2 * h) // 3, h - 1})
+    colors = plt.cm.viridis(np.linspace(0, 0.9, len(shown)))
+    for color, k in zip(colors, shown, strict=True):
+        t, p = truth[0, k, :, :3], pred[k, :, :3]
+        ax.plot(t[:, 0], t[:, 1], t[:, 2], "-", color=color, label=f"true t+{k + 1}")
+        ax.plot(p[:, 0], p[:, 1], p[:, 2], "--", color=color, label=f"model t+{k + 1}")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    ax.legend(fontsize=6, loc="upper left")
+    ax.set_title(f"episode {episode}: open-loop rollout")
+    err = fig.add_subplot(1, 2, 2)
+    steps = np.arange(1, h + 1)
+    err.plot(steps, position_error_mm(pred, truth[0]), label=f"{model.spec.name}")
+    err.plot(steps, position_error_mm(state[:, None], truth)[0], label="persistence")
+    err.set_xlabel("prediction step")
+    err.set_ylabel("mean segment position error (mm)")
+    err.legend()
+    err.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_losses(history: list[dict[str, float]], path: Path) -> Path:
+    """PNG: training and validation loss per epoch (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    epochs = [r["epoch"] for r in history]
+    ax.plot(epochs, [r["train_loss"] for r in history], label="train (with input noise)")
+    ax.plot(epochs, [r["val_loss"] for r in history], label="validation")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("MSE of normalised state change")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def _save(fig: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+    return path

@@ -1,0 +1,26 @@
+"""Learned dynamics models of the rod: one module per model, all implementing
+:class:`~dlocli.models.base.DynamicsModel` and registered in :data:`dlocli.registry.models`.
+
+Names are imported lazily, so ``dlocli.models.spec`` stays usable without importing torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "ModelSpec": "dlocli.models.spec",
+    "DynamicsModel": "dlocli.models.base",
+    "build_model": "dlocli.models.base",
+    "load_model": "dlocli.models.base",
+    "resolve_device": "dlocli.models.base",
+    "save_checkpoint": "dlocli.models.base",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'dlocli.models' has no attribute '{name}'")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)

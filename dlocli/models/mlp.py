@@ -1,0 +1,28 @@
+"""Baseline: one MLP from the flattened state and action to the flattened state change.
+
+No structure: it sees the rod as a vector of N*7 numbers. Trained and evaluated exactly like
+``in-bilstm`` (same normalisation, loss and rollout), it shows what the graph + bi-LSTM
+structure buys.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, ModelSpec, mlp
+
+
+class MLPDynamics(DynamicsModel):
+    """Flattened state + action MLP baseline (``mlp_layers`` hidden layers, ``mlp_hidden`` wide)."""
+
+    def __init__(self, spec: ModelSpec, n_segments: int) -> None:
+        super().__init__(spec, n_segments)
+        n_in = n_segments * STATE_DIM + 2 * ACTION_DIM
+        widths = [spec.mlp_hidden] * spec.mlp_layers
+        self.net = mlp([n_in, *widths, n_segments * STATE_DIM])
+
+    def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:
+        batch = state_n.shape[0]
+        flat = torch.cat([state_n.reshape(batch, -1), action_n.reshape(batch, -1)], -1)
+        return self.net(flat).view(batch, self.n_segments, STATE_DIM)

@@ -1,0 +1,39 @@
+"""Specs of model fitting (torch-free, so the CLI can build its --help without torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+
+from dlocli.models.spec import ModelSpec
+from dlocli.specs import Spec
+
+
+class FitSpec(Spec):
+    """How to fit a model (also used by the online loop to continue training)."""
+
+    epochs: int = Field(50, ge=0, description="Passes over the training transitions.")
+    lr: float = Field(1e-4, gt=0, description="Adam learning rate.")
+    batch_size: int = Field(64, gt=0, description="Transitions per gradient step.")
+    input_noise: float = Field(
+        0.1, ge=0,
+        description="Std of Gaussian noise on the input state (paper Sec. IV-C), in units of "
+        "each feature's one-step change std; the target is the change from the noisy state.",
+    )  # fmt: skip
+    val_fraction: float = Field(
+        0.1, ge=0, lt=1, description="Fraction of trajectories held out for validation."
+    )
+    device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
+    seed: int = Field(0, ge=0, description="Seed of initialisation, shuffling and noise.")
+
+
+class TrainSpec(FitSpec):
+    """`dlo train`: fit a dynamics model to a dataset; write a run directory."""
+
+    data: Path | None = Field(None, description="Dataset file or collect run directory.")
+    model: ModelSpec = Field(default_factory=ModelSpec, description="Model and sizes.")
+    init_from: Path | None = Field(
+        None, description="Checkpoint or run directory to continue training from."
+    )
+    out: Path = Field(Path("runs/train"), description="Run directory for the results.")

@@ -1,0 +1,288 @@
+"""Model training: ``dlo train`` and the library function the online loop calls.
+
+:func:`train_model` fits a :class:`~dlocli.models.base.DynamicsModel` to a dataset's
+transitions with Adam on the mean squared error of the normalised state change, Gaussian
+noise on the input state (paper Sec. IV-C), and a train/validation split by trajectory that
+stays the same as the dataset grows (so continued training in the online loop never
+validates on what it trained on). :func:`run_training` is the whole command: data, model,
+training, checkpoints, metrics, evaluation and plots in a run directory.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dlocli.data import Dataset, load_dataset
+from dlocli.errors import BadInput
+from dlocli.models.base import (
+    DynamicsModel,
+    build_model,
+    load_model,
+    read_checkpoint,
+    resolve_device,
+    save_checkpoint,
+)
+from dlocli.train_spec import FitSpec, TrainSpec
+
+GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e+1) * GOLDEN + shift) < fraction
+EVAL_BATCH = 1024
+Progress = Callable[[dict[str, Any]], None]
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train_model` returns: the per-epoch history and the optimiser's state."""
+
+    history: list[dict[str, float]] = field(default_factory=list)
+    optimizer_state: dict[str, Any] = field(default_factory=dict)
+    train_episodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    val_episodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    transitions_per_s: float = 0.0
+
+    @property
+    def val_loss(self) -> float:
+        return self.history[-1]["val_loss"] if self.history else math.nan
+
+
+# ---------------------------------------------------------------------- split and tensors
+def split_episodes(n_episodes: int, val_fraction: float, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """(train, validation) episode indices, stable as episodes are appended.
+
+    Episode e is held out iff frac((e + 1) * golden ratio + shift(seed)) < val_fraction: a
+    low-discrepancy rule, so about ``val_fraction`` of any prefix is held out. With at least
+    two episodes and a positive fraction, one is always held out and one always trained on.
+    """
+    shift = np.random.default_rng(seed).random()
+    e = np.arange(n_episodes)
+    is_val = (((e + 1) * GOLDEN + shift) % 1.0) < val_fraction
+    if val_fraction > 0 and n_episodes >= 2:
+        if not is_val.any():
+            is_val[-1] = True
+        if is_val.all():
+            is_val[0] = False
+    return e[~is_val], e[is_val]
+
+
+def transition_tensors(
+    dataset: Dataset, episodes: np.ndarray, device: torch.device
+) -> dict[str, torch.Tensor]:
+    """``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7) float32 on ``device``."""
+    arrays = dataset.transitions(episodes)
+    return {
+        k: torch.as_tensor(arrays[k], dtype=torch.float32, device=device)
+        for k in ("state", "action", "next_state")
+    }
+
+
+# ---------------------------------------------------------------------- the loop
+def train_model(
+    model: DynamicsModel,
+    dataset: Dataset,
+    fit: FitSpec,
+    *,
+    optimizer_state: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+    on_epoch: Callable[[dict[str, float], torch.optim.Optimizer], None] | None = None,
+) -> TrainResult:
+    """Train ``model`` in place for ``fit.epochs`` epochs on ``dataset``'s training split.
+
+    The model's normalisation is fitted on the training split if it was never fitted (a
+    continued model keeps its own). ``optimizer_state`` resumes Adam's moments (from a
+    previous :class:`TrainResult` or checkpoint). ``progress`` gets ``{"epoch", "batch",
+    "batches", "loss"}`` after every step; ``on_epoch`` gets each epoch's record
+    ``{"epoch", "train_loss", "val_loss", "seconds"}`` (and the optimizer) for checkpoints.
+    """
+    if dataset.n_segments != model.n_segments:
+        raise BadInput(
+            f"dataset has {dataset.n_segments} segments but the model {model.n_segments}; "
+            "train a new model or use a matching dataset"
+        )
+    device = model.device
+    train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction, fit.seed)
+    train = transition_tensors(dataset, train_eps, device)
+    val = transition_tensors(dataset, val_eps, device)
+    n_train = len(train["state"])
+    if n_train == 0:
+        raise BadInput("the training split has no transitions; collect more episodes")
+    if not bool(model.fitted):
+        model.fit_normalization(dataset.transitions(train_eps))
+    optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
+    if optimizer_state:
+        optimizer.load_state_dict(optimizer_state)
+        for group in optimizer.param_groups:
+            group["lr"] = fit.lr
+    gen = torch.Generator(device="cpu").manual_seed(fit.seed)
+    result = TrainResult(train_episodes=train_eps, val_episodes=val_eps)
+    start = time.perf_counter()
+    for epoch in range(1, fit.epochs + 1):
+        t0 = time.perf_counter()
+        model.train()
+        train_loss = _train_epoch(model, optimizer, train, fit, gen, epoch, progress)
+        record = {
+            "epoch": epoch,
+            "train_loss": train_loss,
+            "val_loss": validation_loss(model, val),
+            "seconds": time.perf_counter() - t0,
+        }
+        result.history.append(record)
+        if progress is not None:
+            progress({"epoch": epoch, "val_loss": record["val_loss"]})
+        if on_epoch is not None:
+            on_epoch(record, optimizer)
+    model.eval()
+    elapsed = time.perf_counter() - start
+    result.optimizer_state = optimizer.state_dict()
+    result.transitions_per_s = fit.epochs * n_train / elapsed if elapsed > 0 else 0.0
+    return result
+
+
+def _train_epoch(
+    model: DynamicsModel,
+    optimizer: torch.optim.Optimizer,
+    data: dict[str, torch.Tensor],
+    fit: FitSpec,
+    gen: torch.Generator,
+    epoch: int,
+    progress: Progress | None,
+) -> float:
+    """One pass over ``data`` in shuffled mini-batches; the mean training loss."""
+    n = len(data["state"])
+    order = torch.randperm(n, generator=gen).to(data["state"].device)
+    batches = math.ceil(n / fit.batch_size)
+    total = torch.zeros((), device=data["state"].device)
+    for b in range(batches):
+        idx = order[b * fit.batch_size : (b + 1) * fit.batch_size]
+        state = data["state"][idx]
+        noise = None
+        if fit.input_noise > 0:  # in units of the one-step change, expressed in state units
+            scale = fit.input_noise * model.delta_std / model.state_std
+            noise = torch.randn(state.shape, generator=gen).to(state.device) * scale
+        loss = model.loss(state, data["action"][idx], data["next_state"][idx], noise)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        total += loss.detach() * len(idx)
+        if progress is not None and (b % 10 == 0 or b == batches - 1):
+            progress({"epoch": epoch, "batch": b + 1, "batches": batches, "loss": loss.item()})
+    return float(total) / n
+
+
+@torch.no_grad()
+def validation_loss(model: DynamicsModel, data: dict[str, torch.Tensor]) -> float:
+    """Mean normalised-delta MSE on ``data`` without input noise (NaN if it is empty)."""
+    n = len(data["state"])
+    if n == 0:
+        return math.nan
+    was_training = model.training
+    model.eval()
+    total = 0.0
+    for i in range(0, n, EVAL_BATCH):
+        sl = slice(i, i + EVAL_BATCH)
+        batch = data["state"][sl]
+        total += float(model.loss(batch, data["action"][sl], data["next_state"][sl])) * len(batch)
+    model.train(was_training)
+    return total / n
+
+
+# ---------------------------------------------------------------------- model set-up
+def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dict[str, Any] | None]:
+    """A fresh model (seeded) or the one in ``spec.init_from`` and its optimizer state."""
+    device = resolve_device(spec.device)
+    if spec.init_from is not None:
+        model = load_model(spec.init_from, device, expect=spec.model)
+        opt_state = read_checkpoint(spec.init_from).get("optimizer")
+        if model.n_segments != dataset.n_segments:
+            raise BadInput(
+                f"--init-from model has {model.n_segments} segments, the dataset "
+                f"{dataset.n_segments}; use a matching dataset"
+            )
+        return model, opt_state if isinstance(opt_state, dict) else None
+    torch.manual_seed(spec.seed)
+    return build_model(spec.model, dataset.n_segments).to(device), None
+
+
+def load_training_data(spec: TrainSpec) -> Dataset:
+    if spec.data is None:
+        raise BadInput("no dataset given; pass --data DATASET (make one: `dlo collect --random`)")
+    dataset = load_dataset(spec.data)
+    if dataset.n_episodes < 2 and spec.val_fraction > 0:
+        raise BadInput(
+            f"dataset {spec.data} has {dataset.n_episodes} episode; validation is split by "
+            "trajectory, so collect at least 2 (or pass --val-fraction 0)"
+        )
+    return dataset
+
+
+# ---------------------------------------------------------------------- the command
+def run_training(
+    spec: TrainSpec, overwrite: bool = False, progress: Progress | None = None
+) -> dict[str, Any]:
+    """`dlo train`: train, then write OUT/{spec.json, metrics.csv, summary.json,
+    checkpoints/{final,best}.pt, plots/{loss,rollout}.png}; return the summary."""
+    from dlocli.evaluation import evaluate_model, plot_losses, plot_rollout
+    from dlocli.io import prepare_run_dir, write_json_atomic
+
+    dataset = load_training_data(spec)
+    model, opt_state = prepare_model(spec, dataset)
+    out = prepare_run_dir(spec.out, overwrite)
+    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+    ckpt_dir = out / "checkpoints"
+    best = {"val_loss": math.inf}
+    history: list[dict[str, float]] = []
+
+    def on_epoch(record: dict[str, float], optimizer: torch.optim.Optimizer) -> None:
+        history.append(record)
+        _write_metrics(out / "metrics.csv", history)
+        if not record["val_loss"] >= best["val_loss"]:  # also true for the first NaN
+            best["val_loss"] = record["val_loss"]
+            save_checkpoint(model, ckpt_dir / "best.pt", {"epoch": record["epoch"]})
+
+    result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
+                         on_epoch=on_epoch)  # fmt: skip
+    save_checkpoint(model, ckpt_dir / "final.pt",
+                    {"epoch": spec.epochs, "optimizer": result.optimizer_state})  # fmt: skip
+    eval_eps = result.val_episodes if len(result.val_episodes) else result.train_episodes
+    summary: dict[str, Any] = {
+        "model": spec.model.name,
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "device": str(model.device),
+        "epochs": spec.epochs,
+        "train_episodes": len(result.train_episodes),
+        "val_episodes": len(result.val_episodes),
+        "train_loss": history[-1]["train_loss"] if history else None,
+        "val_loss": history[-1]["val_loss"] if history else None,
+        "best_val_loss": None if math.isinf(best["val_loss"]) else best["val_loss"],
+        "seconds": round(sum(r["seconds"] for r in history), 2),
+        "transitions_per_s": round(result.transitions_per_s, 1),
+        **evaluate_model(model, dataset, eval_eps),
+        "out": str(out),
+    }
+    if history:
+        plot_losses(history, out / "plots" / "loss.png")
+    plot_rollout(model, dataset, int(eval_eps[0]), out / "plots" / "rollout.png")
+    write_json_atomic(out / "summary.json", _json_safe(summary))
+    return _json_safe(summary)
+
+
+def _write_metrics(path: Path, history: list[dict[str, float]]) -> None:
+    from dlocli.io import write_text_atomic
+
+    lines = ["epoch,train_loss,val_loss,seconds"]
+    lines += [f"{r['epoch']},{r['train_loss']:.6g},{r['val_loss']:.6g},{r['seconds']:.3f}"
+              for r in history]  # fmt: skip
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def _json_safe(summary: dict[str, Any]) -> dict[str, Any]:
+    """NaN and infinities become None (JSON has no NaN)."""
+    return {
+        k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in summary.items()
+    }

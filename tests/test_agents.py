@@ -1,0 +1,183 @@
+"""Benchmark agents (SAC, TD3, PILCO) on the real MuJoCo env, and PILCO's math vs Monte Carlo."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+import dlocli
+from dlocli.controllers.base import LearningAgent, make_controller
+from dlocli.controllers.pilco_math import (
+    DTYPE,
+    GaussianProcess,
+    expected_saturating_cost,
+    rbf_moments,
+    sin_moments,
+)
+from dlocli.errors import BadInput
+from dlocli.registry import controllers
+
+AGENTS = ["sac", "td3", "pilco"]
+#: tiny settings so each agent learns within seconds (the defaults are for real budgets)
+TINY: dict[str, dict[str, Any]] = {
+    "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
+    "td3": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
+    "pilco": {
+        "action_repeat": 2, "horizon": 3, "n_basis": 4, "gp_iterations": 10,
+        "policy_iterations": 2, "max_gp_points": 15,
+    },
+}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Small nets and PILCO's many small ops stall with a second thread on a busy CPU."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def small_env() -> Any:
+    env = dlocli.make_env(backend="mujoco", task="single", seed=0, episode_steps=20)
+    env.step_calls = 0
+    step = env.step
+
+    def counting_step(action: np.ndarray) -> Any:
+        env.step_calls += 1
+        return step(action)
+
+    env.step = counting_step
+    return env
+
+
+def train(name: str, seed: int = 0) -> tuple[LearningAgent, Any]:
+    env = small_env()
+    agent = controllers.get(name)(env, seed=seed, **TINY[name])
+    agent.learn(25)  # cuts an episode: the next call carries on with it
+    agent.learn(35)
+    return agent, env
+
+
+@functools.cache
+def trained(name: str) -> tuple[LearningAgent, Any]:
+    """One agent per name trained for 60 transitions, shared by the tests (do not step it)."""
+    return train(name)
+
+
+@pytest.fixture(scope="module")
+def probe_obs() -> np.ndarray:
+    env = dlocli.make_env(backend="mujoco", task="single", seed=3, episode_steps=20)
+    obs, _ = env.reset(seed=3)
+    return obs
+
+
+@pytest.mark.parametrize("name", AGENTS)
+def test_agent_uses_exact_budget_and_acts_deterministically(name: str, probe_obs: np.ndarray):
+    agent, env = trained(name)
+    assert isinstance(agent, LearningAgent)
+    assert agent.transitions == 60
+    assert env.step_calls == 60
+    agent.reset(env.goal)
+    action = agent.act(probe_obs)
+    assert action.shape == (6,) and action.dtype == np.float32
+    assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+    twin, _ = train(name)
+    twin.reset(env.goal)
+    np.testing.assert_allclose(twin.act(probe_obs), action, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", AGENTS)
+def test_agent_acts_on_the_bimanual_task(name: str):
+    env = dlocli.make_env(backend="mujoco", task="bimanual", seed=0, episode_steps=20)
+    obs, _ = env.reset()
+    agent = controllers.get(name)(env, seed=0, **TINY[name])
+    agent.reset(env.goal)
+    action = agent.act(obs)
+    assert action.shape == (12,) and np.all(np.abs(action) <= 1.0)
+
+
+def test_pilco_updates_its_policy_within_the_budget(probe_obs: np.ndarray):
+    agent, _ = trained("pilco")
+    assert len(agent.history) == 2  # at the starts of the 2nd and 3rd episodes
+    assert all(np.isfinite(h.expected_cost) for h in agent.history)
+    assert agent.history[-1].gp_points == 15  # 20 held-action transitions, subsampled
+    assert np.any(agent.policy_action(probe_obs) != 0.0)
+
+
+def test_sb3_agent_save_load_roundtrip(tmp_path, probe_obs: np.ndarray):
+    agent, _ = trained("sac")
+    agent.save(tmp_path / "sac")
+    fresh = controllers.get("sac")(small_env(), seed=1, **TINY["sac"])
+    fresh.load(tmp_path / "sac")
+    assert fresh.transitions == 60
+    np.testing.assert_allclose(fresh.act(probe_obs), agent.act(probe_obs), atol=1e-6)
+    fresh.learn(5)
+    assert fresh.transitions == 65
+
+
+def test_agents_build_from_registry_spec_and_refuse_unknown_options():
+    env = dlocli.make_env(backend="mujoco", task="single", seed=0, episode_steps=20)
+    agent = make_controller("td3", env, options={"batch_size": 8, "action_noise": 0.2}, seed=0)
+    assert agent.spec.batch_size == 8 and agent.spec.net_arch == [400, 300]
+    with pytest.raises(BadInput, match="unknown field 'bogus'"):
+        make_controller("pilco", env, options={"bogus": 1})
+
+
+# ---------------------------------------------------------------------- PILCO math vs MC
+def gaussian_samples(mean: torch.Tensor, cov: torch.Tensor, n: int, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    noise = torch.randn(n, mean.shape[0], generator=gen, dtype=DTYPE)
+    return mean + noise @ torch.linalg.cholesky(cov).T
+
+
+def random_problem() -> tuple[GaussianProcess, torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(25, 4, generator=gen, dtype=DTYPE)
+    columns = [torch.sin(x[:, 0]) + 0.3 * x[:, 1], 0.5 * x[:, 2] * x[:, 3], torch.cos(x[:, 1])]
+    y = torch.stack(columns, 1)
+    gp = GaussianProcess(x, y + 0.01 * torch.randn(25, 3, generator=gen, dtype=DTYPE))
+    gp.fit(30)
+    root = 0.3 * torch.randn(4, 4, generator=gen, dtype=DTYPE)
+    mean = torch.tensor([0.2, -0.1, 0.3, 0.1], dtype=DTYPE)
+    return gp, mean, root @ root.T + 0.01 * torch.eye(4, dtype=DTYPE)
+
+
+def test_gp_moment_matching_matches_monte_carlo():
+    gp, m, s = random_problem()
+    mean, cov, cross = rbf_moments(m, s, gp.x, gp.beta, gp.lengthscales, gp.signal_var, gp.inv_k)
+    z = gaussian_samples(m, s, 200_000, seed=1)
+    mu, var = gp.predict(z)
+    # law of total covariance: Cov[f] = Cov[E[f|z]] + E[Var[f|z]] (independent GPs)
+    mc_cov = torch.cov(mu.T) + torch.diag(var.mean(0))
+    mc_cross = (z - z.mean(0)).T @ (mu - mu.mean(0)) / (len(z) - 1)
+    torch.testing.assert_close(mean, mu.mean(0), atol=3e-3, rtol=0)
+    torch.testing.assert_close(cov, mc_cov, atol=3e-3, rtol=0)
+    torch.testing.assert_close(cross, mc_cross, atol=3e-3, rtol=0)
+
+
+def test_sine_squashing_moments_match_monte_carlo():
+    m = torch.tensor([0.3, -1.0], dtype=DTYPE)
+    s = torch.tensor([[0.5, 0.2], [0.2, 0.3]], dtype=DTYPE)
+    y = gaussian_samples(m, s, 200_000, seed=2)
+    mean, cov, d_cos = sin_moments(m, s)
+    u = torch.sin(y)
+    torch.testing.assert_close(mean, u.mean(0), atol=3e-3, rtol=0)
+    torch.testing.assert_close(cov, torch.cov(u.T), atol=3e-3, rtol=0)
+    mc_cross = (y - y.mean(0)).T @ (u - u.mean(0)) / (len(y) - 1)
+    torch.testing.assert_close(s @ d_cos, mc_cross, atol=3e-3, rtol=0)
+
+
+def test_expected_saturating_cost_matches_monte_carlo():
+    _, m, s = random_problem()
+    target = torch.tensor([0.5, 0.0, -0.2, 0.1], dtype=DTYPE)
+    weight = torch.eye(4, dtype=DTYPE) / 0.5**2
+    x = gaussian_samples(m, s, 200_000, seed=3)
+    diff = x - target
+    mc = (1.0 - torch.exp(-0.5 * ((diff @ weight) * diff).sum(1))).mean()
+    expected = expected_saturating_cost(m, s, target, weight)
+    torch.testing.assert_close(expected, mc, atol=3e-3, rtol=0)

@@ -1,0 +1,268 @@
+"""Controllers: conformance of every registered controller that needs at most a model, the
+planners' optimisation and warm start, closed-loop control in MuJoCo, and `dlo control`.
+
+Real simulators and real (tiny, briefly trained) torch models throughout.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import dlocli
+from dlocli.cli import app
+from dlocli.control import ControlSpec, run_control
+from dlocli.controllers.base import LearningAgent, make_controller
+from dlocli.controllers.mpc import GradientMPC, MPCSpec
+from dlocli.controllers.mppi import MPPI, MPPISpec
+from dlocli.controllers.planning import shift_plan
+from dlocli.data import load_dataset
+from dlocli.errors import BadInput
+from dlocli.models import ModelSpec, build_model, save_checkpoint
+from dlocli.registry import controllers
+from dlocli.specs import TaskSpec
+from dlocli.train_spec import FitSpec
+from dlocli.training import train_model
+
+TINY = ModelSpec(hidden=32, edge_layers=2, node_layers=2, lstm_layers=1)
+SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "best_error_mm", "cumulative_reward",
+                "latency_ms_median", "latency_ms_p95", "steps"}  # fmt: skip
+
+
+def model_controllers() -> list[str]:
+    """Registered controllers that act with at most a dynamics model (no training loop)."""
+    names = []
+    for name in controllers.names():
+        cls = controllers.get(name)
+        if not issubclass(cls, LearningAgent) and set(cls.needs) <= {"model"}:
+            names.append(name)
+    return names
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Planners run batch-1..64 work where a second thread only adds synchronisation (and
+    stalls badly on a busy CPU); `dlo control` uses 1 thread by default too."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def tiny_model(small_dataset_dir):
+    """A small in-bilstm trained for a few seconds on the shared random MuJoCo dataset."""
+    torch.manual_seed(0)
+    model = build_model(TINY, 20)
+    fit = FitSpec(epochs=15, lr=1e-2, batch_size=32, device="cpu", seed=0)
+    train_model(model, load_dataset(small_dataset_dir), fit)
+    return model.eval()
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_model, tmp_path_factory):
+    return save_checkpoint(tiny_model, tmp_path_factory.mktemp("ckpt") / "tiny.pt")
+
+
+@pytest.fixture(scope="module")
+def envs():
+    cache = {task: dlocli.make_env("mujoco", task, seed=0, episode_steps=50)
+             for task in ("single", "bimanual")}  # fmt: skip
+    yield cache
+    for env in cache.values():
+        env.close()
+
+
+# ------------------------------------------------------------------------------ conformance
+@pytest.mark.parametrize("task", ["single", "bimanual"])
+@pytest.mark.parametrize("name", model_controllers())
+def test_controller_conformance(envs, tiny_model, name, task):
+    """Every controller: in-bounds float32 actions of the task's size, timed; bimanual runs
+    on the single-gripper model without retraining."""
+    env = envs[task]
+    obs, _ = env.reset(seed=1)
+    controller = make_controller(name, env, model=tiny_model, seed=0)
+    controller.reset(env.goal)
+    for _ in range(3):
+        action = controller.act(obs)
+        assert action.shape == env.action_space.shape and action.dtype == np.float32
+        assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+        assert controller.last_latency_ms > 0.0
+        obs, *_ = env.step(action)
+
+
+def test_planner_needs_a_model(envs):
+    with pytest.raises(BadInput, match="needs a model"):
+        make_controller("mpc", envs["single"])
+    with pytest.raises(BadInput, match="iterations"):
+        make_controller("mpc", envs["single"], model=object(), options={"iterations": 0})
+
+
+# ------------------------------------------------------------------------------ planners
+def predicted_cost(controller, obs, plan):
+    with torch.no_grad():
+        return float(controller.predict_cost(controller.state_tensor(obs), plan[None])[0])
+
+
+@pytest.mark.parametrize(
+    "planner,spec",
+    [(GradientMPC, MPCSpec(iterations=10, warm_start=False)),
+     (GradientMPC, MPCSpec(iterations=5, restarts=4, warm_start=False)),
+     (MPPI, MPPISpec(samples=64, iterations=3, warm_start=False))],
+    ids=["mpc", "mpc-restarts", "mppi"],
+)  # fmt: skip
+def test_planner_lowers_predicted_cost(envs, tiny_model, planner, spec):
+    """The executed plan's model-predicted shape cost is below the initial guess's (zeros)."""
+    env = envs["single"]
+    obs, _ = env.reset(seed=2)
+    controller = planner(env, tiny_model, spec)
+    controller.reset(env.goal)
+    controller.act(obs)
+    zeros = torch.zeros_like(controller.plan)
+    assert predicted_cost(controller, obs, controller.plan) < predicted_cost(controller, obs, zeros)
+    stats = controller.last_stats
+    assert stats["replanned"] == 1 and stats["cost_final"] < stats["cost_initial"]
+
+
+def test_shift_plan():
+    plan = torch.arange(10.0).view(5, 2)
+    np.testing.assert_array_equal(shift_plan(plan, 1), [[2, 3], [4, 5], [6, 7], [8, 9], [8, 9]])
+    np.testing.assert_array_equal(shift_plan(plan, 3), [[6, 7], [8, 9], [8, 9], [8, 9], [8, 9]])
+
+
+def test_warm_start_and_replan_every(envs, tiny_model):
+    """Between re-plans the plan's next actions run unchanged; a re-plan starts from the plan
+    shifted by the executed steps; without warm start it starts from zeros."""
+    env = envs["single"]
+    obs, _ = env.reset(seed=4)
+    mpc = GradientMPC(env, tiny_model, MPCSpec(iterations=2, replan_every=3))
+    mpc.reset(env.goal)
+    first = mpc.act(obs)
+    plan = mpc.plan.clone()
+    np.testing.assert_allclose(first, plan[0].numpy())
+    for k in (1, 2):
+        np.testing.assert_allclose(mpc.act(obs), plan[k].numpy())
+        assert mpc.last_stats == {"replanned": 0.0}
+    torch.testing.assert_close(mpc._initial_plan(), shift_plan(plan, 3))
+    mpc.act(obs)
+    assert mpc.last_stats["replanned"] == 1
+    cold = GradientMPC(env, tiny_model, MPCSpec(warm_start=False))
+    cold.reset(env.goal)
+    cold.act(obs)
+    assert not cold._initial_plan().any()
+
+
+# ------------------------------------------------------------------------------ closed loop
+def easy_goal(tmp_path, seed: int) -> str:
+    """The shape 20 steps of one constant right-gripper motion away from the seeded start."""
+    env = dlocli.make_env("mujoco", "single", seed=seed)
+    env.reset(seed=seed)
+    for _ in range(20):
+        env.step(np.array([0.8, 0.0, 0.6, 0.0, 0.0, 0.0], np.float32))
+    path = tmp_path / "easy.npy"
+    np.save(path, env.backend.segment_positions())
+    env.close()
+    return str(path)
+
+
+def test_mpc_reduces_true_error_in_mujoco(tmp_path, checkpoint):
+    """Gradient MPC through the tiny learned model brings the simulated rod closer to an easy
+    goal; the run directory holds the summary, metrics, plot, resolved spec and a GIF."""
+    task = TaskSpec(goal_file=easy_goal(tmp_path, 3))
+    spec = ControlSpec(task=task, model=checkpoint, seed=3, steps=30, out=tmp_path / "run",
+                       video=tmp_path / "run.gif", video_every=10)  # fmt: skip
+    records = []
+    summary = run_control(spec, records.append)
+    assert summary.keys() >= SUMMARY_KEYS and summary["steps"] == len(records) == 30
+    assert summary["final_error_mm"] < 0.8 * summary["initial_error_mm"]
+    assert summary["best_error_mm"] < 0.5 * summary["initial_error_mm"]
+    out = spec.out
+    assert (
+        json.loads((out / "summary.json").read_text())["final_error_mm"]
+        == summary["final_error_mm"]
+    )
+    assert json.loads((out / "spec.json").read_text())["controller_options"]["horizon"] == 5
+    assert (out / "metrics.csv").read_text().startswith("step,shape_error_mm,reward,latency_ms")
+    assert (out / "plots" / "error.png").stat().st_size > 0
+    assert (tmp_path / "run.gif").stat().st_size > 0
+
+
+# ------------------------------------------------------------------------------ CLI
+runner = CliRunner()
+
+
+def control(*args: str):
+    return runner.invoke(app, ["control", *args])
+
+
+def test_cli_bimanual_with_single_model(tmp_path, checkpoint):
+    """`dlo control --task bimanual` with a model trained on the single task, JSON summary."""
+    goal = tmp_path / "goal.npy"
+    assert runner.invoke(app, ["goal", "--out", str(goal), "--task", "bimanual"]).exit_code == 0
+    res = control("--goal", str(goal), "--model", str(checkpoint), "--task", "bimanual",
+                  "--steps", "4", "-o", "iterations=1", "--out", str(tmp_path / "r"),
+                  "--json")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary.keys() >= SUMMARY_KEYS and summary["steps"] == 4
+
+
+def bad_goal(tmp_path, kind: str) -> str:
+    good = dlocli.make_env("mujoco", "single", seed=0)
+    shape = good.goal
+    good.close()
+    arrays = {
+        "text": np.full((20, 3), "a"), "shape": shape[:10], "inf": shape * np.inf,
+        "nan": np.where(shape > 0.5, np.nan, shape), "far": shape + np.array([5.0, 0.0, 0.0]),
+    }  # fmt: skip
+    path = tmp_path / f"{kind}.npy"
+    if kind in arrays:
+        np.save(path, arrays[kind])
+    elif kind == "suffix":
+        path = tmp_path / "goal.txt"
+        path.write_text("1 2 3")
+    elif kind == "garbage":
+        path.write_bytes(b"not an npy file")
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "kind,needle",
+    [("missing", "does not exist"), ("suffix", "not a .npy"), ("garbage", "could not be read"),
+     ("text", "dtype"), ("shape", "shape (10, 3)"), ("nan", "NaN"), ("inf", "NaN or inf"),
+     ("far", "reach")],
+)  # fmt: skip
+def test_cli_bad_goal_exit_2(tmp_path, checkpoint, kind, needle):
+    res = control("--goal", bad_goal(tmp_path, kind), "--model", str(checkpoint),
+                  "--out", str(tmp_path / "r"))  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert needle in res.output
+    assert kind == "far" or "(20, 3)" in res.output, "names the expected format"
+    assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+    assert not (tmp_path / "r").exists(), "bad input writes no run directory"
+
+
+def test_cli_bad_model_exit_2(tmp_path):
+    goal = tmp_path / "goal.npy"
+    env = dlocli.make_env("mujoco", "single", seed=0)
+    np.save(goal, env.goal)
+    env.close()
+    other = save_checkpoint(build_model(TINY, 10), tmp_path / "ten.pt")
+    res = control("--goal", str(goal), "--model", str(other), "--out", str(tmp_path / "r"))
+    assert res.exit_code == 2 and "10 segments" in res.output and "20" in res.output
+    assert len(res.output.strip().splitlines()) == 1
+    for args, needle in [
+        (["--model", str(goal)], "checkpoint"),  # not a checkpoint
+        (["--model", str(tmp_path / "none.pt")], "does not exist"),
+        ([], "needs a model"),
+        (["--model", str(other), "--controller", "mcp"], "Did you mean 'mpc'"),
+        (["--model", str(other), "-o", "iterations=0"], "iterations"),
+        (["--model", str(other), "--video", str(tmp_path / "v.avi")], ".gif or .mp4"),
+    ]:
+        res = control("--goal", str(goal), *args, "--out", str(tmp_path / "r"))
+        assert res.exit_code == 2 and needle in res.output, (args, res.output)
+        assert "Traceback" not in res.output

@@ -1,0 +1,209 @@
+"""Conformance suite of the dynamics models: every registered model, on real simulator data.
+
+Sizes are tiny except where the paper's default architecture is the point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dlocli.data import load_dataset
+from dlocli.errors import BadInput
+from dlocli.models.base import (
+    ModelSpec,
+    build_model,
+    load_model,
+    resolve_device,
+    save_checkpoint,
+)
+from dlocli.registry import models
+
+TINY = {"hidden": 16, "mlp_hidden": 32, "mlp_layers": 2}
+
+
+@pytest.fixture(scope="module")
+def real(small_dataset_dir):
+    """(dataset, transitions as float32 tensors) of the session's small MuJoCo dataset."""
+    data = load_dataset(small_dataset_dir)
+    arrays = data.transitions()
+    tensors = {k: torch.as_tensor(arrays[k], dtype=torch.float32) for k in arrays}
+    return data, arrays, tensors
+
+
+def fitted(name: str, real, **sizes) -> torch.nn.Module:
+    data, arrays, _ = real
+    torch.manual_seed(0)
+    model = build_model(ModelSpec(name=name, **{**TINY, **sizes}), data.n_segments)
+    model.fit_normalization(arrays)
+    return model.eval()
+
+
+@pytest.fixture(params=models.names())
+def model(request, real):
+    return fitted(request.param, real)
+
+
+def batch(real, size: int = 5, horizon: int = 4):
+    """Start states (B,N,7) and the recorded actions after them (B,H,2,6)."""
+    _, _, t = real
+    state = t["state"][:size]
+    actions = t["action"][: size * horizon].reshape(size, horizon, 2, 6)
+    return state, actions
+
+
+def test_shapes_and_unit_quaternions(model, real):
+    state, actions = batch(real)
+    nxt = model(state, actions[:, 0])
+    assert nxt.shape == state.shape
+    rolled = model.rollout(state, actions)
+    assert rolled.shape == (5, 4, model.n_segments, 7)
+    for out in (nxt, rolled):
+        norms = out[..., 3:].norm(dim=-1)
+        torch.testing.assert_close(norms, torch.ones_like(norms), atol=1e-5, rtol=0)
+        assert torch.all(out[..., 3] >= 0), "canonical sign w >= 0 like the dataset"
+
+
+def test_gradient_reaches_actions(model, real):
+    state, actions = batch(real)
+    actions = actions.clone().requires_grad_(True)
+    model.rollout(state, actions)[..., :3].square().sum().backward()
+    assert actions.grad is not None and torch.isfinite(actions.grad).all()
+    assert actions.grad[:, :, 1].abs().sum() > 0, "the right gripper's commands matter"
+    assert actions.grad[:, -1].abs().sum() > 0, "every step of the plan gets a gradient"
+
+
+def test_rollout_equals_iterated_forward(model, real):
+    state, actions = batch(real)
+    with torch.no_grad():
+        rolled = model.rollout(state, actions)
+        s = state
+        for t in range(actions.shape[1]):
+            s = model(s, actions[:, t])
+            assert torch.equal(rolled[:, t], s)
+
+
+def test_save_load_round_trip_is_exact(model, real, tmp_path):
+    state, actions = batch(real)
+    path = save_checkpoint(model, tmp_path / "m.pt", {"epoch": 3})
+    again = load_model(path, "cpu", expect=model.spec)
+    assert again.spec == model.spec and again.n_segments == model.n_segments
+    with torch.no_grad():
+        assert torch.equal(model.rollout(state, actions), again.rollout(state, actions))
+    run = tmp_path / "run"
+    save_checkpoint(model, run / "checkpoints" / "final.pt")
+    assert torch.equal(load_model(run).state_std, model.state_std), "a run dir means final.pt"
+
+
+def test_single_task_model_accepts_bimanual_actions(model, real):
+    _, arrays, _ = real
+    assert np.all(arrays["action"][:, 0] == 0), "the fixture is single-gripper data"
+    state, actions = batch(real)
+    both = actions[:, 0].clone()
+    both[:, 0] = both[:, 1].flip(0)  # the left gripper moves too
+    with torch.no_grad():
+        single, bimanual = model(state, actions[:, 0]), model(state, both)
+    assert torch.isfinite(bimanual).all()
+    assert not torch.equal(single, bimanual), "the left gripper's command reaches the model"
+
+
+def test_normalisation_fits_the_data(model, real):
+    _, _, t = real
+    with torch.no_grad():
+        target = model.loss(t["state"], t["action"], t["next_state"])
+    assert torch.isfinite(target)
+    assert bool(model.fitted)
+    assert torch.all(model.delta_std > 0) and torch.all(model.state_std > 0)
+    assert model.action_scale[0] > 0.3, "scale from the moving gripper, not the idle one"
+
+
+@pytest.mark.parametrize("name", models.names())
+def test_bad_checkpoints_are_bad_input(name, real, tmp_path):
+    model = fitted(name, real)
+    good = save_checkpoint(model, tmp_path / "good.pt")
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint at all")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[:200])
+    for path in ("garbage.pt", "foreign.pt", "truncated.pt", "missing.pt"):
+        with pytest.raises(BadInput):
+            load_model(tmp_path / path)
+    with pytest.raises(BadInput, match="requested"):
+        load_model(good, expect=ModelSpec(name=name, **{**TINY, "hidden": 17}))
+    (tmp_path / "empty_run").mkdir()
+    with pytest.raises(BadInput, match="final.pt"):
+        load_model(tmp_path / "empty_run")
+
+
+def test_devices():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type in ("cpu", "cuda")
+    for bad in ("cuda:7", "tpu", "gpu0"):
+        if bad == "cuda:7" and torch.cuda.device_count() > 7:
+            continue
+        with pytest.raises(BadInput):
+            resolve_device(bad)
+
+
+def test_paper_architecture_defaults():
+    spec = ModelSpec()
+    model = build_model(spec, 20)
+    linear = torch.nn.Linear
+    assert [m.out_features for m in model.edge_net if isinstance(m, linear)] == [150] * 4
+    assert [m.out_features for m in model.node_net if isinstance(m, linear)] == [150] * 3 + [7]
+    assert model.edge_net[0].in_features == 2 * 13, "(v_i, a_i, v_j, a_j)"
+    assert model.node_net[0].in_features == 7 + 2 * 150, "(v_i, [h_left_i, h_right_i])"
+    lstm = model.lstm
+    assert (lstm.num_layers, lstm.hidden_size, lstm.bidirectional) == (2, 150, True)
+
+
+def test_fast_path_matches_reference(real):
+    """The optimised IN + bi-LSTM computes the same function and gradients as plain PyTorch."""
+    model = fitted("in-bilstm", real, hidden=24, lstm_layers=2)
+    state, actions = batch(real, size=3, horizon=2)
+    outs, grads = [], []
+    for reference in (False, True):
+        model.reference = reference
+        acts = actions.clone().requires_grad_(True)
+        model.zero_grad()
+        out = model.rollout(state, acts)
+        out[..., :3].sum().backward()
+        outs.append(out.detach())
+        grads.append([acts.grad] + [p.grad.clone() for p in model.parameters()])
+    torch.testing.assert_close(outs[0], outs[1], atol=1e-6, rtol=1e-5)
+    for a, b in zip(grads[0], grads[1], strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+
+
+def test_bilstm_matches_torch_lstm_in_double():
+    from dlocli.models.rnn import bilstm
+
+    torch.manual_seed(1)
+    lstm = torch.nn.LSTM(5, 6, 2, batch_first=True, bidirectional=True).double()
+    x = torch.randn(3, 7, 5, dtype=torch.double, requires_grad=True)
+    weights = torch.randn(3, 7, 12, dtype=torch.double)
+    mine, ref = bilstm(x, lstm), lstm(x)[0]
+    torch.testing.assert_close(mine, ref, atol=1e-12, rtol=0)
+    g_mine = torch.autograd.grad((mine * weights).sum(), [x, *lstm.parameters()])
+    g_ref = torch.autograd.grad((ref * weights).sum(), [x, *lstm.parameters()])
+    for a, b in zip(g_mine, g_ref, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_rollout_matches_cpu(model, real):
+    state, actions = batch(real)
+    gpu = load_model_like(model, "cuda")
+    acts = actions.cuda().requires_grad_(True)
+    out = gpu.rollout(state.cuda(), acts)
+    out.sum().backward()
+    assert acts.grad is not None and torch.isfinite(acts.grad).all()
+    with torch.no_grad():
+        torch.testing.assert_close(out.cpu(), model.rollout(state, actions), atol=1e-4, rtol=1e-4)
+
+
+def load_model_like(model, device: str):
+    clone = build_model(model.spec, model.n_segments)
+    clone.load_state_dict(model.state_dict())
+    return clone.to(device).eval()

@@ -1,0 +1,143 @@
+"""Training, evaluation and the `dlo train` / `dlo eval` commands, on real simulator data."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dlocli.data import load_dataset
+from dlocli.evaluation import evaluate_model
+from dlocli.models.base import ModelSpec, build_model, load_model, read_checkpoint
+from dlocli.training import (
+    FitSpec,
+    split_episodes,
+    train_model,
+    transition_tensors,
+    validation_loss,
+)
+
+TINY = {"hidden": 24, "mlp_hidden": 32, "mlp_layers": 2}
+FAST_FIT = {"lr": 3e-3, "batch_size": 32, "val_fraction": 0.2, "device": "cpu"}
+EVAL_KEYS = {
+    "one_step_mm", "rollout5_mm", "rollout50_mm",
+    "persistence_one_step_mm", "persistence_rollout5_mm", "persistence_rollout50_mm",
+}  # fmt: skip
+
+runner = CliRunner()
+
+
+def cli(*args: str):
+    from dlocli.cli import app
+
+    return runner.invoke(app, list(args))
+
+
+def fresh(name: str, data, seed: int = 0):
+    torch.manual_seed(seed)
+    return build_model(ModelSpec(name=name, **TINY), data.n_segments)
+
+
+def test_split_is_by_trajectory_and_stable_as_data_grows():
+    train, val = split_episodes(10, 0.2, seed=3)
+    assert len(val) >= 1 and set(train).isdisjoint(val) and len(train) + len(val) == 10
+    bigger_train, bigger_val = split_episodes(40, 0.2, seed=3)
+    assert set(val) <= set(bigger_val) and set(train) <= set(bigger_train)
+    assert 4 <= len(bigger_val) <= 12
+
+
+@pytest.mark.parametrize("name", ["in-bilstm", "mlp"])
+def test_training_reduces_validation_loss(small_dataset_dir, name):
+    data = load_dataset(small_dataset_dir)
+    model = fresh(name, data)
+    fit = FitSpec(epochs=4, **FAST_FIT)
+    _, val_eps = split_episodes(data.n_episodes, fit.val_fraction, fit.seed)
+    train_eps = np.setdiff1d(np.arange(data.n_episodes), val_eps)
+    model.fit_normalization(data.transitions(train_eps))
+    val = transition_tensors(data, val_eps, torch.device("cpu"))
+    before = validation_loss(model, val)
+    result = train_model(model, data, fit)
+    assert [r["epoch"] for r in result.history] == [1, 2, 3, 4]
+    assert result.val_loss < 0.7 * before, (before, result.history)
+    assert result.optimizer_state["state"], "Adam moments to continue from"
+
+
+def test_training_is_reproducible_and_continues(small_dataset_dir):
+    data = load_dataset(small_dataset_dir)
+    fit = FitSpec(epochs=1, **FAST_FIT)
+    a, b = fresh("in-bilstm", data), fresh("in-bilstm", data)
+    first = train_model(a, data, fit)
+    train_model(b, data, fit)
+    for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+        assert torch.equal(pa, pb), "same seed on CPU, same weights"
+    std = a.delta_std.clone()
+    more = train_model(a, data, fit, optimizer_state=first.optimizer_state)
+    assert torch.equal(a.delta_std, std), "continued training keeps the normalisation"
+    assert more.optimizer_state["state"][0]["step"] == 2 * first.optimizer_state["state"][0]["step"]
+
+
+def test_evaluation_keys_and_beats_persistence(small_dataset_dir):
+    data = load_dataset(small_dataset_dir)
+    model = fresh("in-bilstm", data)
+    result = train_model(model, data, FitSpec(epochs=3, **FAST_FIT))
+    metrics = evaluate_model(model, data, result.val_episodes)
+    assert EVAL_KEYS <= metrics.keys()
+    assert all(metrics[k] is not None and metrics[k] >= 0 for k in EVAL_KEYS)
+    assert metrics["persistence_rollout50_mm"] > metrics["persistence_rollout5_mm"] > 0
+    assert metrics["one_step_mm"] < metrics["persistence_one_step_mm"]
+
+
+def test_train_and_eval_commands(small_dataset_dir, tmp_path):
+    run = tmp_path / "run"
+    res = cli("train", "--data", str(small_dataset_dir), "--hidden", "16", "--epochs", "2",
+              "--batch-size", "64", "--lr", "3e-3", "--device", "cpu", "--out", str(run), "--json")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert EVAL_KEYS <= summary.keys() and summary["epochs"] == 2
+    for name in ("spec.json", "metrics.csv", "summary.json", "checkpoints/final.pt",
+                 "checkpoints/best.pt", "plots/rollout.png", "plots/loss.png"):  # fmt: skip
+        assert (run / name).is_file(), name
+    assert (run / "metrics.csv").read_text().splitlines()[0] == "epoch,train_loss,val_loss,seconds"
+    assert json.loads((run / "spec.json").read_text())["model"]["hidden"] == 16
+    assert "optimizer" in read_checkpoint(run)
+    assert load_model(run).spec.hidden == 16
+
+    plot = tmp_path / "eval.png"
+    res = cli("eval", "--model", str(run), "--data", str(small_dataset_dir), "--device", "cpu",
+              "--plot", str(plot), "--json")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert EVAL_KEYS <= json.loads(res.stdout.strip().splitlines()[-1]).keys()
+    assert plot.stat().st_size > 1000
+
+    more = tmp_path / "more"
+    res = cli("train", "--data", str(small_dataset_dir), "--hidden", "16", "--epochs", "1",
+              "--init-from", str(run), "--device", "cpu", "--out", str(more), "--json")  # fmt: skip
+    assert res.exit_code == 0, res.output
+
+
+def test_bad_input_exits_2(small_dataset_dir, tmp_path):
+    not_data = tmp_path / "notdata.h5"
+    not_data.write_bytes(b"hello")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"\x00" * 64)
+    data = str(small_dataset_dir)
+    out = str(tmp_path / "out")
+    cases = [
+        ("train", "--data", str(tmp_path / "missing"), "--out", out),
+        ("train", "--data", str(not_data), "--out", out),
+        ("train", "--data", data, "--device", "cuda:9", "--out", out),
+        ("train", "--data", data, "--model", "lstm", "--out", out),
+        ("train", "--data", data, "--epochs", "-1", "--out", out),
+        ("train", "--data", data, "--init-from", str(corrupt), "--out", out),
+        ("eval", "--model", str(corrupt), "--data", data),
+        ("eval", "--model", str(tmp_path), "--data", data),
+        ("eval", "--model", str(corrupt), "--data", str(not_data)),
+    ]
+    for args in cases:
+        res = cli(*args)
+        assert res.exit_code == 2, (args, res.output)
+        assert "Traceback" not in res.output
+        assert len(res.output.strip().splitlines()) <= 2, res.output
