@@ -1,6 +1,6 @@
-"""Closed-loop control on the goals of `dlo goal --seed 0..K-1`: the acceptance numbers.
+"""Closed-loop control on the goals of `dlo goal --seed 0..9`: the acceptance numbers.
 
-    python benchmarks/control_goals.py --model CKPT [--goals 10] [--steps 200]
+    python benchmarks/control_goals.py --model CKPT [--seeds 0-9] [--steps 200]
         [--controller mpc] [-o iterations=50 -o warm_start=false] [--task single]
         [--workers 1] --out runs/goals-default
 
@@ -42,13 +42,20 @@ def one_goal(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     return {"goal": seed, **{k: summary[k] for k in keys}}
 
 
+def parse_seeds(text: str) -> list[int]:
+    """ "0-9" -> [0, ..., 9]; "1,4,6" -> [1, 4, 6]."""
+    if "-" in text:
+        low, high = text.split("-")
+        return list(range(int(low), int(high) + 1))
+    return [int(part) for part in text.split(",")]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
     parser.add_argument("--model", type=Path, required=True)
-    parser.add_argument("--goals", type=int, default=10, help="goal seeds 0..K-1")
-    parser.add_argument("--first", type=int, default=0, help="first goal seed")
+    parser.add_argument("--seeds", default="0-9", help="goal seeds: a range 0-9 or a list 1,4,6")
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--task", default="single")
     parser.add_argument("--controller", default="mpc")
@@ -56,7 +63,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="goals run in parallel")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    seeds = range(args.first, args.first + args.goals)
+    seeds = parse_seeds(args.seeds)
     with ProcessPoolExecutor(args.workers) as pool:
         rows = list(pool.map(one_goal, seeds, [args] * len(seeds)))
     improved = sum(r["final_error_mm"] < r["initial_error_mm"] for r in rows)

@@ -71,6 +71,18 @@ def check_goal_reachable(goal: np.ndarray, backend: Backend, limits_margin: floa
         )
 
 
+#: bound of every position in the observation (metres); a diverged rod is clipped to it
+POSITION_BOUND = 10.0
+
+
+def observation_space(n: int) -> gym.spaces.Box:
+    """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1]."""
+    pos = np.full(n * 3, POSITION_BOUND)
+    grip = np.tile([POSITION_BOUND] * 3 + [1.0] * 4, 2)
+    high = np.concatenate([pos, np.ones(n * 4), grip, pos]).astype(np.float32)
+    return gym.spaces.Box(-high, high, dtype=np.float32)
+
+
 class DLOShapeEnv(gym.Env):
     """Drive a rod held by grippers to a goal shape. See the module docstring."""
 
@@ -94,7 +106,7 @@ class DLOShapeEnv(gym.Env):
         self.seed_value = seed
         n = self.n_segments
         self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n * 3 + n * 4 + 14 + n * 3,), np.float32)
+        self.observation_space = observation_space(n)
         self._goal_rng = np.random.default_rng([seed, 1])
         self._goal_given = goal is not None or self.task_spec.goal_file is not None
         self._seeded = False
@@ -195,7 +207,8 @@ class DLOShapeEnv(gym.Env):
             self.backend.gripper_poses().ravel(),
             np.asarray(self.goal).ravel(),
         ]
-        return np.concatenate(parts).astype(np.float32)
+        obs = np.concatenate(parts).astype(np.float32)
+        return np.clip(obs, self.observation_space.low, self.observation_space.high)
 
     def split_observation(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         """Inverse of the flat observation: positions, quaternions, grippers, goal."""

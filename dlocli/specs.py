@@ -196,5 +196,5 @@ def field_help(cls: type[Spec], dotted: str) -> str:
         if info.default_factory is not None:
             model = info.default_factory
     assert info is not None
-    default = "" if info.default_factory is not None else f" [spec default: {info.default}]"
+    default = "" if info.default_factory is not None else f" (spec default: {info.default})"
     return f"{info.description}{default}"

@@ -225,10 +225,18 @@ def _right_multiplier(c: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- backend
 class MujocoCable(Backend):
-    """MuJoCo 3.x composite cable (elasticity plugin), grippers as welded mocap bodies."""
+    """MuJoCo 3.x composite cable (elasticity plugin), grippers as welded mocap bodies.
+
+    ``model``/``data`` are the compiled MuJoCo model and its state; each control period runs
+    ``n_substeps`` physics steps of ``control_dt / n_substeps`` seconds (the largest step
+    that divides the period and does not exceed ``physics_dt``).
+    """
 
     name = "mujoco"
-    default_physics_dt = 0.004  # s; stable to >= 6.7 ms in the stress tests, 10 ms is not
+    # The largest step that survives the stress tests (benchmarks/backend_stability.py):
+    # random smooth gripper motion is stable even at 10 ms, but full-speed rotations that pull
+    # the rod taut diverge in 0/100 episodes at 4 ms, 2/40 at 5 ms, 7/10 at 10 ms.
+    default_physics_dt = 0.004
 
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
         super().__init__(spec, control_dt)
@@ -292,9 +300,9 @@ class MujocoCable(Backend):
         m, d = self.model, self.data
         delta = end - start
         # the end rotation on the start's hemisphere, so that interpolation takes the short way
-        if np.einsum("ij,ij->i", start[:, 3:], end[:, 3:]).min() < 0.0:
-            flip = np.einsum("ij,ij->i", start[:, 3:], end[:, 3:]) < 0.0
-            delta[flip, 3:] = -end[flip, 3:] - start[flip, 3:]
+        for i, (q0, q1) in enumerate(zip(start[:, 3:].tolist(), end[:, 3:].tolist(), strict=True)):
+            if sum(a * b for a, b in zip(q0, q1, strict=True)) < 0.0:
+                delta[i, 3:] = -end[i, 3:] - start[i, 3:]
         # (n,2,7) substep targets, each led by the weld lag. Rotations are at most 0.02 rad per
         # control period, where nlerp and slerp agree to ~1e-7 rad; MuJoCo normalises mocap
         # quaternions itself.

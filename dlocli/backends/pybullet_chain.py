@@ -47,6 +47,8 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import time
+
 import numpy as np
 import pybullet as p
 
@@ -362,6 +364,14 @@ class PybulletChain(Backend):
                 )
             p.stepSimulation(physicsClientId=c)
         return True
+
+    def _time_raw_physics(self, control_steps: int) -> float:
+        # bare stepSimulation; the joint springs are ours (Python), so they count as overhead
+        c = self._client
+        start = time.perf_counter()
+        for _ in range(control_steps * self._n_sub):
+            p.stepSimulation(physicsClientId=c)
+        return (time.perf_counter() - start) / control_steps
 
     # ----------------------------------------------------------------- state
     def _get_physics_state(self) -> np.ndarray:

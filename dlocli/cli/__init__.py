@@ -17,24 +17,23 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-# (command name, "module:function"): commands are imported lazily, so `dlo --help` stays fast
-# and a missing optional dependency only breaks the command that needs it.
+# (command name, "module:function"); each command module imports its heavy libraries (torch,
+# simulators) inside the function, so `dlo --help` stays fast.
 COMMANDS = [
     ("list", "dlocli.cli.listing:list_plugins"),
     ("goal", "dlocli.cli.goal:goal"),
     ("collect", "dlocli.cli.collect:collect"),
+    ("train", "dlocli.cli.train:train"),
+    ("eval", "dlocli.cli.eval:evaluate"),
     ("control", "dlocli.cli.control:control"),
+    ("online", "dlocli.cli.online:online"),
 ]
 
 
 def _register() -> None:
     for name, target in COMMANDS:
         module_name, _, attr = target.partition(":")
-        try:
-            fn = getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError):
-            continue  # a command still being written does not break the others
-        app.command(name)(fn)
+        app.command(name)(getattr(importlib.import_module(module_name), attr))
 
 
 _register()

@@ -40,7 +40,11 @@ class MPCSpec(PlannerSpec):
         description="Optimiser step size: Adam's learning rate in action units "
         "(SGD: per unit gradient).",
     )
-    optimizer: Literal["adam", "sgd"] = Field("adam", description="Update rule on the actions.")
+    optimizer: Literal["adam", "normalized", "sgd"] = Field(
+        "adam",
+        description="Update rule on the actions: adam; normalized (gradient divided by its RMS "
+        "over the plan: steps of RMS step_size along the steepest descent); sgd.",
+    )
     restarts: int = Field(
         1,
         ge=1,
@@ -111,6 +115,9 @@ class GradientMPC(ModelPlanner):
         """The step to subtract from the plans: Adam (bias-corrected) or plain SGD."""
         if self.spec.optimizer == "sgd":
             return self.spec.step_size * grad
+        if self.spec.optimizer == "normalized":
+            rms = grad.square().mean(dim=(1, 2), keepdim=True).sqrt()
+            return self.spec.step_size * grad / rms.clamp_min(torch.finfo(grad.dtype).tiny)
         mean, square = moments
         b1, b2 = ADAM_BETAS
         mean.mul_(b1).add_(grad, alpha=1 - b1)

@@ -1,0 +1,3 @@
+from dlocli.cli import main
+
+main()

@@ -1,0 +1,102 @@
+"""`dlo online`: the paper's Algorithm 1 — learn the model online, exploring with MPC."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                           TimeElapsedColumn, TimeRemainingColumn)
+
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, build_spec, emit_summary, handle_errors
+from dlocli.cli.common import opt_help as h
+from dlocli.online import OnlineSpec as S
+
+
+@handle_errors
+def online(
+    iters: Annotated[int | None, typer.Option(help=h(S, "iters"))] = None,
+    trials: Annotated[int | None, typer.Option(help=h(S, "trials"))] = None,
+    steps: Annotated[int | None, typer.Option(help=h(S, "steps"))] = None,
+    epochs: Annotated[int | None, typer.Option(help=h(S, "fit.epochs"))] = None,
+    initial_episodes: Annotated[int | None, typer.Option(help=h(S, "initial_episodes"))] = None,
+    horizon: Annotated[int | None, typer.Option(help=h(S, "mpc.horizon"))] = None,
+    lr: Annotated[float | None, typer.Option(help=h(S, "fit.lr"))] = None,
+    hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
+    model: Annotated[str | None, typer.Option(help=h(S, "model.name"))] = None,
+    goals: Annotated[str | None, typer.Option(help=h(S, "task.goal"))] = None,
+    task: Annotated[str | None, typer.Option(help=h(S, "task.name"))] = None,
+    backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
+    device: Annotated[str | None, typer.Option(help=h(S, "fit.device"))] = None,
+    workers: Annotated[int | None, typer.Option(help=h(S, "workers"))] = None,
+    offline: Annotated[bool | None, typer.Option("--offline/--no-offline", help=h(S, "offline"))] = None,
+    seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
+    out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
+    resume: Annotated[Path | None, typer.Option(help="Continue the killed run in this directory.")] = None,
+    spec_file: SpecFile = None,
+    overwrite: OverwriteFlag = False,
+    json_out: JsonFlag = False,
+) -> None:
+    """Learn the dynamics model online with MPC (paper Algorithm 1); plot the learning curve.
+
+    With no flags this is the paper's setting (K=20, E=50, N=50, T=200, H=5, lr 1e-4): a GPU
+    job. For a CPU demo try: dlo online --iters 3 --trials 4 --steps 100 --epochs 5
+    """
+    from dlocli.online import resume_online, start_online
+
+    overrides: dict[str, Any] = {
+        "iters": iters, "trials": trials, "steps": steps, "fit.epochs": epochs,
+        "initial_episodes": initial_episodes, "mpc.horizon": horizon, "fit.lr": lr,
+        "model.hidden": hidden, "model.name": model, "task.goal": goals, "task.name": task,
+        "backend.name": backend, "fit.device": device, "workers": workers, "offline": offline,
+        "seed": seed, "out": out,
+    }
+    with _progress(json_out) as callback:
+        if resume is not None:
+            summary = resume_online(resume, overrides, callback)
+        else:
+            spec = build_spec(S, spec_file, overrides)
+            summary = start_online(spec, overwrite, callback)
+    summary = {k: v for k, v in summary.items() if k not in ("curve", "offline_curve")} | {
+        "curve": [(c["transitions"], round(c["final_error_mm_mean"], 1)) for c in summary["curve"]]
+    }
+    emit_summary(summary, json_out, "dlo online")
+
+
+class _progress:
+    """Nested bars: iterations, trials, epochs (with ETA)."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.bars = Progress(TextColumn("{task.description:<10}"), BarColumn(), MofNCompleteColumn(),
+                             TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
+                             TimeRemainingColumn(), disable=quiet)
+        self.tasks: dict[str, Any] = {}
+
+    def __enter__(self) -> Any:
+        self.bars.__enter__()
+        return self.update
+
+    def __exit__(self, *exc: object) -> None:
+        self.bars.__exit__(*exc)
+
+    def _bar(self, name: str, total: int | None) -> Any:
+        if name not in self.tasks:
+            self.tasks[name] = self.bars.add_task(name, total=total, info="")
+        return self.tasks[name]
+
+    def update(self, event: str, info: dict[str, Any]) -> None:
+        if event == "iteration":
+            self.bars.update(self._bar("iteration", info["total"]), completed=info["iteration"] - 1,
+                             info=f"iteration {info['iteration']}")
+            for name in ("trial", "epoch"):
+                if name in self.tasks:
+                    self.bars.reset(self.tasks[name])
+        elif event == "initial":
+            self.bars.update(self._bar("random", info["total"]), completed=info["episode"])
+        elif event == "epoch" and "batch" not in info:
+            self.bars.update(self._bar("epoch", None), completed=info["epoch"],
+                             info=f"val loss {info.get('val_loss', float('nan')):.4f}")
+        elif event == "trial":
+            self.bars.update(self._bar("trial", None), completed=info["trial"],
+                             info=f"final error {info['final_error_mm']:.1f} mm")

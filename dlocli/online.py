@@ -1,0 +1,450 @@
+"""Online model learning with MPC: the paper's Algorithm 1 (``dlo online``).
+
+    D <- initial random transitions
+    for k = 1..K:
+        update the model on D for E epochs (continuing from the previous weights, input noise)
+        for j = 1..N: run a trial of T steps from a random start with MPC through the model;
+                      with probability p add action noise a ~ A_noise; append (s, a, s') to D
+
+Run directory (every file written atomically)::
+
+    spec.json                      resolved OnlineSpec
+    data/initial.h5                the initial random dataset
+    data/iter_KK/trial_JJJ.h5      one file per finished trial: the dataset grows atomically
+    checkpoints/iter_KK.pt         the model after iteration KK's training (+ Adam state)
+    checkpoints/final.pt           the last iteration's model
+    metrics.csv                    iteration, trial, transitions, cumulative_reward, ...
+    summary.json, plots/learning_curve.png
+
+Resume (``--resume RUN``): an iteration whose checkpoint exists is not retrained; a trial
+whose file exists is not rerun. Every random stream is derived from (seed, iteration, trial),
+so a resumed run reproduces an uninterrupted one with the same seed.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from dlocli.collect import random_actions, run_episode
+from dlocli.controllers.mpc import MPCSpec
+from dlocli.data import Dataset, Episode, load_dataset
+from dlocli.errors import BadInput
+from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.models.spec import ModelSpec
+from dlocli.specs import EnvSpec
+from dlocli.train_spec import FitSpec
+
+Progress = Callable[[str, dict[str, Any]], None]
+
+
+class OnlineSpec(EnvSpec):
+    """`dlo online`: Algorithm 1 of the paper. Defaults are the paper's parameters."""
+
+    iters: int = Field(20, gt=0, description="Iterations K of model update + MPC trials.")
+    trials: int = Field(50, gt=0, description="MPC trials N per iteration.")
+    steps: int = Field(200, gt=0, description="Control steps T per trial.")
+    initial_episodes: int = Field(
+        10, gt=1, description="Random-action episodes (of T steps) in the initial dataset D."
+    )
+    noise_probability: float = Field(
+        0.2, ge=0, le=1, description="Probability that a step's MPC action gets action noise."
+    )
+    noise_std: float = Field(
+        0.3, ge=0, description="A_noise: std of the Gaussian noise added to the action."
+    )
+    model: ModelSpec = Field(default_factory=ModelSpec, description="Dynamics model.")
+    fit: FitSpec = Field(
+        default_factory=FitSpec, description="Model update per iteration (E = fit.epochs)."
+    )
+    mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC that explores.")
+    workers: int = Field(1, gt=0, description="Processes running an iteration's trials.")
+    offline: bool = Field(
+        False,
+        description="Also train a model offline on as many random transitions as D holds "
+        "after each iteration and evaluate it with the same trials (paper Fig. 7).",
+    )
+    out: Path = Field(Path("runs/online"), description="Run directory.")
+
+
+# ----------------------------------------------------------------------------- seeds
+def stream_seed(seed: int, *keys: int) -> int:
+    """An independent seed for one (iteration, trial, purpose) of the run."""
+    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
+
+
+INITIAL, TRAIN, TRIAL, NOISE, OFFLINE = 0, 1, 2, 3, 4
+
+
+# ----------------------------------------------------------------------------- paths
+class RunLayout:
+    """Where each file of an online run lives."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = Path(out)
+
+    def initial(self) -> Path:
+        return self.out / "data" / "initial.h5"
+
+    def trial(self, k: int, j: int, offline: bool = False) -> Path:
+        kind = "offline" if offline else "data"
+        return self.out / kind / f"iter_{k:02d}" / f"trial_{j:03d}.h5"
+
+    def checkpoint(self, k: int, offline: bool = False) -> Path:
+        name = f"offline_{k:02d}.pt" if offline else f"iter_{k:02d}.pt"
+        return self.out / "checkpoints" / name
+
+    def offline_data(self, k: int) -> Path:
+        return self.out / "offline" / f"random_{k:02d}.h5"
+
+
+# ----------------------------------------------------------------------------- trials
+def _trial_episode(
+    spec: OnlineSpec, checkpoint: Path, k: int, j: int, threads: int | None = None
+) -> Episode:
+    """One MPC trial through the model in ``checkpoint``: seeds from (seed, k, j)."""
+    import torch
+
+    from dlocli.controllers.mpc import GradientMPC
+    from dlocli.env import make_env_from_spec
+    from dlocli.models.base import load_model
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+    env = make_env_from_spec(_env_spec(spec))
+    try:
+        model = load_model(checkpoint, spec.fit.device)
+        mpc = GradientMPC(env, model, spec.mpc, seed=stream_seed(spec.seed, TRIAL, k, j))
+        noise_rng = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
+        reset_seed = stream_seed(spec.seed, TRIAL, k, j)
+        first = {"done": False}
+
+        def policy(obs: np.ndarray) -> np.ndarray:
+            if not first["done"]:
+                mpc.reset(env.goal)  # after env.reset: a random goal is drawn there
+                first["done"] = True
+            action = mpc.act(obs)
+            if noise_rng.random() < spec.noise_probability:
+                action = action + noise_rng.normal(0.0, spec.noise_std, action.shape)
+            return np.clip(action, -1.0, 1.0)
+
+        return run_episode(env, reset_seed, policy)
+    finally:
+        env.close()
+
+
+def _env_spec(spec: OnlineSpec) -> EnvSpec:
+    task = spec.task.model_copy(update={"episode_steps": spec.steps})
+    return EnvSpec(backend=spec.backend, task=task, seed=spec.seed)
+
+
+def _episode_attrs(episode: Episode, seconds: float) -> dict[str, Any]:
+    from dlocli.metrics import shape_error_mm
+
+    return {
+        "cumulative_reward": float(np.sum(episode.rewards)),
+        "final_error_mm": float(shape_error_mm(episode.positions[-1], episode.goal)),
+        "trial_seconds": round(seconds, 3),
+    }
+
+
+def _run_trial_to_file(spec_json: str, checkpoint: str, k: int, j: int, path: str,
+                       threads: int | None) -> dict[str, Any]:
+    """Run one trial and write its dataset file atomically (a worker-process entry point)."""
+    spec = OnlineSpec.model_validate_json(spec_json)
+    start = time.perf_counter()
+    episode = _trial_episode(spec, Path(checkpoint), k, j, threads)
+    attrs = _episode_attrs(episode, time.perf_counter() - start)
+    Dataset.from_episodes([episode], {**attrs, "iteration": k, "trial": j}).save(Path(path))
+    return attrs
+
+
+# ----------------------------------------------------------------------------- the loop
+class OnlineRun:
+    """Algorithm 1 over a run directory; :meth:`run` can be called again to resume."""
+
+    def __init__(self, spec: OnlineSpec, progress: Progress | None = None) -> None:
+        self.spec = spec
+        self.paths = RunLayout(spec.out)
+        self.progress = progress or (lambda event, info: None)
+        self._pool: ProcessPoolExecutor | None = None
+
+    # ------------------------------------------------------------------ data
+    def initial_dataset(self) -> Dataset:
+        """Collect (or reload) the initial random dataset D_0."""
+        path = self.paths.initial()
+        if path.is_file():
+            return load_dataset(path)
+        from dlocli.collect import dataset_attrs
+        from dlocli.env import make_env_from_spec
+
+        env = make_env_from_spec(_env_spec(self.spec))
+        episodes = []
+        try:
+            for e in range(self.spec.initial_episodes):
+                rng = np.random.default_rng(stream_seed(self.spec.seed, INITIAL, e, 1))
+                actions = random_actions(rng, self.spec.steps, env.action_space.shape[0])
+                episodes.append(run_episode(env, stream_seed(self.spec.seed, INITIAL, e), actions))
+                self.progress("initial", {"episode": e + 1, "total": self.spec.initial_episodes})
+        finally:
+            env.close()
+        data = Dataset.from_episodes(episodes, dataset_attrs(_env_spec(self.spec)))
+        data.save(path)
+        return data
+
+    def dataset_until(self, k: int) -> Dataset:
+        """D after iteration k's trials (k = 0: the initial data)."""
+        data = load_dataset(self.paths.initial())
+        for it in range(1, k + 1):
+            for j in range(1, self.spec.trials + 1):
+                data = data.concat(load_dataset(self.paths.trial(it, j)))
+        return data
+
+    # ------------------------------------------------------------------ steps of Alg. 1
+    def update_model(self, k: int, data: Dataset) -> None:
+        """Train for E epochs from iteration k-1's weights; checkpoint as iteration k."""
+        import torch
+
+        from dlocli.models.base import build_model, load_model, read_checkpoint, save_checkpoint
+        from dlocli.models.base import resolve_device
+        from dlocli.training import train_model
+
+        if self.paths.checkpoint(k).is_file():
+            return
+        device = resolve_device(self.spec.fit.device)
+        if k == 1:
+            torch.manual_seed(stream_seed(self.spec.seed, TRAIN, 0))
+            model, opt_state = build_model(self.spec.model, data.n_segments).to(device), None
+        else:
+            previous = self.paths.checkpoint(k - 1)
+            model = load_model(previous, device).train()
+            opt_state = read_checkpoint(previous).get("optimizer")
+        fit = self.spec.fit.model_copy(update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31})
+        start = time.perf_counter()
+        result = train_model(
+            model, data, fit, optimizer_state=opt_state,
+            progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
+        )
+        save_checkpoint(model, self.paths.checkpoint(k), {
+            "optimizer": result.optimizer_state, "iteration": k,
+            "val_loss": result.val_loss, "train_seconds": time.perf_counter() - start,
+        })
+
+    def run_trials(self, k: int, checkpoint: Path, offline: bool = False) -> None:
+        """The N trials of iteration k; those whose files exist are kept, not rerun."""
+        todo = [j for j in range(1, self.spec.trials + 1)
+                if not self.paths.trial(k, j, offline).is_file()]
+        done = self.spec.trials - len(todo)
+        spec_json = self.spec.model_dump_json()
+        if self.spec.workers == 1:
+            for j in todo:
+                attrs = _run_trial_to_file(spec_json, str(checkpoint), k, j,
+                                           str(self.paths.trial(k, j, offline)), None)
+                done += 1
+                self.progress("trial", {"iteration": k, "trial": done, **attrs})
+            return
+        pool = self._get_pool()
+        futures = [pool.submit(_run_trial_to_file, spec_json, str(checkpoint), k, j,
+                               str(self.paths.trial(k, j, offline)), 1) for j in todo]
+        for future in futures:
+            attrs = future.result()
+            done += 1
+            self.progress("trial", {"iteration": k, "trial": done, **attrs})
+
+    def _get_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            import multiprocessing as mp
+
+            # spawn: forking a process whose torch already started OpenMP threads can hang
+            self._pool = ProcessPoolExecutor(self.spec.workers, mp_context=mp.get_context("spawn"))
+        return self._pool
+
+    def offline_comparison(self, k: int, n_transitions: int) -> None:
+        """Paper Fig. 7: a model trained from scratch on ``n_transitions`` random transitions."""
+        import torch
+
+        from dlocli.models.base import build_model, resolve_device, save_checkpoint
+        from dlocli.training import train_model
+
+        ckpt = self.paths.checkpoint(k, offline=True)
+        if not ckpt.is_file():
+            data = self._random_data(k, n_transitions)
+            torch.manual_seed(stream_seed(self.spec.seed, OFFLINE, k))
+            model = build_model(self.spec.model, data.n_segments).to(resolve_device(self.spec.fit.device))
+            epochs = self.spec.fit.epochs * k  # as many passes as the online model had
+            fit = self.spec.fit.model_copy(update={"epochs": epochs, "seed": stream_seed(self.spec.seed, OFFLINE, k) % 2**31})
+            train_model(model, data, fit,
+                        progress=lambda info: self.progress("epoch", {"iteration": k, **info}))
+            save_checkpoint(model, ckpt, {"iteration": k, "offline": 1})
+        self.run_trials(k, ckpt, offline=True)
+
+    def _random_data(self, k: int, n_transitions: int) -> Dataset:
+        """Random episodes up to ``n_transitions`` (the initial data first, then more)."""
+        path = self.paths.offline_data(k)
+        if path.is_file():
+            return load_dataset(path)
+        from dlocli.env import make_env_from_spec
+
+        data = load_dataset(self.paths.initial())
+        env = make_env_from_spec(_env_spec(self.spec))
+        try:
+            e = self.spec.initial_episodes
+            while data.n_transitions < n_transitions:
+                rng = np.random.default_rng(stream_seed(self.spec.seed, INITIAL, e, 1))
+                actions = random_actions(rng, self.spec.steps, env.action_space.shape[0])
+                episode = run_episode(env, stream_seed(self.spec.seed, INITIAL, e), actions)
+                data = data.concat(Dataset.from_episodes([episode]))
+                e += 1
+        finally:
+            env.close()
+        data.save(path)
+        return data
+
+    # ------------------------------------------------------------------ driver
+    def run(self) -> dict[str, Any]:
+        start = time.perf_counter()
+        data = self.initial_dataset()
+        try:
+            for k in range(1, self.spec.iters + 1):
+                self.progress("iteration", {"iteration": k, "total": self.spec.iters})
+                self.update_model(k, data)
+                self.run_trials(k, self.paths.checkpoint(k))
+                data = self.dataset_until(k)
+                if self.spec.offline:
+                    self.offline_comparison(k, data.n_transitions)
+                self.write_results(time.perf_counter() - start)
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(cancel_futures=True)
+        return self.write_results(time.perf_counter() - start, final=True)
+
+    # ------------------------------------------------------------------ results
+    def rows(self, offline: bool = False) -> list[dict[str, Any]]:
+        """One metrics row per finished trial, read back from the trial files."""
+        rows, transitions = [], load_dataset(self.paths.initial()).n_transitions
+        for k in range(1, self.spec.iters + 1):
+            for j in range(1, self.spec.trials + 1):
+                path = self.paths.trial(k, j, offline)
+                if not path.is_file():
+                    return rows
+                data = load_dataset(path)
+                transitions += data.n_transitions
+                rows.append({
+                    "iteration": k, "trial": j,
+                    "transitions": transitions if not offline else None,
+                    "cumulative_reward": data.attrs["cumulative_reward"],
+                    "final_error_mm": data.attrs["final_error_mm"],
+                    "trial_seconds": data.attrs["trial_seconds"],
+                })
+        return rows
+
+    def write_results(self, wall: float, final: bool = False) -> dict[str, Any]:
+        from dlocli.plots import plot_learning_curve
+
+        rows = self.rows()
+        offline_rows = self.rows(offline=True) if self.spec.offline else []
+        _write_csv(self.spec.out / "metrics.csv", rows)
+        if offline_rows:
+            _write_csv(self.spec.out / "offline_metrics.csv", offline_rows)
+        curve = iteration_curve(rows)
+        summary: dict[str, Any] = {
+            "iterations_done": len(curve),
+            "transitions": rows[-1]["transitions"] if rows else 0,
+            "curve": curve,
+            "final_error_mm": curve[-1]["final_error_mm_mean"] if curve else None,
+            "cumulative_reward": curve[-1]["cumulative_reward_mean"] if curve else None,
+            "seconds": round(wall, 1),
+            "out": str(self.spec.out),
+        }
+        if offline_rows:
+            summary["offline_curve"] = iteration_curve(offline_rows, transitions_from=curve)
+        if final and self.paths.checkpoint(len(curve)).is_file():
+            import shutil
+
+            final_ckpt = self.spec.out / "checkpoints" / "final.pt"
+            tmp = final_ckpt.with_suffix(".pt.tmp")
+            shutil.copyfile(self.paths.checkpoint(len(curve)), tmp)
+            tmp.replace(final_ckpt)
+        if curve:
+            plot_learning_curve(curve, summary.get("offline_curve"),
+                                self.spec.out / "plots" / "learning_curve.png")
+        write_json_atomic(self.spec.out / "summary.json", summary)
+        return summary
+
+
+def iteration_curve(rows: list[dict[str, Any]],
+                    transitions_from: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """Per finished iteration: transitions, mean/std of cumulative reward and final error."""
+    curve = []
+    for k in sorted({r["iteration"] for r in rows}):
+        its = [r for r in rows if r["iteration"] == k]
+        rewards = np.array([r["cumulative_reward"] for r in its])
+        errors = np.array([r["final_error_mm"] for r in its])
+        transitions = (transitions_from[k - 1]["transitions"] if transitions_from
+                       and len(transitions_from) >= k else its[-1]["transitions"])
+        curve.append({
+            "iteration": k, "trials": len(its), "transitions": transitions,
+            "cumulative_reward_mean": float(rewards.mean()),
+            "cumulative_reward_std": float(rewards.std()),
+            "final_error_mm_mean": float(errors.mean()),
+            "final_error_mm_median": float(np.median(errors)),
+        })
+    return curve
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        return
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(path, buffer.getvalue())
+
+
+# ----------------------------------------------------------------------------- entry points
+def start_online(spec: OnlineSpec, overwrite: bool = False,
+                 progress: Progress | None = None) -> dict[str, Any]:
+    """A new run in ``spec.out``."""
+    from dlocli.registry import backends, models, tasks
+
+    backends.check(spec.backend.name)
+    tasks.check(spec.task.name)
+    models.check(spec.model.name)
+    out = prepare_run_dir(spec.out, overwrite)
+    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+    return OnlineRun(spec, progress).run()
+
+
+def resume_online(run_dir: Path, overrides: dict[str, Any],
+                  progress: Progress | None = None) -> dict[str, Any]:
+    """Continue the run in ``run_dir``; flags that contradict its spec are refused."""
+    spec_path = Path(run_dir) / "spec.json"
+    if not spec_path.is_file():
+        raise BadInput(f"--resume {run_dir} is not an online run (no spec.json); "
+                       "pass the --out directory of an earlier `dlo online`")
+    try:
+        spec = OnlineSpec.model_validate_json(spec_path.read_text())
+    except ValueError as exc:
+        raise BadInput(f"--resume {run_dir}: spec.json is not an online spec; "
+                       "pass the directory of a `dlo online` run") from exc
+    saved = spec.model_dump()
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        current: Any = saved
+        for key in dotted.split("."):
+            current = current[key]
+        if str(current) != str(value):
+            raise BadInput(f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
+                           f"{dotted}={current!r}; drop the flag or start a new run")
+    spec = spec.model_copy(update={"out": Path(run_dir)})
+    return OnlineRun(spec, progress).run()

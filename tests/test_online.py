@@ -1,0 +1,95 @@
+"""`dlo online` (Algorithm 1): paper defaults, a reduced real run, resume after SIGKILL."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from dlocli.cli import app
+from dlocli.data import load_dataset
+from dlocli.online import OnlineSpec
+
+runner = CliRunner()
+TINY = ["--iters", "2", "--trials", "2", "--steps", "15", "--epochs", "1",
+        "--initial-episodes", "2", "--hidden", "16", "--seed", "3"]
+
+
+def test_defaults_are_the_papers():
+    spec = OnlineSpec()
+    assert (spec.iters, spec.fit.epochs, spec.trials, spec.steps) == (20, 50, 50, 200)
+    assert spec.mpc.horizon == 5 and spec.fit.lr == 1e-4 and spec.noise_probability == 0.2
+    assert spec.model.name == "in-bilstm" and spec.model.hidden == 150
+    assert spec.task.goal == "fixed"
+    help_text = runner.invoke(app, ["online", "--help"], env={"COLUMNS": "250"}).output
+    assert "spec default: 20" in help_text and "spec default: 50" in help_text
+
+
+def read_rows(run: Path) -> list[dict[str, str]]:
+    with open(run / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("online") / "run"
+    res = runner.invoke(app, ["online", *TINY, "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    return out, json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_reduced_run_writes_everything(uninterrupted):
+    out, summary = uninterrupted
+    for name in ("spec.json", "metrics.csv", "summary.json", "plots/learning_curve.png",
+                 "checkpoints/iter_01.pt", "checkpoints/iter_02.pt", "checkpoints/final.pt"):
+        assert (out / name).is_file(), name
+    rows = read_rows(out)
+    assert [(r["iteration"], r["trial"]) for r in rows] == [("1", "1"), ("1", "2"), ("2", "1"), ("2", "2")]
+    assert summary["iterations_done"] == 2
+    assert summary["transitions"] == 2 * 15 + 4 * 15
+    saved = json.loads((out / "spec.json").read_text())
+    assert saved["iters"] == 2 and saved["model"]["hidden"] == 16
+
+
+def test_resume_after_sigkill_matches_uninterrupted(uninterrupted, tmp_path):
+    reference, summary = uninterrupted
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "dlocli.cli", "online", *TINY, "--out", str(out), "--json"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while not (out / "checkpoints" / "iter_02.pt").exists():  # inside iteration 2
+        assert proc.poll() is None and time.time() < deadline, "run ended before iteration 2"
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    res = runner.invoke(app, ["online", "--resume", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    resumed = json.loads(res.stdout.strip().splitlines()[-1])
+    assert resumed["transitions"] == summary["transitions"]
+    rows = read_rows(out)
+    keys = [(r["iteration"], r["trial"]) for r in rows]
+    assert len(keys) == len(set(keys)) == 4, "no duplicate or missing trials"
+    for k in (1, 2):
+        for j in (1, 2):
+            a = load_dataset(reference / "data" / f"iter_{k:02d}" / f"trial_{j:03d}.h5")
+            b = load_dataset(out / "data" / f"iter_{k:02d}" / f"trial_{j:03d}.h5")
+            np.testing.assert_allclose(a.positions, b.positions, atol=1e-6)
+
+
+def test_resume_bad_input(tmp_path, uninterrupted):
+    out, _ = uninterrupted
+    before = sorted(p.name for p in out.rglob("*"))
+    res = runner.invoke(app, ["online", "--resume", str(out), "--trials", "9"])
+    assert res.exit_code == 2 and "conflicts" in res.output
+    assert sorted(p.name for p in out.rglob("*")) == before
+    res = runner.invoke(app, ["online", "--resume", str(tmp_path)])
+    assert res.exit_code == 2 and "not an online run" in res.output
