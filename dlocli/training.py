@@ -10,6 +10,7 @@ training, checkpoints, metrics, evaluation and plots in a run directory.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
@@ -114,6 +115,7 @@ def train_model(
         raise BadInput("the training split has no transitions; collect more episodes")
     if not bool(model.fitted):
         model.fit_normalization(dataset.transitions(train_eps))
+    model.requires_grad_(True)  # a loaded model comes frozen for planning
     optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
     if optimizer_state:
         optimizer.load_state_dict(optimizer_state)
@@ -139,7 +141,7 @@ def train_model(
             on_epoch(record, optimizer)
     model.eval()
     elapsed = time.perf_counter() - start
-    result.optimizer_state = optimizer.state_dict()
+    result.optimizer_state = copy.deepcopy(optimizer.state_dict())  # not aliased to the live one
     result.transitions_per_s = fit.epochs * n_train / elapsed if elapsed > 0 else 0.0
     return result
 

@@ -21,7 +21,7 @@ from dlocli.training import (
 )
 
 TINY = {"hidden": 24, "mlp_hidden": 32, "mlp_layers": 2}
-FAST_FIT = {"lr": 3e-3, "batch_size": 32, "val_fraction": 0.2, "device": "cpu"}
+FAST_FIT = {"lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu"}
 EVAL_KEYS = {
     "one_step_mm", "rollout5_mm", "rollout50_mm",
     "persistence_one_step_mm", "persistence_rollout5_mm", "persistence_rollout50_mm",
@@ -61,7 +61,8 @@ def test_training_reduces_validation_loss(small_dataset_dir, name):
     before = validation_loss(model, val)
     result = train_model(model, data, fit)
     assert [r["epoch"] for r in result.history] == [1, 2, 3, 4]
-    assert result.val_loss < 0.7 * before, (before, result.history)
+    assert result.val_loss < 0.85 * before, (before, result.history)
+    assert result.history[-1]["train_loss"] < result.history[0]["train_loss"]
     assert result.optimizer_state["state"], "Adam moments to continue from"
 
 

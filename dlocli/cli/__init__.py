@@ -27,6 +27,8 @@ COMMANDS = [
     ("eval", "dlocli.cli.eval:evaluate"),
     ("control", "dlocli.cli.control:control"),
     ("online", "dlocli.cli.online:online"),
+    ("bench", "dlocli.cli.bench:bench"),
+    ("benchmark", "dlocli.cli.bench:bench"),
 ]
 
 

@@ -35,6 +35,12 @@ class PlannerSpec(Spec):
         description="Re-optimise every k control steps; in between, execute the plan's next "
         "actions.",
     )
+    action_cost: float = Field(
+        1e-4,
+        ge=0,
+        description="Weight lambda of a control-effort term lambda * sum_k ||a_k||^2 added to "
+        "the shape cost (m^2 per unit action^2); 0 = the paper's objective exactly.",
+    )
     warm_start: bool = Field(
         True,
         description="Start each re-plan from the previous plan shifted by the executed steps "
@@ -131,11 +137,15 @@ class ModelPlanner(Controller):
         return (2.0 * plans - 1.0).to(self.device)
 
     def predict_cost(self, state: torch.Tensor, plans: torch.Tensor) -> torch.Tensor:
-        """Shape cost (B,) of plans (B, H, A) rolled out by the model from state (1, N, 7)."""
+        """Cost (B,) of plans (B, H, A) from state (1, N, 7): the model-predicted shape cost
+        plus ``action_cost * sum ||a||^2`` (see :mod:`dlocli.controllers.mpc`)."""
         commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
         predicted = self.model.rollout(state.expand(plans.shape[0], -1, -1), commands)
         assert self._goal is not None
-        return shape_cost(predicted, self._goal)
+        cost = shape_cost(predicted, self._goal)
+        if self.spec.action_cost > 0:
+            cost = cost + self.spec.action_cost * plans.square().sum(dim=(1, 2))
+        return cost
 
     @abstractmethod
     def _optimise(

@@ -280,6 +280,8 @@ def load_model(
 ) -> DynamicsModel:
     """A trained model from a checkpoint or run directory, in eval mode on ``device``.
 
+    Its parameters are frozen (``requires_grad`` False), so a planner's backward pass
+    computes gradients for the actions only; :func:`~dlocli.training.train_model` unfreezes.
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
     payload = read_checkpoint(path)
@@ -298,4 +300,4 @@ def load_model(
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()[0][:160]
         raise BadInput(f"checkpoint {path} weights do not fit {spec.name} ({first})") from exc
-    return model.to(resolve_device(device)).eval()
+    return model.to(resolve_device(device)).eval().requires_grad_(False)

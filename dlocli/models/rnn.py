@@ -3,24 +3,31 @@
 Same mathematics and the same parameters as one layer of ``torch.nn.LSTM(bidirectional=True)``
 (gates i, f, g, o; ``c' = f c + i g``, ``h' = o tanh(c')``). At small batches (the MPC's
 rollouts) the stock CPU kernels are bound by per-step overhead (FINDINGS.md: the LSTM is
-75-85% of a forward at batch 1, and its backward several times that). Here:
+75-85% of a forward at batch 1, and oneDNN's backward takes twice its forward). Here:
 
 - the input projections of all time steps and both directions are one matrix product;
-- the two directions advance together: one batched matrix product and six element-wise
-  operations per step (the backward direction reads its inputs reversed);
+- the two directions advance together: one batched matrix product and a handful of
+  element-wise operations per step (the backward direction reads its inputs reversed);
 - the backward pass (back-propagation through time) runs the same fused loop with the local
   derivatives of all steps precomputed in one vectorised pass, and the weight and input
-  gradients as three large matrix products after the loop, instead of autograd's dozen small
-  nodes per step.
+  gradients as large matrix products after the loop (skipped for frozen weights, as in
+  planning), instead of autograd's dozen small nodes per step;
+- both loops are compiled by TorchScript, which halves their interpreter overhead;
+- the weights are repacked only when they change (cached on the module).
 
 At large batches the work is matrix products and memory traffic, where oneDNN's fused LSTM
-(``nn.LSTM``) is as fast; :func:`bilstm` switches to it there.
+(``nn.LSTM``) is as fast; :func:`bilstm` switches to it there, and on CUDA (cuDNN).
 
 Shapes: ``x`` (B, T, I) -> (B, T, 2H), forward direction's hidden state then the backward
 direction's, like ``nn.LSTM(batch_first=True, bidirectional=True)``.
 """
 
 from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -30,103 +37,152 @@ from torch.autograd.function import FunctionCtx, once_differentiable
 LARGE_BATCH = 32
 
 
-def _pack(params: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
-    """Stack both directions' weights (gate order i, f, g, o as in nn.LSTM).
+# ---------------------------------------------------------------------- the two kernels
+def _forward(
+    x: Tensor, w_ih_t: Tensor, bias: Tensor, w_hh_t: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """x (B, T, I), W_ih^T (I, 8H), bias (8H), W_hh^T (2, H, 4H) -> output (B, T, 2H), and for
+    the backward pass: time-major inputs (T*B, I), activated gates (T, 2, B, 4H), cells and
+    hidden states (T, 2, B, H), all in each direction's step order.
 
-    Returns W_ih (8H, I) forward rows then backward rows, W_hh (2, 4H, H), bias (8H,).
-    """
-    w_ih_f, w_hh_f, b_ih_f, b_hh_f, w_ih_b, w_hh_b, b_ih_b, b_hh_b = params
-    w_ih = torch.cat([w_ih_f, w_ih_b])
-    w_hh = torch.stack([w_hh_f, w_hh_b])
-    bias = torch.cat([b_ih_f + b_hh_f, b_ih_b + b_hh_b])
-    return w_ih, w_hh, bias
+    The weights' g-gate rows come doubled (:func:`_pack`), so one sigmoid activates all four
+    gates: tanh(x) = 2 sigma(2x) - 1. The saved g activation is sigma(2x)."""
+    batch, steps = x.shape[0], x.shape[1]
+    hidden = w_hh_t.shape[1]
+    xt = x.transpose(0, 1).reshape(steps * batch, x.shape[2])
+    gx = torch.addmm(bias, xt, w_ih_t).view(steps, batch, 8 * hidden)
+    gx = torch.stack([gx.narrow(2, 0, 4 * hidden), gx.narrow(2, 4 * hidden, 4 * hidden).flip(0)], 1)
+    h = x.new_zeros(2, batch, hidden)
+    c = x.new_zeros(2, batch, hidden)
+    acts: list[Tensor] = []
+    cells: list[Tensor] = []
+    hs: list[Tensor] = []
+    for gx_s in gx.unbind(0):
+        gates = torch.baddbmm(gx_s, h, w_hh_t)
+        act = gates.sigmoid()  # the g rows are doubled: sigma(2x) = (1 + tanh(x)) / 2
+        i, f, sg, o = act.chunk(4, dim=-1)
+        c = torch.addcmul(f * c - i, i, sg, value=2.0)  # f c + i g with g = 2 sigma(2x) - 1
+        h = o * c.tanh()
+        acts.append(act)
+        cells.append(c)
+        hs.append(h)
+    hs_t = torch.stack(hs)
+    out = torch.cat([hs_t[:, 0], hs_t[:, 1].flip(0)], -1).transpose(0, 1)
+    return out, xt, torch.stack(acts), torch.stack(cells), hs_t
 
 
+def _backward(grad_out: Tensor, acts: Tensor, cells: Tensor, w_hh: Tensor) -> Tensor:
+    """Back-propagation through time: dL/d(output) (B, T, 2H) -> dL/d(gate pre-activations)
+    (T*B, 8H) in natural time order, forward direction's gates then the backward one's.
+    ``w_hh`` (2, 4H, H) holds the original (not doubled) recurrent weights."""
+    steps, batch, hidden = cells.shape[0], cells.shape[2], cells.shape[3]
+    go = grad_out.transpose(0, 1)
+    dh_out = torch.stack([go.narrow(2, 0, hidden), go.narrow(2, hidden, hidden).flip(0)], 1)
+    dh_out = dh_out.unbind(0)
+    # local derivatives of every step at once (see module docstring)
+    i, f, sg, o = acts.chunk(4, dim=-1)
+    g = 2 * sg - 1
+    tanhs = cells.tanh()
+    c_prev = torch.cat([torch.zeros_like(cells[:1]), cells[:-1]])
+    jac = torch.cat(
+        [g * i * (1 - i), c_prev * f * (1 - f), i * (1 - g * g), tanhs * o * (1 - o)], -1
+    ).unbind(0)  # d(pre-activation) per unit of (dc, dc, dc, dh)
+    k_c = (o * (1 - tanhs * tanhs)).unbind(0)  # dc per unit dh through h = o tanh(c)
+    forget = f.unbind(0)
+    last = steps - 1
+    dh = dh_out[last]
+    dc = dh * k_c[last]
+    dg = jac[last] * torch.cat([dc, dc, dc, dh], -1)
+    dgates = [dg]
+    for s in range(last - 1, -1, -1):
+        dh = torch.baddbmm(dh_out[s], dg, w_hh)
+        dc = torch.addcmul(dc * forget[s + 1], dh, k_c[s])
+        dg = jac[s] * torch.cat([dc, dc, dc, dh], -1)
+        dgates.append(dg)
+    dgates.reverse()
+    dg_all = torch.stack(dgates)  # (T, 2, B, 4H) in step order
+    return torch.cat([dg_all[:, 0], dg_all[:, 1].flip(0)], -1).view(steps * batch, 8 * hidden)
+
+
+@functools.cache
+def _kernels() -> tuple[Callable[..., Any], Callable[..., Any]]:
+    """:func:`_forward` and :func:`_backward` compiled by TorchScript (about 1.5x faster than
+    Python at small batches, where per-operation overhead dominates); plain Python if
+    scripting is unavailable. TorchScript is deprecated but still the fastest option here
+    (``torch.compile`` takes minutes per shape and was not faster, FINDINGS.md)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return torch.jit.script(_forward), torch.jit.script(_backward)
+    except Exception:  # noqa: BLE001 - any scripting failure: the same code in Python
+        return _forward, _backward
+
+
+# ---------------------------------------------------------------------- autograd
 class _BiLSTMLayer(torch.autograd.Function):
+    """One bidirectional layer. Inputs: x, the packed weights (not differentiated), then the
+    eight nn.LSTM parameters (which receive the gradients)."""
+
     @staticmethod
-    def forward(ctx: FunctionCtx, x: Tensor, *params: Tensor) -> Tensor:  # type: ignore[override]
-        batch, steps, _ = x.shape
-        hidden = params[1].shape[1]
-        w_ih, w_hh, bias = _pack(params)
-        # input projections of every step, both directions: (B, T, 8H)
-        gx = torch.addmm(bias, x.reshape(batch * steps, -1), w_ih.t()).view(batch, steps, -1)
-        # (2, B, T, 4H) in each direction's step order (the backward direction reversed)
-        gx = torch.stack([gx[..., : 4 * hidden], gx[..., 4 * hidden :].flip(1)])
-        w_hh_t = w_hh.transpose(1, 2)
-        h = x.new_zeros(2, batch, hidden)
-        c = x.new_zeros(2, batch, hidden)
-        acts, cells, hs = [], [], []
-        g_slice = slice(2 * hidden, 3 * hidden)
-        for s in range(steps):
-            gates = torch.baddbmm(gx[:, :, s], h, w_hh_t)
-            act = gates.sigmoid()
-            torch.tanh(gates[..., g_slice], out=act[..., g_slice])
-            i, f, g, o = act.chunk(4, dim=-1)
-            c = torch.addcmul(f * c, i, g)
-            h = o * c.tanh()
-            acts.append(act)
-            cells.append(c)
-            hs.append(h)
-        hs_t = torch.stack(hs, 1)  # (2, T, B, H)
-        ctx.save_for_backward(x, w_ih, w_hh, torch.stack(acts, 1), torch.stack(cells, 1), hs_t)
-        return torch.cat([hs_t[0].transpose(0, 1), hs_t[1].flip(0).transpose(0, 1)], -1)
+    def forward(  # type: ignore[override]
+        ctx: FunctionCtx, x: Tensor, packed: tuple[Tensor, ...], *params: Tensor
+    ) -> Tensor:
+        w_ih_t, bias, w_hh_t = packed[:3]
+        out, xt, acts, cells, hs = _kernels()[0](x, w_ih_t, bias, w_hh_t)
+        ctx.save_for_backward(xt, acts, cells, hs)
+        ctx.packed = packed
+        ctx.x_shape = x.shape
+        return out
 
     @staticmethod
     @once_differentiable
     def backward(ctx: FunctionCtx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        x, w_ih, w_hh, acts, cells, hs = ctx.saved_tensors
-        _, steps, batch, hidden = hs.shape
-        go = grad_out.transpose(0, 1)  # (T, B, 2H)
-        dh_out = torch.stack([go[..., :hidden], go[..., hidden:].flip(0)])  # (2, T, B, H)
-        jac, k_c, forget = _local_derivatives(acts, cells)
-        dgates: list[Tensor] = [acts] * steps
-        dg = dc = None
-        for s in range(steps - 1, -1, -1):
-            dh = dh_out[:, s] if dg is None else torch.baddbmm(dh_out[:, s], dg, w_hh)
-            carry = None if dc is None else dc * forget[:, s + 1]
-            dc = dh * k_c[:, s] if carry is None else torch.addcmul(carry, dh, k_c[:, s])
-            dg = jac[:, s] * torch.cat([dc, dc, dc, dh], -1)
-            dgates[s] = dg
-        dg_all = torch.stack(dgates, 1)  # (2, T, B, 4H) in step order
-        # recurrent weights: sum over steps s >= 1 of dg_s^T h_{s-1}
-        d_w_hh = torch.bmm(
-            dg_all[:, 1:].reshape(2, -1, 4 * hidden).transpose(1, 2),
-            hs[:, :-1].reshape(2, -1, hidden),
-        )
-        # input side in natural time order, batch first: (B, T, 8H)
-        dg_nat = torch.cat(
-            [dg_all[0].transpose(0, 1), dg_all[1].flip(0).transpose(0, 1)], -1
-        ).reshape(batch * steps, 8 * hidden)
-        d_w_ih = dg_nat.t() @ x.reshape(batch * steps, -1)
-        d_bias = dg_nat.sum(0)
+        xt, acts, cells, hs = ctx.saved_tensors
+        w_ih, w_hh = ctx.packed[3:]
+        steps, _, batch, hidden = hs.shape
+        dg = _kernels()[1](grad_out, acts, cells, w_hh)  # (T*B, 8H)
         grad_x = None
         if ctx.needs_input_grad[0]:
-            grad_x = (dg_nat @ w_ih).view_as(x)
-        return (grad_x, *_unpack_grads(d_w_ih, d_w_hh, d_bias))
+            grad_x = (dg @ w_ih).view(steps, batch, -1).transpose(0, 1)
+        if not any(ctx.needs_input_grad[2:]):  # frozen weights (planning): inputs only
+            return (grad_x, None, *[None] * 8)
+        # recurrent weights: sum over steps s >= 1 of dg_s^T h_{s-1}, per direction (step order)
+        dg_steps = torch.stack([dg[:, : 4 * hidden], dg.view(steps, batch, -1)[:, :, 4 * hidden :]
+                                .flip(0).reshape(steps * batch, -1)])  # fmt: skip
+        h_prev = hs[:-1].transpose(0, 1).reshape(2, -1, hidden)
+        d_w_hh = torch.bmm(dg_steps[:, batch:].transpose(1, 2), h_prev)
+        d_w_ih = dg.t() @ xt
+        d_bias = dg.sum(0)
+        return (grad_x, None, *_unpack_grads(d_w_ih, d_w_hh, d_bias))
 
 
-def _local_derivatives(acts: Tensor, cells: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-step derivative factors, all steps at once (shapes (2, T, B, .)).
+def _pack(params: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+    """Both directions' weights in the kernels' layouts (gate order i, f, g, o as nn.LSTM).
 
-    Returns ``jac`` (..., 4H): d(gate pre-activation) per unit of (dc, dc, dc, dh);
-    ``k_c`` (..., H) = dc/dh through h = o tanh(c); ``forget`` (..., H) the forget gate.
+    For the forward kernel, g-gate rows doubled (see :func:`_forward`): W_ih^T (I, 8H) forward
+    columns then backward ones, bias (8H), W_hh^T (2, H, 4H); for the backward pass, as they
+    are: W_ih (8H, I), W_hh (2, 4H, H).
     """
-    i, f, g, o = acts.chunk(4, dim=-1)
-    tanhs = cells.tanh()
-    c_prev = torch.cat([torch.zeros_like(cells[:, :1]), cells[:, :-1]], 1)
-    jac = torch.cat(
-        [g * i * (1 - i), c_prev * f * (1 - f), i * (1 - g * g), tanhs * o * (1 - o)], -1
-    )
-    return jac, o * (1 - tanhs * tanhs), f
+    w_ih_f, w_hh_f, b_ih_f, b_hh_f, w_ih_b, w_hh_b, b_ih_b, b_hh_b = (p.detach() for p in params)
+    hidden = w_hh_f.shape[1]
+    w_ih = torch.cat([w_ih_f, w_ih_b])
+    w_hh = torch.stack([w_hh_f, w_hh_b])
+    bias = torch.cat([b_ih_f + b_hh_f, b_ih_b + b_hh_b])
+    scale = torch.ones(4 * hidden, dtype=w_ih.dtype, device=w_ih.device)
+    scale[2 * hidden : 3 * hidden] = 2.0
+    w_ih_t = (w_ih * scale.repeat(2)[:, None]).t().contiguous()
+    w_hh_t = (w_hh * scale[:, None]).transpose(1, 2).contiguous()
+    return w_ih_t, bias * scale.repeat(2), w_hh_t, w_ih, w_hh.contiguous()
 
 
-def _unpack_grads(d_w_ih: Tensor, d_w_hh: Tensor, d_bias: Tensor) -> list[Tensor]:
-    """Gradients of the stacked layout back to the eight nn.LSTM parameters of one layer."""
+def _unpack_grads(d_w_ih: Tensor, d_w_hh_t: Tensor, d_bias: Tensor) -> list[Tensor]:
+    """Gradients of the packed layout back to the eight nn.LSTM parameters of one layer."""
     gi_f, gi_b = d_w_ih.chunk(2)
     gb_f, gb_b = d_bias.chunk(2)
-    return [gi_f, d_w_hh[0], gb_f, gb_f, gi_b, d_w_hh[1], gb_b, gb_b]
+    return [gi_f, d_w_hh_t[0], gb_f, gb_f, gi_b, d_w_hh_t[1], gb_b, gb_b]
 
 
+# ---------------------------------------------------------------------- public
 def layer_params(lstm: torch.nn.LSTM, layer: int) -> tuple[Tensor, ...]:
     """The eight parameters of one bidirectional layer of ``lstm``, in _BiLSTMLayer's order."""
     names = ("weight_ih_l{}{}", "weight_hh_l{}{}", "bias_ih_l{}{}", "bias_hh_l{}{}")
@@ -139,10 +195,24 @@ def bilstm(x: Tensor, lstm: torch.nn.LSTM) -> Tensor:
     """Run ``lstm`` (bidirectional, batch_first, with biases, no dropout/projection) on x.
 
     x (B, T, I) -> (B, T, 2H); equal to ``lstm(x)[0]`` up to float rounding. Small batches on
-    CPU take the fused path of this module, large ones and CUDA the stock kernels.
+    CPU take the kernels of this module; large ones and CUDA the stock ones.
     """
     if x.is_cuda or x.shape[0] >= LARGE_BATCH:
         return lstm(x)[0]
     for layer in range(lstm.num_layers):
-        x = _BiLSTMLayer.apply(x, *layer_params(lstm, layer))
+        params = layer_params(lstm, layer)
+        x = _BiLSTMLayer.apply(x, _packed(lstm, layer, params), *params)
     return x
+
+
+def _packed(lstm: torch.nn.LSTM, layer: int, params: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+    """:func:`_pack` of one layer, cached on the module until a weight changes (a planner
+    rolls out through fixed weights; a training step updates them in place, which bumps
+    their version counters)."""
+    key = tuple((p.data_ptr(), p._version) for p in params)
+    cache: dict[int, tuple[tuple, tuple[Tensor, ...]]] = lstm.__dict__.setdefault("_dlo_packed", {})
+    hit = cache.get(layer)
+    if hit is None or hit[0] != key:
+        hit = (key, _pack(params))
+        cache[layer] = hit
+    return hit[1]

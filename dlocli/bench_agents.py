@@ -1,0 +1,282 @@
+"""The agents of ``dlo bench``: how each learns under a transition budget and what it evaluates.
+
+Every agent is a :class:`BenchLearner`: built for one (spec, seed, scratch directory), it lists
+the transition counts at which it can be evaluated (:meth:`BenchLearner.points`), learns up to
+each of them (:meth:`BenchLearner.learn_to`) and hands out a controller for an evaluation env
+(:meth:`BenchLearner.controller`), possibly of another task or goal mode than it learned on
+(transfer, paper Figs. 5 and 6); ``None`` where it cannot act there (a 6-D policy on the
+12-D bimanual task).
+
+- ``sac``, ``td3``, ``pilco``: the registered :class:`LearningAgent` controllers, interacting
+  with their own training env for exactly the budget.
+- ``random``: uniform random actions; it learns nothing (and steps no training env).
+- ``mpc``: the paper's Algorithm 1 through :class:`dlocli.online.OnlineRun`: an initial random
+  dataset, then iterations of noisy MPC trials, each followed by a model update; it is
+  evaluated with the model trained on all data so far (noise-free MPC).
+- ``mpc-offline``: at each of ``mpc``'s points, a model trained from scratch on as many random
+  transitions, as many epochs as the online model had (paper Fig. 7).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from dlocli.online import INITIAL, TRAIN, OnlineRun, OnlineSpec, stream_seed
+
+if TYPE_CHECKING:
+    from dlocli.bench import BenchSpec
+    from dlocli.controllers.base import Controller, LearningAgent
+    from dlocli.data import Dataset
+    from dlocli.env import DLOShapeEnv
+    from dlocli.models.base import DynamicsModel
+
+#: seed stream of the controllers used in evaluation (random actions, MPC restarts)
+EVAL_CONTROLLER = 7
+
+
+# ----------------------------------------------------------------------------- envs
+@lru_cache(maxsize=8)
+def _goal(backend_json: str, task_json: str, seed: int) -> np.ndarray:
+    from dlocli.env import load_goal
+    from dlocli.goals import make_goal
+    from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
+
+    backend = BackendSpec.model_validate_json(backend_json)
+    task = TaskSpec.model_validate_json(task_json)
+    if task.goal_file is not None:
+        return load_goal(task.goal_file, backend.rod.n_segments)
+    return make_goal(GoalSpec(backend=backend, task=task, seed=seed))
+
+
+def fixed_goal(spec: BenchSpec, task: str) -> np.ndarray:
+    """The bench's fixed goal for ``task`` (from ``spec.seed``, or the spec's goal file)."""
+    task_json = spec.task.model_copy(update={"name": task}).model_dump_json()
+    return _goal(spec.backend.model_dump_json(), task_json, spec.seed).copy()
+
+
+def make_bench_env(spec: BenchSpec, task: str, goals: str, seed: int) -> DLOShapeEnv:
+    """A DLOShapeEnv of ``task`` with the bench's fixed goal or random goals."""
+    from dlocli.env import make_env
+
+    task_spec = spec.task.model_copy(update={"name": task, "goal": goals, "goal_file": None})
+    goal = fixed_goal(spec, task) if goals == "fixed" else None
+    return make_env(spec.backend, task_spec, goal=goal, seed=seed)
+
+
+def train_env(spec: BenchSpec, seed: int) -> DLOShapeEnv:
+    """The env an agent learns on (the bench's task and goal mode)."""
+    return make_bench_env(spec, spec.task.name, spec.task.goal, seed)
+
+
+# ----------------------------------------------------------------------------- agents
+class BenchLearner(ABC):
+    """One agent x seed of a benchmark. ``transitions``: env steps used so far."""
+
+    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
+        self.name = name
+        self.spec = spec
+        self.seed = seed
+        self.work = Path(work)
+        self.transitions = 0
+
+    def points(self) -> list[int]:
+        """Transition counts after which the agent is evaluated (the bench's schedule)."""
+        from dlocli.bench import eval_points
+
+        return eval_points(self.spec)
+
+    @abstractmethod
+    def learn_to(self, transitions: int) -> None:
+        """Learn until ``transitions`` env steps are used (one of :meth:`points`)."""
+
+    @abstractmethod
+    def controller(self, env: DLOShapeEnv) -> Controller | None:
+        """A controller of the current agent for ``env``; None if it cannot act there."""
+
+    def close(self) -> None:  # noqa: B027 (optional hook)
+        """Release the training env, if any."""
+
+
+class RandomLearner(BenchLearner):
+    """Uniform random actions: the floor every agent must beat."""
+
+    def learn_to(self, transitions: int) -> None:
+        self.transitions = transitions  # learns nothing: a flat line at the schedule's points
+
+    def controller(self, env: DLOShapeEnv) -> Controller:
+        from dlocli.controllers.base import RandomController
+
+        return RandomController(env, seed=stream_seed(self.seed, EVAL_CONTROLLER))
+
+
+class AgentLearner(BenchLearner):
+    """A registered :class:`LearningAgent` (sac, td3, pilco) on its own training env."""
+
+    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
+        from dlocli.controllers.base import make_controller
+
+        super().__init__(name, spec, seed, work)
+        self.env = train_env(spec, seed)
+        options = spec.options.get(name)
+        self.agent: LearningAgent = make_controller(name, self.env, options=options, seed=seed)
+
+    def learn_to(self, transitions: int) -> None:
+        self.agent.learn(transitions - self.agent.transitions)
+        self.transitions = self.agent.transitions
+
+    def controller(self, env: DLOShapeEnv) -> Controller | None:
+        if env.action_space.shape != self.env.action_space.shape:
+            return None
+        return self.agent
+
+    def close(self) -> None:
+        self.env.close()
+
+
+# ----------------------------------------------------------------------------- MPC agents
+def mpc_schedule(spec: BenchSpec) -> tuple[int, int, int]:
+    """(initial episodes I, trials per iteration N, iterations K) of ``mpc`` in the budget.
+
+    Iterations are as long as the bench's evaluation interval; the initial dataset as well,
+    but at least two episodes (a validation split needs two). ``mpc`` uses I*T + K*N*T
+    transitions: at most the budget, less by a remainder shorter than one iteration.
+    """
+    from dlocli.bench import eval_interval
+
+    steps = spec.task.episode_steps
+    trials = eval_interval(spec) // steps
+    initial = max(2, trials)
+    iterations = max(0, (spec.budget // steps - initial) // trials)
+    return initial, trials, iterations
+
+
+def mpc_points(spec: BenchSpec) -> list[int]:
+    """Where ``mpc`` is evaluated: after the initial data and after every iteration."""
+    initial, trials, iterations = mpc_schedule(spec)
+    steps = spec.task.episode_steps
+    return [(initial + k * trials) * steps for k in range(iterations + 1)]
+
+
+class MPCLearner(BenchLearner):
+    """Base of the model-based agents: evaluated with gradient MPC through ``model()``."""
+
+    def points(self) -> list[int]:
+        return mpc_points(self.spec)
+
+    @abstractmethod
+    def model(self) -> DynamicsModel:
+        """The current dynamics model."""
+
+    def controller(self, env: DLOShapeEnv) -> Controller:
+        from dlocli.controllers.mpc import GradientMPC
+
+        seed = stream_seed(self.seed, EVAL_CONTROLLER)
+        return GradientMPC(env, self.model(), self.spec.mpc, seed=seed)
+
+
+class OnlineMPCLearner(MPCLearner):
+    """Algorithm 1 (``dlocli.online``) in ``work``; evaluated after every model update."""
+
+    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
+        super().__init__(name, spec, seed, work)
+        self.run = OnlineRun(online_spec(spec, seed, work))
+        self.updates = 0  # model updates done: the model of point k is update k+1
+
+    def learn_to(self, transitions: int) -> None:
+        k = self.points().index(transitions)
+        if self.updates == 0:
+            self.run.update_model(1, self.run.initial_dataset())
+            self.updates = 1
+        while self.updates <= k:  # iteration `updates`: trials, then the next model
+            self.run.run_trials(self.updates, self.run.paths.checkpoint(self.updates))
+            data = self.run.dataset_until(self.updates)
+            self.run.update_model(self.updates + 1, data)
+            self.updates += 1
+        self.transitions = self.run.dataset_until(self.updates - 1).n_transitions
+
+    def model(self) -> DynamicsModel:
+        from dlocli.models.base import load_model
+
+        return load_model(self.run.paths.checkpoint(self.updates), self.spec.fit.device)
+
+
+class OfflineMPCLearner(MPCLearner):
+    """At each of ``mpc``'s points: a fresh model trained offline on as much random data."""
+
+    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
+        super().__init__(name, spec, seed, work)
+        self.data: Dataset | None = None
+        self._model: DynamicsModel | None = None
+
+    def learn_to(self, transitions: int) -> None:
+        import torch
+
+        from dlocli.models.base import build_model, resolve_device
+        from dlocli.training import train_model
+
+        k = self.points().index(transitions)
+        data = self._random_data(transitions)
+        torch.manual_seed(stream_seed(self.seed, TRAIN, 0))  # as the online model's first update
+        device = resolve_device(self.spec.fit.device)
+        model = build_model(self.spec.model, data.n_segments).to(device)
+        fit = self.spec.fit.model_copy(update={
+            "epochs": self.spec.fit.epochs * (k + 1),  # the online model's passes so far
+            "seed": stream_seed(self.seed, TRAIN, 1) % 2**31,
+        })
+        train_model(model, data, fit)
+        self._model = model
+        self.transitions = data.n_transitions
+
+    def _random_data(self, transitions: int) -> Dataset:
+        """Random episodes (those of ``mpc``'s initial dataset first) up to ``transitions``."""
+        from dlocli.collect import random_actions, run_episode
+        from dlocli.data import Dataset
+
+        episodes = self.data.n_episodes if self.data is not None else 0
+        needed = transitions // self.spec.task.episode_steps - episodes
+        if needed <= 0:
+            assert self.data is not None
+            return self.data
+        env, steps = train_env(self.spec, self.seed), self.spec.task.episode_steps
+        try:
+            new = []
+            for e in range(episodes, episodes + needed):
+                rng = np.random.default_rng(stream_seed(self.seed, INITIAL, e, 1))
+                actions = random_actions(rng, steps, env.action_space.shape[0])
+                new.append(run_episode(env, stream_seed(self.seed, INITIAL, e), actions))
+        finally:
+            env.close()
+        more = Dataset.from_episodes(new)
+        self.data = more if self.data is None else self.data.concat(more)
+        return self.data
+
+    def model(self) -> DynamicsModel:
+        assert self._model is not None, "learn_to() before controller()"
+        return self._model
+
+
+def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
+    """The OnlineSpec of ``mpc`` for one seed, its run directory in ``work``.
+
+    A fixed goal is written to ``work/goal.npy`` so the online run's envs use the bench's goal.
+    """
+    from dlocli.io import atomic_path
+
+    initial, trials, iterations = mpc_schedule(spec)
+    task = spec.task
+    if task.goal == "fixed":
+        goal_path = Path(work) / "goal.npy"
+        with atomic_path(goal_path) as tmp, open(tmp, "wb") as f:
+            np.save(f, fixed_goal(spec, task.name))
+        task = task.model_copy(update={"goal_file": goal_path})
+    return OnlineSpec(
+        backend=spec.backend, task=task, seed=seed, iters=iterations + 1, trials=trials,
+        steps=spec.task.episode_steps, initial_episodes=initial,
+        noise_probability=spec.noise_probability, noise_std=spec.noise_std,
+        model=spec.model, fit=spec.fit, mpc=spec.mpc, workers=1, out=Path(work) / "online",
+    )
