@@ -38,8 +38,12 @@ def _register_gym_ids() -> None:
         for task in ("single", "bimanual"):
             env_id = f"dlocli/{backend.capitalize()}{task.capitalize()}-v0"
             if env_id not in gym.registry:
-                gym.register(env_id, entry_point="dlocli.env:make_env",
-                             kwargs={"backend": backend, "task": task}, max_episode_steps=None)
+                gym.register(
+                    env_id,
+                    entry_point="dlocli.env:make_env",
+                    kwargs={"backend": backend, "task": task},
+                    max_episode_steps=None,
+                )
 
 
 _register_gym_ids()

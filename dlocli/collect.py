@@ -137,7 +137,9 @@ def collect_random(
     On KeyboardInterrupt the finished episodes are saved (atomically) before re-raising.
     """
     out = prepare_run_dir(spec.out, overwrite)
-    spec = spec.model_copy(update={"task": spec.task.model_copy(update={"episode_steps": spec.steps})})
+    spec = spec.model_copy(
+        update={"task": spec.task.model_copy(update={"episode_steps": spec.steps})}
+    )
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
     start = time.perf_counter()
     episodes: list[Episode] = []

@@ -243,6 +243,8 @@ def plot_errors(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from dlocli.plots import save_figure
+
     steps = [0] + [r["step"] for r in records]
     errors = [initial_error] + [r["shape_error_mm"] for r in records]
     fig, (ax_err, ax_lat) = plt.subplots(2, 1, figsize=(6, 5), sharex=True, height_ratios=(2, 1))
@@ -253,11 +255,7 @@ def plot_errors(
     ax_lat.plot(steps[1:], [r["latency_ms"] for r in records], lw=0.8)
     ax_lat.set_ylabel("latency (ms)")
     ax_lat.set_xlabel("control step")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:

@@ -188,14 +188,16 @@ class Dataset:
 
 
 def load_dataset(path: Path) -> Dataset:
-    """Load a dataset file (or a run directory holding ``dataset.h5``); BadInput if it is not one."""
+    """Load a dataset file (or a run directory holding ``dataset.h5``); BadInput if not one."""
     import h5py
 
     path = Path(path)
     if path.is_dir():
         path = path / DATASET_FILE
     if not path.is_file():
-        raise BadInput(f"dataset {path} does not exist; make one with `dlo collect --random --out DIR`")
+        raise BadInput(
+            f"dataset {path} does not exist; make one with `dlo collect --random --out DIR`"
+        )
     try:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != FORMAT:
@@ -207,7 +209,9 @@ def load_dataset(path: Path) -> Dataset:
             arrays = {n: f[n][()] for n in names}
             attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
     except OSError as exc:
-        raise BadInput(f"dataset {path} is not a readable HDF5 file ({exc}); re-collect it") from exc
+        raise BadInput(
+            f"dataset {path} is not a readable HDF5 file ({exc}); re-collect it"
+        ) from exc
     data = Dataset(**arrays, attrs=attrs)
     _check_consistent(data, path)
     return data

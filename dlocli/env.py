@@ -65,10 +65,9 @@ def check_goal_reachable(goal: np.ndarray, backend: Backend, limits_margin: floa
     low = backend.limits.low - limits_margin - length
     high = backend.limits.high + limits_margin
     if np.any(goal < low) or np.any(goal > high):
-        raise BadInput(
-            "goal lies outside the grippers' reach (workspace "
-            f"{np.round(backend.limits.low, 2).tolist()}..{np.round(backend.limits.high, 2).tolist()} m)"
-        )
+        low_m = np.round(backend.limits.low, 2).tolist()
+        high_m = np.round(backend.limits.high, 2).tolist()
+        raise BadInput(f"goal lies outside the grippers' reach (workspace {low_m}..{high_m} m)")
 
 
 #: bound of every position in the observation (metres); a diverged rod is clipped to it
@@ -133,7 +132,9 @@ class DLOShapeEnv(gym.Env):
         if goal is not None:
             goal = np.asarray(goal, dtype=np.float64)
             if goal.shape != (self.n_segments, 3) or not np.all(np.isfinite(goal)):
-                raise BadInput(f"goal must be a finite ({self.n_segments}, 3) array, got {goal.shape}")
+                raise BadInput(
+                    f"goal must be a finite ({self.n_segments}, 3) array, got {goal.shape}"
+                )
             check_goal_reachable(goal, self.backend)
             return goal
         if self.task_spec.goal == "fixed":

@@ -11,7 +11,11 @@ from dlocli.specs import GoalSpec
 
 def make_goal(spec: GoalSpec) -> np.ndarray:
     """The (N,3) goal the env would use as its fixed goal for ``spec.seed``."""
-    env = make_env_from_spec(spec.model_copy(update={"task": spec.task.model_copy(update={"goal": "fixed", "goal_file": None})}))
+    env = make_env_from_spec(
+        spec.model_copy(
+            update={"task": spec.task.model_copy(update={"goal": "fixed", "goal_file": None})}
+        )
+    )
     try:
         return np.asarray(env.goal, dtype=np.float64)
     finally:

@@ -58,7 +58,15 @@ def versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
     found = {}
-    for name in ("dlocli", "mujoco", "pybullet", "torch", "numpy", "gymnasium", "stable-baselines3"):
+    for name in (
+        "dlocli",
+        "mujoco",
+        "pybullet",
+        "torch",
+        "numpy",
+        "gymnasium",
+        "stable-baselines3",
+    ):
         try:
             found[name] = version(name)
         except PackageNotFoundError:

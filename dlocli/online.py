@@ -156,8 +156,9 @@ def _episode_attrs(episode: Episode, seconds: float) -> dict[str, Any]:
     }
 
 
-def _run_trial_to_file(spec_json: str, checkpoint: str, k: int, j: int, path: str,
-                       threads: int | None) -> dict[str, Any]:
+def _run_trial_to_file(
+    spec_json: str, checkpoint: str, k: int, j: int, path: str, threads: int | None
+) -> dict[str, Any]:
     """Run one trial and write its dataset file atomically (a worker-process entry point)."""
     spec = OnlineSpec.model_validate_json(spec_json)
     start = time.perf_counter()
@@ -213,8 +214,13 @@ class OnlineRun:
         """Train for E epochs from iteration k-1's weights; checkpoint as iteration k."""
         import torch
 
-        from dlocli.models.base import build_model, load_model, read_checkpoint, save_checkpoint
-        from dlocli.models.base import resolve_device
+        from dlocli.models.base import (
+            build_model,
+            load_model,
+            read_checkpoint,
+            resolve_device,
+            save_checkpoint,
+        )
         from dlocli.training import train_model
 
         if self.paths.checkpoint(k).is_file():
@@ -227,33 +233,58 @@ class OnlineRun:
             previous = self.paths.checkpoint(k - 1)
             model = load_model(previous, device).train()
             opt_state = read_checkpoint(previous).get("optimizer")
-        fit = self.spec.fit.model_copy(update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31})
+        fit = self.spec.fit.model_copy(
+            update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
+        )
         start = time.perf_counter()
         result = train_model(
-            model, data, fit, optimizer_state=opt_state,
+            model,
+            data,
+            fit,
+            optimizer_state=opt_state,
             progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
         )
-        save_checkpoint(model, self.paths.checkpoint(k), {
-            "optimizer": result.optimizer_state, "iteration": k,
-            "val_loss": result.val_loss, "train_seconds": time.perf_counter() - start,
-        })
+        save_checkpoint(
+            model,
+            self.paths.checkpoint(k),
+            {
+                "optimizer": result.optimizer_state,
+                "iteration": k,
+                "val_loss": result.val_loss,
+                "train_seconds": time.perf_counter() - start,
+            },
+        )
 
     def run_trials(self, k: int, checkpoint: Path, offline: bool = False) -> None:
         """The N trials of iteration k; those whose files exist are kept, not rerun."""
-        todo = [j for j in range(1, self.spec.trials + 1)
-                if not self.paths.trial(k, j, offline).is_file()]
+        todo = [
+            j
+            for j in range(1, self.spec.trials + 1)
+            if not self.paths.trial(k, j, offline).is_file()
+        ]
         done = self.spec.trials - len(todo)
         spec_json = self.spec.model_dump_json()
         if self.spec.workers == 1:
             for j in todo:
-                attrs = _run_trial_to_file(spec_json, str(checkpoint), k, j,
-                                           str(self.paths.trial(k, j, offline)), None)
+                attrs = _run_trial_to_file(
+                    spec_json, str(checkpoint), k, j, str(self.paths.trial(k, j, offline)), None
+                )
                 done += 1
                 self.progress("trial", {"iteration": k, "trial": done, **attrs})
             return
         pool = self._get_pool()
-        futures = [pool.submit(_run_trial_to_file, spec_json, str(checkpoint), k, j,
-                               str(self.paths.trial(k, j, offline)), 1) for j in todo]
+        futures = [
+            pool.submit(
+                _run_trial_to_file,
+                spec_json,
+                str(checkpoint),
+                k,
+                j,
+                str(self.paths.trial(k, j, offline)),
+                1,
+            )
+            for j in todo
+        ]
         for future in futures:
             attrs = future.result()
             done += 1
@@ -278,11 +309,19 @@ class OnlineRun:
         if not ckpt.is_file():
             data = self._random_data(k, n_transitions)
             torch.manual_seed(stream_seed(self.spec.seed, OFFLINE, k))
-            model = build_model(self.spec.model, data.n_segments).to(resolve_device(self.spec.fit.device))
+            model = build_model(self.spec.model, data.n_segments).to(
+                resolve_device(self.spec.fit.device)
+            )
             epochs = self.spec.fit.epochs * k  # as many passes as the online model had
-            fit = self.spec.fit.model_copy(update={"epochs": epochs, "seed": stream_seed(self.spec.seed, OFFLINE, k) % 2**31})
-            train_model(model, data, fit,
-                        progress=lambda info: self.progress("epoch", {"iteration": k, **info}))
+            fit = self.spec.fit.model_copy(
+                update={"epochs": epochs, "seed": stream_seed(self.spec.seed, OFFLINE, k) % 2**31}
+            )
+            train_model(
+                model,
+                data,
+                fit,
+                progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
+            )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1})
         self.run_trials(k, ckpt, offline=True)
 
@@ -337,13 +376,16 @@ class OnlineRun:
                     return rows
                 data = load_dataset(path)
                 transitions += data.n_transitions
-                rows.append({
-                    "iteration": k, "trial": j,
-                    "transitions": transitions if not offline else None,
-                    "cumulative_reward": data.attrs["cumulative_reward"],
-                    "final_error_mm": data.attrs["final_error_mm"],
-                    "trial_seconds": data.attrs["trial_seconds"],
-                })
+                rows.append(
+                    {
+                        "iteration": k,
+                        "trial": j,
+                        "transitions": transitions if not offline else None,
+                        "cumulative_reward": data.attrs["cumulative_reward"],
+                        "final_error_mm": data.attrs["final_error_mm"],
+                        "trial_seconds": data.attrs["trial_seconds"],
+                    }
+                )
         return rows
 
     def write_results(self, wall: float, final: bool = False) -> dict[str, Any]:
@@ -374,29 +416,38 @@ class OnlineRun:
             shutil.copyfile(self.paths.checkpoint(len(curve)), tmp)
             tmp.replace(final_ckpt)
         if curve:
-            plot_learning_curve(curve, summary.get("offline_curve"),
-                                self.spec.out / "plots" / "learning_curve.png")
+            plot_learning_curve(
+                curve, summary.get("offline_curve"), self.spec.out / "plots" / "learning_curve.png"
+            )
         write_json_atomic(self.spec.out / "summary.json", summary)
         return summary
 
 
-def iteration_curve(rows: list[dict[str, Any]],
-                    transitions_from: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+def iteration_curve(
+    rows: list[dict[str, Any]], transitions_from: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """Per finished iteration: transitions, mean/std of cumulative reward and final error."""
     curve = []
     for k in sorted({r["iteration"] for r in rows}):
         its = [r for r in rows if r["iteration"] == k]
         rewards = np.array([r["cumulative_reward"] for r in its])
         errors = np.array([r["final_error_mm"] for r in its])
-        transitions = (transitions_from[k - 1]["transitions"] if transitions_from
-                       and len(transitions_from) >= k else its[-1]["transitions"])
-        curve.append({
-            "iteration": k, "trials": len(its), "transitions": transitions,
-            "cumulative_reward_mean": float(rewards.mean()),
-            "cumulative_reward_std": float(rewards.std()),
-            "final_error_mm_mean": float(errors.mean()),
-            "final_error_mm_median": float(np.median(errors)),
-        })
+        transitions = (
+            transitions_from[k - 1]["transitions"]
+            if transitions_from and len(transitions_from) >= k
+            else its[-1]["transitions"]
+        )
+        curve.append(
+            {
+                "iteration": k,
+                "trials": len(its),
+                "transitions": transitions,
+                "cumulative_reward_mean": float(rewards.mean()),
+                "cumulative_reward_std": float(rewards.std()),
+                "final_error_mm_mean": float(errors.mean()),
+                "final_error_mm_median": float(np.median(errors)),
+            }
+        )
     return curve
 
 
@@ -411,8 +462,9 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 
 # ----------------------------------------------------------------------------- entry points
-def start_online(spec: OnlineSpec, overwrite: bool = False,
-                 progress: Progress | None = None) -> dict[str, Any]:
+def start_online(
+    spec: OnlineSpec, overwrite: bool = False, progress: Progress | None = None
+) -> dict[str, Any]:
     """A new run in ``spec.out``."""
     from dlocli.registry import backends, models, tasks
 
@@ -424,18 +476,23 @@ def start_online(spec: OnlineSpec, overwrite: bool = False,
     return OnlineRun(spec, progress).run()
 
 
-def resume_online(run_dir: Path, overrides: dict[str, Any],
-                  progress: Progress | None = None) -> dict[str, Any]:
+def resume_online(
+    run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
     """Continue the run in ``run_dir``; flags that contradict its spec are refused."""
     spec_path = Path(run_dir) / "spec.json"
     if not spec_path.is_file():
-        raise BadInput(f"--resume {run_dir} is not an online run (no spec.json); "
-                       "pass the --out directory of an earlier `dlo online`")
+        raise BadInput(
+            f"--resume {run_dir} is not an online run (no spec.json); "
+            "pass the --out directory of an earlier `dlo online`"
+        )
     try:
         spec = OnlineSpec.model_validate_json(spec_path.read_text())
     except ValueError as exc:
-        raise BadInput(f"--resume {run_dir}: spec.json is not an online spec; "
-                       "pass the directory of a `dlo online` run") from exc
+        raise BadInput(
+            f"--resume {run_dir}: spec.json is not an online spec; "
+            "pass the directory of a `dlo online` run"
+        ) from exc
     saved = spec.model_dump()
     for dotted, value in overrides.items():
         if value is None:
@@ -444,7 +501,9 @@ def resume_online(run_dir: Path, overrides: dict[str, Any],
         for key in dotted.split("."):
             current = current[key]
         if str(current) != str(value):
-            raise BadInput(f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
-                           f"{dotted}={current!r}; drop the flag or start a new run")
+            raise BadInput(
+                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
+                f"{dotted}={current!r}; drop the flag or start a new run"
+            )
     spec = spec.model_copy(update={"out": Path(run_dir)})
     return OnlineRun(spec, progress).run()

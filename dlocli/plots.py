@@ -43,12 +43,21 @@ def plot_learning_curve(
     """Cumulative reward per trial against transitions (paper Fig. 4; Fig. 7 with ``offline``)."""
     fig, ax = _figure()
     xs = [c["transitions"] for c in curve]
-    shaded_curve(ax, xs, [c["cumulative_reward_mean"] for c in curve],
-                 [c["cumulative_reward_std"] for c in curve], "online (MPC + model learning)")
+    shaded_curve(
+        ax,
+        xs,
+        [c["cumulative_reward_mean"] for c in curve],
+        [c["cumulative_reward_std"] for c in curve],
+        "online (MPC + model learning)",
+    )
     if offline:
-        shaded_curve(ax, [c["transitions"] for c in offline],
-                     [c["cumulative_reward_mean"] for c in offline],
-                     [c["cumulative_reward_std"] for c in offline], "offline (random data)")
+        shaded_curve(
+            ax,
+            [c["transitions"] for c in offline],
+            [c["cumulative_reward_mean"] for c in offline],
+            [c["cumulative_reward_std"] for c in offline],
+            "offline (random data)",
+        )
     ax.set_xlabel("transitions")
     ax.set_ylabel("cumulative reward per trial")
     ax.set_title("Online model learning with MPC")

@@ -86,24 +86,45 @@ models = Registry("model")
 controllers = Registry("controller")
 tasks = Registry("task")
 
-backends.register("mujoco", "dlocli.backends.mujoco_cable:MujocoCable",
-                  "MuJoCo 3.x composite cable (elasticity plugin), grippers as mocap bodies")
-backends.register("pybullet", "dlocli.backends.pybullet_chain:PybulletChain",
-                  "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l")
+backends.register(
+    "mujoco",
+    "dlocli.backends.mujoco_cable:MujocoCable",
+    "MuJoCo 3.x composite cable (elasticity plugin), grippers as mocap bodies",
+)
+backends.register(
+    "pybullet",
+    "dlocli.backends.pybullet_chain:PybulletChain",
+    "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l",
+)
 tasks.register("single", "dlocli.tasks:SingleGripperTask", "6-D action: right gripper moves")
 tasks.register("bimanual", "dlocli.tasks:BimanualTask", "12-D action: both grippers move")
-models.register("in-bilstm", "dlocli.models.in_bilstm:INBiLSTM",
-                "Interaction Network + bi-LSTM along the rod (the paper's model)")
+models.register(
+    "in-bilstm",
+    "dlocli.models.in_bilstm:INBiLSTM",
+    "Interaction Network + bi-LSTM along the rod (the paper's model)",
+)
 models.register("mlp", "dlocli.models.mlp:MLPDynamics", "flattened state + action MLP baseline")
-controllers.register("mpc", "dlocli.controllers.mpc:GradientMPC",
-                     "gradient-based shooting MPC through the learned model (paper eqs. 8-10)")
-controllers.register("mppi", "dlocli.controllers.mppi:MPPI",
-                     "sampling MPC (MPPI) through the learned model")
-controllers.register("random", "dlocli.controllers.base:RandomController",
-                     "uniform random actions")
-controllers.register("sac", "dlocli.controllers.sb3_agents:SACAgent",
-                     "Soft Actor-Critic (stable-baselines3) on the flat observation")
-controllers.register("td3", "dlocli.controllers.sb3_agents:TD3Agent",
-                     "TD3 (stable-baselines3) with Gaussian exploration noise")
-controllers.register("pilco", "dlocli.controllers.pilco:PilcoAgent",
-                     "PILCO: GP dynamics, moment matching, RBF policy (Deisenroth 2011)")
+controllers.register(
+    "mpc",
+    "dlocli.controllers.mpc:GradientMPC",
+    "gradient-based shooting MPC through the learned model (paper eqs. 8-10)",
+)
+controllers.register(
+    "mppi", "dlocli.controllers.mppi:MPPI", "sampling MPC (MPPI) through the learned model"
+)
+controllers.register("random", "dlocli.controllers.base:RandomController", "uniform random actions")
+controllers.register(
+    "sac",
+    "dlocli.controllers.sb3_agents:SACAgent",
+    "Soft Actor-Critic (stable-baselines3) on the flat observation",
+)
+controllers.register(
+    "td3",
+    "dlocli.controllers.sb3_agents:TD3Agent",
+    "TD3 (stable-baselines3) with Gaussian exploration noise",
+)
+controllers.register(
+    "pilco",
+    "dlocli.controllers.pilco:PilcoAgent",
+    "PILCO: GP dynamics, moment matching, RBF policy (Deisenroth 2011)",
+)

@@ -69,7 +69,10 @@ class BackendSpec(Spec):
 
     name: str = Field("mujoco", description="Simulator backend (see `dlo list`).")
     physics_dt: float | None = Field(
-        None, gt=0, le=0.02, description="Physics step in seconds; None = the backend's stable default."
+        None,
+        gt=0,
+        le=0.02,
+        description="Physics step in seconds; None = the backend's stable default.",
     )
     held_ends: Literal["both", "left"] = Field(
         "both", description="Which rod ends the grippers hold ('left' leaves a free cantilever)."
@@ -80,15 +83,22 @@ class BackendSpec(Spec):
 class TaskSpec(Spec):
     """The shape-control task on top of a backend (DLOShapeEnv)."""
 
-    name: str = Field("single", description="'single' (6-D action, right gripper) or 'bimanual' (12-D).")
-    goal: Literal["fixed", "random"] = Field(
-        "fixed", description="'fixed': one goal for the whole run (paper); 'random': new each episode."
+    name: str = Field(
+        "single", description="'single' (6-D action, right gripper) or 'bimanual' (12-D)."
     )
-    goal_file: Path | None = Field(None, description="Goal shape .npy (N,3) in metres; overrides `goal`.")
+    goal: Literal["fixed", "random"] = Field(
+        "fixed",
+        description="'fixed': one goal for the whole run (paper); 'random': new each episode.",
+    )
+    goal_file: Path | None = Field(
+        None, description="Goal shape .npy (N,3) in metres; overrides `goal`."
+    )
     episode_steps: int = Field(200, gt=0, description="Control steps per episode (T).")
     control_dt: float = Field(0.02, gt=0, description="Control period in seconds (50 Hz).")
     max_linear_velocity: float = Field(0.1, gt=0, description="Gripper speed at action 1 (m/s).")
-    max_angular_velocity: float = Field(0.5, gt=0, description="Gripper angular speed at action 1 (rad/s).")
+    max_angular_velocity: float = Field(
+        0.5, gt=0, description="Gripper angular speed at action 1 (rad/s)."
+    )
     max_separation: float = Field(
         0.95, gt=0, lt=1, description="Largest gripper separation as a fraction of the rod length."
     )
@@ -104,7 +114,9 @@ class TaskSpec(Spec):
     reset_motion_steps: int = Field(
         40, ge=0, description="Random gripper-motion steps that make a random start (then settle)."
     )
-    reset_settle_steps: int = Field(40, ge=0, description="Zero-velocity steps to let the rod settle.")
+    reset_settle_steps: int = Field(
+        40, ge=0, description="Zero-velocity steps to let the rod settle."
+    )
 
 
 # --------------------------------------------------------------------------- commands
@@ -144,7 +156,9 @@ def load_spec_file(path: Path) -> dict[str, Any]:
         data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
     except (OSError, ValueError, yaml.YAMLError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise BadInput(f"spec file {path} is not valid YAML/JSON ({first}); fix or remove it") from exc
+        raise BadInput(
+            f"spec file {path} is not valid YAML/JSON ({first}); fix or remove it"
+        ) from exc
     if data is None:
         data = {}
     if not isinstance(data, dict):

@@ -95,10 +95,11 @@ def train_model(
 ) -> TrainResult:
     """Train ``model`` in place for ``fit.epochs`` epochs on ``dataset``'s training split.
 
-    The model's normalisation is fitted on the training split if it was never fitted (a
-    continued model keeps its own). ``optimizer_state`` resumes Adam's moments (from a
-    previous :class:`TrainResult` or checkpoint). ``progress`` gets ``{"epoch", "batch",
-    "batches", "loss"}`` after every step; ``on_epoch`` gets each epoch's record
+    The model moves to ``fit.device`` and comes back in eval mode. Its normalisation is
+    fitted on the training split if it was never fitted (a continued model keeps its own).
+    ``optimizer_state`` resumes Adam's moments (from a previous :class:`TrainResult` or
+    checkpoint). ``progress`` gets ``{"epoch", "batch", "batches", "loss"}`` every few steps
+    and ``{"epoch", "val_loss"}`` after each epoch; ``on_epoch`` gets each epoch's record
     ``{"epoch", "train_loss", "val_loss", "seconds"}`` (and the optimizer) for checkpoints.
     """
     if dataset.n_segments != model.n_segments:
@@ -106,7 +107,8 @@ def train_model(
             f"dataset has {dataset.n_segments} segments but the model {model.n_segments}; "
             "train a new model or use a matching dataset"
         )
-    device = model.device
+    device = resolve_device(fit.device)
+    model.to(device)
     train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction, fit.seed)
     train = transition_tensors(dataset, train_eps, device)
     val = transition_tensors(dataset, val_eps, device)
@@ -118,7 +120,7 @@ def train_model(
     model.requires_grad_(True)  # a loaded model comes frozen for planning
     optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
     if optimizer_state:
-        optimizer.load_state_dict(optimizer_state)
+        optimizer.load_state_dict(copy.deepcopy(optimizer_state))  # the caller's stays as is
         for group in optimizer.param_groups:
             group["lr"] = fit.lr
     gen = torch.Generator(device="cpu").manual_seed(fit.seed)

@@ -29,7 +29,11 @@ def smooth_velocities(seed: int, steps: int) -> np.ndarray:
 
 def test_shapes_and_units(backend):
     n = backend.n_segments
-    pos, quat, grip = backend.segment_positions(), backend.segment_quaternions(), backend.gripper_poses()
+    pos, quat, grip = (
+        backend.segment_positions(),
+        backend.segment_quaternions(),
+        backend.gripper_poses(),
+    )
     assert pos.shape == (n, 3) and quat.shape == (n, 4) and grip.shape == (2, 7)
     assert np.allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-6)
     seg = backend.rod.segment_length
@@ -96,7 +100,11 @@ def test_gripper_limits_hold_under_pulling(backend):
 def test_ends_stay_attached(backend):
     for v in smooth_velocities(4, 100):
         assert backend.step(v)
-    pos, quat, grip = backend.segment_positions(), backend.segment_quaternions(), backend.gripper_poses()
+    pos, quat, grip = (
+        backend.segment_positions(),
+        backend.segment_quaternions(),
+        backend.gripper_poses(),
+    )
     seg = backend.rod.segment_length
     start = pos[0] - 0.5 * seg * quat_rotate(quat[0], np.array([1.0, 0, 0]))
     end = pos[-1] + 0.5 * seg * quat_rotate(quat[-1], np.array([1.0, 0, 0]))

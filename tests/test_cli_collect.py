@@ -21,8 +21,19 @@ def run(*args: str):
 @pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
 def test_collect_json_and_reader(tmp_path, backend):
     out = tmp_path / backend
-    res = run("collect", "--random", "--backend", backend, "--episodes", "2", "--steps", "15",
-              "--out", str(out), "--json")
+    res = run(
+        "collect",
+        "--random",
+        "--backend",
+        backend,
+        "--episodes",
+        "2",
+        "--steps",
+        "15",
+        "--out",
+        str(out),
+        "--json",
+    )
     assert res.exit_code == 0, res.output
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert {"episodes", "transitions", "seconds", "path"} <= summary.keys()

@@ -23,7 +23,9 @@ def envs():
 
 def get_env(envs, backend, task):
     if (backend, task) not in envs:
-        envs[(backend, task)] = dlocli.make_env(backend=backend, task=task, seed=0, episode_steps=20)
+        envs[(backend, task)] = dlocli.make_env(
+            backend=backend, task=task, seed=0, episode_steps=20
+        )
     return envs[(backend, task)]
 
 
@@ -48,7 +50,7 @@ def test_episode_reward_and_truncation(envs, backend, task):
     assert env.action_space.shape == ((6,) if task == "single" else (12,))
     parts = env.split_observation(obs)
     np.testing.assert_allclose(parts["goal"], env.goal, atol=1e-6)
-    rewards, truncated, t = [], False, 0
+    truncated, t = False, 0
     while not truncated:
         obs, r, terminated, truncated, info = env.step(env.action_space.sample())
         assert not terminated and -1.5 <= r <= 0.0

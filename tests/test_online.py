@@ -20,8 +20,22 @@ from dlocli.data import load_dataset
 from dlocli.online import OnlineSpec
 
 runner = CliRunner()
-TINY = ["--iters", "2", "--trials", "2", "--steps", "15", "--epochs", "1",
-        "--initial-episodes", "2", "--hidden", "16", "--seed", "3"]
+TINY = [
+    "--iters",
+    "2",
+    "--trials",
+    "2",
+    "--steps",
+    "15",
+    "--epochs",
+    "1",
+    "--initial-episodes",
+    "2",
+    "--hidden",
+    "16",
+    "--seed",
+    "3",
+]
 
 
 def test_defaults_are_the_papers():
@@ -49,11 +63,23 @@ def uninterrupted(tmp_path_factory):
 
 def test_reduced_run_writes_everything(uninterrupted):
     out, summary = uninterrupted
-    for name in ("spec.json", "metrics.csv", "summary.json", "plots/learning_curve.png",
-                 "checkpoints/iter_01.pt", "checkpoints/iter_02.pt", "checkpoints/final.pt"):
+    for name in (
+        "spec.json",
+        "metrics.csv",
+        "summary.json",
+        "plots/learning_curve.png",
+        "checkpoints/iter_01.pt",
+        "checkpoints/iter_02.pt",
+        "checkpoints/final.pt",
+    ):
         assert (out / name).is_file(), name
     rows = read_rows(out)
-    assert [(r["iteration"], r["trial"]) for r in rows] == [("1", "1"), ("1", "2"), ("2", "1"), ("2", "2")]
+    assert [(r["iteration"], r["trial"]) for r in rows] == [
+        ("1", "1"),
+        ("1", "2"),
+        ("2", "1"),
+        ("2", "2"),
+    ]
     assert summary["iterations_done"] == 2
     assert summary["transitions"] == 2 * 15 + 4 * 15
     saved = json.loads((out / "spec.json").read_text())

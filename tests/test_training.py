@@ -68,7 +68,7 @@ def test_training_reduces_validation_loss(small_dataset_dir, name):
 
 def test_training_is_reproducible_and_continues(small_dataset_dir):
     data = load_dataset(small_dataset_dir)
-    fit = FitSpec(epochs=1, **FAST_FIT)
+    fit = FitSpec(epochs=1, **{**FAST_FIT, "batch_size": 64})
     a, b = fresh("in-bilstm", data), fresh("in-bilstm", data)
     first = train_model(a, data, fit)
     train_model(b, data, fit)
@@ -80,15 +80,25 @@ def test_training_is_reproducible_and_continues(small_dataset_dir):
     assert more.optimizer_state["state"][0]["step"] == 2 * first.optimizer_state["state"][0]["step"]
 
 
-def test_evaluation_keys_and_beats_persistence(small_dataset_dir):
+@pytest.mark.parametrize("name", ["in-bilstm", "mlp"])
+def test_evaluation_keys(small_dataset_dir, name):
     data = load_dataset(small_dataset_dir)
-    model = fresh("in-bilstm", data)
-    result = train_model(model, data, FitSpec(epochs=3, **FAST_FIT))
-    metrics = evaluate_model(model, data, result.val_episodes)
+    model = fresh(name, data)
+    model.fit_normalization(data.transitions())
+    metrics = evaluate_model(model, data, np.array([0, 1]), max_starts=16)
     assert EVAL_KEYS <= metrics.keys()
     assert all(metrics[k] is not None and metrics[k] >= 0 for k in EVAL_KEYS)
     assert metrics["persistence_rollout50_mm"] > metrics["persistence_rollout5_mm"] > 0
+    assert metrics["eval_transitions"] == int(data.episode_lengths[:2].sum())
+
+
+def test_a_trained_model_beats_persistence(small_dataset_dir):
+    data = load_dataset(small_dataset_dir)
+    model = fresh("mlp", data)
+    result = train_model(model, data, FitSpec(epochs=8, **FAST_FIT))
+    metrics = evaluate_model(model, data, result.val_episodes)
     assert metrics["one_step_mm"] < metrics["persistence_one_step_mm"]
+    assert metrics["rollout5_mm"] < metrics["persistence_rollout5_mm"]
 
 
 def test_train_and_eval_commands(small_dataset_dir, tmp_path):

@@ -44,10 +44,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from dataclasses import dataclass
 from typing import NamedTuple
-
-import time
 
 import numpy as np
 import pybullet as p

@@ -22,7 +22,13 @@ from dlocli.specs import CollectSpec as S
 
 @handle_errors
 def collect(
-    random: Annotated[bool, typer.Option("--random", help="Uniform random actions (the only policy here; use `dlo online` for MPC data).")] = True,
+    random: Annotated[
+        bool,
+        typer.Option(
+            "--random",
+            help="Uniform random actions (the only policy here; use `dlo online` for MPC data).",
+        ),
+    ] = True,
     out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
     backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
     task: Annotated[str | None, typer.Option(help=h(S, "task.name"))] = None,
@@ -38,14 +44,28 @@ def collect(
     from dlocli.collect import collect_random
     from dlocli.registry import backends, tasks
 
-    spec = build_spec(S, spec_file, {
-        "out": out, "backend.name": backend, "task.name": task, "episodes": episodes,
-        "steps": steps, "seed": seed, "workers": workers,
-    })
+    spec = build_spec(
+        S,
+        spec_file,
+        {
+            "out": out,
+            "backend.name": backend,
+            "task.name": task,
+            "episodes": episodes,
+            "steps": steps,
+            "seed": seed,
+            "workers": workers,
+        },
+    )
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
-    columns = (TextColumn("collect"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
-               TimeRemainingColumn())
+    columns = (
+        TextColumn("collect"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("episodes"),
+        TimeRemainingColumn(),
+    )
     with Progress(*columns, transient=json_out, disable=json_out) as progress:
         bar = progress.add_task("collect", total=spec.episodes)
         summary = collect_random(spec, overwrite, lambda i, ep: progress.advance(bar))

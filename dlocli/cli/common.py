@@ -20,7 +20,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 console = Console(stderr=True)
 
 SpecFile = Annotated[
-    Path | None, typer.Option("--spec", help="Run spec file (YAML or JSON); flags override its fields.")
+    Path | None,
+    typer.Option("--spec", help="Run spec file (YAML or JSON); flags override its fields."),
 ]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")]
 OverwriteFlag = Annotated[

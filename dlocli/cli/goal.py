@@ -35,7 +35,9 @@ def goal(
     from dlocli.metrics import shape_error_mm
     from dlocli.registry import backends, tasks
 
-    spec = build_spec(S, spec_file, {"out": out, "backend.name": backend, "task.name": task, "seed": seed})
+    spec = build_spec(
+        S, spec_file, {"out": out, "backend.name": backend, "task.name": task, "seed": seed}
+    )
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     if spec.out.suffix != ".npy":
@@ -45,10 +47,16 @@ def goal(
     shape = make_goal(spec)
     save_goal(shape, spec.out)
     rest = _rest_shape(spec)
-    emit_summary({
-        "path": str(spec.out), "segments": int(shape.shape[0]), "seed": spec.seed,
-        "distance_from_rest_mm": round(float(shape_error_mm(rest, shape)), 1),
-    }, json_out, "dlo goal")
+    emit_summary(
+        {
+            "path": str(spec.out),
+            "segments": int(shape.shape[0]),
+            "seed": spec.seed,
+            "distance_from_rest_mm": round(float(shape_error_mm(rest, shape)), 1),
+        },
+        json_out,
+        "dlo goal",
+    )
 
 
 def _rest_shape(spec: S):

@@ -21,8 +21,10 @@ def list_plugins(
     from dlocli import registry
 
     kinds = {
-        "backends": registry.backends, "tasks": registry.tasks,
-        "models": registry.models, "controllers": registry.controllers,
+        "backends": registry.backends,
+        "tasks": registry.tasks,
+        "models": registry.models,
+        "controllers": registry.controllers,
     }
     if json_out:
         print(json.dumps({k: {n: r.summary(n) for n in r.names()} for k, r in kinds.items()}))

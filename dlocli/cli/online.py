@@ -6,10 +6,23 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                           TimeElapsedColumn, TimeRemainingColumn)
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, build_spec, emit_summary, handle_errors
+from dlocli.cli.common import (
+    JsonFlag,
+    OverwriteFlag,
+    SpecFile,
+    build_spec,
+    emit_summary,
+    handle_errors,
+)
 from dlocli.cli.common import opt_help as h
 from dlocli.online import OnlineSpec as S
 
@@ -30,10 +43,14 @@ def online(
     backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
     device: Annotated[str | None, typer.Option(help=h(S, "fit.device"))] = None,
     workers: Annotated[int | None, typer.Option(help=h(S, "workers"))] = None,
-    offline: Annotated[bool | None, typer.Option("--offline/--no-offline", help=h(S, "offline"))] = None,
+    offline: Annotated[
+        bool | None, typer.Option("--offline/--no-offline", help=h(S, "offline"))
+    ] = None,
     seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
     out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
-    resume: Annotated[Path | None, typer.Option(help="Continue the killed run in this directory.")] = None,
+    resume: Annotated[
+        Path | None, typer.Option(help="Continue the killed run in this directory.")
+    ] = None,
     spec_file: SpecFile = None,
     overwrite: OverwriteFlag = False,
     json_out: JsonFlag = False,
@@ -46,11 +63,23 @@ def online(
     from dlocli.online import resume_online, start_online
 
     overrides: dict[str, Any] = {
-        "iters": iters, "trials": trials, "steps": steps, "fit.epochs": epochs,
-        "initial_episodes": initial_episodes, "mpc.horizon": horizon, "fit.lr": lr,
-        "model.hidden": hidden, "model.name": model, "task.goal": goals, "task.name": task,
-        "backend.name": backend, "fit.device": device, "workers": workers, "offline": offline,
-        "seed": seed, "out": out,
+        "iters": iters,
+        "trials": trials,
+        "steps": steps,
+        "fit.epochs": epochs,
+        "initial_episodes": initial_episodes,
+        "mpc.horizon": horizon,
+        "fit.lr": lr,
+        "model.hidden": hidden,
+        "model.name": model,
+        "task.goal": goals,
+        "task.name": task,
+        "backend.name": backend,
+        "fit.device": device,
+        "workers": workers,
+        "offline": offline,
+        "seed": seed,
+        "out": out,
     }
     with _progress(json_out) as callback:
         if resume is not None:
@@ -68,9 +97,15 @@ class _progress:
     """Nested bars: iterations, trials, epochs (with ETA)."""
 
     def __init__(self, quiet: bool) -> None:
-        self.bars = Progress(TextColumn("{task.description:<10}"), BarColumn(), MofNCompleteColumn(),
-                             TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
-                             TimeRemainingColumn(), disable=quiet)
+        self.bars = Progress(
+            TextColumn("{task.description:<10}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            disable=quiet,
+        )
         self.tasks: dict[str, Any] = {}
 
     def __enter__(self) -> Any:
@@ -87,16 +122,25 @@ class _progress:
 
     def update(self, event: str, info: dict[str, Any]) -> None:
         if event == "iteration":
-            self.bars.update(self._bar("iteration", info["total"]), completed=info["iteration"] - 1,
-                             info=f"iteration {info['iteration']}")
+            self.bars.update(
+                self._bar("iteration", info["total"]),
+                completed=info["iteration"] - 1,
+                info=f"iteration {info['iteration']}",
+            )
             for name in ("trial", "epoch"):
                 if name in self.tasks:
                     self.bars.reset(self.tasks[name])
         elif event == "initial":
             self.bars.update(self._bar("random", info["total"]), completed=info["episode"])
         elif event == "epoch" and "batch" not in info:
-            self.bars.update(self._bar("epoch", None), completed=info["epoch"],
-                             info=f"val loss {info.get('val_loss', float('nan')):.4f}")
+            self.bars.update(
+                self._bar("epoch", None),
+                completed=info["epoch"],
+                info=f"val loss {info.get('val_loss', float('nan')):.4f}",
+            )
         elif event == "trial":
-            self.bars.update(self._bar("trial", None), completed=info["trial"],
-                             info=f"final error {info['final_error_mm']:.1f} mm")
+            self.bars.update(
+                self._bar("trial", None),
+                completed=info["trial"],
+                info=f"final error {info['final_error_mm']:.1f} mm",
+            )

@@ -34,7 +34,6 @@ from pydantic import Field
 from dlocli.controllers.planning import ModelPlanner, PlannerSpec
 
 ADAM_BETAS = (0.9, 0.999)
-ADAM_EPS = 1e-8
 
 
 class MPCSpec(PlannerSpec):
@@ -46,6 +45,12 @@ class MPCSpec(PlannerSpec):
         gt=0,
         description="Optimiser step size: Adam's learning rate in action units "
         "(SGD: per unit gradient).",
+    )
+    adam_eps: float = Field(
+        1e-8,
+        gt=0,
+        description="Adam's epsilon, in gradient units (m^2 per unit action): gradients well "
+        "below it get steps proportional to them instead of about step_size.",
     )
     optimizer: Literal["adam", "normalized", "sgd"] = Field(
         "adam",
@@ -129,5 +134,5 @@ class GradientMPC(ModelPlanner):
         b1, b2 = ADAM_BETAS
         mean.mul_(b1).add_(grad, alpha=1 - b1)
         square.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-        denom = (square / (1 - b2**step)).sqrt_().add_(ADAM_EPS)
+        denom = (square / (1 - b2**step)).sqrt_().add_(self.spec.adam_eps)
         return (self.spec.step_size / (1 - b1**step)) * mean / denom
