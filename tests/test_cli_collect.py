@@ -125,3 +125,27 @@ def test_spec_file_then_flags(tmp_path):
     saved = json.loads((out / "spec.json").read_text())
     assert saved["episodes"] == 1 and saved["steps"] == 7 and saved["task"]["name"] == "bimanual"
     assert load_dataset(out).actions[:, 0].any(), "bimanual moves the left gripper too"
+
+
+def test_ctrl_c_leaves_complete_dataset_or_nothing(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "interrupted"
+    cmd = [sys.executable, "-m", "dlocli.cli", "collect", "--episodes", "200", "--steps", "20",
+           "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    while not (out / "spec.json").exists():  # collecting has started
+        assert proc.poll() is None and time.time() < deadline
+        time.sleep(0.05)
+    time.sleep(2.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err.decode()
+    assert not list(out.glob("*.tmp")), "no half-written files"
+    if (out / "dataset.h5").exists():
+        data = load_dataset(out)
+        assert 0 < data.n_episodes < 200 and data.n_transitions == 20 * data.n_episodes
