@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import time
 from collections.abc import Callable
 
@@ -77,12 +76,12 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
     opt = torch.optim.Adam(model.parameters(), lr=1e-6)
 
     def train_step() -> None:
-        model.train()
+        model.train().requires_grad_(True)
         loss = model.loss(s256, a256[:, 0], nxt)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        model.eval()
+        model.eval().requires_grad_(False)  # planning: frozen weights, as load_model gives
 
     @torch.no_grad()
     def forward1() -> None:
@@ -107,7 +106,8 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
 def measure(
     model: DynamicsModel, repeats: int, min_seconds: float
 ) -> dict[str, dict[str, float]]:
-    """Median seconds per call of every case, reference and optimised interleaved."""
+    """Seconds per call of every case, reference and optimised interleaved: the best of
+    ``repeats`` windows of ``min_seconds`` (the least disturbed by other processes)."""
     cases = bench_cases(model)
     times: dict[str, dict[str, list[float]]] = {k: {"eager": [], "dlocli": []} for k in cases}
     for name, (fn, _) in cases.items():
@@ -119,7 +119,7 @@ def measure(
                 model.reference = variant == "eager"
                 times[name][variant].append(_time_call(fn, model.device, min_seconds))
     model.reference = False
-    return {k: {v: statistics.median(t) for v, t in d.items()} for k, d in times.items()}
+    return {k: {v: min(t) for v, t in d.items()} for k, d in times.items()}
 
 
 def _time_call(fn: Callable[[], None], device: torch.device, min_seconds: float) -> float:
@@ -174,13 +174,14 @@ def main() -> None:
     parser.add_argument("--model", default="in-bilstm")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--min-seconds", type=float, default=0.3)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--min-seconds", type=float, default=0.2)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     model = build_model(ModelSpec(name=args.model), 20).to(args.device).eval()
+    model.requires_grad_(False)
     peak = matmul_gflops(device=args.device)
     result = report(model, measure(model, args.repeats, args.min_seconds), peak)
     if args.json:

@@ -17,7 +17,7 @@ class FitSpec(Spec):
     lr: float = Field(1e-4, gt=0, description="Adam learning rate.")
     batch_size: int = Field(64, gt=0, description="Transitions per gradient step.")
     input_noise: float = Field(
-        0.1, ge=0,
+        0.5, ge=0,
         description="Std of Gaussian noise on the input state (paper Sec. IV-C), in units of "
         "each feature's one-step change std; the target is the change from the noisy state.",
     )  # fmt: skip

@@ -33,7 +33,7 @@ from dlocli.models.base import (
 )
 from dlocli.train_spec import FitSpec, TrainSpec
 
-GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e+1) * GOLDEN + shift) < fraction
+GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e + 1) * GOLDEN) < fraction
 EVAL_BATCH = 1024
 Progress = Callable[[dict[str, Any]], None]
 
@@ -54,16 +54,16 @@ class TrainResult:
 
 
 # ---------------------------------------------------------------------- split and tensors
-def split_episodes(n_episodes: int, val_fraction: float, seed: int = 0) -> tuple[np.ndarray, ...]:
+def split_episodes(n_episodes: int, val_fraction: float) -> tuple[np.ndarray, ...]:
     """(train, validation) episode indices, stable as episodes are appended.
 
-    Episode e is held out iff frac((e + 1) * golden ratio + shift(seed)) < val_fraction: a
-    low-discrepancy rule, so about ``val_fraction`` of any prefix is held out. With at least
-    two episodes and a positive fraction, one is always held out and one always trained on.
+    Episode e is held out iff frac((e + 1) * golden ratio) < val_fraction: a low-discrepancy
+    rule, so about ``val_fraction`` of any prefix is held out, and an episode never changes
+    side as the dataset grows (whatever the training seed). With at least two episodes and a
+    positive fraction, one is always held out and one always trained on.
     """
-    shift = np.random.default_rng(seed).random()
     e = np.arange(n_episodes)
-    is_val = (((e + 1) * GOLDEN + shift) % 1.0) < val_fraction
+    is_val = (((e + 1) * GOLDEN) % 1.0) < val_fraction
     if val_fraction > 0 and n_episodes >= 2:
         if not is_val.any():
             is_val[-1] = True
@@ -109,7 +109,7 @@ def train_model(
         )
     device = resolve_device(fit.device)
     model.to(device)
-    train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction, fit.seed)
+    train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction)
     train = transition_tensors(dataset, train_eps, device)
     val = transition_tensors(dataset, val_eps, device)
     n_train = len(train["state"])
@@ -198,10 +198,15 @@ def validation_loss(model: DynamicsModel, data: dict[str, torch.Tensor]) -> floa
 
 # ---------------------------------------------------------------------- model set-up
 def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dict[str, Any] | None]:
-    """A fresh model (seeded) or the one in ``spec.init_from`` and its optimizer state."""
+    """A fresh model (seeded) or the one in ``spec.init_from`` and its optimizer state.
+
+    With ``init_from``, model fields given explicitly must match the checkpoint's; none given
+    means "the checkpoint's model".
+    """
     device = resolve_device(spec.device)
     if spec.init_from is not None:
-        model = load_model(spec.init_from, device, expect=spec.model)
+        expect = spec.model if "model" in spec.model_fields_set else None
+        model = load_model(spec.init_from, device, expect=expect)
         opt_state = read_checkpoint(spec.init_from).get("optimizer")
         if model.n_segments != dataset.n_segments:
             raise BadInput(
@@ -236,6 +241,7 @@ def run_training(
 
     dataset = load_training_data(spec)
     model, opt_state = prepare_model(spec, dataset)
+    spec = spec.model_copy(update={"model": model.spec})  # with --init-from: the checkpoint's
     out = prepare_run_dir(spec.out, overwrite)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
     ckpt_dir = out / "checkpoints"

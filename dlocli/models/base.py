@@ -63,7 +63,9 @@ class DynamicsModel(torch.nn.Module, ABC):
 
     Buffers (saved with the weights): ``state_mean``/``state_std`` (7,) normalise the input
     state per feature over all segments; ``delta_mean``/``delta_std`` (7,) the predicted change;
-    ``action_scale`` (6,) divides the commands (no shift, so "no gripper" stays zero).
+    ``action_scale`` (6,) divides the commands (no shift, so "no gripper" stays zero);
+    ``relation_scale`` (7,) is the inverse RMS of the normalised difference between
+    neighbouring segments' states (for models that compare neighbours).
     """
 
     def __init__(self, spec: ModelSpec, n_segments: int) -> None:
@@ -80,6 +82,7 @@ class DynamicsModel(torch.nn.Module, ABC):
             ("delta_mean", STATE_DIM, 0.0),
             ("delta_std", STATE_DIM, 1.0),
             ("action_scale", ACTION_DIM, 1.0),
+            ("relation_scale", STATE_DIM, 1.0),
         ):
             self.register_buffer(name, torch.full((size,), value))
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
@@ -99,12 +102,16 @@ class DynamicsModel(torch.nn.Module, ABC):
         active = action[np.any(action != 0, axis=1)]
         scale = np.sqrt(np.mean(active**2, axis=0)) if len(active) else np.ones(ACTION_DIM)
         flat_s, flat_d = state.reshape(-1, STATE_DIM), delta.reshape(-1, STATE_DIM)
+        state_std = np.maximum(flat_s.std(0), _STD_FLOOR["state"])
+        neighbours = np.diff(state, axis=1).reshape(-1, STATE_DIM) / state_std
+        rms = np.sqrt(np.mean(neighbours**2, axis=0))
         values = {
             "state_mean": flat_s.mean(0),
-            "state_std": np.maximum(flat_s.std(0), _STD_FLOOR["state"]),
+            "state_std": state_std,
             "delta_mean": flat_d.mean(0),
             "delta_std": np.maximum(flat_d.std(0), _STD_FLOOR["delta"]),
             "action_scale": np.where(scale > 1e-6, scale, 1.0),
+            "relation_scale": 1.0 / np.maximum(rms, 1e-3),
         }
         for name, value in values.items():
             getattr(self, name).copy_(torch.as_tensor(value, dtype=torch.float32))

@@ -12,11 +12,10 @@ gripper holds). Neighbouring segments are joined by two directed relations.
 - eq. 5: the object-centric network f_v(v_i, [h_left_i, h_right_i]) (``node_layers`` layers)
   gives segment i's normalised state change.
 
-Fast path (same mathematics): f_e's first layer is split into receiver and sender halves
-applied once per node instead of once per relation (W [x_i; x_j] = W_r x_i + W_s x_j), every
-relation of every sample goes through f_e as one batch, the sum per receiver is two shifted
-adds on the chain, and the LSTM is :mod:`dlocli.models.rnn` on CPU (cuDNN on CUDA).
-``model.reference = True`` runs the plain PyTorch formulation instead (benchmarks).
+Implementation: every relation of every sample goes through f_e as one batch, the sum per
+receiver is two shifted adds on the chain, and at small batches on CPU the bi-LSTM is
+:mod:`dlocli.models.rnn` (oneDNN at large batches, cuDNN on CUDA). ``model.reference = True``
+runs stock ``nn.LSTM`` throughout (the benchmarks' eager reference).
 """
 
 from __future__ import annotations
@@ -43,30 +42,26 @@ class INBiLSTM(DynamicsModel):
         self.node_net = mlp([STATE_DIM + 2 * h] + [h] * (spec.node_layers - 1) + [STATE_DIM])
         init_forget_bias(self.lstm, 1.0)
 
-
     def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:
-        x = torch.cat([state_n, node_actions(action_n, self.n_segments)], -1)  # (B, N, 13)
-        effects = self._effects_reference(x) if self.reference else self._effects(x)
+        effects = self._effects(state_n, node_actions(action_n, self.n_segments))
         hidden = self._lstm(effects)  # (B, N, 2H): [h_left_i, h_right_i]
         return self.node_net(torch.cat([state_n, hidden], -1))  # eq. 5
 
-    def _effects(self, x: Tensor) -> Tensor:
-        """Eq. 4, summed relation effects per segment: (B, N, 13) -> (B, N, H)."""
-        first = self.edge_net[0]
-        w_recv, w_send = first.weight.split(NODE_DIM, dim=1)
-        recv = torch.nn.functional.linear(x, w_recv, first.bias)  # (B, N, H)
-        send = torch.nn.functional.linear(x, w_send)
-        # relations j -> i: from the left neighbour (i = 1..N-1) and the right one (i = 0..N-2)
-        pre = torch.cat([recv[:, 1:] + send[:, :-1], recv[:, :-1] + send[:, 1:]], 1)
-        out = self.edge_net[1:](pre)  # (B, 2(N-1), H)
-        return self._sum_per_receiver(out)
+    def _effects(self, v: Tensor, a: Tensor) -> Tensor:
+        """Eq. 4, the summed effects per segment: v (B, N, 7), a (B, N, 6) -> (B, N, H).
 
-    def _effects_reference(self, x: Tensor) -> Tensor:
-        """Eq. 4 written plainly: build each relation's (x_i, x_j) input, apply f_e."""
-        pairs = torch.cat(
-            [torch.cat([x[:, 1:], x[:, :-1]], -1), torch.cat([x[:, :-1], x[:, 1:]], -1)], 1
-        )
-        return self._sum_per_receiver(self.edge_net(pairs))
+        The relation j -> i is presented to f_e as (v_i, a_i, k (v_j - v_i), a_j), with k the
+        buffer ``relation_scale``: an invertible linear change of coordinates of
+        (v_i, a_i, v_j, a_j), so f_e is the same family of functions, but its first layer
+        sees the neighbours' relative pose at unit scale instead of a small difference of two
+        large absolute coordinates. Measured (8k MuJoCo transitions, hidden 64, 8 epochs):
+        validation loss 0.24 instead of 0.35, one-step error 0.62 instead of 0.78 mm.
+        """
+        diff = (v[:, 1:] - v[:, :-1]) * self.relation_scale  # k (v_{i+1} - v_i), (B, N-1, 7)
+        x = torch.cat([v, a], -1)
+        from_left = torch.cat([x[:, 1:], -diff, a[:, :-1]], -1)  # receivers 1..N-1
+        from_right = torch.cat([x[:, :-1], diff, a[:, 1:]], -1)  # receivers 0..N-2
+        return self._sum_per_receiver(self.edge_net(torch.cat([from_left, from_right], 1)))
 
     def _sum_per_receiver(self, out: Tensor) -> Tensor:
         """(B, 2(N-1), H) relation effects -> (B, N, H), summed per receiving segment."""

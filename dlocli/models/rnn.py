@@ -2,8 +2,9 @@
 
 Same mathematics and the same parameters as one layer of ``torch.nn.LSTM(bidirectional=True)``
 (gates i, f, g, o; ``c' = f c + i g``, ``h' = o tanh(c')``). At small batches (the MPC's
-rollouts) the stock CPU kernels are bound by per-step overhead (FINDINGS.md: the LSTM is
-75-85% of a forward at batch 1, and oneDNN's backward takes twice its forward). Here:
+rollouts) the LSTM is bound by per-step overhead (FINDINGS.md: 75-85% of a forward at batch
+1), and oneDNN's backward pass costs about twice its forward and always computes the weight
+gradients, which a planner does not need. Here:
 
 - the input projections of all time steps and both directions are one matrix product;
 - the two directions advance together: one batched matrix product and a handful of
@@ -12,8 +13,12 @@ rollouts) the stock CPU kernels are bound by per-step overhead (FINDINGS.md: the
   derivatives of all steps precomputed in one vectorised pass, and the weight and input
   gradients as large matrix products after the loop (skipped for frozen weights, as in
   planning), instead of autograd's dozen small nodes per step;
-- both loops are compiled by TorchScript, which halves their interpreter overhead;
+- both loops are compiled by TorchScript (measured 1.2-1.5x faster than the same Python);
 - the weights are repacked only when they change (cached on the module).
+
+Measured on the 2-core development VM at batch 1 (see the benchmark): the forward pass ties
+oneDNN's (both ~40-80 us per step, dominated by dispatch overhead and the recurrent GEMV),
+the backward pass with frozen weights is ~1.5-2x faster.
 
 At large batches the work is matrix products and memory traffic, where oneDNN's fused LSTM
 (``nn.LSTM``) is as fast; :func:`bilstm` switches to it there, and on CUDA (cuDNN).
@@ -106,10 +111,10 @@ def _backward(grad_out: Tensor, acts: Tensor, cells: Tensor, w_hh: Tensor) -> Te
 
 @functools.cache
 def _kernels() -> tuple[Callable[..., Any], Callable[..., Any]]:
-    """:func:`_forward` and :func:`_backward` compiled by TorchScript (about 1.5x faster than
+    """:func:`_forward` and :func:`_backward` compiled by TorchScript (1.2-1.5x faster than
     Python at small batches, where per-operation overhead dominates); plain Python if
-    scripting is unavailable. TorchScript is deprecated but still the fastest option here
-    (``torch.compile`` takes minutes per shape and was not faster, FINDINGS.md)."""
+    scripting is unavailable. TorchScript is deprecated but still the fastest option here:
+    ``torch.compile`` took 150 s to compile this LSTM and was not faster (FINDINGS.md too)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
