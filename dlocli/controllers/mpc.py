@@ -28,13 +28,13 @@ from __future__ import annotations
 
 from typing import ClassVar, Literal
 
-import numpy as np
 import torch
 from pydantic import Field
 
-from dlocli.controllers.planning import ModelPlanner, PlannerSpec, shift_plan
+from dlocli.controllers.planning import ModelPlanner, PlannerSpec
 
 ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
 
 
 class MPCSpec(PlannerSpec):
@@ -47,19 +47,8 @@ class MPCSpec(PlannerSpec):
         description="Optimiser step size: Adam's learning rate in action units "
         "(SGD: per unit gradient).",
     )
-    adam_eps: float = Field(
-        1e-8,
-        gt=0,
-        description="Adam's epsilon, in gradient units (m^2 per unit action): gradients well "
-        "below it get steps proportional to them instead of about step_size.",
-    )
-    rms_decay: float = Field(
-        0.9, ge=0, lt=1, description="rmsprop: decay of the squared-gradient average per step."
-    )
-    optimizer: Literal["adam", "rmsprop", "normalized", "sgd"] = Field(
-        "adam",
-        description="Update rule on the actions: adam; normalized (gradient divided by its RMS "
-        "over the plan: steps of RMS step_size along the steepest descent); sgd.",
+    optimizer: Literal["adam", "sgd"] = Field(
+        "adam", description="Update rule on the actions: adam, or sgd (step_size x gradient)."
     )
     restarts: int = Field(
         1,
@@ -67,12 +56,6 @@ class MPCSpec(PlannerSpec):
         le=256,
         description="Plans optimised together in one batch: the warm start plus restarts-1 "
         "uniform random ones; the one with the lowest predicted cost is executed.",
-    )
-    line_search: float = Field(
-        0.0,
-        ge=0,
-        description="If > 0: scale each step by the minimiser of a parabola fitted to the cost "
-        "along it (one extra forward rollout), at most this factor.",
     )
     tolerance: float = Field(
         0.0,
@@ -94,7 +77,7 @@ class GradientMPC(ModelPlanner):
         self, state: torch.Tensor, init: torch.Tensor
     ) -> tuple[torch.Tensor, dict[str, float]]:
         plans = self._candidates(init).requires_grad_(True)  # (R, H, A)
-        moments = (torch.zeros_like(plans), self._initial_square(plans))
+        moments = (torch.zeros_like(plans), torch.zeros_like(plans))  # Adam's
         first = last = None
         done = 0
         for step in range(1, self.spec.iterations + 1):
@@ -106,52 +89,17 @@ class GradientMPC(ModelPlanner):
             if converged:
                 break
             with torch.no_grad():
-                delta = self._update(grad, moments, step)
-                if self.spec.line_search > 0:
-                    delta = delta * self._step_scale(state, plans, cost, grad, delta)
-                plans -= delta
+                plans -= self._update(grad, moments, step)
                 plans.clamp_(-1.0, 1.0)
             done = step
         assert first is not None and last is not None
         best = int(torch.argmin(last))  # by the latest evaluated cost (before its update)
-        self._square = moments[1][best]
         stats = {
             "iterations": float(done),
             "cost_initial": float(first[0]),
             "cost_final": float(last[best]),
         }
         return plans.detach()[best], stats
-
-    def _step_scale(
-        self,
-        state: torch.Tensor,
-        plans: torch.Tensor,
-        cost: torch.Tensor,
-        grad: torch.Tensor,
-        delta: torch.Tensor,
-    ) -> torch.Tensor:
-        """(R, 1, 1) multiple of the step ``-delta`` minimising the parabola through the cost
-        and slope at the plans and the cost one full step away (one batched forward, no
-        gradient); within [0, line_search], and line_search where the cost is not convex."""
-        with torch.inference_mode():
-            trial = self.predict_cost(state, (plans - delta).clamp(-1.0, 1.0))
-        slope = -(grad * delta).sum(dim=(1, 2))  # d cost / d eta at eta = 0
-        curvature = 2.0 * (trial - cost - slope)
-        best = -slope / curvature.clamp_min(torch.finfo(cost.dtype).tiny)
-        scale = torch.where(curvature > 0, best, torch.full_like(best, self.spec.line_search))
-        return scale.clamp(0.0, self.spec.line_search).view(-1, 1, 1)
-
-    def reset(self, goal: np.ndarray) -> None:
-        super().reset(goal)
-        self._square: torch.Tensor | None = None
-
-    def _initial_square(self, plans: torch.Tensor) -> torch.Tensor:
-        """rmsprop's squared-gradient average (R, H, A): the previous re-plan's, shifted like
-        the plan, for the warm start; zeros (= not seen yet) elsewhere."""
-        square = torch.zeros_like(plans)
-        if self.spec.optimizer == "rmsprop" and self.spec.warm_start and self._square is not None:
-            square[0] = shift_plan(self._square, self._cursor)  # the plan's shift (see _act)
-        return square
 
     def _candidates(self, init: torch.Tensor) -> torch.Tensor:
         """(R, H, A): the warm start then R-1 uniform random plans."""
@@ -172,18 +120,9 @@ class GradientMPC(ModelPlanner):
         """The step to subtract from the plans: Adam (bias-corrected) or plain SGD."""
         if self.spec.optimizer == "sgd":
             return self.spec.step_size * grad
-        if self.spec.optimizer == "normalized":
-            rms = grad.square().mean(dim=(1, 2), keepdim=True).sqrt()
-            return self.spec.step_size * grad / rms.clamp_min(torch.finfo(grad.dtype).tiny)
         mean, square = moments
-        if self.spec.optimizer == "rmsprop":
-            decay = self.spec.rms_decay
-            square.copy_(
-                torch.where(square == 0, grad * grad, decay * square + (1 - decay) * grad * grad)
-            )
-            return self.spec.step_size * grad / square.sqrt().add_(self.spec.adam_eps)
         b1, b2 = ADAM_BETAS
         mean.mul_(b1).add_(grad, alpha=1 - b1)
         square.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-        denom = (square / (1 - b2**step)).sqrt_().add_(self.spec.adam_eps)
+        denom = (square / (1 - b2**step)).sqrt_().add_(ADAM_EPS)
         return (self.spec.step_size / (1 - b1**step)) * mean / denom
