@@ -70,10 +70,12 @@ def run(name: str, motion: str, episodes: int, steps: int, seed: int) -> str:
             offsets.append(offset)
     backend.close()
     angles, offsets = np.concatenate(angles), np.concatenate(offsets)
-    return (f"{name:9} {motion:8} diverged {diverged}/{episodes}  "
-            f"end orientation median {np.median(angles):.2f} max {angles.max():.2f} deg  "
-            f"end position median {np.median(offsets):.2f} max {offsets.max():.2f} mm  "
-            f"({time.perf_counter() - start:.0f} s)")
+    return (
+        f"{name:9} {motion:8} diverged {diverged}/{episodes}  "
+        f"end orientation median {np.median(angles):.2f} max {angles.max():.2f} deg  "
+        f"end position median {np.median(offsets):.2f} max {offsets.max():.2f} mm  "
+        f"({time.perf_counter() - start:.0f} s)"
+    )
 
 
 def main() -> None:

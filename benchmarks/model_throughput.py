@@ -103,9 +103,7 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
     }
 
 
-def measure(
-    model: DynamicsModel, repeats: int, min_seconds: float
-) -> dict[str, dict[str, float]]:
+def measure(model: DynamicsModel, repeats: int, min_seconds: float) -> dict[str, dict[str, float]]:
     """Seconds per call of every case, reference and optimised interleaved: the best of
     ``repeats`` windows of ``min_seconds`` (the least disturbed by other processes)."""
     cases = bench_cases(model)
@@ -149,14 +147,21 @@ def report(model: DynamicsModel, medians: dict[str, dict[str, float]], peak: flo
         row["speedup"] = per["eager"] / per["dlocli"]
         row["dlocli_fraction_of_matmul_peak"] = row["dlocli_gflops"] / peak
         rows[name] = row
-    return {"model": model.spec.name, "forward_mflops_per_sample": flops / 1e6,
-            "matmul_fp32_gflops": peak, "threads": torch.get_num_threads(), "cases": rows}
+    return {
+        "model": model.spec.name,
+        "forward_mflops_per_sample": flops / 1e6,
+        "matmul_fp32_gflops": peak,
+        "threads": torch.get_num_threads(),
+        "cases": rows,
+    }
 
 
 def print_table(result: dict) -> None:
-    print(f"model {result['model']}: {result['forward_mflops_per_sample']:.1f} MFLOP per "
-          f"sample forward; fp32 matmul {result['matmul_fp32_gflops']:.0f} GFLOP/s "
-          f"({result['threads']} threads)")
+    print(
+        f"model {result['model']}: {result['forward_mflops_per_sample']:.1f} MFLOP per "
+        f"sample forward; fp32 matmul {result['matmul_fp32_gflops']:.0f} GFLOP/s "
+        f"({result['threads']} threads)"
+    )
     widths = {"eager": 10, "dlocli": 10, "speedup": 8, "GFLOP/s": 8, "of peak": 8}
     print(f"{'case':28s} " + " ".join(f"{c:>{w}s}" for c, w in widths.items()))
     for name, row in result["cases"].items():
@@ -165,8 +170,10 @@ def print_table(result: dict) -> None:
             cols = f"{e:8.0f}/s {d:8.0f}/s"
         else:
             cols = f"{row['eager_ms']:8.2f}ms {row['dlocli_ms']:8.2f}ms"
-        print(f"{name:28s} {cols} {row['speedup']:7.2f}x {row['dlocli_gflops']:8.1f} "
-              f"{100 * row['dlocli_fraction_of_matmul_peak']:7.1f}%")
+        print(
+            f"{name:28s} {cols} {row['speedup']:7.2f}x {row['dlocli_gflops']:8.1f} "
+            f"{100 * row['dlocli_fraction_of_matmul_peak']:7.1f}%"
+        )
 
 
 def main() -> None:

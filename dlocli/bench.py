@@ -57,10 +57,16 @@ agents.register("random", "dlocli.bench_agents:RandomLearner", "uniform random a
 agents.register("sac", "dlocli.bench_agents:AgentLearner", "Soft Actor-Critic (SB3)")
 agents.register("td3", "dlocli.bench_agents:AgentLearner", "TD3 (SB3)")
 agents.register("pilco", "dlocli.bench_agents:AgentLearner", "PILCO (GP dynamics, RBF policy)")
-agents.register("mpc", "dlocli.bench_agents:OnlineMPCLearner",
-                "online model learning + gradient MPC (paper Algorithm 1)")
-agents.register("mpc-offline", "dlocli.bench_agents:OfflineMPCLearner",
-                "gradient MPC, model trained offline on as many random transitions (Fig. 7)")
+agents.register(
+    "mpc",
+    "dlocli.bench_agents:OnlineMPCLearner",
+    "online model learning + gradient MPC (paper Algorithm 1)",
+)
+agents.register(
+    "mpc-offline",
+    "dlocli.bench_agents:OfflineMPCLearner",
+    "gradient MPC, model trained offline on as many random transitions (Fig. 7)",
+)
 
 #: fields that may change between runs of one directory: they do not change any result
 FREE_FIELDS = {"agents", "seeds", "executor", "workers", "ray_address", "out"}
@@ -103,7 +109,8 @@ class BenchSpec(EnvSpec):
         None, gt=0, description="Parallel jobs (local processes or Ray CPUs); None = CPU count."
     )
     ray_address: str | None = Field(
-        None, description="Ray cluster to join (host:port, ray://host:port or auto); None = "
+        None,
+        description="Ray cluster to join (host:port, ray://host:port or auto); None = "
         "start a local Ray instance.",
     )
     threads: int = Field(1, gt=0, description="Torch threads per job.")
@@ -151,15 +158,21 @@ def check_spec(spec: BenchSpec) -> None:
         raise BadInput(f"--agents {','.join(spec.agents)} names an agent twice; list each once")
     steps = spec.task.episode_steps
     if spec.budget < steps:
-        raise BadInput(f"--budget {spec.budget} is less than one episode ({steps} steps); "
-                       f"pass --budget {steps} or more")
+        raise BadInput(
+            f"--budget {spec.budget} is less than one episode ({steps} steps); "
+            f"pass --budget {steps} or more"
+        )
     if {"mpc", "mpc-offline"} & set(spec.agents) and mpc_schedule(spec)[0] * steps > spec.budget:
-        raise BadInput(f"--budget {spec.budget}: mpc needs at least two episodes "
-                       f"({2 * steps} transitions); raise --budget or drop mpc")
+        raise BadInput(
+            f"--budget {spec.budget}: mpc needs at least two episodes "
+            f"({2 * steps} transitions); raise --budget or drop mpc"
+        )
     for name, options in spec.options.items():
         if name not in ("sac", "td3", "pilco"):
-            raise BadInput(f"options for '{name}': only sac, td3 and pilco take options "
-                           "(mpc uses the spec's model, fit and mpc fields)")
+            raise BadInput(
+                f"options for '{name}': only sac, td3 and pilco take options "
+                "(mpc uses the spec's model, fit and mpc fields)"
+            )
         controller_spec(name, options)
     check_executor(spec.executor, spec.ray_address)
 
@@ -184,8 +197,9 @@ def eval_episode(controller: Any, env: Any, seed: int) -> tuple[float, float]:
 def evaluate(controller: Any, env: Any, spec: BenchSpec, seed: int) -> dict[str, float]:
     """Mean (and std) over ``eval_trials`` episodes from the seed's evaluation starts."""
     start = time.perf_counter()
-    results = [eval_episode(controller, env, stream_seed(seed, EVAL, i))
-               for i in range(spec.eval_trials)]
+    results = [
+        eval_episode(controller, env, stream_seed(seed, EVAL, i)) for i in range(spec.eval_trials)
+    ]
     rewards, errors = np.array(results).T
     return {
         "cumulative_reward": float(rewards.mean()),
@@ -241,14 +255,24 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
             rows = _learn_and_evaluate(spec, agent, seed, work)
     finally:
         torch.set_num_threads(threads)
-    return {"agent": agent, "seed": seed, "fingerprint": fingerprint(spec), "rows": rows,
-            "seconds": round(time.perf_counter() - start, 1), "versions": versions()}
+    return {
+        "agent": agent,
+        "seed": seed,
+        "fingerprint": fingerprint(spec),
+        "rows": rows,
+        "seconds": round(time.perf_counter() - start, 1),
+        "versions": versions(),
+    }
 
 
 def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> list[dict]:
     learner = agents.get(agent)(agent, spec, seed, work)
-    base = {"agent": agent, "seed": seed, "train_task": spec.task.name,
-            "train_goals": spec.task.goal}
+    base = {
+        "agent": agent,
+        "seed": seed,
+        "train_task": spec.task.name,
+        "train_goals": spec.task.goal,
+    }
     rows, wall = [], 0.0
     env = train_env(spec, seed)
     try:
@@ -256,10 +280,17 @@ def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> l
             start = time.perf_counter()
             learner.learn_to(point)
             wall += time.perf_counter() - start
-            rows.append({**base, "eval": index, "transitions": learner.transitions,
-                         "eval_task": spec.task.name, "eval_goals": spec.task.goal,
-                         **evaluate(learner.controller(env), env, spec, seed),
-                         "wall_seconds": round(wall, 3)})
+            rows.append(
+                {
+                    **base,
+                    "eval": index,
+                    "transitions": learner.transitions,
+                    "eval_task": spec.task.name,
+                    "eval_goals": spec.task.goal,
+                    **evaluate(learner.controller(env), env, spec, seed),
+                    "wall_seconds": round(wall, 3),
+                }
+            )
         for task, goals in transfer_settings(spec):
             rows += _transfer_row(spec, learner, seed, task, goals, rows[-1])
     finally:
@@ -268,15 +299,22 @@ def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> l
     return rows
 
 
-def _transfer_row(spec: BenchSpec, learner: Any, seed: int, task: str, goals: str,
-                  final: dict[str, Any]) -> list[dict[str, Any]]:
+def _transfer_row(
+    spec: BenchSpec, learner: Any, seed: int, task: str, goals: str, final: dict[str, Any]
+) -> list[dict[str, Any]]:
     env = make_bench_env(spec, task, goals, seed)
     try:
         controller = learner.controller(env)
         if controller is None:
             return []
-        return [{**final, "eval_task": task, "eval_goals": goals,
-                 **evaluate(controller, env, spec, seed)}]
+        return [
+            {
+                **final,
+                "eval_task": task,
+                "eval_goals": goals,
+                **evaluate(controller, env, spec, seed),
+            }
+        ]
     finally:
         env.close()
 
@@ -321,9 +359,12 @@ class BenchRun:
         """The jobs still to run (finished ones are kept), seed-major so seeds finish early."""
         local = self.spec.executor == "local"
         work = self.out / "work" / fingerprint(self.spec)
-        return [Job(agent, seed, str(work / f"{agent}-s{seed}") if local else None)
-                for seed in seeds_of(self.spec) for agent in self.spec.agents
-                if self.finished(agent, seed) is None]
+        return [
+            Job(agent, seed, str(work / f"{agent}-s{seed}") if local else None)
+            for seed in seeds_of(self.spec)
+            for agent in self.spec.agents
+            if self.finished(agent, seed) is None
+        ]
 
     def run(self, executor: Any) -> dict[str, Any]:
         """Run the missing jobs on ``executor`` (:mod:`dlocli.bench_executors`), saving each
@@ -341,8 +382,10 @@ class BenchRun:
                 self.progress("job", {"job": job.name, "seconds": result["seconds"]})
         summary = self.write_results()
         if failed:
-            raise DloError(f"{len(failed)} job(s) failed (finished ones are saved; rerun with "
-                           f"--resume {self.out}): {failed[0]}")
+            raise DloError(
+                f"{len(failed)} job(s) failed (finished ones are saved; rerun with "
+                f"--resume {self.out}): {failed[0]}"
+            )
         return summary
 
     def rows(self) -> list[dict[str, Any]]:
@@ -360,22 +403,30 @@ class BenchRun:
         write_results_csv(self.out / "results.csv", rows)
         table = summary_table(rows)
         figures = draw_figures(rows, self.out / "plots")
-        return write_summary(self.out, table, figures, {
-            "jobs_done": len({(r["agent"], r["seed"]) for r in rows}),
-            "jobs": len(self.spec.agents) * self.spec.seeds,
-        })
+        return write_summary(
+            self.out,
+            table,
+            figures,
+            {
+                "jobs_done": len({(r["agent"], r["seed"]) for r in rows}),
+                "jobs": len(self.spec.agents) * self.spec.seeds,
+            },
+        )
 
 
 # ----------------------------------------------------------------------------- entry points
-def start_bench(spec: BenchSpec, overwrite: bool = False,
-                progress: Progress | None = None) -> dict[str, Any]:
+def start_bench(
+    spec: BenchSpec, overwrite: bool = False, progress: Progress | None = None
+) -> dict[str, Any]:
     """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept)."""
     from dlocli.bench_executors import open_executor
 
     check_spec(spec)
     if (Path(spec.out) / "spec.json").is_file() and not overwrite:
-        raise BadInput(f"--out {spec.out} holds a bench run; continue it with --resume "
-                       f"{spec.out}, or pass --overwrite or another --out")
+        raise BadInput(
+            f"--out {spec.out} holds a bench run; continue it with --resume "
+            f"{spec.out}, or pass --overwrite or another --out"
+        )
     with open_executor(spec) as executor:  # a Ray address that fails is refused before writing
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
@@ -385,17 +436,21 @@ def start_bench(spec: BenchSpec, overwrite: bool = False,
 def load_bench_spec(run_dir: Path) -> BenchSpec:
     path = Path(run_dir) / "spec.json"
     if not path.is_file():
-        raise BadInput(f"{run_dir} is not a bench run (no spec.json); "
-                       "pass the --out directory of an earlier `dlo bench`")
+        raise BadInput(
+            f"{run_dir} is not a bench run (no spec.json); "
+            "pass the --out directory of an earlier `dlo bench`"
+        )
     try:
         return BenchSpec.model_validate_json(path.read_text())
     except ValueError as exc:
-        raise BadInput(f"{path} is not a bench spec; "
-                       "pass the directory of a `dlo bench` run") from exc
+        raise BadInput(
+            f"{path} is not a bench spec; pass the directory of a `dlo bench` run"
+        ) from exc
 
 
-def resume_bench(run_dir: Path, overrides: dict[str, Any],
-                 progress: Progress | None = None) -> dict[str, Any]:
+def resume_bench(
+    run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
     """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change."""
     from dlocli.bench_executors import open_executor
 
@@ -408,8 +463,10 @@ def resume_bench(run_dir: Path, overrides: dict[str, Any],
         for key in dotted.split("."):
             current = current[key]
         if dotted.split(".")[0] not in FREE_FIELDS and str(current) != str(value):
-            raise BadInput(f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
-                           f"{dotted}={current!r}; drop the flag or start a new run")
+            raise BadInput(
+                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
+                f"{dotted}={current!r}; drop the flag or start a new run"
+            )
     free = {k: v for k, v in overrides.items() if k in FREE_FIELDS and v is not None}
     spec = BenchSpec.model_validate({**data, **free, "out": Path(run_dir)})
     check_spec(spec)

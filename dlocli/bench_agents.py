@@ -224,10 +224,12 @@ class OfflineMPCLearner(MPCLearner):
         torch.manual_seed(stream_seed(self.seed, TRAIN, 0))  # as the online model's first update
         device = resolve_device(self.spec.fit.device)
         model = build_model(self.spec.model, data.n_segments).to(device)
-        fit = self.spec.fit.model_copy(update={
-            "epochs": self.spec.fit.epochs * (k + 1),  # the online model's passes so far
-            "seed": stream_seed(self.seed, TRAIN, 1) % 2**31,
-        })
+        fit = self.spec.fit.model_copy(
+            update={
+                "epochs": self.spec.fit.epochs * (k + 1),  # the online model's passes so far
+                "seed": stream_seed(self.seed, TRAIN, 1) % 2**31,
+            }
+        )
         train_model(model, data, fit)
         self._model = model
         self.transitions = data.n_transitions
@@ -275,8 +277,18 @@ def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
             np.save(f, fixed_goal(spec, task.name))
         task = task.model_copy(update={"goal_file": goal_path})
     return OnlineSpec(
-        backend=spec.backend, task=task, seed=seed, iters=iterations + 1, trials=trials,
-        steps=spec.task.episode_steps, initial_episodes=initial,
-        noise_probability=spec.noise_probability, noise_std=spec.noise_std,
-        model=spec.model, fit=spec.fit, mpc=spec.mpc, workers=1, out=Path(work) / "online",
+        backend=spec.backend,
+        task=task,
+        seed=seed,
+        iters=iterations + 1,
+        trials=trials,
+        steps=spec.task.episode_steps,
+        initial_episodes=initial,
+        noise_probability=spec.noise_probability,
+        noise_std=spec.noise_std,
+        model=spec.model,
+        fit=spec.fit,
+        mpc=spec.mpc,
+        workers=1,
+        out=Path(work) / "online",
     )

@@ -61,8 +61,10 @@ class LocalExecutor:
         # spawn: forking a process whose torch already started OpenMP threads can hang
         pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
         try:
-            futures = {pool.submit(run_job, spec_json, job.agent, job.seed, job.scratch): job
-                       for job in jobs}
+            futures = {
+                pool.submit(run_job, spec_json, job.agent, job.seed, job.scratch): job
+                for job in jobs
+            }
             for future in as_completed(futures):
                 error = future.exception()
                 yield futures[future], error if error is not None else future.result()
@@ -89,8 +91,11 @@ class RayExecutor:
 
         if ray.is_initialized():
             return
-        options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
-                                   "logging_level": logging.ERROR}
+        options: dict[str, Any] = {
+            "include_dashboard": False,
+            "log_to_driver": False,
+            "logging_level": logging.ERROR,
+        }
         if self.address is None:
             ray.init(num_cpus=self.workers or os.cpu_count() or 1, **options)
             self._started = True
@@ -101,8 +106,10 @@ class RayExecutor:
             with _stderr_silenced():  # Ray's core logs every failed attempt
                 ray.init(address=self.address, **options)
         except ConnectionError as exc:
-            raise BadInput(f"Ray address {self.address} does not answer as a Ray cluster "
-                           "(start it with `ray start --head`) or drop --ray-address") from exc
+            raise BadInput(
+                f"Ray address {self.address} does not answer as a Ray cluster "
+                "(start it with `ray start --head`) or drop --ray-address"
+            ) from exc
         finally:
             if not preset:
                 os.environ.pop(WINDOW_VARIABLE, None)
@@ -158,8 +165,10 @@ def check_executor(executor: str, ray_address: str | None) -> None:
     try:
         import ray  # noqa: F401
     except ImportError as exc:
-        raise BadInput("--executor ray: Ray is not installed; pip install 'dlocli[ray]' "
-                       "or use --executor local") from exc
+        raise BadInput(
+            "--executor ray: Ray is not installed; pip install 'dlocli[ray]' "
+            "or use --executor local"
+        ) from exc
     if ray_address is not None:
         check_ray_address(ray_address)
 
@@ -176,15 +185,20 @@ def check_ray_address(address: str, timeout: float = 3.0) -> None:
     try:
         socket.create_connection((host, int(port)), timeout=timeout).close()
     except OSError as exc:
-        raise BadInput(f"Ray address {address} does not answer ({exc.strerror or exc}); start "
-                       "the cluster (`ray start --head`) or drop --ray-address") from exc
+        raise BadInput(
+            f"Ray address {address} does not answer ({exc.strerror or exc}); start "
+            "the cluster (`ray start --head`) or drop --ray-address"
+        ) from exc
 
 
 @contextmanager
 def open_executor(spec: Any) -> Iterator[LocalExecutor | RayExecutor]:
     """The spec's executor, connected (Ray) before the caller writes anything; closed after."""
-    executor = (RayExecutor(spec.workers, spec.ray_address) if spec.executor == "ray"
-                else LocalExecutor(spec.workers))
+    executor = (
+        RayExecutor(spec.workers, spec.ray_address)
+        if spec.executor == "ray"
+        else LocalExecutor(spec.workers)
+    )
     executor.connect()
     try:
         yield executor

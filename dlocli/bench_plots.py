@@ -55,9 +55,18 @@ def _group(rows: list[Row], keys: tuple[str, ...]) -> dict[tuple, list[Row]]:
 
 # ----------------------------------------------------------------------------- files
 COLUMNS: dict[str, type] = {
-    "agent": str, "seed": int, "eval": int, "transitions": int, "train_task": str,
-    "train_goals": str, "eval_task": str, "eval_goals": str, "cumulative_reward": float,
-    "cumulative_reward_std": float, "final_error_mm": float, "wall_seconds": float,
+    "agent": str,
+    "seed": int,
+    "eval": int,
+    "transitions": int,
+    "train_task": str,
+    "train_goals": str,
+    "eval_task": str,
+    "eval_goals": str,
+    "cumulative_reward": float,
+    "cumulative_reward_std": float,
+    "final_error_mm": float,
+    "wall_seconds": float,
     "eval_seconds": float,
 }
 
@@ -81,8 +90,9 @@ def read_results_csv(path: Path) -> list[dict[str, Any]]:
         return [{k: COLUMNS[k](row[k]) for k in COLUMNS} for row in reader]
 
 
-def write_summary(out: Path, table: list[dict[str, Any]], figures: list[Path],
-                  extra: dict[str, Any]) -> dict[str, Any]:
+def write_summary(
+    out: Path, table: list[dict[str, Any]], figures: list[Path], extra: dict[str, Any]
+) -> dict[str, Any]:
     """summary.json and summary.md (the table in Markdown)."""
     summary = {**extra, "table": table, "figures": [str(p) for p in figures], "out": str(out)}
     write_json_atomic(out / "summary.json", summary)
@@ -97,15 +107,18 @@ def summary_table(rows: list[Row]) -> list[Row]:
     for key, group in _group(final_rows(rows), SETTING).items():
         rewards = np.array([r["cumulative_reward"] for r in group])
         errors = np.array([r["final_error_mm"] for r in group])
-        table.append({
-            **dict(zip(SETTING, key, strict=True)), "seeds": len(group),
-            "transitions": int(np.mean([r["transitions"] for r in group])),
-            "cumulative_reward_mean": float(rewards.mean()),
-            "cumulative_reward_std": float(rewards.std()),
-            "final_error_mm_mean": float(errors.mean()),
-            "final_error_mm_std": float(errors.std()),
-            "wall_seconds_mean": float(np.mean([r["wall_seconds"] for r in group])),
-        })
+        table.append(
+            {
+                **dict(zip(SETTING, key, strict=True)),
+                "seeds": len(group),
+                "transitions": int(np.mean([r["transitions"] for r in group])),
+                "cumulative_reward_mean": float(rewards.mean()),
+                "cumulative_reward_std": float(rewards.std()),
+                "final_error_mm_mean": float(errors.mean()),
+                "final_error_mm_std": float(errors.std()),
+                "wall_seconds_mean": float(np.mean([r["wall_seconds"] for r in group])),
+            }
+        )
     return sorted(table, key=lambda t: (not is_home(t), t["eval_task"], t["eval_goals"]))
 
 
@@ -172,8 +185,14 @@ def plot_bars(bars: dict[str, dict[str, list[float]]], path: Path, title: str) -
     for i, name in enumerate(series):
         xs = [a for a, agent in enumerate(bars) if name in bars[agent]]
         values = [bars[agent][name] for agent in bars if name in bars[agent]]
-        ax.bar(np.array(xs) + (i - (len(series) - 1) / 2) * width, [np.mean(v) for v in values],
-               width, yerr=[np.std(v) for v in values], capsize=3, label=name)
+        ax.bar(
+            np.array(xs) + (i - (len(series) - 1) / 2) * width,
+            [np.mean(v) for v in values],
+            width,
+            yerr=[np.std(v) for v in values],
+            capsize=3,
+            label=name,
+        )
     ax.set_xticks(range(len(bars)), list(bars))
     ax.set_ylabel("final cumulative reward per episode")
     ax.set_title(title)
@@ -193,8 +212,13 @@ def draw_figures(rows: list[Row], plots: Path) -> list[Path]:
     """Every figure the rows allow, into ``plots``; returns their paths."""
     if not rows:
         return []
-    figures = [plot_curves(rows, Path(plots) / "fig4_learning_curves.png",
-                           "Sample efficiency (cumulative reward vs transitions)")]
+    figures = [
+        plot_curves(
+            rows,
+            Path(plots) / "fig4_learning_curves.png",
+            "Sample efficiency (cumulative reward vs transitions)",
+        )
+    ]
     final = final_rows(rows)
     bimanual = [r for r in final if r["eval_task"] == "bimanual"]
     if bimanual:
@@ -204,17 +228,27 @@ def draw_figures(rows: list[Row], plots: Path) -> list[Path]:
             goals = f", evaluated on {GOALS[r['eval_goals']]}" if mixed else ""
             return f"learned on {r['train_task']}{goals}"
 
-        figures.append(plot_bars(_bars(bimanual, learned_on), Path(plots) / "fig5_bimanual.png",
-                                 "Bimanual task"))
+        figures.append(
+            plot_bars(
+                _bars(bimanual, learned_on), Path(plots) / "fig5_bimanual.png", "Bimanual task"
+            )
+        )
     same_task = [r for r in final if r["eval_task"] == r["train_task"]]
     if any(r["eval_goals"] == "random" for r in same_task):
+
         def series(r: Row) -> str:
             return f"learned on {GOALS[r['train_goals']]}, evaluated on {GOALS[r['eval_goals']]}"
 
-        figures.append(plot_bars(_bars(same_task, series), Path(plots) / "fig6_random_goals.png",
-                                 "Random goals"))
+        figures.append(
+            plot_bars(
+                _bars(same_task, series), Path(plots) / "fig6_random_goals.png", "Random goals"
+            )
+        )
     mpc = [r for r in rows if r["agent"] in ("mpc", "mpc-offline")]
     if {r["agent"] for r in mpc} == {"mpc", "mpc-offline"}:
-        figures.append(plot_curves(mpc, Path(plots) / "fig7_online_offline.png",
-                                   "Online vs offline model learning"))
+        figures.append(
+            plot_curves(
+                mpc, Path(plots) / "fig7_online_offline.png", "Online vs offline model learning"
+            )
+        )
     return figures

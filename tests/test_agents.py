@@ -27,8 +27,12 @@ TINY: dict[str, dict[str, Any]] = {
     "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
     "td3": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
     "pilco": {
-        "action_repeat": 2, "horizon": 3, "n_basis": 4, "gp_iterations": 10,
-        "policy_iterations": 2, "max_gp_points": 15,
+        "action_repeat": 2,
+        "horizon": 3,
+        "n_basis": 4,
+        "gp_iterations": 10,
+        "policy_iterations": 2,
+        "max_gp_points": 15,
     },
 }
 

@@ -20,11 +20,21 @@ TINY: dict[str, Any] = {
     "task": {"episode_steps": 20, "reset_motion_steps": 10, "reset_settle_steps": 10},
     "model": {"hidden": 16, "lstm_layers": 1, "edge_layers": 2, "node_layers": 2},
     "fit": {"epochs": 2, "batch_size": 32, "device": "cpu"},
-    "budget": 60, "evals": 3, "eval_trials": 1, "seeds": 1, "workers": 1,
+    "budget": 60,
+    "evals": 3,
+    "eval_trials": 1,
+    "seeds": 1,
+    "workers": 1,
     "options": {
         "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
-        "pilco": {"action_repeat": 2, "horizon": 3, "n_basis": 4, "gp_iterations": 10,
-                  "policy_iterations": 2, "max_gp_points": 15},
+        "pilco": {
+            "action_repeat": 2,
+            "horizon": 3,
+            "n_basis": 4,
+            "gp_iterations": 10,
+            "policy_iterations": 2,
+            "max_gp_points": 15,
+        },
     },
 }
 TIMING = ("wall_seconds", "eval_seconds")
@@ -54,21 +64,37 @@ def without_timing(rows: list[dict[str, str]]) -> list[dict[str, str]]:
 def test_tiny_bench_resume_and_report(tmp_path: Path):
     run = tmp_path / "run"
     spec = tiny_spec(tmp_path)
-    summary = json.loads(bench("--spec", spec, "--agents", "random,sac,pilco,mpc",
-                               "--out", str(run), "--json").stdout)
+    summary = json.loads(
+        bench(
+            "--spec", spec, "--agents", "random,sac,pilco,mpc", "--out", str(run), "--json"
+        ).stdout
+    )
     assert summary["jobs_done"] == summary["jobs"] == 4
     rows = read_rows(run)
     home = [r for r in rows if r["eval_task"] == "single" and r["eval_goals"] == "fixed"]
-    points = {a: [int(r["transitions"]) for r in home if r["agent"] == a] for a in
-              ("random", "sac", "pilco", "mpc")}
-    assert points == {"random": [20, 40, 60], "sac": [20, 40, 60], "pilco": [20, 40, 60],
-                      "mpc": [40, 60]}  # mpc: 2 initial random episodes, then 1 trial
+    points = {
+        a: [int(r["transitions"]) for r in home if r["agent"] == a]
+        for a in ("random", "sac", "pilco", "mpc")
+    }
+    assert points == {
+        "random": [20, 40, 60],
+        "sac": [20, 40, 60],
+        "pilco": [20, 40, 60],
+        "mpc": [40, 60],
+    }  # mpc: 2 initial random episodes, then 1 trial
     transfers = {(r["agent"], r["eval_task"], r["eval_goals"]) for r in rows} - {
-        (a, "single", "fixed") for a in points}
+        (a, "single", "fixed") for a in points
+    }
     assert ("mpc", "bimanual", "fixed") in transfers and ("sac", "single", "random") in transfers
     assert ("sac", "bimanual", "fixed") not in transfers  # a 6-D policy cannot act there
-    for name in ("spec.json", "summary.md", "summary.json", "plots/fig4_learning_curves.png",
-                 "plots/fig5_bimanual.png", "plots/fig6_random_goals.png"):
+    for name in (
+        "spec.json",
+        "summary.md",
+        "summary.json",
+        "plots/fig4_learning_curves.png",
+        "plots/fig5_bimanual.png",
+        "plots/fig6_random_goals.png",
+    ):
         assert (run / name).is_file(), name
     table = (run / "summary.md").read_text()
     assert "| sac | single, fixed goal | single, fixed goal | 1 | 60 |" in table
@@ -76,16 +102,20 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
     # resume: a lost job is rerun (same result), a new agent added; kept jobs are not rerun
     (run / "jobs" / "random-s0.json").unlink()
     kept = {p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir()}
-    res = bench("--resume", str(run), "--agents", "random,sac,pilco,mpc,mpc-offline",
-                "--workers", "2")
+    res = bench(
+        "--resume", str(run), "--agents", "random,sac,pilco,mpc,mpc-offline", "--workers", "2"
+    )
     assert "2 job(s) to run, 3 finished job(s) kept" in res.output
-    assert {p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir() if p.name in kept} \
-        == kept
+    assert {
+        p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir() if p.name in kept
+    } == kept
     again = read_rows(run)
-    assert without_timing([r for r in again if r["agent"] != "mpc-offline"]) \
-        == without_timing(rows)
-    offline = [r for r in again if r["agent"] == "mpc-offline" and r["eval_task"] == "single"
-               and r["eval_goals"] == "fixed"]
+    assert without_timing([r for r in again if r["agent"] != "mpc-offline"]) == without_timing(rows)
+    offline = [
+        r
+        for r in again
+        if r["agent"] == "mpc-offline" and r["eval_task"] == "single" and r["eval_goals"] == "fixed"
+    ]
     first_mpc = next(r for r in rows if r["agent"] == "mpc")
     # at the first point both models are trained alike on the same random data
     assert without_timing([offline[0]])[0] | {"agent": "mpc"} == without_timing([first_mpc])[0]
@@ -98,12 +128,15 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
     assert res.exit_code == 2 and "conflicts" in res.output
 
 
-@pytest.mark.parametrize(("flags", "message"), [
-    (["--agents", "sac,dqn"], "valid agents: mpc, mpc-offline, pilco, random, sac, td3"),
-    (["--budget", "10"], "less than one episode"),
-    (["--executor", "ray", "--ray-address", "127.0.0.1:1"], "Ray"),
-    (["--ray-address", "127.0.0.1:6379"], "needs --executor ray"),
-])
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--agents", "sac,dqn"], "valid agents: mpc, mpc-offline, pilco, random, sac, td3"),
+        (["--budget", "10"], "less than one episode"),
+        (["--executor", "ray", "--ray-address", "127.0.0.1:1"], "Ray"),
+        (["--ray-address", "127.0.0.1:6379"], "needs --executor ray"),
+    ],
+)
 def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, flags: list[str], message: str):
     out = tmp_path / "out"
     res = runner.invoke(app, ["bench", "--spec", tiny_spec(tmp_path), *flags, "--out", str(out)])
@@ -124,5 +157,6 @@ def test_ray_gives_the_same_results_as_local_processes(tmp_path: Path):
         bench(*common, "--executor", "ray", "--out", str(tmp_path / "ray"))
     finally:
         ray.shutdown()
-    assert without_timing(read_rows(tmp_path / "ray")) \
-        == without_timing(read_rows(tmp_path / "local"))
+    assert without_timing(read_rows(tmp_path / "ray")) == without_timing(
+        read_rows(tmp_path / "local")
+    )

@@ -134,8 +134,18 @@ def test_ctrl_c_leaves_complete_dataset_or_nothing(tmp_path):
     import time
 
     out = tmp_path / "interrupted"
-    cmd = [sys.executable, "-m", "dlocli.cli", "collect", "--episodes", "200", "--steps", "20",
-           "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "dlocli.cli",
+        "collect",
+        "--episodes",
+        "200",
+        "--steps",
+        "20",
+        "--out",
+        str(out),
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + 120
     while not (out / "spec.json").exists():  # collecting has started

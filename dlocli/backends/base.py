@@ -101,22 +101,27 @@ def integrate_gripper_poses(
     """
     low, high = limits.low.tolist(), limits.high.tolist()
     new = []
-    for pose, twist, may_move in zip(poses.tolist(), velocities.tolist(), moving.tolist(),
-                                     strict=True):
+    for pose, twist, may_move in zip(
+        poses.tolist(), velocities.tolist(), moving.tolist(), strict=True
+    ):
         step = [v * dt for v in twist] if may_move else [0.0] * 6
         position = pose[:3]
         if may_move:
             # a gripper that may not move stays put, even outside the workspace (a short
             # cantilever rod's clamp at REST_HEIGHT lies above the length-scaled box)
-            position = [min(max(p + s, lo), hi)
-                        for p, s, lo, hi in zip(position, step[:3], low, high, strict=True)]
+            position = [
+                min(max(p + s, lo), hi)
+                for p, s, lo, hi in zip(position, step[:3], low, high, strict=True)
+            ]
         new.append(position + _spin_quaternion(pose[3:], step[3:]))
     result = np.array(new)
     if moving.all():
         delta = result[:, :3] - poses[:, :3]
         frac = _largest_feasible_fraction(
-            poses[1, :3] - poses[0, :3], delta[1] - delta[0],
-            limits.min_separation, limits.max_separation,
+            poses[1, :3] - poses[0, :3],
+            delta[1] - delta[0],
+            limits.min_separation,
+            limits.max_separation,
         )
         if frac < 1.0:
             result[:, :3] = poses[:, :3] + delta * frac

@@ -120,16 +120,29 @@ def _fmt(values: np.ndarray | tuple[float, ...] | list[float]) -> str:
     return " ".join(f"{float(v):.12g}" for v in np.ravel(values))
 
 
-def _cable_xml(rod: RodSpec, grippers: np.ndarray, vertices: np.ndarray, dt: float,
-               pad_mass: float, pad_inertia: float, held_right: bool) -> str:
+def _cable_xml(
+    rod: RodSpec,
+    grippers: np.ndarray,
+    vertices: np.ndarray,
+    dt: float,
+    pad_mass: float,
+    pad_inertia: float,
+    held_right: bool,
+) -> str:
     """MJCF of the cable, its left pad, both mocap grippers and the welds (pad 1 is added later)."""
     seg = rod.segment_length
     bend = rod.bending_stiffness / seg
     twist = rod.young_bending / (2.0 * (1.0 + rod.poisson))
     solref = f"{2.0 * dt:.12g} 1"  # the stiffest time constant MuJoCo accepts (refsafe)
     marker = _fmt(np.array([0.02, 0.03, 0.03]) * rod.length)
-    right_weld = (f'<weld name="hold1" body1="grip1" body2="pad1" relpose="0 0 0 1 0 0 0" '
-                  f'solref="{solref}" solimp="{_fmt(WELD_SOLIMP)}"/>') if held_right else ""
+    right_weld = (
+        (
+            f'<weld name="hold1" body1="grip1" body2="pad1" relpose="0 0 0 1 0 0 0" '
+            f'solref="{solref}" solimp="{_fmt(WELD_SOLIMP)}"/>'
+        )
+        if held_right
+        else ""
+    )
     return f"""
 <mujoco model="dlocli_cable">
   <extension><plugin plugin="mujoco.elasticity.cable"/></extension>
@@ -185,8 +198,9 @@ def _chain_quat(spec: mujoco.MjSpec, names: list[str]) -> np.ndarray:
     return quat_normalize(quat)
 
 
-def build_model(rod: RodSpec, grippers: np.ndarray, held_right: bool,
-                dt: float) -> tuple[mujoco.MjModel, np.ndarray]:
+def build_model(
+    rod: RodSpec, grippers: np.ndarray, held_right: bool, dt: float
+) -> tuple[mujoco.MjModel, np.ndarray]:
     """Compile the cable model for rest gripper poses (2,7).
 
     Returns the model and the constant quaternion ``c`` that maps a MuJoCo cable body frame
@@ -207,8 +221,13 @@ def build_model(rod: RodSpec, grippers: np.ndarray, held_right: bool,
     if held_right:
         # pad 1 sits at the end point of the last segment, in the dlocli segment frame
         spec.body("rodB_last").add_body(
-            name="pad1", pos=[seg, 0.0, 0.0], quat=frame_fix.tolist(), mass=pad_mass,
-            inertia=[pad_inertia] * 3, gravcomp=1.0, explicitinertial=True,
+            name="pad1",
+            pos=[seg, 0.0, 0.0],
+            quat=frame_fix.tolist(),
+            mass=pad_mass,
+            inertia=[pad_inertia] * 3,
+            gravcomp=1.0,
+            explicitinertial=True,
         )
         # the right gripper must coincide with pad 1 at qpos0 for an unstressed weld
         last = quat_multiply(_chain_quat(spec, names), frame_fix)
@@ -367,11 +386,20 @@ class MujocoCable(Backend):
         if image is not None:
             return image
         try:
-            return render_rod(self.segment_positions(), self.gripper_poses(), goal_points,
-                              width, height, rod_length=self.rod.length)
+            return render_rod(
+                self.segment_positions(),
+                self.gripper_poses(),
+                goal_points,
+                width,
+                height,
+                rod_length=self.rod.length,
+            )
         except Exception as exc:  # a blank frame beats a crashed episode or video
-            warnings.warn(f"rod rendering failed ({exc!r}); returning a blank image",
-                          RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"rod rendering failed ({exc!r}); returning a blank image",
+                RuntimeWarning,
+                stacklevel=2,
+            )
             return np.full((max(1, int(height)), max(1, int(width)), 3), 255, dtype=np.uint8)
 
     def _render_gl(self, width: int, height: int, goal: np.ndarray | None) -> np.ndarray | None:
@@ -408,8 +436,9 @@ class MujocoCable(Backend):
         rgba = np.array([0.1, 0.8, 0.2, 0.7], dtype=np.float32)
         eye = np.eye(3).ravel()
         for point in goal[: max(0, scene.maxgeom - scene.ngeom)]:
-            mujoco.mjv_initGeom(scene.geoms[scene.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE,
-                                size, point, eye, rgba)
+            mujoco.mjv_initGeom(
+                scene.geoms[scene.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, size, point, eye, rgba
+            )
             scene.ngeom += 1
 
     def _close_renderer(self) -> None:
@@ -433,6 +462,10 @@ def _close_quietly(renderer: mujoco.Renderer) -> None:
 def _mark_gl_broken(exc: Exception) -> None:
     global _GL_BROKEN
     if not _GL_BROKEN:
-        warnings.warn(f"MuJoCo offscreen rendering unavailable ({type(exc).__name__}); "
-                      "using the matplotlib renderer", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"MuJoCo offscreen rendering unavailable ({type(exc).__name__}); "
+            "using the matplotlib renderer",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     _GL_BROKEN = True

@@ -189,29 +189,53 @@ class PybulletChain(Backend):
         # no collision shapes (no floor, no self-collision): 35-60% faster steps; the
         # inertias are set explicitly in _set_dynamics
         vis = p.createVisualShape(
-            p.GEOM_CAPSULE, radius=r, length=seg, visualFramePosition=[seg / 2, 0, 0],
-            visualFrameOrientation=along_x, rgbaColor=[0.85, 0.35, 0.1, 1], physicsClientId=c,
+            p.GEOM_CAPSULE,
+            radius=r,
+            length=seg,
+            visualFramePosition=[seg / 2, 0, 0],
+            visualFrameOrientation=along_x,
+            rgbaColor=[0.85, 0.35, 0.1, 1],
+            physicsClientId=c,
         )
         self._body = p.createMultiBody(
-            baseMass=self._base_mass, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vis,
-            basePosition=[0, 0, REST_HEIGHT], baseInertialFramePosition=[seg / 2, 0, 0],
-            linkMasses=[self.model.seg_mass] * n, linkCollisionShapeIndices=[-1] * n,
-            linkVisualShapeIndices=[vis] * n, linkPositions=[[seg, 0, 0]] * n,
-            linkOrientations=[[0, 0, 0, 1]] * n, linkInertialFramePositions=[[seg / 2, 0, 0]] * n,
-            linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=list(range(n)),
-            linkJointTypes=[p.JOINT_SPHERICAL] * n, linkJointAxis=[[0, 0, 1]] * n,
+            baseMass=self._base_mass,
+            baseCollisionShapeIndex=-1,
+            baseVisualShapeIndex=vis,
+            basePosition=[0, 0, REST_HEIGHT],
+            baseInertialFramePosition=[seg / 2, 0, 0],
+            linkMasses=[self.model.seg_mass] * n,
+            linkCollisionShapeIndices=[-1] * n,
+            linkVisualShapeIndices=[vis] * n,
+            linkPositions=[[seg, 0, 0]] * n,
+            linkOrientations=[[0, 0, 0, 1]] * n,
+            linkInertialFramePositions=[[seg / 2, 0, 0]] * n,
+            linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
+            linkParentIndices=list(range(n)),
+            linkJointTypes=[p.JOINT_SPHERICAL] * n,
+            linkJointAxis=[[0, 0, 1]] * n,
             physicsClientId=c,
         )
         self._set_dynamics(AIR_DAMPING)
         # switch off the default joint motors: the joints are driven by our spring torques
         p.setJointMotorControlMultiDofArray(
-            self._body, self._joints, p.POSITION_CONTROL, targetPositions=[[0, 0, 0, 1]] * n,
-            forces=[[0, 0, 0]] * n, physicsClientId=c,
+            self._body,
+            self._joints,
+            p.POSITION_CONTROL,
+            targetPositions=[[0, 0, 0, 1]] * n,
+            forces=[[0, 0, 0]] * n,
+            physicsClientId=c,
         )
         if self.spec.held_ends == "both":
             self._hold = p.createConstraint(
-                self._body, n - 1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [seg / 2, 0, 0],
-                [0, 0, REST_HEIGHT], physicsClientId=c,
+                self._body,
+                n - 1,
+                -1,
+                -1,
+                p.JOINT_FIXED,
+                [0, 0, 0],
+                [seg / 2, 0, 0],
+                [0, 0, REST_HEIGHT],
+                physicsClientId=c,
             )
             p.changeConstraint(self._hold, maxForce=HOLD_FORCE, physicsClientId=c)
 
@@ -257,7 +281,10 @@ class PybulletChain(Backend):
         straight = np.tile([0.0, 0, 0, 1], (n, 1))
         quats = self._arc_joint_state() if self._hold >= 0 else straight
         p.resetJointStatesMultiDof(
-            b, self._joints, targetValues=quats.tolist(), targetVelocities=[[0, 0, 0]] * n,
+            b,
+            self._joints,
+            targetValues=quats.tolist(),
+            targetVelocities=[[0, 0, 0]] * n,
             physicsClientId=c,
         )
         self._set_dynamics(SETTLE_DAMPING)
@@ -287,8 +314,12 @@ class PybulletChain(Backend):
         # left gripper = base: pose and twist at the start of the period
         omega = _spin(start[0, 3:], end[0, 3:]) / T  # rad/s, world frame
         w, x, y, z = start[0, 3:]
-        lever = 0.5 * self.model.seg_length * np.array(  # half a segment along its x axis
-            [1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)]
+        lever = (
+            0.5
+            * self.model.seg_length
+            * np.array(  # half a segment along its x axis
+                [1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)]
+            )
         )
         com_vel = (end[0, :3] - start[0, :3]) / T + np.cross(omega, lever)
         com = start[0, :3] + lever + (frac - 1.0 / n) * T * com_vel  # at each step's start
@@ -308,7 +339,10 @@ class PybulletChain(Backend):
         hold_pos = start[1, :3] + frac * (end[1, :3] - start[1, :3])
         return _Targets(
             base_pose=(
-                com[0].tolist(), _xyzw(start[0, 3:]).tolist(), com_vel.tolist(), omega.tolist()
+                com[0].tolist(),
+                _xyzw(start[0, 3:]).tolist(),
+                com_vel.tolist(),
+                omega.tolist(),
             ),
             base_com=com.tolist(),
             base_wrench=(force.tolist(), torque.tolist()),
@@ -358,8 +392,11 @@ class PybulletChain(Backend):
             p.applyExternalTorque(b, -1, torque, p.WORLD_FRAME, physicsClientId=c)
             if hold >= 0:
                 p.changeConstraint(
-                    hold, targets.hold_pos[i], jointChildFrameOrientation=targets.hold_orn[i],
-                    maxForce=HOLD_FORCE, physicsClientId=c,
+                    hold,
+                    targets.hold_pos[i],
+                    jointChildFrameOrientation=targets.hold_orn[i],
+                    maxForce=HOLD_FORCE,
+                    physicsClientId=c,
                 )
             p.stepSimulation(physicsClientId=c)
         return True
@@ -385,8 +422,15 @@ class PybulletChain(Backend):
             info = p.getConstraintInfo(self._hold, physicsClientId=c)
             target = np.concatenate([info[7], info[9]])
         return np.concatenate(
-            [pos, orn, lin, ang, np.ravel([s[0] for s in states]),
-             np.ravel([s[1] for s in states]), target]
+            [
+                pos,
+                orn,
+                lin,
+                ang,
+                np.ravel([s[0] for s in states]),
+                np.ravel([s[1] for s in states]),
+                target,
+            ]
         ).astype(np.float64)
 
     def _set_physics_state(self, state: np.ndarray) -> None:
@@ -400,14 +444,20 @@ class PybulletChain(Backend):
         )
         p.resetBaseVelocity(b, state[7:10].tolist(), state[10:13].tolist(), physicsClientId=c)
         p.resetJointStatesMultiDof(
-            b, self._joints, targetValues=quats.tolist(), targetVelocities=vels.tolist(),
+            b,
+            self._joints,
+            targetValues=quats.tolist(),
+            targetVelocities=vels.tolist(),
             physicsClientId=c,
         )
         if self._hold >= 0:
             target = state[13 + 7 * n : 20 + 7 * n]
             p.changeConstraint(
-                self._hold, target[:3].tolist(), jointChildFrameOrientation=target[3:].tolist(),
-                maxForce=HOLD_FORCE, physicsClientId=c,
+                self._hold,
+                target[:3].tolist(),
+                jointChildFrameOrientation=target[3:].tolist(),
+                maxForce=HOLD_FORCE,
+                physicsClientId=c,
             )
 
     # ----------------------------------------------------------------- observations
@@ -473,8 +523,11 @@ class PybulletChain(Backend):
         places += [(ball, pt, [0, 0, 0, 1]) for pt in points if np.isfinite(pt).all()]
         return [
             p.createMultiBody(
-                baseMass=0, baseVisualShapeIndex=vis, basePosition=list(pos),
-                baseOrientation=list(orn), physicsClientId=self._client,
+                baseMass=0,
+                baseVisualShapeIndex=vis,
+                basePosition=list(pos),
+                baseOrientation=list(orn),
+                physicsClientId=self._client,
             )
             for vis, pos, orn in places
         ]
@@ -486,8 +539,13 @@ class PybulletChain(Backend):
         view = p.computeViewMatrix([0.0, -1.6 * L, REST_HEIGHT + 0.3 * L], target, [0, 0, 1])
         proj = p.computeProjectionMatrixFOV(50.0, width / height, 0.05 * L, 10.0 * L)
         _, _, rgba, _, _ = p.getCameraImage(
-            width, height, view, proj, renderer=p.ER_TINY_RENDERER,
-            flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self._client,
+            width,
+            height,
+            view,
+            proj,
+            renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_NO_SEGMENTATION_MASK,
+            physicsClientId=self._client,
         )
         return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[..., :3].copy()
 

@@ -27,18 +27,25 @@ def bench(
     eval_trials: Annotated[int | None, typer.Option(help=h(S, "eval_trials"))] = None,
     hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
     epochs: Annotated[int | None, typer.Option(help=h(S, "fit.epochs"))] = None,
-    transfer: Annotated[bool | None, typer.Option("--transfer/--no-transfer",
-                                                  help=h(S, "transfer"))] = None,
+    transfer: Annotated[
+        bool | None, typer.Option("--transfer/--no-transfer", help=h(S, "transfer"))
+    ] = None,
     executor: Annotated[str | None, typer.Option(help=h(S, "executor"))] = None,
     ray_address: Annotated[str | None, typer.Option(help=h(S, "ray_address"))] = None,
     workers: Annotated[int | None, typer.Option(help=h(S, "workers"))] = None,
     seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
     out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
-    resume: Annotated[Path | None, typer.Option(
-        help="Run the missing jobs of this bench directory (finished jobs are kept).")] = None,
-    report: Annotated[list[Path] | None, typer.Option(
-        help="Redraw figures and table from this run's results.csv (repeat to merge runs "
-             "into the first).")] = None,
+    resume: Annotated[
+        Path | None,
+        typer.Option(help="Run the missing jobs of this bench directory (finished jobs are kept)."),
+    ] = None,
+    report: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="Redraw figures and table from this run's results.csv (repeat to merge runs "
+            "into the first)."
+        ),
+    ] = None,
     spec_file: SpecFile = None,
     overwrite: OverwriteFlag = False,
     json_out: JsonFlag = False,
@@ -56,11 +63,23 @@ def bench(
         summary = report_bench(report)
     else:
         overrides: dict[str, Any] = {
-            "agents": _names(agents), "budget": budget, "seeds": seeds, "task.goal": goals,
-            "task.name": task, "backend.name": backend, "task.episode_steps": steps,
-            "evals": evals, "eval_trials": eval_trials, "model.hidden": hidden,
-            "fit.epochs": epochs, "transfer": transfer, "executor": executor,
-            "ray_address": ray_address, "workers": workers, "seed": seed, "out": out,
+            "agents": _names(agents),
+            "budget": budget,
+            "seeds": seeds,
+            "task.goal": goals,
+            "task.name": task,
+            "backend.name": backend,
+            "task.episode_steps": steps,
+            "evals": evals,
+            "eval_trials": eval_trials,
+            "model.hidden": hidden,
+            "fit.epochs": epochs,
+            "transfer": transfer,
+            "executor": executor,
+            "ray_address": ray_address,
+            "workers": workers,
+            "seed": seed,
+            "out": out,
         }
         progress = _quiet if json_out else _print_progress
         if resume is not None:

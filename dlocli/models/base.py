@@ -208,7 +208,7 @@ def build_model(spec: ModelSpec, n_segments: int) -> DynamicsModel:
 
 
 def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    """"auto" (CUDA if present, else CPU), "cpu", "cuda", "cuda:K"; BadInput if unavailable."""
+    """ "auto" (CUDA if present, else CPU), "cpu", "cuda", "cuda:K"; BadInput if unavailable."""
     name = str(device)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
