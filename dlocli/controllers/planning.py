@@ -48,15 +48,6 @@ class PlannerSpec(Spec):
     )
 
 
-def shape_cost(predicted: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-    """Summed squared shape error of predicted rollouts (the paper's MPC objective).
-
-    ``predicted`` (B, H, N, 7) model states, ``goal`` (N, 3) metres ->
-    ``sum_{k=1..H} ||p_hat_{t+k} - p_goal||_2^2`` per candidate, (B,) in m^2.
-    """
-    return (predicted[..., :3] - goal).square().sum(dim=(1, 2, 3))
-
-
 def shift_plan(plan: torch.Tensor, steps: int) -> torch.Tensor:
     """Drop the first ``steps`` actions of (..., H, A) and repeat the last one to refill H."""
     horizon = plan.shape[-2]
@@ -139,13 +130,17 @@ class ModelPlanner(Controller):
     def predict_cost(self, state: torch.Tensor, plans: torch.Tensor) -> torch.Tensor:
         """Cost (B,) of plans (B, H, A) from state (1, N, 7): the model-predicted shape cost
         plus ``action_cost * sum ||a||^2`` (see :mod:`dlocli.controllers.mpc`)."""
+        return self.residuals(state, plans).square().sum(dim=1)
+
+    def residuals(self, state: torch.Tensor, plans: torch.Tensor) -> torch.Tensor:
+        """(B, H*N*3 + H*A): the terms whose squares sum to :meth:`predict_cost`, the predicted
+        position errors (m) then sqrt(action_cost) x the actions."""
         commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
         predicted = self.model.rollout(state.expand(plans.shape[0], -1, -1), commands)
         assert self._goal is not None
-        cost = shape_cost(predicted, self._goal)
-        if self.spec.action_cost > 0:
-            cost = cost + self.spec.action_cost * plans.square().sum(dim=(1, 2))
-        return cost
+        errors = (predicted[..., :3] - self._goal).flatten(1)
+        effort = self.spec.action_cost**0.5 * plans.flatten(1)
+        return torch.cat([errors, effort], dim=1)
 
     @abstractmethod
     def _optimise(
