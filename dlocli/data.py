@@ -133,21 +133,32 @@ class Dataset:
         """(S, N, 7) segment states: position then quaternion."""
         return np.concatenate([self.positions, self.quaternions], axis=-1)
 
-    def transition_index(self, episodes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(state index of s_t, action index of a_t) for every transition of ``episodes``."""
+    def transition_index(
+        self, episodes: np.ndarray | None = None, skip_first: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(state index of s_t, action index of a_t) for every transition of ``episodes``;
+        with ``skip_first``, those with t >= 1 only (the ones whose previous state is known)."""
         episodes = np.arange(self.n_episodes) if episodes is None else np.asarray(episodes)
         s_off, a_off = self.state_offsets(), self.action_offsets()
-        s_idx = [s_off[e] + np.arange(self.episode_lengths[e]) for e in episodes]
-        a_idx = [a_off[e] + np.arange(self.episode_lengths[e]) for e in episodes]
+        t0 = int(skip_first)
+        s_idx = [s_off[e] + np.arange(t0, self.episode_lengths[e]) for e in episodes]
+        a_idx = [a_off[e] + np.arange(t0, self.episode_lengths[e]) for e in episodes]
         if not s_idx:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         return np.concatenate(s_idx), np.concatenate(a_idx)
 
-    def transitions(self, episodes: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Arrays ``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7), ``reward``."""
-        s_idx, a_idx = self.transition_index(episodes)
+    def transitions(
+        self, episodes: np.ndarray | None = None, skip_first: bool = False
+    ) -> dict[str, np.ndarray]:
+        """Arrays ``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7), ``reward``,
+        and ``previous_state`` (M,N,7), the state one step before s_t: s_{t-1}, or s_0 itself
+        for t = 0 (an episode starts after the reset's random motion, so its s_{-1} is not
+        recorded; ``skip_first`` leaves those transitions out)."""
+        s_idx, a_idx = self.transition_index(episodes, skip_first)
         states = self.states()
+        first = np.isin(s_idx, self.state_offsets())
         return {
+            "previous_state": states[np.where(first, s_idx, s_idx - 1)],
             "state": states[s_idx],
             "action": self.actions[a_idx],
             "next_state": states[s_idx + 1],

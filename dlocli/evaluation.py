@@ -30,21 +30,28 @@ def position_error_mm(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def predict(model: DynamicsModel, state: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """Open-loop rollout in batches: (S, N, 7), (S, H, 2, 6) -> (S, H, N, 7) numpy."""
+def predict(
+    model: DynamicsModel, state: np.ndarray, actions: np.ndarray, previous: np.ndarray
+) -> np.ndarray:
+    """Open-loop rollout in batches: (S, N, 7), (S, H, 2, 6), previous states (S, N, 7) ->
+    (S, H, N, 7) numpy."""
     out = []
+
+    def tensor(array: np.ndarray, i: int) -> torch.Tensor:
+        return torch.as_tensor(array[i : i + ROLL_BATCH], dtype=torch.float32, device=model.device)
+
     for i in range(0, len(state), ROLL_BATCH):
-        s = torch.as_tensor(state[i : i + ROLL_BATCH], dtype=torch.float32, device=model.device)
-        a = torch.as_tensor(actions[i : i + ROLL_BATCH], dtype=torch.float32, device=model.device)
-        out.append(model.rollout(s, a).cpu().numpy())
+        rolled = model.rollout(tensor(state, i), tensor(actions, i), tensor(previous, i))
+        out.append(rolled.cpu().numpy())
     n, h = actions.shape[:2]
     return np.concatenate(out) if out else np.zeros((0, h, model.n_segments, 7), np.float32)
 
 
 def rollout_starts(dataset: Dataset, episodes: np.ndarray, horizon: int, max_starts: int) -> list:
-    """(episode, t) start pairs with t + horizon <= T_e, evenly thinned to ``max_starts``."""
+    """(episode, t) start pairs with 1 <= t and t + horizon <= T_e (every start has a recorded
+    previous state), evenly thinned to ``max_starts``."""
     lengths = dataset.episode_lengths
-    pairs = [(int(e), t) for e in episodes for t in range(int(lengths[e]) - horizon + 1)]
+    pairs = [(int(e), t) for e in episodes for t in range(1, int(lengths[e]) - horizon + 1)]
     if len(pairs) > max_starts:
         keep = np.linspace(0, len(pairs) - 1, max_starts).round().astype(int)
         pairs = [pairs[k] for k in keep]
@@ -52,13 +59,16 @@ def rollout_starts(dataset: Dataset, episodes: np.ndarray, horizon: int, max_sta
 
 
 def windows(dataset: Dataset, starts: list, horizon: int) -> tuple[np.ndarray, ...]:
-    """States (S, N, 7), actions (S, H, 2, 6) and true future states (S, H, N, 7)."""
+    """States (S, N, 7), actions (S, H, 2, 6), true future states (S, H, N, 7) and previous
+    states (S, N, 7; the start state itself where t = 0)."""
     states = dataset.states()
     s_off, a_off = dataset.state_offsets(), dataset.action_offsets()
     s_idx = np.array([s_off[e] + t for e, t in starts], dtype=np.int64).reshape(-1, 1)
     a_idx = np.array([a_off[e] + t for e, t in starts], dtype=np.int64).reshape(-1, 1)
+    prev_idx = np.array([s_off[e] + max(t - 1, 0) for e, t in starts], dtype=np.int64)
     steps = np.arange(horizon)
-    return states[s_idx[:, 0]], dataset.actions[a_idx + steps], states[s_idx + 1 + steps]
+    start = states[s_idx[:, 0]]
+    return start, dataset.actions[a_idx + steps], states[s_idx + 1 + steps], states[prev_idx]
 
 
 def evaluate_model(
@@ -77,18 +87,18 @@ def evaluate_model(
     """
     episodes = np.arange(dataset.n_episodes) if episodes is None else np.asarray(episodes)
     model.eval()
-    tr = dataset.transitions(episodes)
+    tr = dataset.transitions(episodes, skip_first=True)
     result: dict[str, Any] = {
         "eval_episodes": len(episodes),
         "eval_transitions": len(tr["state"]),
     }
-    pred = predict(model, tr["state"], tr["action"][:, None])[:, 0]
+    pred = predict(model, tr["state"], tr["action"][:, None], tr["previous_state"])[:, 0]
     result["one_step_mm"] = _mean(position_error_mm(pred, tr["next_state"]))
     result["persistence_one_step_mm"] = _mean(position_error_mm(tr["state"], tr["next_state"]))
     for h in horizons:
         starts = rollout_starts(dataset, episodes, h, max_starts)
-        state, actions, truth = windows(dataset, starts, h)
-        final = predict(model, state, actions)[:, -1] if starts else state
+        state, actions, truth, previous = windows(dataset, starts, h)
+        final = predict(model, state, actions, previous)[:, -1] if starts else state
         result[f"rollout{h}_mm"] = _mean(position_error_mm(final, truth[:, -1])) if starts else None
         result[f"persistence_rollout{h}_mm"] = (
             _mean(position_error_mm(state, truth[:, -1])) if starts else None
@@ -104,16 +114,17 @@ def _mean(values: np.ndarray) -> float | None:
 def plot_rollout(
     model: DynamicsModel, dataset: Dataset, episode: int, path: Path, horizon: int = 50
 ) -> Path:
-    """PNG: true vs predicted rod over an open-loop rollout from the episode's first state,
+    """PNG: true vs predicted rod over an open-loop rollout from the episode's second state,
     at a few instants (3D), and the error per step next to persistence's."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    h = int(min(horizon, dataset.episode_lengths[episode]))
-    state, actions, truth = windows(dataset, [(episode, 0)], h)
-    pred = predict(model, state, actions)[0]
+    start = 1 if dataset.episode_lengths[episode] > 1 else 0  # t = 1: s_{t-1} is recorded
+    h = int(min(horizon, dataset.episode_lengths[episode] - start))
+    state, actions, truth, previous = windows(dataset, [(episode, start)], h)
+    pred = predict(model, state, actions, previous)[0]
     fig = plt.figure(figsize=(11, 4.5))
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     shown = sorted({0, h // 3, (2 * h) // 3, h - 1})

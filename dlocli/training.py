@@ -75,11 +75,12 @@ def split_episodes(n_episodes: int, val_fraction: float) -> tuple[np.ndarray, ..
 def transition_tensors(
     dataset: Dataset, episodes: np.ndarray, device: torch.device
 ) -> dict[str, torch.Tensor]:
-    """``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7) float32 on ``device``."""
-    arrays = dataset.transitions(episodes)
+    """``previous_state``, ``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7)
+    float32 on ``device``, for the transitions whose previous state is recorded (t >= 1)."""
+    arrays = dataset.transitions(episodes, skip_first=True)
     return {
         k: torch.as_tensor(arrays[k], dtype=torch.float32, device=device)
-        for k in ("state", "action", "next_state")
+        for k in ("previous_state", "state", "action", "next_state")
     }
 
 
@@ -169,7 +170,9 @@ def _train_epoch(
         if fit.input_noise > 0:  # in units of the one-step change, expressed in state units
             scale = fit.input_noise * model.delta_std / model.state_std
             noise = torch.randn(state.shape, generator=gen).to(state.device) * scale
-        loss = model.loss(state, data["action"][idx], data["next_state"][idx], noise)
+        loss = model.loss(
+            state, data["action"][idx], data["next_state"][idx], noise, data["previous_state"][idx]
+        )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -191,7 +194,10 @@ def validation_loss(model: DynamicsModel, data: dict[str, torch.Tensor]) -> floa
     for i in range(0, n, EVAL_BATCH):
         sl = slice(i, i + EVAL_BATCH)
         batch = data["state"][sl]
-        total += float(model.loss(batch, data["action"][sl], data["next_state"][sl])) * len(batch)
+        loss = model.loss(
+            batch, data["action"][sl], data["next_state"][sl], previous=data["previous_state"][sl]
+        )
+        total += float(loss) * len(batch)
     model.train(was_training)
     return total / n
 

@@ -149,6 +149,29 @@ def test_gauss_newton_gradient_matches_backprop(envs, tiny_model):
         assert mpc.predict_cost(state, stepped)[0] < cost[0]
 
 
+def test_planner_feeds_the_model_the_previous_observation(envs, tiny_model):
+    """The velocity input: at the second step the planner rolls out from (s_1, s_0); a state
+    it did not observe (and the first step of an episode) counts as at rest."""
+    assert tiny_model.spec.velocity_input
+    env = envs["single"]
+    obs0, _ = env.reset(seed=3)
+    mpc = GradientMPC(env, tiny_model, MPCSpec())
+    mpc.reset(env.goal)
+    mpc.act(obs0)
+    assert mpc._previous_of(mpc._observed) is None, "first step: no previous state"
+    obs1 = env.step(np.ones(6, np.float32))[0]
+    mpc.act(obs1)
+    observed = mpc._observed
+    assert torch.equal(mpc._previous_of(observed), mpc.state_tensor(obs0))
+    plan = torch.zeros(1, 5, 6)
+    with torch.no_grad():
+        moving = mpc.predict_cost(observed, plan)
+        at_rest = mpc.predict_cost(mpc.state_tensor(obs1), plan)
+    assert not torch.equal(moving, at_rest), "the rod's motion changes the prediction"
+    mpc.reset(env.goal)
+    assert mpc._observed is None and mpc._previous is None, "a new episode forgets it"
+
+
 def test_shift_plan():
     plan = torch.arange(10.0).view(5, 2)
     np.testing.assert_array_equal(shift_plan(plan, 1), [[2, 3], [4, 5], [6, 7], [8, 9], [8, 9]])

@@ -76,12 +76,27 @@ def test_gradient_reaches_actions(model, real):
 
 def test_rollout_equals_iterated_forward(model, real):
     state, actions = batch(real)
+    previous = real[2]["previous_state"][: len(state)]
     with torch.no_grad():
-        rolled = model.rollout(state, actions)
-        s = state
+        rolled = model.rollout(state, actions, previous)
+        s, prev = state, previous
         for t in range(actions.shape[1]):
-            s = model(s, actions[:, t])
+            prev, s = s, model(s, actions[:, t], prev)
             assert torch.equal(rolled[:, t], s)
+
+
+def test_velocity_input_reads_the_previous_state(model, real):
+    """With velocity_input (the default) the last step's change is an input; without, the
+    previous state is ignored; None means at rest (previous = state)."""
+    state, actions = batch(real)
+    moved = state.clone()
+    moved[..., :3] -= 0.01  # the rod moved 1 cm up to this state
+    with torch.no_grad():
+        at_rest, moving = model(state, actions[:, 0]), model(state, actions[:, 0], moved)
+        assert torch.equal(at_rest, model(state, actions[:, 0], state))
+        assert torch.equal(at_rest, moving) != model.spec.velocity_input
+        plain = fitted(model.spec.name, real, velocity_input=False)
+        assert torch.equal(plain(state, actions[:, 0]), plain(state, actions[:, 0], moved))
 
 
 def test_save_load_round_trip_is_exact(model, real, tmp_path):
@@ -152,8 +167,11 @@ def test_paper_architecture_defaults():
     linear = torch.nn.Linear
     assert [m.out_features for m in model.edge_net if isinstance(m, linear)] == [150] * 4
     assert [m.out_features for m in model.node_net if isinstance(m, linear)] == [150] * 3 + [7]
-    assert model.edge_net[0].in_features == 2 * 13, "(v_i, a_i, v_j, a_j)"
-    assert model.node_net[0].in_features == 7 + 2 * 150, "(v_i, [h_left_i, h_right_i])"
+    # v_i = (position, quaternion, their change over the last step): 14 numbers
+    assert model.edge_net[0].in_features == 2 * (14 + 6), "(v_i, a_i, v_j, a_j)"
+    assert model.node_net[0].in_features == 14 + 2 * 150, "(v_i, [h_left_i, h_right_i])"
+    without = build_model(ModelSpec(velocity_input=False), 20)
+    assert without.edge_net[0].in_features == 2 * (7 + 6)
     lstm = model.lstm
     assert (lstm.num_layers, lstm.hidden_size, lstm.bidirectional) == (2, 150, True)
 

@@ -25,6 +25,10 @@ def train(
     data: Annotated[Path | None, typer.Option(help=h(S, "data"))] = None,
     model: Annotated[str | None, typer.Option(help=h(S, "model.name"))] = None,
     hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
+    velocity_input: Annotated[
+        bool | None,
+        typer.Option("--velocity-input/--no-velocity-input", help=h(S, "model.velocity_input")),
+    ] = None,
     epochs: Annotated[int | None, typer.Option(help=h(S, "epochs"))] = None,
     lr: Annotated[float | None, typer.Option(help=h(S, "lr"))] = None,
     batch_size: Annotated[int | None, typer.Option(help=h(S, "batch_size"))] = None,
@@ -43,7 +47,8 @@ def train(
     from dlocli.training import run_training
 
     overrides: dict[str, Any] = {
-        "data": data, "model.name": model, "model.hidden": hidden, "epochs": epochs, "lr": lr,
+        "data": data, "model.name": model, "model.hidden": hidden,
+        "model.velocity_input": velocity_input, "epochs": epochs, "lr": lr,
         "batch_size": batch_size, "input_noise": input_noise, "val_fraction": val_fraction,
         "device": device, "seed": seed, "init_from": init_from, "out": out,
     }  # fmt: skip

@@ -79,6 +79,8 @@ class ModelPlanner(Controller):
         self._goal: torch.Tensor | None = None
         self._plan: torch.Tensor | None = None  # (H, A), the latest optimised plan
         self._cursor = 0  # actions of self._plan already executed
+        self._observed: torch.Tensor | None = None  # (1, N, 7), the state at the latest act
+        self._previous: torch.Tensor | None = None  # (1, N, 7), the state one step before it
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -86,6 +88,7 @@ class ModelPlanner(Controller):
         self._goal = torch.as_tensor(self.goal, dtype=torch.float32, device=self.device)
         self._plan = None
         self._cursor = 0
+        self._observed = self._previous = None
 
     @property
     def plan(self) -> torch.Tensor | None:
@@ -96,6 +99,9 @@ class ModelPlanner(Controller):
     def _act(self, obs: np.ndarray) -> np.ndarray:
         if self._goal is None:
             raise RuntimeError("call reset(goal) before act()")
+        state = self.state_tensor(obs)
+        # act() is called once per control step, so the last observation is s_{t-1}
+        self._previous, self._observed = self._observed, state
         if self._plan is not None and self._cursor < min(self.spec.replan_every, self.spec.horizon):
             action = self._plan[self._cursor]
             self._cursor += 1
@@ -103,7 +109,7 @@ class ModelPlanner(Controller):
             return action.cpu().numpy()
         init = self._initial_plan()
         start = time.perf_counter()
-        plan, stats = self._optimise(self.state_tensor(obs), init)
+        plan, stats = self._optimise(state, init)
         stats["plan_ms"] = 1000.0 * (time.perf_counter() - start)
         stats["replanned"] = 1.0
         self._plan, self._cursor = plan.detach(), 1
@@ -136,11 +142,23 @@ class ModelPlanner(Controller):
         """(B, H*N*3 + H*A): the terms whose squares sum to :meth:`predict_cost`, the predicted
         position errors (m) then sqrt(action_cost) x the actions."""
         commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
-        predicted = self.model.rollout(state.expand(plans.shape[0], -1, -1), commands)
+        batch = plans.shape[0]
+        previous = self._previous_of(state)
+        if previous is not None:
+            previous = previous.expand(batch, -1, -1)
+        predicted = self.model.rollout(state.expand(batch, -1, -1), commands, previous)
         assert self._goal is not None
         errors = (predicted[..., :3] - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
         return torch.cat([errors, effort], dim=1)
+
+    def _previous_of(self, state: torch.Tensor) -> torch.Tensor | None:
+        """The observed state one step before ``state`` if ``state`` is the latest observation
+        (the model's velocity input); None (at rest) at an episode's first step or for any
+        other state. An identity test: no device sync in the planning loop."""
+        if state is not self._observed:
+            return None
+        return self._previous
 
     @abstractmethod
     def _optimise(

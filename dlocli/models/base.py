@@ -6,9 +6,13 @@ Shapes and units (every model, every device):
   the same units as the dataset's ``actions``. A single-gripper task's left row is zero; a
   bimanual task fills both: models act on the end segments, which is what makes a model
   trained on the single task usable on the bimanual one (paper Fig. 5).
-- ``forward`` returns the next state ``(B, N, 7)`` with unit quaternions.
-- ``rollout(state, actions (B, H, 2, 6))`` returns ``(B, H, N, 7)``, differentiable with
-  respect to ``actions``.
+- ``previous`` ``(B, N, 7)``: the state one control step earlier. A model with
+  ``spec.velocity_input`` reads the change ``state - previous`` (a finite-difference
+  velocity); ``None`` means the rod was at rest.
+- ``forward(state, action, previous=None)`` returns the next state ``(B, N, 7)`` with unit
+  quaternions.
+- ``rollout(state, actions (B, H, 2, 6), previous=None)`` returns ``(B, H, N, 7)``,
+  differentiable with respect to ``actions``.
 
 Every model predicts the change of the state in normalised units (dataset statistics held in
 buffers, so they travel with the checkpoint), adds it to the state and renormalises the
@@ -36,7 +40,7 @@ from dlocli.specs import format_validation_error
 STATE_DIM = 7  # position (3) + quaternion (4)
 ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
 CHECKPOINT_FORMAT = "dlocli-checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: model specs have velocity_input (version 1 models had none)
 FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
 _STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
 
@@ -90,8 +94,16 @@ class DynamicsModel(torch.nn.Module, ABC):
     # ------------------------------------------------------------------ subclass hook
     @abstractmethod
     def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:
-        """Normalised state change (B, N, 7) from the normalised state (B, N, 7) and the
-        normalised per-gripper commands (B, 2, 6)."""
+        """Normalised state change (B, N, 7) from the normalised segment features (B, N, F)
+        and the normalised per-gripper commands (B, 2, 6).
+
+        The features are the normalised state (7), followed, with ``spec.velocity_input``, by
+        the normalised change over the previous step (7): F = :attr:`feature_dim`."""
+
+    @property
+    def feature_dim(self) -> int:
+        """Per-segment input features F: the state (7), and its last change if used (7)."""
+        return 2 * STATE_DIM if self.spec.velocity_input else STATE_DIM
 
     # ------------------------------------------------------------------ normalisation
     def fit_normalization(self, transitions: dict[str, np.ndarray]) -> None:
@@ -117,52 +129,72 @@ class DynamicsModel(torch.nn.Module, ABC):
             getattr(self, name).copy_(torch.as_tensor(value, dtype=torch.float32))
         self.fitted.fill_(True)
 
-    def normalize(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
-        return (state - self.state_mean) / self.state_std, action / self.action_scale
+    def normalize(
+        self, state: Tensor, action: Tensor, previous: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Normalised segment features (B, N, F) and commands (B, 2, 6); see predict_delta."""
+        features = (state - self.state_mean) / self.state_std
+        if self.spec.velocity_input:
+            change = torch.zeros_like(state) if previous is None else target_delta(previous, state)
+            features = torch.cat([features, (change - self.delta_mean) / self.delta_std], -1)
+        return features, action / self.action_scale
 
     # ------------------------------------------------------------------ the contract
-    def forward(self, state: Tensor, action: Tensor) -> Tensor:
-        """Next state (B, N, 7) from state (B, N, 7) and action (B, 2, 6); unit quaternions."""
-        self._check(state, action)
-        delta_n = self.predict_delta(*self.normalize(state, action))
+    def forward(self, state: Tensor, action: Tensor, previous: Tensor | None = None) -> Tensor:
+        """Next state (B, N, 7) from state (B, N, 7), action (B, 2, 6) and the previous state
+        (B, N, 7; None: at rest); unit quaternions."""
+        self._check(state, action, previous)
+        delta_n = self.predict_delta(*self.normalize(state, action, previous))
         return apply_delta(state, delta_n * self.delta_std + self.delta_mean)
 
-    def rollout(self, state: Tensor, actions: Tensor) -> Tensor:
+    def rollout(self, state: Tensor, actions: Tensor, previous: Tensor | None = None) -> Tensor:
         """Open-loop prediction: (B, N, 7) and (B, H, 2, 6) -> (B, H, N, 7).
 
-        Differentiable with respect to ``actions`` (and ``state``); the batch dimension can
-        carry independent plans (e.g. MPC restarts).
+        ``previous`` (B, N, 7) is the state one step before ``state`` (None: at rest); later
+        steps take the model's own predictions as their previous state. Differentiable with
+        respect to ``actions`` (and ``state``); the batch dimension can carry independent
+        plans (e.g. MPC restarts).
         """
         if actions.dim() != 4:
             raise BadInput(f"actions must be (B, H, 2, 6), got {tuple(actions.shape)}")
         states = []
         for t in range(actions.shape[1]):
-            state = self(state, actions[:, t])
+            previous, state = state, self(state, actions[:, t], previous)
             states.append(state)
         return torch.stack(states, 1)
 
     def loss(
-        self, state: Tensor, action: Tensor, next_state: Tensor, noise: Tensor | None = None
+        self,
+        state: Tensor,
+        action: Tensor,
+        next_state: Tensor,
+        noise: Tensor | None = None,
+        previous: Tensor | None = None,
     ) -> Tensor:
         """Mean squared error of the normalised state change (the training objective).
 
         ``noise`` (B, N, 7), in normalised units, is added to the input state (paper
         Sec. IV-C); the target is the change from the noisy state, so the model learns to
-        pull a perturbed state back onto the data.
+        pull a perturbed state back onto the data. The velocity input (if any) is the change
+        from ``previous`` to the noisy state, as a rollout feeds back its own predictions.
         """
-        state_n, action_n = self.normalize(state, action)
         if noise is not None:
-            state_n = state_n + noise
-            state = state_n * self.state_std + self.state_mean
+            state = state + noise * self.state_std
         target = (target_delta(state, next_state) - self.delta_mean) / self.delta_std
-        return torch.mean((self.predict_delta(state_n, action_n) - target) ** 2)
+        return torch.mean(
+            (self.predict_delta(*self.normalize(state, action, previous)) - target) ** 2
+        )
 
-    def _check(self, state: Tensor, action: Tensor) -> None:
+    def _check(self, state: Tensor, action: Tensor, previous: Tensor | None = None) -> None:
         n = self.n_segments
         if state.dim() != 3 or state.shape[1:] != (n, STATE_DIM):
             raise BadInput(f"state must be (B, {n}, 7), got {tuple(state.shape)}")
         if action.dim() != 3 or action.shape[1:] != (2, ACTION_DIM) or len(action) != len(state):
             raise BadInput(f"action must be ({len(state)}, 2, 6), got {tuple(action.shape)}")
+        if previous is not None and previous.shape != state.shape:
+            raise BadInput(
+                f"previous state must be {tuple(state.shape)}, got {tuple(previous.shape)}"
+            )
 
     @property
     def device(self) -> torch.device:
@@ -292,8 +324,11 @@ def load_model(
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
     payload = read_checkpoint(path)
+    spec_dict = payload.get("model_spec")
+    if payload.get("format_version") == 1 and isinstance(spec_dict, dict):
+        spec_dict = {"velocity_input": False, **spec_dict}  # version 1 models had no velocity
     try:
-        spec = ModelSpec.model_validate(payload.get("model_spec"))
+        spec = ModelSpec.model_validate(spec_dict)
     except ValidationError as exc:
         raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
     if expect is not None and expect != spec:

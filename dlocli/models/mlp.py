@@ -18,7 +18,7 @@ class MLPDynamics(DynamicsModel):
 
     def __init__(self, spec: ModelSpec, n_segments: int) -> None:
         super().__init__(spec, n_segments)
-        n_in = n_segments * STATE_DIM + 2 * ACTION_DIM
+        n_in = n_segments * self.feature_dim + 2 * ACTION_DIM
         widths = [spec.mlp_hidden] * spec.mlp_layers
         self.net = mlp([n_in, *widths, n_segments * STATE_DIM])
 
