@@ -111,6 +111,21 @@ def test_save_load_round_trip_is_exact(model, real, tmp_path):
     assert torch.equal(load_model(run).state_std, model.state_std), "a run dir means final.pt"
 
 
+def test_version_1_checkpoint_loads_without_velocity(real, tmp_path):
+    """Checkpoints written before the velocity input existed hold models without it."""
+    old = fitted("in-bilstm", real, velocity_input=False)
+    path = save_checkpoint(old, tmp_path / "v1.pt")
+    payload = torch.load(path, weights_only=True)
+    payload["format_version"] = 1
+    del payload["model_spec"]["velocity_input"]
+    torch.save(payload, path)
+    again = load_model(path)
+    assert again.spec.velocity_input is False
+    state, actions = batch(real)
+    with torch.no_grad():
+        assert torch.equal(old.rollout(state, actions), again.rollout(state, actions))
+
+
 def test_single_task_model_accepts_bimanual_actions(model, real):
     _, arrays, _ = real
     assert np.all(arrays["action"][:, 0] == 0), "the fixture is single-gripper data"
