@@ -1,6 +1,7 @@
 """Baseline: one MLP from the flattened state and action to the flattened state change.
 
-No structure: it sees the rod as a vector of N*7 numbers. Trained and evaluated exactly like
+No structure: it sees the rod as a vector of N*F numbers (F = 7 per segment, 14 with the
+velocity input). Trained and evaluated exactly like
 ``in-bilstm`` (same normalisation, loss and rollout), it shows what the graph + bi-LSTM
 structure buys.
 """
