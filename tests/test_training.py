@@ -135,6 +135,13 @@ def test_train_and_eval_commands(small_dataset_dir, tmp_path):
               str(run), "--out", str(tmp_path / "mismatch"))  # fmt: skip
     assert res.exit_code == 2 and "requested" in res.output, res.output
 
+    plain = tmp_path / "plain"
+    res = cli("train", "--data", str(small_dataset_dir), "--hidden", "16", "--epochs", "1",
+              "--no-velocity-input", "--device", "cpu", "--out", str(plain))  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert json.loads((plain / "spec.json").read_text())["model"]["velocity_input"] is False
+    assert load_model(plain).spec.velocity_input is False
+
 
 def test_bad_input_exits_2(small_dataset_dir, tmp_path):
     not_data = tmp_path / "notdata.h5"

@@ -10,7 +10,15 @@ from typing import Annotated, Any
 import typer
 
 from dlocli.bench import BenchSpec as S
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, build_spec, console, handle_errors
+from dlocli.cli.common import (
+    JsonFlag,
+    OverwriteFlag,
+    SpecFile,
+    VelocityInputFlag,
+    build_spec,
+    console,
+    handle_errors,
+)
 from dlocli.cli.common import opt_help as h
 
 
@@ -26,6 +34,7 @@ def bench(
     evals: Annotated[int | None, typer.Option(help=h(S, "evals"))] = None,
     eval_trials: Annotated[int | None, typer.Option(help=h(S, "eval_trials"))] = None,
     hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
+    velocity_input: VelocityInputFlag = None,
     epochs: Annotated[int | None, typer.Option(help=h(S, "fit.epochs"))] = None,
     transfer: Annotated[
         bool | None, typer.Option("--transfer/--no-transfer", help=h(S, "transfer"))
@@ -73,6 +82,7 @@ def bench(
             "evals": evals,
             "eval_trials": eval_trials,
             "model.hidden": hidden,
+            "model.velocity_input": velocity_input,
             "fit.epochs": epochs,
             "transfer": transfer,
             "executor": executor,

@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from dlocli.errors import DloError
+from dlocli.models.spec import ModelSpec
 from dlocli.specs import Spec, field_help, resolve_spec
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -26,6 +27,12 @@ SpecFile = Annotated[
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")]
 OverwriteFlag = Annotated[
     bool, typer.Option("--overwrite", help="Allow writing into an existing non-empty --out.")
+]
+VelocityInputFlag = Annotated[
+    bool | None,
+    typer.Option(
+        "--velocity-input/--no-velocity-input", help=field_help(ModelSpec, "velocity_input")
+    ),
 ]
 
 
