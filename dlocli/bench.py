@@ -44,7 +44,7 @@ from dlocli.bench_agents import make_bench_env, train_env
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.errors import BadInput, DloError
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
-from dlocli.models.spec import ModelSpec
+from dlocli.models.spec import LEGACY_VALUES, ModelSpec, saved_spec
 from dlocli.online import stream_seed
 from dlocli.registry import Registry
 from dlocli.specs import EnvSpec
@@ -132,7 +132,10 @@ def eval_points(spec: BenchSpec) -> list[int]:
 
 def fingerprint(spec: BenchSpec) -> str:
     """Hash of the fields that determine a job's result."""
-    text = spec.model_dump_json(exclude=FREE_FIELDS)
+    # model fields at the value they had before they existed are left out, so the jobs of
+    # runs made before a field was added keep their fingerprint
+    legacy = {k for k, v in LEGACY_VALUES.items() if getattr(spec.model, k) == v}
+    text = spec.model_dump_json(exclude={**dict.fromkeys(FREE_FIELDS, True), "model": legacy})
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
@@ -441,7 +444,7 @@ def load_bench_spec(run_dir: Path) -> BenchSpec:
             "pass the --out directory of an earlier `dlo bench`"
         )
     try:
-        return BenchSpec.model_validate_json(path.read_text())
+        return BenchSpec.model_validate(saved_spec(path))
     except ValueError as exc:
         raise BadInput(
             f"{path} is not a bench spec; pass the directory of a `dlo bench` run"

@@ -39,7 +39,7 @@ from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
-from dlocli.models.spec import ModelSpec
+from dlocli.models.spec import ModelSpec, saved_spec
 from dlocli.specs import EnvSpec
 from dlocli.train_spec import FitSpec
 
@@ -487,7 +487,7 @@ def resume_online(
             "pass the --out directory of an earlier `dlo online`"
         )
     try:
-        spec = OnlineSpec.model_validate_json(spec_path.read_text())
+        spec = OnlineSpec.model_validate(saved_spec(spec_path))
     except ValueError as exc:
         raise BadInput(
             f"--resume {run_dir}: spec.json is not an online spec; "

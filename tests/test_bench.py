@@ -160,3 +160,21 @@ def test_ray_gives_the_same_results_as_local_processes(tmp_path: Path):
     assert without_timing(read_rows(tmp_path / "ray")) == without_timing(
         read_rows(tmp_path / "local")
     )
+
+
+def test_runs_saved_before_a_model_field_existed_keep_their_jobs(tmp_path: Path):
+    """A spec.json written before `absolute_position` existed means the model it had then
+    (absolute positions), and its jobs keep their fingerprint, so --resume reuses them."""
+    from dlocli.bench import BenchSpec, fingerprint, load_bench_spec
+
+    spec = BenchSpec(model={"absolute_position": True})
+    saved = spec.model_dump(mode="json")
+    del saved["model"]["absolute_position"]
+    (tmp_path / "spec.json").write_text(json.dumps(saved))
+    again = load_bench_spec(tmp_path)
+    assert again.model.absolute_position is True
+    assert fingerprint(again) == fingerprint(spec)
+    moved = spec.model_copy(
+        update={"model": spec.model.model_copy(update={"absolute_position": False})}
+    )
+    assert fingerprint(moved) != fingerprint(spec)

@@ -99,6 +99,19 @@ def test_velocity_input_reads_the_previous_state(model, real):
         assert torch.equal(plain(state, actions[:, 0]), plain(state, actions[:, 0], moved))
 
 
+def test_in_bilstm_without_absolute_position_is_translation_invariant(real):
+    """Without absolute positions, shifting the rod shifts the prediction and nothing else
+    (a rod without contacts obeys this); with them, the paper's model is not bound to."""
+    state, actions = batch(real)
+    shift = torch.tensor([0.05, -0.03, 0.02, 0, 0, 0, 0])
+    with torch.no_grad():
+        for absolute in (False, True):
+            m = fitted("in-bilstm", real, absolute_position=absolute)
+            moved = m.rollout(state + shift, actions, state + shift) - shift
+            same = torch.allclose(moved, m.rollout(state, actions, state), atol=1e-5)
+            assert same != absolute
+
+
 def test_save_load_round_trip_is_exact(model, real, tmp_path):
     state, actions = batch(real)
     path = save_checkpoint(model, tmp_path / "m.pt", {"epoch": 3})
@@ -112,15 +125,16 @@ def test_save_load_round_trip_is_exact(model, real, tmp_path):
 
 
 def test_version_1_checkpoint_loads_without_velocity(real, tmp_path):
-    """Checkpoints written before the velocity input existed hold models without it."""
+    """Checkpoints written before the velocity input existed hold models without it (and
+    with absolute positions, which came later)."""
     old = fitted("in-bilstm", real, velocity_input=False)
     path = save_checkpoint(old, tmp_path / "v1.pt")
     payload = torch.load(path, weights_only=True)
     payload["format_version"] = 1
-    del payload["model_spec"]["velocity_input"]
+    del payload["model_spec"]["velocity_input"], payload["model_spec"]["absolute_position"]
     torch.save(payload, path)
     again = load_model(path)
-    assert again.spec.velocity_input is False
+    assert again.spec.velocity_input is False and again.spec.absolute_position is True
     state, actions = batch(real)
     with torch.no_grad():
         assert torch.equal(old.rollout(state, actions), again.rollout(state, actions))

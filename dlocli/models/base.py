@@ -34,13 +34,13 @@ from torch import Tensor
 
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, versions
-from dlocli.models.spec import ModelSpec
+from dlocli.models.spec import ModelSpec, with_legacy_fields
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)
 ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
 CHECKPOINT_FORMAT = "dlocli-checkpoint"
-CHECKPOINT_VERSION = 2  # 2: model specs have velocity_input (version 1 models had none)
+CHECKPOINT_VERSION = 3  # 2: model specs have velocity_input; 3: absolute_position
 FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
 _STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
 
@@ -324,9 +324,7 @@ def load_model(
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
     payload = read_checkpoint(path)
-    spec_dict = payload.get("model_spec")
-    if payload.get("format_version") == 1 and isinstance(spec_dict, dict):
-        spec_dict = {"velocity_input": False, **spec_dict}  # version 1 models had no velocity
+    spec_dict = with_legacy_fields(payload.get("model_spec"))  # older checkpoints' models
     try:
         spec = ModelSpec.model_validate(spec_dict)
     except ValidationError as exc:
