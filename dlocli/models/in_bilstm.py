@@ -35,8 +35,8 @@ class INBiLSTM(DynamicsModel):
         super().__init__(spec, n_segments)
         h = spec.hidden
         own = self.feature_dim - (0 if spec.absolute_position else 3)  # a segment's own features
+        # f_e, eq. 4: (v_i, a_i) of the receiver, and the sender's relative pose, rest and a_j
         self.edge_net = mlp([own + self.feature_dim + 2 * ACTION_DIM] + [h] * spec.edge_layers)
-        # f_e, eq. 4
         self.lstm = torch.nn.LSTM(
             h, h, spec.lstm_layers, batch_first=True, bidirectional=True
         )  # eqs. 6-7
