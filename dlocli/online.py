@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import io
+import shutil
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -465,13 +466,16 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def start_online(
     spec: OnlineSpec, overwrite: bool = False, progress: Progress | None = None
 ) -> dict[str, Any]:
-    """A new run in ``spec.out``."""
+    """A new run in ``spec.out``; with ``overwrite``, a previous run's state there is dropped
+    first (its trials and checkpoints would otherwise be taken as this run's, as on resume)."""
     from dlocli.registry import backends, models, tasks
 
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     models.check(spec.model.name)
     out = prepare_run_dir(spec.out, overwrite)
+    for state in ("data", "checkpoints"):
+        shutil.rmtree(out / state, ignore_errors=True)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
     return OnlineRun(spec, progress).run()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -59,6 +60,20 @@ def uninterrupted(tmp_path_factory):
     res = runner.invoke(app, ["online", *TINY, "--out", str(out), "--json"])
     assert res.exit_code == 0, res.output
     return out, json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_overwrite_starts_afresh(uninterrupted, tmp_path):
+    """--overwrite on an earlier run's directory does not reuse its trials or checkpoints."""
+    first, _ = uninterrupted
+    out = tmp_path / "run"
+    shutil.copytree(first, out)
+    args = ["online", *TINY[:-1], "4", "--out", str(out), "--overwrite", "--json"]
+    assert TINY[-2] == "--seed" and TINY[-1] != "4"
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    again, before = read_rows(out), read_rows(first)
+    assert len(again) == len(before)
+    assert [r["cumulative_reward"] for r in again] != [r["cumulative_reward"] for r in before]
 
 
 def test_reduced_run_writes_everything(uninterrupted):
