@@ -106,6 +106,10 @@ class RunLayout:
     def offline_data(self, k: int) -> Path:
         return self.out / "offline" / f"random_{k:02d}.h5"
 
+    def state_dirs(self) -> list[Path]:
+        """The folders whose files a resumed run takes as already done."""
+        return [self.out / "data", self.out / "offline", self.out / "checkpoints"]
+
 
 # ----------------------------------------------------------------------------- trials
 def _trial_episode(
@@ -474,8 +478,8 @@ def start_online(
     tasks.check(spec.task.name)
     models.check(spec.model.name)
     out = prepare_run_dir(spec.out, overwrite)
-    for state in ("data", "checkpoints"):
-        shutil.rmtree(out / state, ignore_errors=True)
+    for state in RunLayout(out).state_dirs():
+        shutil.rmtree(state, ignore_errors=True)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
     return OnlineRun(spec, progress).run()
 
