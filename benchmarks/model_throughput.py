@@ -1,8 +1,8 @@
 """Speed of the learned dynamics model: eager reference vs dlocli's implementation.
 
 Both run the same weights in the same process, measurements interleaved (the machine may be
-shared). For each: training transitions/s (Adam, batch 256), forward latency at batch 1 and
-256, and the MPC-relevant horizon-5 rollout + backward at batch 1; next to the machine's
+shared). For each: training transitions/s (Adam, batch 256 and ``dlo train``'s default
+batch), forward latency at batch 1 and 256, and the MPC-relevant horizon-5 rollout + backward at batch 1; next to the machine's
 measured fp32 matrix-multiply rate, so the distance to the hardware limit is visible.
 
     python benchmarks/model_throughput.py [--threads 2] [--model in-bilstm] [--json]
@@ -21,6 +21,7 @@ from collections.abc import Callable
 import torch
 
 from dlocli.models.base import STATE_DIM, DynamicsModel, ModelSpec, build_model
+from dlocli.train_spec import TrainSpec
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, device: str = "cpu") -> float:
@@ -72,16 +73,20 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
     """name -> (function running one unit of work, samples processed per call)."""
     s1, a1 = _inputs(model, 1, 5)
     s256, a256 = _inputs(model, 256)
-    nxt = s256 + 0.001
     opt = torch.optim.Adam(model.parameters(), lr=1e-6)
 
-    def train_step() -> None:
-        model.train().requires_grad_(True)
-        loss = model.loss(s256, a256[:, 0], nxt)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        model.eval().requires_grad_(False)  # planning: frozen weights, as load_model gives
+    def train_step(batch: int) -> Callable[[], None]:
+        state, actions = s256[:batch], a256[:batch, 0]
+
+        def step() -> None:
+            model.train().requires_grad_(True)
+            loss = model.loss(state, actions, state + 0.001)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            model.eval().requires_grad_(False)  # planning: frozen weights, as load_model gives
+
+        return step
 
     @torch.no_grad()
     def forward1() -> None:
@@ -95,8 +100,10 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
         actions = a1.clone().requires_grad_(True)
         model.rollout(s1, actions)[..., :3].square().sum().backward()
 
+    default_batch = min(TrainSpec().batch_size, 256)
     return {
-        "train_batch256": (train_step, 256),
+        "train_batch256": (train_step(256), 256),
+        f"train_batch{default_batch}": (train_step(default_batch), default_batch),
         "forward_batch1": (forward1, 1),
         "forward_batch256": (forward256, 256),
         "rollout5_backward_batch1": (rollout5_backward, 5),
