@@ -2,8 +2,9 @@
 
 Both run the same weights in the same process, measurements interleaved (the machine may be
 shared). For each: training transitions/s (Adam, batch 256 and ``dlo train``'s default
-batch), forward latency at batch 1 and 256, and the MPC-relevant horizon-5 rollout + backward at batch 1; next to the machine's
-measured fp32 matrix-multiply rate, so the distance to the hardware limit is visible.
+batch), forward latency at batch 1 and 256, and the MPC-relevant horizon-5 rollout + backward
+at batch 1; next to the machine's measured fp32 matrix-multiply rate, so the distance to the
+hardware limit is visible.
 
     python benchmarks/model_throughput.py [--threads 2] [--model in-bilstm] [--json]
 
