@@ -47,7 +47,7 @@ from dlocli.io import prepare_run_dir, versions, write_json_atomic
 from dlocli.models.spec import LEGACY_VALUES, ModelSpec, saved_spec
 from dlocli.online import stream_seed
 from dlocli.registry import Registry
-from dlocli.specs import EnvSpec
+from dlocli.specs import EnvSpec, refuse_resume_conflicts
 from dlocli.train_spec import FitSpec
 
 Progress = Callable[[str, dict[str, Any]], None]
@@ -459,17 +459,7 @@ def resume_bench(
 
     spec = load_bench_spec(run_dir)
     data = spec.model_dump()
-    for dotted, value in overrides.items():
-        if value is None:
-            continue
-        current: Any = data
-        for key in dotted.split("."):
-            current = current[key]
-        if dotted.split(".")[0] not in FREE_FIELDS and str(current) != str(value):
-            raise BadInput(
-                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
-                f"{dotted}={current!r}; drop the flag or start a new run"
-            )
+    refuse_resume_conflicts(data, overrides, run_dir, frozenset(FREE_FIELDS))
     free = {k: v for k, v in overrides.items() if k in FREE_FIELDS and v is not None}
     spec = BenchSpec.model_validate({**data, **free, "out": Path(run_dir)})
     check_spec(spec)

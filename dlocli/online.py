@@ -41,7 +41,7 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.spec import ModelSpec, saved_spec
-from dlocli.specs import EnvSpec
+from dlocli.specs import EnvSpec, refuse_resume_conflicts
 from dlocli.train_spec import FitSpec
 
 Progress = Callable[[str, dict[str, Any]], None]
@@ -501,17 +501,6 @@ def resume_online(
             f"--resume {run_dir}: spec.json is not an online spec; "
             "pass the directory of a `dlo online` run"
         ) from exc
-    saved = spec.model_dump()
-    for dotted, value in overrides.items():
-        if value is None:
-            continue
-        current: Any = saved
-        for key in dotted.split("."):
-            current = current[key]
-        if str(current) != str(value):
-            raise BadInput(
-                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
-                f"{dotted}={current!r}; drop the flag or start a new run"
-            )
+    refuse_resume_conflicts(spec.model_dump(), overrides, run_dir)
     spec = spec.model_copy(update={"out": Path(run_dir)})
     return OnlineRun(spec, progress).run()

@@ -200,6 +200,27 @@ def resolve_spec(
         raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
 
 
+def refuse_resume_conflicts(
+    saved: dict[str, Any], overrides: dict[str, Any], run_dir: Path, free: frozenset = frozenset()
+) -> None:
+    """BadInput if a flag given with ``--resume`` contradicts the run's saved spec.
+
+    ``saved`` is the spec as data, ``overrides`` the flags (dotted paths, None = not given);
+    fields whose first part is in ``free`` may change on resume.
+    """
+    for dotted, value in overrides.items():
+        if value is None or dotted.split(".")[0] in free:
+            continue
+        current: Any = saved
+        for key in dotted.split("."):
+            current = current[key]
+        if str(current) != str(value):
+            raise BadInput(
+                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
+                f"{dotted}={current!r}; drop the flag or start a new run"
+            )
+
+
 def field_help(cls: type[Spec], dotted: str) -> str:
     """The description (and default) of a possibly nested field: the CLI's --help text."""
     model: Any = cls

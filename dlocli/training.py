@@ -35,7 +35,9 @@ from dlocli.train_spec import FitSpec, TrainSpec
 
 GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e + 1) * GOLDEN) < fraction
 EVAL_BATCH = 1024
+LAST_CHECKPOINT = Path("checkpoints") / "last.pt"  # after every epoch, for --resume
 Progress = Callable[[dict[str, Any]], None]
+OnEpoch = Callable[[dict[str, float], torch.optim.Optimizer, torch.Generator], None]
 
 
 @dataclass
@@ -92,7 +94,9 @@ def train_model(
     *,
     optimizer_state: dict[str, Any] | None = None,
     progress: Progress | None = None,
-    on_epoch: Callable[[dict[str, float], torch.optim.Optimizer], None] | None = None,
+    on_epoch: OnEpoch | None = None,
+    start_epoch: int = 0,
+    generator_state: torch.Tensor | None = None,
 ) -> TrainResult:
     """Train ``model`` in place for ``fit.epochs`` epochs on ``dataset``'s training split.
 
@@ -101,7 +105,9 @@ def train_model(
     ``optimizer_state`` resumes Adam's moments (from a previous :class:`TrainResult` or
     checkpoint). ``progress`` gets ``{"epoch", "batch", "batches", "loss"}`` every few steps
     and ``{"epoch", "val_loss"}`` after each epoch; ``on_epoch`` gets each epoch's record
-    ``{"epoch", "train_loss", "val_loss", "seconds"}`` (and the optimizer) for checkpoints.
+    ``{"epoch", "train_loss", "val_loss", "seconds"}``, the optimizer and the random generator
+    (for checkpoints). ``start_epoch`` epochs are taken as done: given the generator state
+    saved after them, the remaining epochs are those an uninterrupted run would train.
     """
     if dataset.n_segments != model.n_segments:
         raise BadInput(
@@ -125,9 +131,11 @@ def train_model(
         for group in optimizer.param_groups:
             group["lr"] = fit.lr
     gen = torch.Generator(device="cpu").manual_seed(fit.seed)
+    if generator_state is not None:
+        gen.set_state(generator_state)
     result = TrainResult(train_episodes=train_eps, val_episodes=val_eps)
     start = time.perf_counter()
-    for epoch in range(1, fit.epochs + 1):
+    for epoch in range(start_epoch + 1, fit.epochs + 1):
         t0 = time.perf_counter()
         model.train()
         train_loss = _train_epoch(model, optimizer, train, fit, gen, epoch, progress)
@@ -141,11 +149,12 @@ def train_model(
         if progress is not None:
             progress({"epoch": epoch, "val_loss": record["val_loss"]})
         if on_epoch is not None:
-            on_epoch(record, optimizer)
+            on_epoch(record, optimizer, gen)
     model.eval()
     elapsed = time.perf_counter() - start
     result.optimizer_state = copy.deepcopy(optimizer.state_dict())  # not aliased to the live one
-    result.transitions_per_s = fit.epochs * n_train / elapsed if elapsed > 0 else 0.0
+    epochs_run = max(fit.epochs - start_epoch, 0)
+    result.transitions_per_s = epochs_run * n_train / elapsed if elapsed > 0 else 0.0
     return result
 
 
@@ -238,31 +247,46 @@ def load_training_data(spec: TrainSpec) -> Dataset:
 
 # ---------------------------------------------------------------------- the command
 def run_training(
-    spec: TrainSpec, overwrite: bool = False, progress: Progress | None = None
+    spec: TrainSpec, overwrite: bool = False, progress: Progress | None = None, resume: bool = False
 ) -> dict[str, Any]:
     """`dlo train`: train, then write OUT/{spec.json, metrics.csv, summary.json,
-    checkpoints/{final,best}.pt, plots/{loss,rollout}.png}; return the summary."""
+    checkpoints/{final,best,last}.pt, plots/{loss,rollout}.png}; return the summary.
+
+    ``resume``: continue the run in ``spec.out`` (its saved spec) from ``checkpoints/last.pt``.
+    """
     from dlocli.evaluation import evaluate_model, plot_losses, plot_rollout
     from dlocli.io import prepare_run_dir, write_json_atomic
 
     dataset = load_training_data(spec)
-    model, opt_state = prepare_model(spec, dataset)
-    spec = spec.model_copy(update={"model": model.spec})  # with --init-from: the checkpoint's
-    out = prepare_run_dir(spec.out, overwrite)
-    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+    if resume:
+        out = Path(spec.out)
+        model, opt_state, done = _resume_point(out / LAST_CHECKPOINT, spec, dataset)
+    else:
+        model, opt_state = prepare_model(spec, dataset)
+        spec = spec.model_copy(update={"model": model.spec})  # with --init-from: the checkpoint's
+        out = prepare_run_dir(spec.out, overwrite)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        done = {"epoch": 0, "generator": None, "history": [], "best_val_loss": math.inf}
     ckpt_dir = out / "checkpoints"
-    best = {"val_loss": math.inf}
-    history: list[dict[str, float]] = []
+    best = {"val_loss": done["best_val_loss"]}
+    history: list[dict[str, float]] = list(done["history"])
 
-    def on_epoch(record: dict[str, float], optimizer: torch.optim.Optimizer) -> None:
+    def on_epoch(
+        record: dict[str, float], optimizer: torch.optim.Optimizer, gen: torch.Generator
+    ) -> None:
         history.append(record)
         _write_metrics(out / "metrics.csv", history)
         if not record["val_loss"] >= best["val_loss"]:  # also true for the first NaN
             best["val_loss"] = record["val_loss"]
             save_checkpoint(model, ckpt_dir / "best.pt", {"epoch": record["epoch"]})
+        point = {"epoch": record["epoch"], "generator": gen.get_state(), "history": history,
+                 "best_val_loss": best["val_loss"],
+                 "optimizer": optimizer.state_dict()}  # fmt: skip
+        save_checkpoint(model, out / LAST_CHECKPOINT, point)
 
     result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
-                         on_epoch=on_epoch)  # fmt: skip
+                         on_epoch=on_epoch, start_epoch=done["epoch"],
+                         generator_state=done["generator"])  # fmt: skip
     save_checkpoint(model, ckpt_dir / "final.pt",
                     {"epoch": spec.epochs, "optimizer": result.optimizer_state})  # fmt: skip
     eval_eps = result.val_episodes if len(result.val_episodes) else result.train_episodes
@@ -286,6 +310,51 @@ def run_training(
     plot_rollout(model, dataset, int(eval_eps[0]), out / "plots" / "rollout.png")
     write_json_atomic(out / "summary.json", _json_safe(summary))
     return _json_safe(summary)
+
+
+def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> TrainSpec:
+    """`dlo train --resume RUN`: the spec of the run in ``run_dir`` (pass it to
+    :func:`run_training` with ``resume=True``); flags that contradict it are refused."""
+    from dlocli.models.spec import saved_spec
+    from dlocli.specs import refuse_resume_conflicts
+
+    spec_path = Path(run_dir) / "spec.json"
+    if not spec_path.is_file():
+        raise BadInput(
+            f"--resume {run_dir} is not a training run (no spec.json); "
+            "pass the --out directory of an earlier `dlo train`"
+        )
+    try:
+        spec = TrainSpec.model_validate(saved_spec(spec_path))
+    except ValueError as exc:
+        raise BadInput(
+            f"--resume {run_dir}: spec.json is not a training spec; "
+            "pass the directory of a `dlo train` run"
+        ) from exc
+    refuse_resume_conflicts(spec.model_dump(), overrides, run_dir)
+    return spec.model_copy(update={"out": Path(run_dir)})
+
+
+def _resume_point(
+    path: Path, spec: TrainSpec, dataset: Dataset
+) -> tuple[DynamicsModel, dict[str, Any], dict[str, Any]]:
+    """The model, Adam's state and what was done (epoch, generator, history, best) at the
+    end of the last finished epoch."""
+    if not path.is_file():
+        raise BadInput(
+            f"--resume: {path} does not exist (no epoch finished, or the run predates "
+            "resuming); start the run again with --overwrite"
+        )
+    payload = read_checkpoint(path)
+    model = load_model(path, spec.device, expect=spec.model)
+    if model.n_segments != dataset.n_segments:
+        raise BadInput(f"--resume: {path} has {model.n_segments} segments, the dataset "
+                       f"{dataset.n_segments}; the run's --data has changed")  # fmt: skip
+    done = {k: payload.get(k) for k in ("epoch", "generator", "history", "best_val_loss")}
+    if not isinstance(done["epoch"], int) or not isinstance(done["history"], list):
+        raise BadInput(f"--resume: {path} is not a resumable checkpoint; start again with "
+                       "--overwrite")  # fmt: skip
+    return model, payload.get("optimizer") or {}, done
 
 
 def _write_metrics(path: Path, history: list[dict[str, float]]) -> None:

@@ -166,3 +166,34 @@ def test_bad_input_exits_2(small_dataset_dir, tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert "Traceback" not in res.output
         assert len(res.output.strip().splitlines()) <= 2, res.output
+
+
+def test_stopped_training_resumes_to_the_same_model(small_dataset_dir, tmp_path):
+    from dlocli.train_spec import TrainSpec
+    from dlocli.training import resumed_spec, run_training
+
+    spec = TrainSpec(data=small_dataset_dir, model=ModelSpec(**TINY), epochs=3, **FAST_FIT)
+    whole = run_training(spec.model_copy(update={"out": tmp_path / "whole"}))
+
+    def stop_after_epoch_2(event):
+        if event.get("epoch") == 2 and "val_loss" in event:
+            raise KeyboardInterrupt  # the user's Ctrl-C, after epoch 2 is done
+        if event.get("epoch") == 3:
+            pytest.fail("epoch 3 started before the stop")
+
+    stopped = tmp_path / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        run_training(spec.model_copy(update={"out": stopped}), progress=stop_after_epoch_2)
+    assert read_checkpoint(stopped / "checkpoints" / "last.pt")["epoch"] == 1, "epoch 2 unsaved"
+    resumed = run_training(resumed_spec(stopped, {"epochs": 3}), resume=True)
+
+    final = {k: read_checkpoint(p / "checkpoints" / "final.pt")["state_dict"]
+             for k, p in (("whole", tmp_path / "whole"), ("resumed", stopped))}  # fmt: skip
+    assert all(torch.equal(v, final["resumed"][k]) for k, v in final["whole"].items())
+    assert resumed["val_loss"] == whole["val_loss"]
+    assert len((stopped / "metrics.csv").read_text().splitlines()) == 1 + 3
+
+    res = cli("train", "--resume", str(stopped), "--epochs", "5")
+    assert res.exit_code == 2 and "conflicts" in res.output, res.output
+    res = cli("train", "--resume", str(tmp_path))
+    assert res.exit_code == 2 and "not a training run" in res.output, res.output

@@ -36,13 +36,16 @@ def train(
     seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
     init_from: Annotated[Path | None, typer.Option(help=h(S, "init_from"))] = None,
     out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
+    resume: Annotated[
+        Path | None, typer.Option(help="Finish the stopped run in this directory, as if unstopped.")
+    ] = None,
     spec_file: SpecFile = None,
     overwrite: OverwriteFlag = False,
     json_out: JsonFlag = False,
 ) -> None:
     """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json."""
     from dlocli.registry import models
-    from dlocli.training import run_training
+    from dlocli.training import resumed_spec, run_training
 
     overrides: dict[str, Any] = {
         "data": data, "model.name": model, "model.hidden": hidden,
@@ -50,7 +53,10 @@ def train(
         "batch_size": batch_size, "input_noise": input_noise, "val_fraction": val_fraction,
         "device": device, "seed": seed, "init_from": init_from, "out": out,
     }  # fmt: skip
-    spec = build_spec(S, spec_file, overrides)
+    if resume is not None:
+        spec = resumed_spec(resume, overrides)
+    else:
+        spec = build_spec(S, spec_file, overrides)
     models.check(spec.model.name)
     columns = (
         TextColumn("epoch {task.fields[epoch]}/{task.fields[epochs]}"), BarColumn(),
@@ -68,5 +74,5 @@ def train(
             progress.update(bar, epoch=event["epoch"], total=event["batches"],
                             completed=event["batch"], loss=event["loss"])  # fmt: skip
 
-        summary = run_training(spec, overwrite=overwrite, progress=show)
+        summary = run_training(spec, overwrite, show, resume=resume is not None)
     emit_summary(summary, json_out, "dlo train")
