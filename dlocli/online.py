@@ -38,10 +38,9 @@ from pydantic import Field
 from dlocli.collect import random_actions, run_episode
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
-from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
-from dlocli.models.spec import ModelSpec, saved_spec
-from dlocli.specs import EnvSpec, refuse_resume_conflicts
+from dlocli.models.spec import ModelSpec
+from dlocli.specs import EnvSpec, resumed_run_spec
 from dlocli.train_spec import FitSpec
 
 Progress = Callable[[str, dict[str, Any]], None]
@@ -488,19 +487,5 @@ def resume_online(
     run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
 ) -> dict[str, Any]:
     """Continue the run in ``run_dir``; flags that contradict its spec are refused."""
-    spec_path = Path(run_dir) / "spec.json"
-    if not spec_path.is_file():
-        raise BadInput(
-            f"--resume {run_dir} is not an online run (no spec.json); "
-            "pass the --out directory of an earlier `dlo online`"
-        )
-    try:
-        spec = OnlineSpec.model_validate(saved_spec(spec_path))
-    except ValueError as exc:
-        raise BadInput(
-            f"--resume {run_dir}: spec.json is not an online spec; "
-            "pass the directory of a `dlo online` run"
-        ) from exc
-    refuse_resume_conflicts(spec.model_dump(), overrides, run_dir)
-    spec = spec.model_copy(update={"out": Path(run_dir)})
+    spec = resumed_run_spec(OnlineSpec, run_dir, overrides, "an online", "dlo online")
     return OnlineRun(spec, progress).run()

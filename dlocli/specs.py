@@ -200,6 +200,30 @@ def resolve_spec(
         raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
 
 
+def resumed_run_spec(
+    cls: type[SpecT], run_dir: Path, overrides: dict[str, Any], kind: str, command: str
+) -> SpecT:
+    """The saved spec of the ``command`` run (a ``kind`` run) in ``run_dir``, its ``out`` set
+    to ``run_dir``; BadInput if there is none or a flag contradicts it."""
+    from dlocli.models.spec import saved_spec  # models.spec imports this module
+
+    spec_path = Path(run_dir) / "spec.json"
+    if not spec_path.is_file():
+        raise BadInput(
+            f"--resume {run_dir} is not {kind} run (no spec.json); "
+            f"pass the --out directory of an earlier `{command}`"
+        )
+    try:
+        spec = cls.model_validate(saved_spec(spec_path))
+    except ValueError as exc:
+        raise BadInput(
+            f"--resume {run_dir}: spec.json is not {kind} spec; pass the directory of a "
+            f"`{command}` run"
+        ) from exc
+    refuse_resume_conflicts(spec.model_dump(), overrides, run_dir)
+    return spec.model_copy(update={"out": Path(run_dir)})
+
+
 def refuse_resume_conflicts(
     saved: dict[str, Any], overrides: dict[str, Any], run_dir: Path, free: frozenset = frozenset()
 ) -> None:

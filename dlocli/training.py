@@ -315,24 +315,9 @@ def run_training(
 def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> TrainSpec:
     """`dlo train --resume RUN`: the spec of the run in ``run_dir`` (pass it to
     :func:`run_training` with ``resume=True``); flags that contradict it are refused."""
-    from dlocli.models.spec import saved_spec
-    from dlocli.specs import refuse_resume_conflicts
+    from dlocli.specs import resumed_run_spec
 
-    spec_path = Path(run_dir) / "spec.json"
-    if not spec_path.is_file():
-        raise BadInput(
-            f"--resume {run_dir} is not a training run (no spec.json); "
-            "pass the --out directory of an earlier `dlo train`"
-        )
-    try:
-        spec = TrainSpec.model_validate(saved_spec(spec_path))
-    except ValueError as exc:
-        raise BadInput(
-            f"--resume {run_dir}: spec.json is not a training spec; "
-            "pass the directory of a `dlo train` run"
-        ) from exc
-    refuse_resume_conflicts(spec.model_dump(), overrides, run_dir)
-    return spec.model_copy(update={"out": Path(run_dir)})
+    return resumed_run_spec(TrainSpec, run_dir, overrides, "a training", "dlo train")
 
 
 def _resume_point(
