@@ -265,6 +265,7 @@ def run_training(
         model, opt_state = prepare_model(spec, dataset)
         spec = spec.model_copy(update={"model": model.spec})  # with --init-from: the checkpoint's
         out = prepare_run_dir(spec.out, overwrite)
+        (out / LAST_CHECKPOINT).unlink(missing_ok=True)  # an overwritten run's: not ours to resume
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         done = {"epoch": 0, "generator": None, "history": [], "best_val_loss": math.inf}
     ckpt_dir = out / "checkpoints"
