@@ -1,12 +1,18 @@
 """``dlo bench``: sample efficiency of the agents under one transition budget (paper Sec. V).
 
-Every agent x seed is one *job*: the agent learns for ``budget`` env transitions and is
-evaluated at regular transition counts with ``eval_trials`` noise-free episodes from fixed
-random starts (the same starts for every agent of a seed; evaluation transitions are not
-counted). With ``transfer``, the final agent is also evaluated where it did not learn: on
-random goals after learning a fixed goal (paper Fig. 6) and, for the model-based agents, on
-the bimanual task after learning the single-gripper one (paper Fig. 5). The agents are in
-:mod:`dlocli.bench_agents`; the figures in :mod:`dlocli.bench_plots`.
+Every agent x seed is one *job*: the agent learns for its budget of env transitions
+(``budget``, or its entry in ``budgets``) and is evaluated at regular transition counts with
+``eval_trials`` noise-free episodes from fixed random starts (the same starts for every agent
+of a seed; evaluation transitions are not counted). Each seed has its own fixed goal. With
+``transfer``, the agent is also evaluated where it did not learn: on random goals after
+learning a fixed goal, at every evaluation point (paper Fig. 6), and, at the end, the
+model-based agents on the bimanual task after learning the single-gripper one (paper Fig. 5).
+Every row carries its reference: the evaluation episodes' initial error (what doing nothing
+keeps) and the score ``1 - final/initial``; ``zero`` (do nothing) and ``random`` run by
+default. Next to the noise-free evaluation, each row holds the mean cumulative reward of the
+agent's own training episodes since the previous point (with their exploration: the paper's
+Fig. 4 protocol). The agents are in :mod:`dlocli.bench_agents`; the figures in
+:mod:`dlocli.bench_plots`.
 
 Run directory (every file written atomically)::
 
@@ -15,20 +21,22 @@ Run directory (every file written atomically)::
     work/FINGERPRINT/AGENT-sSEED/   a job's own files (mpc's online run), local executor only
     results.csv                 agent, seed, eval, transitions, train_task, train_goals,
                                 eval_task, eval_goals, cumulative_reward(_std), final_error_mm,
-                                wall_seconds (learning time so far), eval_seconds
+                                wall_seconds (learning time so far), eval_seconds, initial_error_mm,
+                                score(_std), train_reward, train_episodes
     summary.md, summary.json    final results per agent and evaluation setting
     plots/fig4_learning_curves.png, fig5_bimanual.png, fig6_random_goals.png,
     plots/fig7_online_offline.png   (those the results allow)
 
 Seeds: job i uses seed ``seed + i``; every random stream of a job derives from it, and the
 global generators are reseeded at the start of each job, so results do not depend on the
-executor (local processes or Ray) or on the order of jobs. The fixed goal comes from
-``seed`` alone: one goal shape for every agent and seed.
+executor (local processes or Ray) or on the order of jobs. The fixed goal of job seed s comes
+from s alone: one goal shape per seed, the same for every agent.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -40,19 +48,20 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from dlocli.bench_agents import make_bench_env, train_env
+from dlocli.bench_agents import make_bench_env
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.errors import BadInput, DloError
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
 from dlocli.models.spec import LEGACY_VALUES, ModelSpec, saved_spec
 from dlocli.online import stream_seed
 from dlocli.registry import Registry
-from dlocli.specs import EnvSpec, refuse_resume_conflicts
+from dlocli.specs import TASK_LEGACY_VALUES, EnvSpec, refuse_resume_conflicts
 from dlocli.train_spec import FitSpec
 
 Progress = Callable[[str, dict[str, Any]], None]
 
 agents = Registry("agent")
+agents.register("zero", "dlocli.bench_agents:ZeroLearner", "all-zero actions: do nothing")
 agents.register("random", "dlocli.bench_agents:RandomLearner", "uniform random actions")
 agents.register("sac", "dlocli.bench_agents:AgentLearner", "Soft Actor-Critic (SB3)")
 agents.register("td3", "dlocli.bench_agents:AgentLearner", "TD3 (SB3)")
@@ -69,18 +78,27 @@ agents.register(
 )
 
 #: fields that may change between runs of one directory: they do not change any result
-FREE_FIELDS = {"agents", "seeds", "executor", "workers", "ray_address", "out"}
+#: (``budgets`` enters the fingerprint of each job through that agent's own budget)
+FREE_FIELDS = {"agents", "seeds", "executor", "workers", "ray_address", "out", "budgets"}
 EVAL = 5  # seed stream of evaluation starts
+#: the agents that take options (their controllers' specs); mpc's are the spec's own fields
+OPTION_AGENTS = ("sac", "td3", "pilco")
 
 
 class BenchSpec(EnvSpec):
     """`dlo bench`: every agent x seed learns under the same transition budget."""
 
     agents: list[str] = Field(
-        default_factory=lambda: ["sac", "td3", "pilco", "mpc"],
-        description="Agents to compare: random, sac, td3, pilco, mpc, mpc-offline.",
+        default_factory=lambda: ["zero", "random", "sac", "td3", "pilco", "mpc"],
+        description="Agents to compare: zero, random, sac, td3, pilco, mpc, mpc-offline "
+        "(zero and random are the references every result is read against).",
     )
     budget: int = Field(5000, gt=0, description="Env transitions each agent may learn from.")
+    budgets: dict[str, int] = Field(
+        default_factory=dict,
+        description="Per-agent budgets overriding `budget`, e.g. {sac: 50000, td3: 50000}; "
+        "evaluation points stay `budget / evals` apart, so curves share their x values.",
+    )
     seeds: int = Field(3, gt=0, description="Seeds per agent: seed, seed+1, ...")
     evals: int = Field(
         10, gt=0, description="Evaluation points, at regular transition counts (whole episodes)."
@@ -124,19 +142,46 @@ def eval_interval(spec: BenchSpec) -> int:
     return max(1, spec.budget // steps // spec.evals) * steps
 
 
-def eval_points(spec: BenchSpec) -> list[int]:
-    """Transition counts of the evaluations: every interval, and the budget itself last."""
-    points = list(range(eval_interval(spec), spec.budget + 1, eval_interval(spec)))
-    return points if points[-1] == spec.budget else [*points, spec.budget]
+def budget_of(spec: BenchSpec, agent: str) -> int:
+    """The transitions ``agent`` may learn from."""
+    return spec.budgets.get(agent, spec.budget)
 
 
-def fingerprint(spec: BenchSpec) -> str:
-    """Hash of the fields that determine a job's result."""
-    # model fields at the value they had before they existed are left out, so the jobs of
-    # runs made before a field was added keep their fingerprint
-    legacy = {k for k, v in LEGACY_VALUES.items() if getattr(spec.model, k) == v}
-    text = spec.model_dump_json(exclude={**dict.fromkeys(FREE_FIELDS, True), "model": legacy})
+def eval_points(spec: BenchSpec, agent: str | None = None) -> list[int]:
+    """Transition counts of the evaluations of ``agent``: every interval, and its budget last."""
+    budget = spec.budget if agent is None else budget_of(spec, agent)
+    points = list(range(eval_interval(spec), budget + 1, eval_interval(spec)))
+    return points if points and points[-1] == budget else [*points, budget]
+
+
+def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
+    """Hash of the fields that determine a job's result; with ``agent``, of that agent's job:
+    its own budget and its own options, resolved (so a new default reruns its jobs only)."""
+    # fields at the value they had before they existed are left out, so the jobs of runs
+    # made before a field was added keep their fingerprint; so are fields without effect
+    legacy_model = {k for k, v in LEGACY_VALUES.items() if getattr(spec.model, k) == v}
+    legacy_task = {k for k, v in TASK_LEGACY_VALUES.items() if getattr(spec.task, k) == v}
+    legacy_task |= spec.task.inert_fields()
+    exclude = {**dict.fromkeys(FREE_FIELDS, True), "model": legacy_model, "task": legacy_task}
+    if agent is None:
+        text = spec.model_dump_json(exclude=exclude)
+    else:
+        text = spec.model_dump_json(exclude={**exclude, "options": True})
+        if agent in OPTION_AGENTS:
+            text += f"|options={json.dumps(resolved_options(spec, agent), sort_keys=True)}"
+        if budget_of(spec, agent) != spec.budget:
+            text += f"|budget={budget_of(spec, agent)}"
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def resolved_options(spec: BenchSpec, agent: str) -> dict[str, Any] | None:
+    """The options ``agent`` ran with, defaults filled in (None for agents without any)."""
+    from dlocli.controllers.base import controller_spec
+
+    if agent not in OPTION_AGENTS:
+        return None
+    options = controller_spec(agent, spec.options.get(agent))
+    return options.model_dump(mode="json") if options else None
 
 
 def seeds_of(spec: BenchSpec) -> list[int]:
@@ -165,13 +210,27 @@ def check_spec(spec: BenchSpec) -> None:
             f"--budget {spec.budget} is less than one episode ({steps} steps); "
             f"pass --budget {steps} or more"
         )
-    if {"mpc", "mpc-offline"} & set(spec.agents) and mpc_schedule(spec)[0] * steps > spec.budget:
+    for name, budget in spec.budgets.items():
+        agents.check(name)
+        if budget < spec.budget:
+            raise BadInput(
+                f"budgets: {name}={budget} is below --budget {spec.budget}; per-agent budgets "
+                "extend the common one (lower --budget instead)"
+            )
+    for name in {"mpc", "mpc-offline"} & set(spec.agents):
+        if mpc_schedule(spec, name)[0] * steps > budget_of(spec, name):
+            raise BadInput(
+                f"--budget {spec.budget}: mpc needs at least two episodes "
+                f"({2 * steps} transitions); raise --budget or drop mpc"
+            )
+    if spec.task.observe_velocity != spec.model.velocity_input:
         raise BadInput(
-            f"--budget {spec.budget}: mpc needs at least two episodes "
-            f"({2 * steps} transitions); raise --budget or drop mpc"
+            f"task.observe_velocity={spec.task.observe_velocity} but "
+            f"model.velocity_input={spec.model.velocity_input}: every agent must get the same "
+            "information; set both to the same value"
         )
     for name, options in spec.options.items():
-        if name not in ("sac", "td3", "pilco"):
+        if name not in OPTION_AGENTS:
             raise BadInput(
                 f"options for '{name}': only sac, td3 and pilco take options "
                 "(mpc uses the spec's model, fit and mpc fields)"
@@ -181,20 +240,21 @@ def check_spec(spec: BenchSpec) -> None:
 
 
 # ----------------------------------------------------------------------------- evaluation
-def eval_episode(controller: Any, env: Any, seed: int) -> tuple[float, float]:
-    """(cumulative reward, final shape error mm) of one noise-free episode from ``seed``."""
-    from dlocli.metrics import shape_error_mm
+def eval_episode(controller: Any, env: Any, seed: int) -> dict[str, float]:
+    """Initial and final error, score and cumulative reward of one noise-free episode from
+    ``seed`` (a diverged episode stops there; its missing steps count at the clip)."""
+    from dlocli.metrics import episode_result
 
-    obs, _ = env.reset(seed=seed)
+    obs, info = env.reset(seed=seed)
+    initial = info["shape_error_mm"]
     controller.reset(env.goal)
-    total = 0.0
-    for _ in range(env.task_spec.episode_steps):
-        obs, reward, terminated, truncated, _ = env.step(controller.act(obs))
-        total += float(reward)
-        if terminated or truncated:
+    total, steps_run, steps = 0.0, 0, env.task_spec.episode_steps
+    while steps_run < steps:
+        obs, reward, _, truncated, info = env.step(controller.act(obs))
+        total, steps_run = total + float(reward), steps_run + 1
+        if info["diverged"] or truncated:
             break
-    positions = env.split_observation(obs)["positions"]
-    return total, float(shape_error_mm(positions, env.goal))
+    return episode_result(initial, info["shape_error_mm"], total, steps_run, steps)
 
 
 def evaluate(controller: Any, env: Any, spec: BenchSpec, seed: int) -> dict[str, float]:
@@ -203,25 +263,33 @@ def evaluate(controller: Any, env: Any, spec: BenchSpec, seed: int) -> dict[str,
     results = [
         eval_episode(controller, env, stream_seed(seed, EVAL, i)) for i in range(spec.eval_trials)
     ]
-    rewards, errors = np.array(results).T
+    column = {key: np.array([r[key] for r in results]) for key in results[0]}
     return {
-        "cumulative_reward": float(rewards.mean()),
-        "cumulative_reward_std": float(rewards.std()),
-        "final_error_mm": float(errors.mean()),
+        "cumulative_reward": float(column["cumulative_reward"].mean()),
+        "cumulative_reward_std": float(column["cumulative_reward"].std()),
+        "initial_error_mm": float(column["initial_error_mm"].mean()),
+        "final_error_mm": float(column["final_error_mm"].mean()),
+        "score": float(column["score"].mean()),
+        "score_std": float(column["score"].std()),
         "eval_seconds": round(time.perf_counter() - start, 3),
     }
 
 
-def transfer_settings(spec: BenchSpec) -> list[tuple[str, str]]:
-    """(task, goals) where final agents are also evaluated (paper Figs. 5 and 6)."""
-    if not spec.transfer:
-        return []
-    settings = []
-    if spec.task.goal == "fixed":
+def curve_settings(spec: BenchSpec) -> list[tuple[str, str]]:
+    """(task, goals) where agents are evaluated at every point: where they learn, and random
+    goals after a fixed one (paper Fig. 6)."""
+    settings = [(spec.task.name, spec.task.goal)]
+    if spec.transfer and spec.task.goal == "fixed":
         settings.append((spec.task.name, "random"))
-    if spec.task.name == "single":
-        settings.append(("bimanual", spec.task.goal))
     return settings
+
+
+def final_settings(spec: BenchSpec) -> list[tuple[str, str]]:
+    """(task, goals) where final agents are also evaluated: the bimanual task after the
+    single-gripper one (paper Fig. 5)."""
+    if spec.transfer and spec.task.name == "single":
+        return [("bimanual", spec.task.goal)]
+    return []
 
 
 # ----------------------------------------------------------------------------- one job
@@ -261,7 +329,8 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
     return {
         "agent": agent,
         "seed": seed,
-        "fingerprint": fingerprint(spec),
+        "fingerprint": fingerprint(spec, agent),
+        "options": resolved_options(spec, agent),
         "rows": rows,
         "seconds": round(time.perf_counter() - start, 1),
         "versions": versions(),
@@ -270,56 +339,52 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
 
 def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> list[dict]:
     learner = agents.get(agent)(agent, spec, seed, work)
-    base = {
-        "agent": agent,
-        "seed": seed,
-        "train_task": spec.task.name,
-        "train_goals": spec.task.goal,
-    }
-    rows, wall = [], 0.0
-    env = train_env(spec, seed)
+    envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
+    rows, wall, trained = [], 0.0, 0
     try:
         for index, point in enumerate(learner.points()):
             start = time.perf_counter()
             learner.learn_to(point)
             wall += time.perf_counter() - start
-            rows.append(
-                {
-                    **base,
-                    "eval": index,
-                    "transitions": learner.transitions,
-                    "eval_task": spec.task.name,
-                    "eval_goals": spec.task.goal,
-                    **evaluate(learner.controller(env), env, spec, seed),
-                    "wall_seconds": round(wall, 3),
-                }
-            )
-        for task, goals in transfer_settings(spec):
-            rows += _transfer_row(spec, learner, seed, task, goals, rows[-1])
+            returns = learner.training_returns()
+            point_row = {
+                "agent": agent,
+                "seed": seed,
+                "train_task": spec.task.name,
+                "train_goals": spec.task.goal,
+                "eval": index,
+                "transitions": learner.transitions,
+                "wall_seconds": round(wall, 3),
+                "train_reward": float(np.mean(returns[trained:])) if returns[trained:] else None,
+                "train_episodes": len(returns) - trained,
+            }
+            trained = len(returns)
+            for setting, env in envs.items():
+                rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
+        for setting in final_settings(spec):
+            env = make_bench_env(spec, *setting, seed)
+            try:
+                rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
+            finally:
+                env.close()
     finally:
-        env.close()
+        for env in envs.values():
+            env.close()
         learner.close()
     return rows
 
 
-def _transfer_row(
-    spec: BenchSpec, learner: Any, seed: int, task: str, goals: str, final: dict[str, Any]
+def _evaluation_rows(
+    spec: BenchSpec, learner: Any, env: Any, setting: tuple[str, str], seed: int, point: dict
 ) -> list[dict[str, Any]]:
-    env = make_bench_env(spec, task, goals, seed)
-    try:
-        controller = learner.controller(env)
-        if controller is None:
-            return []
-        return [
-            {
-                **final,
-                "eval_task": task,
-                "eval_goals": goals,
-                **evaluate(controller, env, spec, seed),
-            }
-        ]
-    finally:
-        env.close()
+    """The row of one evaluation of ``learner`` on ``env`` (none where it cannot act)."""
+    controller = learner.controller(env)
+    if controller is None:
+        return []
+    task, goals = setting
+    return [
+        {**point, "eval_task": task, "eval_goals": goals, **evaluate(controller, env, spec, seed)}
+    ]
 
 
 # ----------------------------------------------------------------------------- jobs
@@ -350,13 +415,12 @@ class BenchRun:
 
     def finished(self, agent: str, seed: int) -> dict[str, Any] | None:
         """The job's saved result, if it was run with this spec."""
-        import json
 
         path = self.job_file(agent, seed)
         if not path.is_file():
             return None
         result = json.loads(path.read_text())
-        return result if result.get("fingerprint") == fingerprint(self.spec) else None
+        return result if result.get("fingerprint") == fingerprint(self.spec, agent) else None
 
     def jobs(self) -> list[Job]:
         """The jobs still to run (finished ones are kept), seed-major so seeds finish early."""

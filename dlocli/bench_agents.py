@@ -9,7 +9,8 @@ each of them (:meth:`BenchLearner.learn_to`) and hands out a controller for an e
 
 - ``sac``, ``td3``, ``pilco``: the registered :class:`LearningAgent` controllers, interacting
   with their own training env for exactly the budget.
-- ``random``: uniform random actions; it learns nothing (and steps no training env).
+- ``zero`` and ``random``: all-zero and uniform random actions, the references; they learn
+  nothing (and step no training env).
 - ``mpc``: the paper's Algorithm 1 through :class:`dlocli.online.OnlineRun`: an initial random
   dataset, then iterations of noisy MPC trials, each followed by a model update; it is
   evaluated with the model trained on all data so far (noise-free MPC).
@@ -53,18 +54,18 @@ def _goal(backend_json: str, task_json: str, seed: int) -> np.ndarray:
     return make_goal(GoalSpec(backend=backend, task=task, seed=seed))
 
 
-def fixed_goal(spec: BenchSpec, task: str) -> np.ndarray:
-    """The bench's fixed goal for ``task`` (from ``spec.seed``, or the spec's goal file)."""
+def fixed_goal(spec: BenchSpec, task: str, seed: int) -> np.ndarray:
+    """The fixed goal of job seed ``seed`` for ``task`` (or the spec's goal file)."""
     task_json = spec.task.model_copy(update={"name": task}).model_dump_json()
-    return _goal(spec.backend.model_dump_json(), task_json, spec.seed).copy()
+    return _goal(spec.backend.model_dump_json(), task_json, seed).copy()
 
 
 def make_bench_env(spec: BenchSpec, task: str, goals: str, seed: int) -> DLOShapeEnv:
-    """A DLOShapeEnv of ``task`` with the bench's fixed goal or random goals."""
+    """A DLOShapeEnv of ``task`` with the seed's fixed goal or random goals."""
     from dlocli.env import make_env
 
     task_spec = spec.task.model_copy(update={"name": task, "goal": goals, "goal_file": None})
-    goal = fixed_goal(spec, task) if goals == "fixed" else None
+    goal = fixed_goal(spec, task, seed) if goals == "fixed" else None
     return make_env(spec.backend, task_spec, goal=goal, seed=seed)
 
 
@@ -88,7 +89,7 @@ class BenchLearner(ABC):
         """Transition counts after which the agent is evaluated (the bench's schedule)."""
         from dlocli.bench import eval_points
 
-        return eval_points(self.spec)
+        return eval_points(self.spec, self.name)
 
     @abstractmethod
     def learn_to(self, transitions: int) -> None:
@@ -97,6 +98,11 @@ class BenchLearner(ABC):
     @abstractmethod
     def controller(self, env: DLOShapeEnv) -> Controller | None:
         """A controller of the current agent for ``env``; None if it cannot act there."""
+
+    def training_returns(self) -> list[float]:
+        """Cumulative reward of every finished training episode so far, in order (with the
+        agent's exploration: the paper's Fig. 4 protocol); none for agents that do not learn."""
+        return []
 
     def close(self) -> None:  # noqa: B027 (optional hook)
         """Release the training env, if any."""
@@ -112,6 +118,15 @@ class RandomLearner(BenchLearner):
         from dlocli.controllers.base import RandomController
 
         return RandomController(env, seed=stream_seed(self.seed, EVAL_CONTROLLER))
+
+
+class ZeroLearner(RandomLearner):
+    """All-zero actions: doing nothing, the reference of every score."""
+
+    def controller(self, env: DLOShapeEnv) -> Controller:
+        from dlocli.controllers.base import ZeroController
+
+        return ZeroController(env)
 
 
 class AgentLearner(BenchLearner):
@@ -134,30 +149,34 @@ class AgentLearner(BenchLearner):
             return None
         return self.agent
 
+    def training_returns(self) -> list[float]:
+        return list(self.env.episode_returns)
+
     def close(self) -> None:
         self.env.close()
 
 
 # ----------------------------------------------------------------------------- MPC agents
-def mpc_schedule(spec: BenchSpec) -> tuple[int, int, int]:
-    """(initial episodes I, trials per iteration N, iterations K) of ``mpc`` in the budget.
+def mpc_schedule(spec: BenchSpec, agent: str = "mpc") -> tuple[int, int, int]:
+    """(initial episodes I, trials per iteration N, iterations K) of ``agent`` (mpc or
+    mpc-offline) in its budget.
 
     Iterations are as long as the bench's evaluation interval; the initial dataset as well,
     but at least two episodes (a validation split needs two). ``mpc`` uses I*T + K*N*T
     transitions: at most the budget, less by a remainder shorter than one iteration.
     """
-    from dlocli.bench import eval_interval
+    from dlocli.bench import budget_of, eval_interval
 
     steps = spec.task.episode_steps
     trials = eval_interval(spec) // steps
     initial = max(2, trials)
-    iterations = max(0, (spec.budget // steps - initial) // trials)
+    iterations = max(0, (budget_of(spec, agent) // steps - initial) // trials)
     return initial, trials, iterations
 
 
-def mpc_points(spec: BenchSpec) -> list[int]:
-    """Where ``mpc`` is evaluated: after the initial data and after every iteration."""
-    initial, trials, iterations = mpc_schedule(spec)
+def mpc_points(spec: BenchSpec, agent: str = "mpc") -> list[int]:
+    """Where ``agent`` is evaluated: after the initial data and after every iteration."""
+    initial, trials, iterations = mpc_schedule(spec, agent)
     steps = spec.task.episode_steps
     return [(initial + k * trials) * steps for k in range(iterations + 1)]
 
@@ -166,7 +185,7 @@ class MPCLearner(BenchLearner):
     """Base of the model-based agents: evaluated with gradient MPC through ``model()``."""
 
     def points(self) -> list[int]:
-        return mpc_points(self.spec)
+        return mpc_points(self.spec, self.name)
 
     @abstractmethod
     def model(self) -> DynamicsModel:
@@ -203,6 +222,12 @@ class OnlineMPCLearner(MPCLearner):
         from dlocli.models.base import load_model
 
         return load_model(self.run.paths.checkpoint(self.updates), self.spec.fit.device)
+
+    def training_returns(self) -> list[float]:
+        if self.updates == 0:
+            return []
+        initial = dataset_returns(self.run.initial_dataset(), self.spec.task.episode_steps)
+        return initial + [row["cumulative_reward"] for row in self.run.rows()]
 
 
 class OfflineMPCLearner(MPCLearner):
@@ -261,11 +286,23 @@ class OfflineMPCLearner(MPCLearner):
         assert self._model is not None, "learn_to() before controller()"
         return self._model
 
+    def training_returns(self) -> list[float]:
+        return [] if self.data is None else dataset_returns(self.data, self.spec.task.episode_steps)
+
+
+def dataset_returns(data: Dataset, steps: int) -> list[float]:
+    """Cumulative reward of every episode of ``data`` (diverged steps counted at the clip)."""
+    from dlocli.online import episode_attrs
+
+    return [
+        episode_attrs(data.episode(e), steps)["cumulative_reward"] for e in range(data.n_episodes)
+    ]
+
 
 def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
     """The OnlineSpec of ``mpc`` for one seed, its run directory in ``work``.
 
-    A fixed goal is written to ``work/goal.npy`` so the online run's envs use the bench's goal.
+    A fixed goal is written to ``work/goal.npy`` so the online run's envs use the seed's goal.
     """
     from dlocli.io import atomic_path
 
@@ -274,7 +311,7 @@ def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
     if task.goal == "fixed":
         goal_path = Path(work) / "goal.npy"
         with atomic_path(goal_path) as tmp, open(tmp, "wb") as f:
-            np.save(f, fixed_goal(spec, task.name))
+            np.save(f, fixed_goal(spec, task.name, seed))
         task = task.model_copy(update={"goal_file": goal_path})
     return OnlineSpec(
         backend=spec.backend,

@@ -2,14 +2,19 @@
 (one row per agent x seed x evaluation point x evaluation setting; columns :data:`COLUMNS`).
 
 Figures in the paper's style, mean +- std over seeds of each seed's mean cumulative reward
-per evaluation episode:
+per evaluation episode (``zero``, doing nothing, drawn as the dashed reference):
 
 - Fig. 4 ``fig4_learning_curves.png``: reward against transitions, every agent where it learned;
+  ``fig4_training_trials.png``: the same for the agents' own training episodes (with their
+  exploration noise: the paper's protocol);
 - Fig. 5 ``fig5_bimanual.png``: final reward on the bimanual task, by the task learned on;
-- Fig. 6 ``fig6_random_goals.png``: final reward on random goals next to the fixed goal;
+- Fig. 6 ``fig6_random_goals.png``: reward on random goals against transitions, after
+  learning a fixed goal;
 - Fig. 7 ``fig7_online_offline.png``: ``mpc`` (online) against ``mpc-offline``.
 
 A figure is drawn only when the rows hold what it shows (e.g. Fig. 7 needs both mpc agents).
+The summary leads with the score ``1 - final/initial`` (1 = on the goal, 0 = no better than
+doing nothing) and the transitions at which each agent first closes half the initial error.
 """
 
 from __future__ import annotations
@@ -29,6 +34,8 @@ from dlocli.plots import save_figure, shaded_curve
 Row = dict[str, Any]
 GOALS = {"fixed": "fixed goal", "random": "random goals"}
 SETTING = ("agent", "train_task", "train_goals", "eval_task", "eval_goals")
+REFERENCE = "zero"
+HALF = 0.5  # the score at which an agent has closed half the initial error
 
 
 def is_home(row: Row) -> bool:
@@ -69,11 +76,25 @@ COLUMNS: dict[str, type] = {
     "wall_seconds": float,
     "eval_seconds": float,
 }
+#: columns added later: results of older runs read them as missing (nan)
+NEW_COLUMNS: dict[str, type] = {
+    "initial_error_mm": float,
+    "score": float,
+    "score_std": float,
+    "train_reward": float,
+    "train_episodes": float,
+}
+
+
+def _typed(kind: type, text: str | None) -> Any:
+    return float("nan") if text in (None, "") and kind is float else kind(text)
 
 
 def write_results_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(COLUMNS), extrasaction="ignore")
+    writer = csv.DictWriter(
+        buffer, fieldnames=[*COLUMNS, *NEW_COLUMNS], extrasaction="ignore", restval=""
+    )
     writer.writeheader()
     writer.writerows(rows)
     write_text_atomic(path, buffer.getvalue())
@@ -87,56 +108,106 @@ def read_results_csv(path: Path) -> list[dict[str, Any]]:
         reader = csv.DictReader(f)
         if set(COLUMNS) - set(reader.fieldnames or []):
             raise BadInput(f"{path} is not a dlo bench results.csv (missing columns)")
-        return [{k: COLUMNS[k](row[k]) for k in COLUMNS} for row in reader]
+        kinds = {**COLUMNS, **NEW_COLUMNS}
+        return [{k: _typed(kind, row.get(k)) for k, kind in kinds.items()} for row in reader]
 
 
 def write_summary(
     out: Path, table: list[dict[str, Any]], figures: list[Path], extra: dict[str, Any]
 ) -> dict[str, Any]:
     """summary.json and summary.md (the table in Markdown)."""
-    summary = {**extra, "table": table, "figures": [str(p) for p in figures], "out": str(out)}
+    results = {
+        t["agent"]: {
+            name: t[f"{name}_mean"]
+            for name in ("score", "initial_error_mm", "final_error_mm", "cumulative_reward")
+        }
+        for t in table
+        if is_home(t)
+    }
+    summary = {
+        **extra,
+        "results": results,
+        "table": table,
+        "figures": [str(p) for p in figures],
+        "out": str(out),
+    }
     write_json_atomic(out / "summary.json", summary)
-    write_text_atomic(out / "summary.md", markdown_table(table))
+    write_text_atomic(out / "summary.md", markdown_table(table) + "\n" + markdown_half(table))
     return summary
 
 
 # ----------------------------------------------------------------------------- table
+def _mean_std(group: list[Row], key: str) -> tuple[float, float]:
+    values = np.array([r.get(key, np.nan) for r in group], dtype=float)
+    return float(values.mean()), float(values.std())
+
+
 def summary_table(rows: list[Row]) -> list[Row]:
-    """Per agent and setting, at the final point: mean and std over seeds."""
+    """Per agent and setting, at the final point: mean and std over seeds, and the
+    transitions at which the seeds' mean score first reaches one half."""
     table = []
     for key, group in _group(final_rows(rows), SETTING).items():
-        rewards = np.array([r["cumulative_reward"] for r in group])
-        errors = np.array([r["final_error_mm"] for r in group])
-        table.append(
-            {
-                **dict(zip(SETTING, key, strict=True)),
-                "seeds": len(group),
-                "transitions": int(np.mean([r["transitions"] for r in group])),
-                "cumulative_reward_mean": float(rewards.mean()),
-                "cumulative_reward_std": float(rewards.std()),
-                "final_error_mm_mean": float(errors.mean()),
-                "final_error_mm_std": float(errors.std()),
-                "wall_seconds_mean": float(np.mean([r["wall_seconds"] for r in group])),
-            }
-        )
+        entry: Row = {
+            **dict(zip(SETTING, key, strict=True)),
+            "seeds": len(group),
+            "transitions": int(np.mean([r["transitions"] for r in group])),
+        }
+        for name in ("score", "initial_error_mm", "final_error_mm", "cumulative_reward"):
+            entry[f"{name}_mean"], entry[f"{name}_std"] = _mean_std(group, name)
+        entry["wall_seconds_mean"] = _mean_std(group, "wall_seconds")[0]
+        setting = [r for r in rows if tuple(r[k] for k in SETTING) == key]
+        entry["half_closed_at"] = half_closed_at(setting)
+        table.append(entry)
     return sorted(table, key=lambda t: (not is_home(t), t["eval_task"], t["eval_goals"]))
 
 
+def half_closed_at(rows: list[Row]) -> int | None:
+    """First transitions at which the mean score over seeds reaches one half (None: never)."""
+    for _, group in sorted(_group(rows, ("eval",)).items()):
+        if _mean_std(group, "score")[0] >= HALF:
+            return int(np.mean([r["transitions"] for r in group]))
+    return None
+
+
+def _cell(t: Row, name: str, digits: int) -> str:
+    mean, std = t[f"{name}_mean"], t[f"{name}_std"]
+    return "–" if np.isnan(mean) else f"{mean:.{digits}f} ± {std:.{digits}f}"
+
+
 def markdown_table(table: list[Row]) -> str:
-    """The summary table in Markdown."""
+    """The summary table in Markdown, led by the score (1 - final/initial error)."""
     lines = [
-        "| agent | learned on | evaluated on | seeds | transitions | cumulative reward "
-        "| final error (mm) | learning wall (s) |",
-        "|---|---|---|---:|---:|---:|---:|---:|",
+        "| agent | learned on | evaluated on | seeds | transitions | score "
+        "| initial error (mm) | final error (mm) | cumulative reward | learning wall (s) |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for t in table:
         lines.append(
             f"| {t['agent']} | {t['train_task']}, {GOALS[t['train_goals']]} "
             f"| {t['eval_task']}, {GOALS[t['eval_goals']]} | {t['seeds']} | {t['transitions']} "
-            f"| {t['cumulative_reward_mean']:.2f} ± {t['cumulative_reward_std']:.2f} "
-            f"| {t['final_error_mm_mean']:.1f} ± {t['final_error_mm_std']:.1f} "
+            f"| {_cell(t, 'score', 2)} | {_cell(t, 'initial_error_mm', 1)} "
+            f"| {_cell(t, 'final_error_mm', 1)} | {_cell(t, 'cumulative_reward', 2)} "
             f"| {t['wall_seconds_mean']:.0f} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+def markdown_half(table: list[Row]) -> str:
+    """Per agent where it learned: the transitions at which it first closes half the initial
+    error (mean score over seeds >= 0.5), and the ratio to ``mpc``'s."""
+    home = [t for t in table if is_home(t)]
+    mpc = next((t["half_closed_at"] for t in home if t["agent"] == "mpc"), None)
+    lines = [
+        "Transitions until half the initial error is closed (mean score over seeds >= 0.5):",
+        "",
+        "| agent | transitions | ratio to mpc |",
+        "|---|---:|---:|",
+    ]
+    for t in home:
+        at = t["half_closed_at"]
+        ratio = f"{at / mpc:.1f}" if at is not None and mpc else "–"
+        text = f"{at}" if at is not None else f"not within budget ({t['transitions']})"
+        lines.append(f"| {t['agent']} | {text} | {ratio} |")
     return "\n".join(lines) + "\n"
 
 
@@ -150,30 +221,43 @@ def _figure() -> tuple[Any, Any]:
     return plt.subplots(figsize=(6.4, 4.0), dpi=120)
 
 
-def curve(rows: list[Row]) -> tuple[list[float], list[float], list[float]]:
+def curve(
+    rows: list[Row], key: str = "cumulative_reward"
+) -> tuple[list[float], list[float], list[float]]:
     """(transitions, mean, std) over seeds per evaluation point of one agent's rows."""
     xs, means, stds = [], [], []
     for _, group in sorted(_group(rows, ("eval",)).items()):
-        rewards = np.array([r["cumulative_reward"] for r in group])
+        mean, std = _mean_std(group, key)
+        if np.isnan(mean):
+            continue
         xs.append(float(np.mean([r["transitions"] for r in group])))
-        means.append(float(rewards.mean()))
-        stds.append(float(rewards.std()))
+        means.append(mean)
+        stds.append(std)
     return xs, means, stds
 
 
-def plot_curves(rows: list[Row], path: Path, title: str) -> Path:
-    """Reward against transitions, one shaded curve per agent (and learning setting)."""
+def plot_curves(
+    rows: list[Row], path: Path, title: str, key: str = "cumulative_reward", ylabel: str = ""
+) -> Path:
+    """``key`` against transitions, one shaded curve per agent (and learning setting); the
+    ``zero`` reference dashed."""
     fig, ax = _figure()
-    groups = _group([r for r in rows if is_home(r)], ("agent", "train_task", "train_goals"))
+    groups = _group(rows, ("agent", "train_task", "train_goals"))
     several = len({key[1:] for key in groups}) > 1
     for (agent, task, goals), group in groups.items():
         label = f"{agent} ({task}, {GOALS[goals]})" if several else agent
-        shaded_curve(ax, *curve(group), label=label)
+        xs, means, stds = curve(group, key)
+        if not xs:
+            continue
+        if agent == REFERENCE:
+            ax.plot(xs, means, "k--", lw=1, label=f"{label} (do nothing)")
+        else:
+            shaded_curve(ax, xs, means, stds, label=label)
     ax.set_xlabel("transitions")
-    ax.set_ylabel("cumulative reward per episode")
+    ax.set_ylabel(ylabel or "cumulative reward per episode")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize="small")
     return save_figure(fig, path)
 
 
@@ -212,13 +296,24 @@ def draw_figures(rows: list[Row], plots: Path) -> list[Path]:
     """Every figure the rows allow, into ``plots``; returns their paths."""
     if not rows:
         return []
+    home = [r for r in rows if is_home(r)]
     figures = [
         plot_curves(
-            rows,
+            home,
             Path(plots) / "fig4_learning_curves.png",
-            "Sample efficiency (cumulative reward vs transitions)",
+            "Sample efficiency (noise-free evaluation episodes)",
         )
     ]
+    if any(not np.isnan(r.get("train_reward", np.nan) or np.nan) for r in home):
+        figures.append(
+            plot_curves(
+                home,
+                Path(plots) / "fig4_training_trials.png",
+                "Sample efficiency (the agents' own training episodes)",
+                key="train_reward",
+                ylabel="cumulative reward per training episode",
+            )
+        )
     final = final_rows(rows)
     bimanual = [r for r in final if r["eval_task"] == "bimanual"]
     if bimanual:
@@ -233,18 +328,21 @@ def draw_figures(rows: list[Row], plots: Path) -> list[Path]:
                 _bars(bimanual, learned_on), Path(plots) / "fig5_bimanual.png", "Bimanual task"
             )
         )
-    same_task = [r for r in final if r["eval_task"] == r["train_task"]]
-    if any(r["eval_goals"] == "random" for r in same_task):
-
-        def series(r: Row) -> str:
-            return f"learned on {GOALS[r['train_goals']]}, evaluated on {GOALS[r['eval_goals']]}"
-
+    transfer = [
+        r
+        for r in rows
+        if r["eval_task"] == r["train_task"] and r["train_goals"] == "fixed"
+        if r["eval_goals"] == "random"
+    ]
+    if transfer:
         figures.append(
-            plot_bars(
-                _bars(same_task, series), Path(plots) / "fig6_random_goals.png", "Random goals"
+            plot_curves(
+                transfer,
+                Path(plots) / "fig6_random_goals.png",
+                "Random goals, after learning a fixed goal",
             )
         )
-    mpc = [r for r in rows if r["agent"] in ("mpc", "mpc-offline")]
+    mpc = [r for r in home if r["agent"] in ("mpc", "mpc-offline")]
     if {r["agent"] for r in mpc} == {"mpc", "mpc-offline"}:
         figures.append(
             plot_curves(

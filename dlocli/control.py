@@ -6,7 +6,8 @@ a learned model) acts at every control step. The run directory holds:
 =====================  ==========================================================
 spec.json              the resolved :class:`ControlSpec` (controller options filled in)
 metrics.csv            per step: shape error (mm), reward, latency (ms), controller stats
-summary.json           ``initial_error_mm``, ``final_error_mm``, ``best_error_mm``,
+summary.json           ``initial_error_mm``, ``final_error_mm``, ``score`` (1 - final/initial:
+                       the reference of doing nothing), ``best_error_mm``,
                        ``cumulative_reward``, ``latency_ms_median``, ``latency_ms_p95``,
                        ``steps`` and the run's context
 plots/error.png        shape error and controller latency over the steps
@@ -32,6 +33,7 @@ from dlocli.controllers.base import Controller, controller_spec, make_controller
 from dlocli.env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
+from dlocli.metrics import episode_result
 from dlocli.specs import EnvSpec
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -176,7 +178,7 @@ def closed_loop(
         cpu = time.process_time()
         action = controller.act(obs)
         cpu_ms = 1000.0 * (time.process_time() - cpu)
-        obs, reward, terminated, _, info = env.step(action)
+        obs, reward, _, _, info = env.step(action)
         record = {
             "step": step,
             "shape_error_mm": float(info["shape_error_mm"]),
@@ -190,7 +192,7 @@ def closed_loop(
             frames.append(env.render())
         if progress is not None:
             progress(record)
-        if terminated:
+        if info["diverged"]:  # the rest of the episode would be frozen at -1.5 a step
             return records, initial_error, frames, True
     return records, initial_error, frames, False
 
@@ -205,11 +207,14 @@ def summarise(
     """The run's summary: errors in mm, latencies in ms, and what produced them."""
     errors = np.array([r["shape_error_mm"] for r in records])
     latency = np.array([r["latency_ms"] for r in records])
+    reward = float(sum(r["reward"] for r in records))
+    result = episode_result(initial_error, errors[-1], reward, len(records), spec.steps)
     return {
         "initial_error_mm": round(initial_error, 3),
         "final_error_mm": round(float(errors[-1]), 3),
+        "score": round(result["score"], 4),
         "best_error_mm": round(float(min(errors.min(), initial_error)), 3),
-        "cumulative_reward": round(float(sum(r["reward"] for r in records)), 4),
+        "cumulative_reward": round(result["cumulative_reward"], 4),
         "latency_ms_median": round(float(np.median(latency)), 3),
         "latency_ms_p95": round(float(np.percentile(latency, 95)), 3),
         "cpu_ms_median": round(float(np.median([r["cpu_ms"] for r in records])), 3),

@@ -1,10 +1,18 @@
 """DLOShapeEnv: the Gymnasium shape-control task on top of any backend.
 
 Observation (flat float32 Box): segment positions (N*3), segment quaternions (N*4), gripper
-poses (2*7), goal positions (N*3). Use :meth:`DLOShapeEnv.split_observation` to get them back.
+poses (2*7), goal positions (N*3) and, with ``task.observe_velocity`` (default), segment
+velocities (N*7: the change of each segment's position and quaternion over the last control
+step, divided by the step; zero right after a reset, when the rod has settled). Use
+:meth:`DLOShapeEnv.split_observation` to get the parts back.
 Action: Box(-1, 1, (6,)) for ``single`` or (12,) for ``bimanual``, scaled to the task's
-maximum gripper velocities. Reward: paper eq. 12. An episode ends (terminated, with
-``info["diverged"] = True``) if the physics diverges, and is truncated after T steps.
+maximum gripper velocities. Reward: paper eq. 12. Starts and goals: :mod:`dlocli.shapes`.
+
+A diverged simulation does not end the episode early, so that blowing the simulation up never
+scores better than trying: every remaining step returns the clip reward -1.5 and the last
+finite observation, with ``info["diverged"] = True``, until the episode is truncated after T
+steps. Loops that stop at divergence count the steps they skip at -1.5
+(:func:`dlocli.metrics.diverged_remainder`).
 """
 
 from __future__ import annotations
@@ -17,14 +25,13 @@ import numpy as np
 
 from dlocli.backends.base import Backend
 from dlocli.errors import BadInput
+from dlocli.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.metrics import reward as shape_reward
-from dlocli.metrics import shape_error_mm
 from dlocli.registry import backends as backend_registry
+from dlocli.rotations import state_change
+from dlocli.shapes import make_shape, max_twist
 from dlocli.specs import BackendSpec, EnvSpec, TaskSpec
 from dlocli.tasks import Task, make_task
-
-#: how many control steps a random reset motion keeps one velocity before drawing the next
-MOTION_HOLD_STEPS = 10
 
 
 def make_backend(spec: BackendSpec, control_dt: float = 0.02) -> Backend:
@@ -72,13 +79,19 @@ def check_goal_reachable(goal: np.ndarray, backend: Backend, limits_margin: floa
 
 #: bound of every position in the observation (metres); a diverged rod is clipped to it
 POSITION_BOUND = 10.0
+#: bound of every velocity component in the observation (m/s, 1/s)
+VELOCITY_BOUND = 100.0
 
 
-def observation_space(n: int) -> gym.spaces.Box:
-    """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1]."""
+def observation_space(n: int, velocity: bool = False) -> gym.spaces.Box:
+    """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1], velocity
+    components (if observed) within +-VELOCITY_BOUND."""
     pos = np.full(n * 3, POSITION_BOUND)
     grip = np.tile([POSITION_BOUND] * 3 + [1.0] * 4, 2)
-    high = np.concatenate([pos, np.ones(n * 4), grip, pos]).astype(np.float32)
+    parts = [pos, np.ones(n * 4), grip, pos] + (
+        [np.full(n * 7, VELOCITY_BOUND)] if velocity else []
+    )
+    high = np.concatenate(parts).astype(np.float32)
     return gym.spaces.Box(-high, high, dtype=np.float32)
 
 
@@ -105,15 +118,22 @@ class DLOShapeEnv(gym.Env):
         self.seed_value = seed
         n = self.n_segments
         self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
-        self.observation_space = observation_space(n)
+        self.observation_space = observation_space(n, self.task_spec.observe_velocity)
         self._goal_rng = np.random.default_rng([seed, 1])
         self._goal_given = goal is not None or self.task_spec.goal_file is not None
+        #: (2,7) gripper poses that made the goal, when the env made it (None: a given goal)
+        self.goal_gripper_poses: np.ndarray | None = None
+        #: simulations the last random shape took (more than 1: earlier ones diverged)
+        self.shape_attempts = 0
+        #: cumulative reward of every episode run to its end on this env, in order
+        self.episode_returns: list[float] = []
+        self._return = 0.0
         self._seeded = False
         self.goal = self._initial_goal(goal)
-        self._scale = np.array(
-            [self.task_spec.max_linear_velocity] * 3 + [self.task_spec.max_angular_velocity] * 3
-        )
+        self._scale = max_twist(self.task_spec)
         self._t = 0
+        self._previous: np.ndarray | None = None  # (N, 7) segment state one step earlier
+        self._last_observation: np.ndarray | None = None
 
     # ------------------------------------------------------------------ setup
     def _apply_limits(self) -> None:
@@ -142,31 +162,23 @@ class DLOShapeEnv(gym.Env):
         return None
 
     # ------------------------------------------------------------------ random shapes
-    def _random_motion(self, rng: np.random.Generator, steps: int, moving: np.ndarray) -> None:
-        """Piecewise-constant random gripper twists, then zero-velocity settling."""
-        velocities = np.zeros((2, 6))
-        for t in range(steps):
-            if t % MOTION_HOLD_STEPS == 0:
-                velocities = rng.uniform(-1.0, 1.0, (2, 6)) * self._scale_or_default()
-                velocities[~moving] = 0.0
-            if not self.backend.step(velocities):
-                return
-        for _ in range(self.task_spec.reset_settle_steps):
-            if not self.backend.step(np.zeros((2, 6))):
-                return
-
-    def _scale_or_default(self) -> np.ndarray:
-        spec = self.task_spec
-        return np.array([spec.max_linear_velocity] * 3 + [spec.max_angular_velocity] * 3)
+    def _random_shape(self, rng: np.random.Generator, motion_steps: int) -> bool:
+        """Reset the backend and make a random shape (:mod:`dlocli.shapes`); False if the
+        simulation diverged 10 times."""
+        for attempt in range(1, 11):
+            self.backend.reset(int(rng.integers(2**31)))
+            if make_shape(self.backend, self.task_spec, self.task.moving, rng, motion_steps):
+                self.shape_attempts = attempt
+                return True
+        self.shape_attempts = 10
+        return False
 
     def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
-        """A reachable goal: move the grippers randomly from rest, let the rod settle."""
-        for _ in range(10):
-            self.backend.reset(int(rng.integers(2**31)))
-            self._random_motion(rng, 2 * self.task_spec.reset_motion_steps, self.task.moving)
-            if not self.backend.diverged:
-                return self.backend.segment_positions().copy()
-        raise RuntimeError("could not generate a goal: the simulation diverged 10 times")
+        """A reachable goal: a random shape (:mod:`dlocli.shapes`) the rod settled in."""
+        if not self._random_shape(rng, 2 * self.task_spec.reset_motion_steps):
+            raise RuntimeError("could not generate a goal: the simulation diverged 10 times")
+        self.goal_gripper_poses = self.backend.gripper_poses()
+        return self.backend.segment_positions().copy()
 
     # ------------------------------------------------------------------ gym API
     def reset(
@@ -178,52 +190,76 @@ class DLOShapeEnv(gym.Env):
         super().reset(seed=seed)
         if self.task_spec.goal == "random" and not self._goal_given:
             self.goal = self.sample_goal(self.np_random)
-        for _ in range(10):
-            self.backend.reset(int(self.np_random.integers(2**31)))
-            self._random_motion(self.np_random, self.task_spec.reset_motion_steps, self.task.moving)
-            if not self.backend.diverged:
-                break
+        self._random_shape(self.np_random, self.task_spec.reset_motion_steps)
         self._t = 0
+        self._previous = None  # settled: counted at rest
+        self._last_observation = None
+        self._return = 0.0
         return self._observation(), self._info(diverged=False)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         commands = self.task.to_grippers(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
+        self._previous = self.segment_state()
         ok = self.backend.step(commands * self._scale)
         self._t += 1
-        positions = self.backend.segment_positions()
-        reward = -1.5 if not ok else float(shape_reward(positions, self.goal))
+        reward = -REWARD_CLIP if not ok else float(shape_reward(self._positions(), self.goal))
         truncated = self._t >= self.task_spec.episode_steps
+        self._return += reward
+        if truncated:
+            self.episode_returns.append(self._return)
         info = self._info(diverged=not ok)
         info["commands"] = commands
-        return self._observation(), reward, not ok, truncated, info
+        return self._observation(), reward, False, truncated, info
+
+    def _positions(self) -> np.ndarray:
+        if self.backend.diverged and self._last_observation is not None:
+            return self.split_observation(self._last_observation)["positions"]
+        return self.backend.segment_positions()
 
     def _info(self, diverged: bool) -> dict[str, Any]:
-        error = float(shape_error_mm(self.backend.segment_positions(), self.goal))
+        error = float(shape_error_mm(self._positions(), self.goal))
         return {"shape_error_mm": error, "diverged": diverged, "t": self._t}
 
+    def segment_state(self) -> np.ndarray:
+        """(N, 7) segment positions and quaternions."""
+        backend = self.backend
+        return np.concatenate([backend.segment_positions(), backend.segment_quaternions()], 1)
+
     def _observation(self) -> np.ndarray:
+        if self.backend.diverged and self._last_observation is not None:
+            return self._last_observation  # frozen at the last finite state
+        state = self.segment_state()
         parts = [
-            self.backend.segment_positions().ravel(),
-            self.backend.segment_quaternions().ravel(),
+            state[:, :3].ravel(),
+            state[:, 3:].ravel(),
             self.backend.gripper_poses().ravel(),
             np.asarray(self.goal).ravel(),
         ]
-        obs = np.concatenate(parts).astype(np.float32)
-        return np.clip(obs, self.observation_space.low, self.observation_space.high)
+        if self.task_spec.observe_velocity:
+            change = 0.0 * state if self._previous is None else state_change(self._previous, state)
+            parts.append((change / self.task_spec.control_dt).ravel())
+        obs = np.nan_to_num(np.concatenate(parts), posinf=np.inf, neginf=-np.inf)
+        obs = np.clip(obs, self.observation_space.low, self.observation_space.high)
+        self._last_observation = obs.astype(np.float32)
+        return self._last_observation
 
     def split_observation(self, obs: np.ndarray) -> dict[str, np.ndarray]:
-        """Inverse of the flat observation: positions, quaternions, grippers, goal."""
+        """Inverse of the flat observation: positions, quaternions, grippers, goal and, if
+        observed, velocities (N, 7)."""
         n = self.n_segments
         obs = np.asarray(obs)
-        cuts = np.cumsum([n * 3, n * 4, 14])
-        pos, quat, grip, goal = np.split(obs, cuts, axis=-1)
+        cuts = np.cumsum([n * 3, n * 4, 14, n * 3])
+        pos, quat, grip, goal, velocity = np.split(obs, cuts, axis=-1)
         lead = obs.shape[:-1]
-        return {
+        parts = {
             "positions": pos.reshape(*lead, n, 3),
             "quaternions": quat.reshape(*lead, n, 4),
             "grippers": grip.reshape(*lead, 2, 7),
             "goal": goal.reshape(*lead, n, 3),
         }
+        if self.task_spec.observe_velocity:
+            parts["velocities"] = velocity.reshape(*lead, n, 7)
+        return parts
 
     def render(self) -> np.ndarray:
         return self.backend.render(goal=self.goal)

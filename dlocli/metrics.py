@@ -22,3 +22,34 @@ def shape_error_mm(positions: np.ndarray, goal: np.ndarray) -> np.ndarray:
     """Mean over segments of the Euclidean distance to the goal, in millimetres."""
     diff = np.asarray(positions, dtype=np.float64) - np.asarray(goal, dtype=np.float64)
     return 1000.0 * np.mean(np.linalg.norm(diff, axis=-1), axis=-1)
+
+
+def diverged_remainder(steps_run: int, episode_steps: int) -> float:
+    """Reward of the steps a diverged episode did not run: the clip, -1.5, for each, so that
+    blowing the simulation up never scores better than trying."""
+    return -REWARD_CLIP * max(episode_steps - steps_run, 0)
+
+
+def score(initial_error: float, final_error: float) -> float:
+    """The fraction of the initial error closed, ``1 - final/initial``: 1 = on the goal,
+    0 = no better than doing nothing, negative = worse."""
+    return 1.0 - final_error / initial_error if initial_error > 0 else 0.0
+
+
+def episode_result(
+    initial_error: float, final_error: float, reward_sum: float, steps_run: int, steps: int
+) -> dict[str, float]:
+    """One episode's numbers with their reference: initial and final error (mm), the score,
+    and the cumulative reward with the steps a diverged episode skipped counted at the clip."""
+    return {
+        "initial_error_mm": float(initial_error),
+        "final_error_mm": float(final_error),
+        "score": score(initial_error, final_error),
+        "cumulative_reward": float(reward_sum) + diverged_remainder(steps_run, steps),
+    }
+
+
+def mean_std(values: list[float] | np.ndarray) -> tuple[float, float]:
+    """(mean, std) as floats."""
+    array = np.asarray(values, dtype=np.float64)
+    return float(array.mean()), float(array.std())

@@ -150,14 +150,18 @@ def _env_spec(spec: OnlineSpec) -> EnvSpec:
     return EnvSpec(backend=spec.backend, task=task, seed=spec.seed)
 
 
-def _episode_attrs(episode: Episode, seconds: float) -> dict[str, Any]:
-    from dlocli.metrics import shape_error_mm
+def episode_attrs(episode: Episode, steps: int) -> dict[str, float]:
+    """Initial and final error, score and cumulative reward (a diverged episode's missing
+    steps at the clip) of a recorded episode of ``steps`` steps."""
+    from dlocli.metrics import episode_result, shape_error_mm
 
-    return {
-        "cumulative_reward": float(np.sum(episode.rewards)),
-        "final_error_mm": float(shape_error_mm(episode.positions[-1], episode.goal)),
-        "trial_seconds": round(seconds, 3),
-    }
+    return episode_result(
+        shape_error_mm(episode.positions[0], episode.goal),
+        shape_error_mm(episode.positions[-1], episode.goal),
+        float(np.sum(episode.rewards)),
+        len(episode.rewards),
+        steps,
+    )
 
 
 def _run_trial_to_file(
@@ -167,7 +171,10 @@ def _run_trial_to_file(
     spec = OnlineSpec.model_validate_json(spec_json)
     start = time.perf_counter()
     episode = _trial_episode(spec, Path(checkpoint), k, j, threads)
-    attrs = _episode_attrs(episode, time.perf_counter() - start)
+    attrs = {
+        **episode_attrs(episode, spec.steps),
+        "trial_seconds": round(time.perf_counter() - start, 3),
+    }
     Dataset.from_episodes([episode], {**attrs, "iteration": k, "trial": j}).save(Path(path))
     return attrs
 
@@ -385,8 +392,8 @@ class OnlineRun:
                         "iteration": k,
                         "trial": j,
                         "transitions": transitions if not offline else None,
-                        "cumulative_reward": data.attrs["cumulative_reward"],
-                        "final_error_mm": data.attrs["final_error_mm"],
+                        # from the recorded episode: trial files of older runs lack the score
+                        **episode_attrs(data.episode(0), self.spec.steps),
                         "trial_seconds": data.attrs["trial_seconds"],
                     }
                 )
@@ -405,7 +412,9 @@ class OnlineRun:
             "iterations_done": len(curve),
             "transitions": rows[-1]["transitions"] if rows else 0,
             "curve": curve,
+            "initial_error_mm": curve[-1]["initial_error_mm_mean"] if curve else None,
             "final_error_mm": curve[-1]["final_error_mm_mean"] if curve else None,
+            "score": curve[-1]["score_mean"] if curve else None,
             "cumulative_reward": curve[-1]["cumulative_reward_mean"] if curve else None,
             "seconds": round(wall, 1),
             "out": str(self.spec.out),
@@ -436,6 +445,7 @@ def iteration_curve(
         its = [r for r in rows if r["iteration"] == k]
         rewards = np.array([r["cumulative_reward"] for r in its])
         errors = np.array([r["final_error_mm"] for r in its])
+        scores = np.array([r["score"] for r in its])
         transitions = (
             transitions_from[k - 1]["transitions"]
             if transitions_from and len(transitions_from) >= k
@@ -448,8 +458,11 @@ def iteration_curve(
                 "transitions": transitions,
                 "cumulative_reward_mean": float(rewards.mean()),
                 "cumulative_reward_std": float(rewards.std()),
+                "initial_error_mm_mean": float(np.mean([r["initial_error_mm"] for r in its])),
                 "final_error_mm_mean": float(errors.mean()),
                 "final_error_mm_median": float(np.median(errors)),
+                "score_mean": float(scores.mean()),
+                "score_std": float(scores.std()),
             }
         )
     return curve

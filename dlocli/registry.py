@@ -114,6 +114,9 @@ controllers.register(
 )
 controllers.register("random", "dlocli.controllers.base:RandomController", "uniform random actions")
 controllers.register(
+    "zero", "dlocli.controllers.base:ZeroController", "all-zero actions: do nothing (reference)"
+)
+controllers.register(
     "sac",
     "dlocli.controllers.sb3_agents:SACAgent",
     "Soft Actor-Critic (stable-baselines3) on the flat observation",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
@@ -45,3 +47,18 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     eye = np.eye(3)
     return np.stack([quat_rotate(q, eye[i]) for i in range(3)], axis=-1)
+
+
+def state_change(state: Any, next_state: Any) -> Any:
+    """``next_state - state`` of (..., 7) segment states (position, quaternion), with the next
+    quaternion's sign aligned to the current one: q and -q are the same rotation, and aligning
+    keeps the change small and continuous. numpy arrays or torch tensors."""
+    dot = (state[..., 3:] * next_state[..., 3:]).sum(-1, keepdims=True)
+    sign = (dot >= 0) * 2.0 - 1.0
+    position = next_state[..., :3] - state[..., :3]
+    quat = next_state[..., 3:] * sign - state[..., 3:]
+    if isinstance(state, np.ndarray):
+        return np.concatenate([position, quat], -1)
+    import torch
+
+    return torch.cat([position, quat], -1)

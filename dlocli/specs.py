@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from dlocli.errors import BadInput
 
@@ -111,12 +111,60 @@ class TaskSpec(Spec):
     workspace_high: tuple[float, float, float] = Field(
         (0.8, 0.6, 1.4), description="Gripper workspace upper corner (x, y, z) in metres."
     )
+    shapes: Literal["random-pose", "near-rest"] = Field(
+        "random-pose",
+        description="How episode starts and goals are made: 'random-pose' drives the moving "
+        "grippers to random poses in the pose region and lets the rod settle (the paper's "
+        "scale: tens of cm apart); 'near-rest' moves them randomly for reset_motion_steps "
+        "from rest (a few cm apart; fast tests).",
+    )
+    pose_offset_low: tuple[float, float, float] = Field(
+        (-0.3, -0.15, -0.15),
+        description="Lower corner of the right gripper's position offset from rest, in rod "
+        "lengths (the left gripper's region is its mirror image through x = 0).",
+    )
+    pose_offset_high: tuple[float, float, float] = Field(
+        (0.0, 0.15, 0.15),
+        description="Upper corner of the right gripper's position offset from rest, in rod "
+        "lengths.",
+    )
+    pose_max_rotation: float = Field(
+        0.5,
+        ge=0,
+        le=1.5,
+        allow_inf_nan=False,
+        description="Bound (rad) of each component of the world-frame rotation vector that "
+        "turns a gripper from its rest orientation.",
+    )
     reset_motion_steps: int = Field(
-        40, ge=0, description="Random gripper-motion steps that make a random start (then settle)."
+        40, ge=0, description="near-rest shapes: random gripper-motion steps (then settle)."
     )
     reset_settle_steps: int = Field(
         40, ge=0, description="Zero-velocity steps to let the rod settle."
     )
+    observe_velocity: bool = Field(
+        True,
+        description="Append each segment's velocity (its position and quaternion change over "
+        "the last control step, divided by the step) to the observation: the information the "
+        "learned model's velocity input gets, for every agent.",
+    )
+
+    def inert_fields(self) -> set[str]:
+        """Fields that do not change any result under this spec's ``shapes``."""
+        if self.shapes == "near-rest":
+            return {"pose_offset_low", "pose_offset_high", "pose_max_rotation"}
+        return {"reset_motion_steps"}
+
+    @model_validator(mode="after")
+    def _pose_region_ordered(self) -> TaskSpec:
+        if any(lo > hi for lo, hi in zip(self.pose_offset_low, self.pose_offset_high, strict=True)):
+            raise ValueError("pose_offset_low must not exceed pose_offset_high in any axis")
+        return self
+
+
+#: TaskSpec fields added after runs were first saved, with the value that rebuilds what a
+#: saved run did before the field existed
+TASK_LEGACY_VALUES: dict[str, Any] = {"shapes": "near-rest", "observe_velocity": False}
 
 
 # --------------------------------------------------------------------------- commands

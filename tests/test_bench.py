@@ -9,10 +9,12 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from dlocli.cli import app
+from dlocli.errors import BadInput
 
 runner = CliRunner()
 #: tiny sizes so every job takes seconds (the defaults are the paper's)
@@ -66,10 +68,13 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
     spec = tiny_spec(tmp_path)
     summary = json.loads(
         bench(
-            "--spec", spec, "--agents", "random,sac,pilco,mpc", "--out", str(run), "--json"
+            "--spec", spec, "--agents", "zero,random,sac,pilco,mpc", "--out", str(run), "--json"
         ).stdout
     )
-    assert summary["jobs_done"] == summary["jobs"] == 4
+    assert summary["jobs_done"] == summary["jobs"] == 5
+    for agent in ("zero", "sac", "mpc"):  # every result carries its reference
+        assert {"initial_error_mm", "score"} <= set(summary["results"][agent])
+    assert abs(summary["results"]["zero"]["score"]) < 0.05
     rows = read_rows(run)
     home = [r for r in rows if r["eval_task"] == "single" and r["eval_goals"] == "fixed"]
     points = {
@@ -82,8 +87,16 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
         "pilco": [20, 40, 60],
         "mpc": [40, 60],
     }  # mpc: 2 initial random episodes, then 1 trial
+    # the same starts for every agent; do nothing keeps the initial error
+    zero = [r for r in home if r["agent"] == "zero"]
+    assert {r["initial_error_mm"] for r in home} == {zero[0]["initial_error_mm"]}
+    assert all(float(r["final_error_mm"]) > 0.9 * float(r["initial_error_mm"]) for r in zero)
+    # training-trial rewards: one 20-step episode per 20 transitions for the learning agents
+    assert [r["train_episodes"] for r in home if r["agent"] == "sac"] == ["1", "1", "1"]
+    assert all(float(r["train_reward"]) < 0 for r in home if r["agent"] in ("sac", "mpc"))
+    assert {r["train_reward"] for r in zero} == {""}
     transfers = {(r["agent"], r["eval_task"], r["eval_goals"]) for r in rows} - {
-        (a, "single", "fixed") for a in points
+        (a, "single", "fixed") for a in [*points, "zero"]
     }
     assert ("mpc", "bimanual", "fixed") in transfers and ("sac", "single", "random") in transfers
     assert ("sac", "bimanual", "fixed") not in transfers  # a 6-D policy cannot act there
@@ -98,14 +111,16 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
         assert (run / name).is_file(), name
     table = (run / "summary.md").read_text()
     assert "| sac | single, fixed goal | single, fixed goal | 1 | 60 |" in table
+    assert "Transitions until half the initial error is closed" in table
+    assert (run / "plots" / "fig4_training_trials.png").is_file()
 
     # resume: a lost job is rerun (same result), a new agent added; kept jobs are not rerun
     (run / "jobs" / "random-s0.json").unlink()
     kept = {p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir()}
     res = bench(
-        "--resume", str(run), "--agents", "random,sac,pilco,mpc,mpc-offline", "--workers", "2"
+        "--resume", str(run), "--agents", "zero,random,sac,pilco,mpc,mpc-offline", "--workers", "2"
     )
-    assert "2 job(s) to run, 3 finished job(s) kept" in res.output
+    assert "2 job(s) to run, 4 finished job(s) kept" in res.output
     assert {
         p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir() if p.name in kept
     } == kept
@@ -178,3 +193,23 @@ def test_runs_saved_before_a_model_field_existed_keep_their_jobs(tmp_path: Path)
         update={"model": spec.model.model_copy(update={"absolute_position": False})}
     )
     assert fingerprint(moved) != fingerprint(spec)
+
+
+def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
+    from dlocli.bench import BenchSpec, check_spec, eval_points, fingerprint
+    from dlocli.bench_agents import fixed_goal
+
+    spec = BenchSpec.model_validate({**TINY, "budgets": {"sac": 100}})
+    assert np.abs(fixed_goal(spec, "single", 0) - fixed_goal(spec, "single", 1)).max() > 0.01
+    np.testing.assert_array_equal(fixed_goal(spec, "single", 1), fixed_goal(spec, "single", 1))
+    assert eval_points(spec, "sac") == [20, 40, 60, 80, 100]
+    assert eval_points(spec, "td3") == [20, 40, 60]
+    # a longer budget reruns that agent's jobs only
+    assert fingerprint(spec, "sac") != fingerprint(spec.model_copy(update={"budgets": {}}), "sac")
+    assert fingerprint(spec, "zero") == fingerprint(spec.model_copy(update={"budgets": {}}), "zero")
+    check_spec(spec)
+    mismatched = spec.model_copy(
+        update={"task": spec.task.model_copy(update={"observe_velocity": False})}
+    )
+    with pytest.raises(BadInput, match="same information"):
+        check_spec(mismatched)

@@ -29,8 +29,8 @@ from dlocli.train_spec import FitSpec
 from dlocli.training import train_model
 
 TINY = ModelSpec(hidden=32, edge_layers=2, node_layers=2, lstm_layers=1)
-SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "best_error_mm", "cumulative_reward",
-                "latency_ms_median", "latency_ms_p95", "steps"}  # fmt: skip
+SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "score", "best_error_mm",
+                "cumulative_reward", "latency_ms_median", "latency_ms_p95", "steps"}  # fmt: skip
 
 
 def model_controllers() -> list[str]:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from dlocli.cli import app
@@ -96,6 +97,11 @@ def test_reduced_run_writes_everything(uninterrupted):
         ("2", "2"),
     ]
     assert summary["iterations_done"] == 2
+    assert summary["initial_error_mm"] > 0  # the reference: what doing nothing keeps
+    first = rows[0]
+    assert float(first["score"]) == pytest.approx(
+        1 - float(first["final_error_mm"]) / float(first["initial_error_mm"])
+    )
     assert summary["transitions"] == 2 * 15 + 4 * 15
     saved = json.loads((out / "spec.json").read_text())
     assert saved["iters"] == 2 and saved["model"]["hidden"] == 16
@@ -105,7 +111,10 @@ def test_resume_after_sigkill_matches_uninterrupted(uninterrupted, tmp_path):
     reference, summary = uninterrupted
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "dlocli.cli", "online", *TINY, "--out", str(out), "--json"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # the killed run uses the torch thread count of this process, as the reference did:
+    # float sums differ with the thread count
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     deadline = time.time() + 300
     while not (out / "checkpoints" / "iter_02.pt").exists():  # inside iteration 2
         assert proc.poll() is None and time.time() < deadline, "run ended before iteration 2"

@@ -82,7 +82,9 @@ def bench(
             "evals": evals,
             "eval_trials": eval_trials,
             "model.hidden": hidden,
+            # every agent gets the same information: the model's input, the RL observation
             "model.velocity_input": velocity_input,
+            "task.observe_velocity": velocity_input,
             "fit.epochs": epochs,
             "transfer": transfer,
             "executor": executor,

@@ -69,6 +69,18 @@ class RandomController(Controller):
         return self.rng.uniform(-1.0, 1.0, self.action_dim)
 
 
+class ZeroController(Controller):
+    """All-zero actions: do nothing, the reference every result is scored against."""
+
+    name = "zero"
+
+    def __init__(self, env: Any, seed: int = 0, **_: Any) -> None:
+        super().__init__(env)
+
+    def _act(self, obs: np.ndarray) -> np.ndarray:
+        return np.zeros(self.action_dim)
+
+
 class LearningAgent(Controller):
     """A controller that learns from its own interaction with ``env`` (benchmark agents).
 

@@ -115,6 +115,7 @@ class PilcoAgent(LearningAgent):
         self._block_state = np.zeros(0)
         self._block_action = np.zeros(self.action_dim)
         self._block_steps = 0
+        self._diverged = False
         self._hold_action = np.zeros(self.action_dim)  # for act(): actions held like in training
         self._hold_steps = 0
 
@@ -165,6 +166,7 @@ class PilcoAgent(LearningAgent):
             self.update(goal)
         self._random_episode = self.policy is None
         self._block_steps = 0
+        self._diverged = False
         self._episodes += 1
 
     def _env_step(self) -> None:
@@ -175,13 +177,12 @@ class PilcoAgent(LearningAgent):
                 self._block_action = self.rng.uniform(-1.0, 1.0, self.action_dim)
             else:
                 self._block_action = self.policy_action(self._obs)
-        obs, _, terminated, truncated, _ = self.env.step(self._block_action.astype(np.float32))
+        obs, _, _, truncated, info = self.env.step(self._block_action.astype(np.float32))
         self._obs = obs
         self._block_steps += 1
-        if terminated:  # diverged: drop the unfinished block
-            self._obs = None
-            return
-        if self._block_steps == self.spec.action_repeat:
+        # a diverged episode runs on frozen until truncated: it spends budget and adds no data
+        self._diverged |= bool(info["diverged"])
+        if self._block_steps == self.spec.action_repeat and not self._diverged:
             self._record(self._block_state, self._block_action, self.reduce(obs)[0])
             self._block_steps = 0
         if truncated:

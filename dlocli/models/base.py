@@ -35,6 +35,7 @@ from torch import Tensor
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, versions
 from dlocli.models.spec import ModelSpec, with_legacy_fields
+from dlocli.rotations import state_change
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)
@@ -202,19 +203,8 @@ class DynamicsModel(torch.nn.Module, ABC):
 
 
 # ---------------------------------------------------------------------- state algebra
-def target_delta(state: Any, next_state: Any) -> Any:
-    """next_state - state with the next quaternion's sign aligned to the current one.
-
-    q and -q are the same rotation; aligning keeps the change small and continuous.
-    Works on numpy arrays and torch tensors of shape (..., 7).
-    """
-    dot = (state[..., 3:] * next_state[..., 3:]).sum(-1, keepdims=True)
-    sign = (dot >= 0) * 2.0 - 1.0
-    pos = next_state[..., :3] - state[..., :3]
-    quat = next_state[..., 3:] * sign - state[..., 3:]
-    if isinstance(state, Tensor):
-        return torch.cat([pos, quat], -1)
-    return np.concatenate([pos, quat], -1)
+#: next_state - state with the quaternion sign aligned (numpy or torch), see rotations
+target_delta = state_change
 
 
 def apply_delta(state: Tensor, delta: Tensor) -> Tensor:

@@ -8,7 +8,7 @@ from typing import Any
 
 from pydantic import Field
 
-from dlocli.specs import Spec
+from dlocli.specs import TASK_LEGACY_VALUES, Spec
 
 
 class ModelSpec(Spec):
@@ -49,9 +49,11 @@ def with_legacy_fields(saved: Any) -> Any:
 
 
 def saved_spec(path: Path) -> Any:
-    """A run's spec.json as data, its model spec completed with the fields it predates
-    (ValueError if it is not JSON)."""
+    """A run's spec.json as data, its model and task specs completed with the fields they
+    predate (ValueError if it is not JSON)."""
     data = json.loads(Path(path).read_text())
     if isinstance(data, dict) and isinstance(data.get("model"), dict):
         data["model"] = with_legacy_fields(data["model"])
+    if isinstance(data, dict) and isinstance(data.get("task"), dict):
+        data["task"] = {**TASK_LEGACY_VALUES, **data["task"]}
     return data

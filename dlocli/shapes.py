@@ -1,0 +1,140 @@
+"""Random rod shapes for episode starts and goals, made physically so every goal is reachable.
+
+Two ways (``TaskSpec.shapes``):
+
+- ``random-pose`` (default, the paper's scale): each moving gripper gets a target pose drawn
+  uniformly from the pose region — a position offset from its rest position inside the box
+  ``pose_offset_low..pose_offset_high`` (fractions of the rod length, stated for the right
+  gripper; the left gripper's box is its mirror image through the plane x = 0) and an
+  orientation turned from rest by a world-frame rotation vector whose components lie in
+  ``±pose_max_rotation`` radians. Bimanual targets are redrawn until the grippers' separation
+  lies inside the task's limits. The grippers are driven there at no more than the task's
+  maximum velocities, then held still while the rod settles.
+- ``near-rest``: piecewise-constant random gripper twists for ``reset_motion_steps`` control
+  steps from rest, then settling: starts and goals a few centimetres apart (fast tests).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dlocli.backends.base import Backend
+from dlocli.rotations import quat_from_rotvec, quat_multiply, quat_normalize
+from dlocli.specs import TaskSpec
+
+#: how many control steps a near-rest motion keeps one velocity before drawing the next
+MOTION_HOLD_STEPS = 10
+#: pose error below which a driven gripper counts as arrived (m, rad)
+ARRIVED = 1e-6
+#: draws of bimanual targets before giving up on the separation limits
+TARGET_DRAWS = 100
+
+
+def max_twist(task: TaskSpec) -> np.ndarray:
+    """(6,) the largest gripper twist: linear (m/s) then angular (rad/s) per component."""
+    return np.array([task.max_linear_velocity] * 3 + [task.max_angular_velocity] * 3)
+
+
+def make_shape(
+    backend: Backend, task: TaskSpec, moving: np.ndarray, rng: np.random.Generator, steps: int
+) -> bool:
+    """Move ``backend`` (already reset to rest) to a random shape; False if it diverged.
+
+    ``steps`` is the near-rest motion length (random-pose drives until the target is reached).
+    """
+    if task.shapes == "random-pose":
+        targets = draw_gripper_targets(backend, task, moving, rng)
+        ok = drive_grippers(backend, task, targets, moving)
+    else:
+        ok = random_motion(backend, task, moving, rng, steps)
+    return ok and settle(backend, task.reset_settle_steps)
+
+
+# ----------------------------------------------------------------------------- random pose
+def draw_gripper_targets(
+    backend: Backend, task: TaskSpec, moving: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """(2,7) target poses: the rest poses with the moving grippers' drawn from the region."""
+    rest = backend.rest_gripper_poses()
+    limits = backend.limits
+    for _ in range(TARGET_DRAWS):
+        targets = rest.copy()
+        for gripper in np.flatnonzero(moving):
+            targets[gripper] = _draw_pose(rest[gripper], task, backend.rod.length, gripper, rng)
+        targets[:, :3] = np.clip(targets[:, :3], limits.low, limits.high)
+        separation = np.linalg.norm(targets[1, :3] - targets[0, :3])
+        if limits.min_separation <= separation <= limits.max_separation:
+            return targets
+    raise RuntimeError(
+        "no gripper targets inside the separation limits in "
+        f"{TARGET_DRAWS} draws; widen max_separation or narrow the pose region"
+    )
+
+
+def _draw_pose(
+    rest: np.ndarray, task: TaskSpec, length: float, gripper: int, rng: np.random.Generator
+) -> np.ndarray:
+    offset = rng.uniform(task.pose_offset_low, task.pose_offset_high) * length
+    rotvec = rng.uniform(-task.pose_max_rotation, task.pose_max_rotation, 3)
+    if gripper == 0:  # mirror through x = 0: x flips; a rotation vector (axial) keeps x only
+        offset[0] = -offset[0]
+        rotvec[1:] = -rotvec[1:]
+    quat = quat_normalize(quat_multiply(quat_from_rotvec(rotvec), rest[3:]))
+    return np.concatenate([rest[:3] + offset, quat])
+
+
+def gripper_twists_towards(
+    poses: np.ndarray, targets: np.ndarray, task: TaskSpec, moving: np.ndarray
+) -> np.ndarray:
+    """(2,6) twists that bring ``poses`` to ``targets`` in one control step where the
+    velocity limits allow, and at the limits (per component) otherwise."""
+    dt = task.control_dt
+    linear = (targets[:, :3] - poses[:, :3]) / dt
+    angular = rotation_between(poses[:, 3:], targets[:, 3:]) / dt
+    twists = np.clip(np.concatenate([linear, angular], axis=1), -max_twist(task), max_twist(task))
+    twists[~moving] = 0.0
+    return twists
+
+
+def rotation_between(start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(...,3) world-frame rotation vectors r, |r| <= pi, with end = exp(r) * start."""
+    conjugate = start * np.array([1.0, -1.0, -1.0, -1.0])
+    relative = quat_normalize(quat_multiply(end, conjugate))  # w >= 0: the short way round
+    sin_half = np.linalg.norm(relative[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(sin_half, relative[..., :1])
+    scale = np.where(sin_half > 1e-12, angle / np.maximum(sin_half, 1e-12), 2.0)
+    return relative[..., 1:] * scale
+
+
+def drive_grippers(
+    backend: Backend, task: TaskSpec, targets: np.ndarray, moving: np.ndarray
+) -> bool:
+    """Step ``backend`` until the moving grippers reach ``targets`` (or a step budget ends)."""
+    budget = 4 * task.episode_steps
+    for _ in range(budget):
+        twists = gripper_twists_towards(backend.gripper_poses(), targets, task, moving)
+        if np.abs(twists).max() * task.control_dt < ARRIVED:
+            return True
+        if not backend.step(twists):
+            return False
+    return True
+
+
+# ----------------------------------------------------------------------------- near rest
+def random_motion(
+    backend: Backend, task: TaskSpec, moving: np.ndarray, rng: np.random.Generator, steps: int
+) -> bool:
+    """Piecewise-constant random gripper twists for ``steps`` control steps."""
+    velocities = np.zeros((2, 6))
+    for t in range(steps):
+        if t % MOTION_HOLD_STEPS == 0:
+            velocities = rng.uniform(-1.0, 1.0, (2, 6)) * max_twist(task)
+            velocities[~moving] = 0.0
+        if not backend.step(velocities):
+            return False
+    return True
+
+
+def settle(backend: Backend, steps: int) -> bool:
+    """Hold the grippers still for ``steps`` control steps."""
+    return all(backend.step(np.zeros((2, 6))) for _ in range(steps))
