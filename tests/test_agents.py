@@ -132,6 +132,20 @@ def test_agents_build_from_registry_spec_and_refuse_unknown_options():
         make_controller("pilco", env, options={"bogus": 1})
 
 
+def test_sb3_defaults_are_the_zoo_bullet_values_and_reach_sb3():
+    env = dlocli.make_env(backend="mujoco", task="single", seed=0, episode_steps=20)
+    sac = make_controller("sac", env, options={"net_arch": [16, 16]}, seed=0)
+    assert (sac.model.gamma, sac.model.tau, sac.model.learning_starts) == (0.98, 0.02, 1000)
+    assert sac.model.use_sde and torch.all(sac.model.policy.actor.log_std == -3.0)
+    plain = make_controller("sac", env, options={"net_arch": [16, 16], "use_sde": False})
+    assert not plain.model.use_sde
+    td3 = make_controller("td3", env, options={"net_arch": [16, 16]}, seed=0)
+    assert td3.model.train_freq.frequency == 20 and td3.model.gradient_steps == -1
+    np.testing.assert_allclose(td3.model.action_noise._sigma, 0.1)
+    silent = make_controller("td3", env, options={"net_arch": [16, 16], "action_noise": 0.0})
+    assert silent.model.action_noise is None  # SB3's default: no exploration noise
+
+
 # ---------------------------------------------------------------------- PILCO math vs MC
 def gaussian_samples(mean: torch.Tensor, cov: torch.Tensor, n: int, seed: int) -> torch.Tensor:
     gen = torch.Generator().manual_seed(seed)

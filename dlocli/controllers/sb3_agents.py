@@ -6,9 +6,28 @@ fixed goal can be evaluated on random goals, paper Fig. 6). The reward is the en
 eq. 12, already clipped to [-1.5, 0]. ``learn(n)`` consumes exactly ``n`` env transitions of
 the training env; the episode in progress carries over between calls.
 
-Hyperparameters are SB3's defaults (Haarnoja et al. 2018 for SAC, Fujimoto et al. 2018 for
-TD3) except ``learning_starts``: SB3's 100 random steps are kept, which is 5% of a budget of a
-few thousand transitions; set it in the spec for longer runs (SAC papers use 1e4).
+Defaults are rl-baselines3-zoo's tuned values for the PyBullet locomotion envs
+(``hyperparams/sac.yml`` and ``hyperparams/td3.yml``, entry ``HalfCheetahBulletEnv-v0``; Ant,
+Walker2D, Hopper and Reacher share it up to a learning-rate schedule): 2-8 continuous actions
+in [-1, 1], a dense reward and episodes of up to 1000 steps, the nearest tuned match to our 6
+or 12 velocities on a few hundred floats of state. Both: ``gamma`` 0.98, ``net_arch``
+[400, 300], one gradient step per env transition. SAC: ``learning_rate`` 7.3e-4, ``tau`` 0.02,
+``train_freq`` = ``gradient_steps`` = 8, ``buffer_size`` 300k, gSDE exploration with
+``log_std_init`` -3. TD3: ``learning_rate`` 1e-3, Gaussian action noise of std 0.1,
+``buffer_size`` 200k, and SB3's ``tau``, ``batch_size`` and target smoothing (the zoo keeps
+them). Two adaptations to budgets of 5k-50k transitions instead of the zoo's 1M:
+
+- ``learning_starts`` 1000 instead of 10000 (half of a 20k budget): five 200-step episodes of
+  uniform random actions from five starts, about four batches of distinct transitions.
+- TD3's ``train_freq`` "episode" with ``gradient_steps`` -1 is the zoo's one update per
+  episode (``[1, "episode"]``) as a step count, the task's episode length: ``learn(n)`` must
+  stop after exactly ``n`` transitions, which SB3 guarantees only for step counts. The two
+  agree while episodes run to their length (they end early only if the simulation diverges).
+
+Both buffers hold the whole budget, so nothing is ever discarded. SB3's own defaults (SAC:
+Haarnoja et al. 2018, TD3: Fujimoto et al. 2018, with no action noise) remain one spec away;
+``benchmarks/rl_sweep.py`` compares them with these defaults and a few variants (gamma,
+update schedule, gSDE) under a fixed budget, and the README reports its result.
 
 Seeding: SB3's ``seed=`` seeds Python's, NumPy's and torch's global generators, the action
 space and the env's first reset, so the same seed on CPU gives the same agent. Torch's thread
@@ -19,16 +38,27 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import BeforeValidator, Field, ValidationError
 
 from dlocli.controllers.base import LearningAgent
 from dlocli.errors import BadInput
 from dlocli.specs import Spec, format_validation_error
 
 SpecT = TypeVar("SpecT", bound=Spec)
+
+
+def _check_train_freq(value: Any) -> Any:
+    if value == "episode" or (type(value) is int and value > 0):
+        return value
+    raise ValueError("must be a positive number of env steps or 'episode'")
+
+
+#: env steps between updates, or "episode": the task's episode length
+TrainFreq = Annotated[int | Literal["episode"], BeforeValidator(_check_train_freq)]
+TRAIN_FREQ_HELP = "Env steps between updates, or 'episode': once per task episode (its length)."
 
 
 def resolve_agent_spec(cls: type[SpecT], spec: Spec | None, fields: dict[str, Any]) -> SpecT:
@@ -44,55 +74,96 @@ class SB3Spec(Spec):
     """Fields shared by the SB3 off-policy algorithms (constructor keywords of SB3)."""
 
     learning_rate: float = Field(3e-4, gt=0, description="Adam learning rate of actor and critics.")
-    buffer_size: int = Field(1_000_000, gt=0, description="Replay buffer capacity (transitions).")
+    buffer_size: int = Field(
+        1_000_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
+    )
     learning_starts: int = Field(
-        100, ge=0, description="Uniform random transitions before the first gradient step."
+        1000, ge=0, description="Uniform random transitions before the first gradient step."
     )
     batch_size: int = Field(256, gt=0, description="Minibatch size of each gradient step.")
-    gamma: float = Field(0.99, gt=0, le=1, description="Discount factor.")
+    gamma: float = Field(0.98, gt=0, le=1, description="Discount factor.")
     tau: float = Field(0.005, gt=0, le=1, description="Polyak coefficient of the target networks.")
-    train_freq: int = Field(1, gt=0, description="Env steps between updates.")
+    train_freq: TrainFreq = Field(1, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        1, ge=-1, description="Gradient steps per update (-1: one per env step)."
+        1, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
     )
     net_arch: list[int] = Field(
-        default_factory=lambda: [256, 256], description="Hidden layer sizes of actor and critics."
+        default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
     )
     device: str = Field("auto", description="Torch device: 'auto', 'cpu' or 'cuda'.")
 
-    def sb3_kwargs(self, action_dim: int) -> dict[str, Any]:
-        """Keyword arguments for the SB3 algorithm's constructor (``action_dim``: |A|)."""
+    def steps_per_update(self, episode_steps: int) -> int:
+        """``train_freq`` in env steps for a task of ``episode_steps`` steps per episode."""
+        return episode_steps if self.train_freq == "episode" else self.train_freq
+
+    def sb3_kwargs(self, action_dim: int, episode_steps: int) -> dict[str, Any]:
+        """Keyword arguments for the SB3 algorithm's constructor (|A|, steps per episode)."""
         data = self.model_dump(exclude={"net_arch"})
+        data["train_freq"] = self.steps_per_update(episode_steps)
         data["policy_kwargs"] = {"net_arch": list(self.net_arch)}
         return data
 
 
 class SACSpec(SB3Spec):
-    """Soft Actor-Critic (SB3 defaults; automatic entropy tuning)."""
+    """Soft Actor-Critic with automatic entropy tuning (zoo's Bullet values, see module doc)."""
 
+    learning_rate: float = Field(
+        7.3e-4, gt=0, description="Adam learning rate of actor, critics and entropy coefficient."
+    )
+    buffer_size: int = Field(
+        300_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
+    )
+    tau: float = Field(0.02, gt=0, le=1, description="Polyak coefficient of the target networks.")
+    train_freq: TrainFreq = Field(8, description=TRAIN_FREQ_HELP)
+    gradient_steps: int = Field(
+        8, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
+    )
     ent_coef: str | float = Field(
         "auto", description="Entropy coefficient, or 'auto' to learn it (target -|A|)."
     )
+    use_sde: bool = Field(
+        True,
+        description="Generalized state-dependent exploration (gSDE) instead of independent "
+        "Gaussian noise per step; false: SB3's default SAC exploration.",
+    )
+    sde_sample_freq: int = Field(
+        -1, ge=-1, description="gSDE: env steps between new noise matrices (-1: once per update)."
+    )
+    log_std_init: float = Field(
+        -3.0, le=2, description="gSDE: initial log std of the exploration noise matrix."
+    )
+
+    def sb3_kwargs(self, action_dim: int, episode_steps: int) -> dict[str, Any]:
+        data = super().sb3_kwargs(action_dim, episode_steps)
+        data["policy_kwargs"]["log_std_init"] = data.pop("log_std_init")
+        return data
 
 
 class TD3Spec(SB3Spec):
-    """Twin Delayed DDPG (SB3 defaults: lr 1e-3, networks [400, 300], Gaussian noise 0.1)."""
+    """Twin Delayed DDPG with Gaussian exploration noise (zoo's Bullet values, see module doc)."""
 
     learning_rate: float = Field(1e-3, gt=0, description="Adam learning rate of actor and critics.")
-    net_arch: list[int] = Field(
-        default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
+    buffer_size: int = Field(
+        200_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
+    )
+    train_freq: TrainFreq = Field("episode", description=TRAIN_FREQ_HELP)
+    gradient_steps: int = Field(
+        -1, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
     )
     action_noise: float = Field(
-        0.1, ge=0, description="Std of the Gaussian exploration noise on actions in [-1, 1]."
+        0.1,
+        ge=0,
+        description="Std of the Gaussian exploration noise on actions in [-1, 1] (0: none, "
+        "SB3's default).",
     )
     policy_delay: int = Field(2, gt=0, description="Critic updates per actor update.")
     target_policy_noise: float = Field(0.2, ge=0, description="Std of target policy smoothing.")
     target_noise_clip: float = Field(0.5, ge=0, description="Clip of target policy smoothing.")
 
-    def sb3_kwargs(self, action_dim: int) -> dict[str, Any]:
+    def sb3_kwargs(self, action_dim: int, episode_steps: int) -> dict[str, Any]:
         from stable_baselines3.common.noise import NormalActionNoise
 
-        data = super().sb3_kwargs(action_dim)
+        data = super().sb3_kwargs(action_dim, episode_steps)
         sigma = data.pop("action_noise")
         noise = NormalActionNoise(np.zeros(action_dim), np.full(action_dim, sigma))
         data["action_noise"] = noise if sigma > 0 else None
@@ -110,6 +181,7 @@ class SB3Agent(LearningAgent):
     ) -> None:
         super().__init__(env, seed=seed)
         self.spec: SB3Spec = resolve_agent_spec(self.spec_cls, spec, spec_fields)
+        self.episode_steps = int(env.task_spec.episode_steps)
         self.model = self._build_model()
 
     # ------------------------------------------------------------------ construction
@@ -121,7 +193,7 @@ class SB3Agent(LearningAgent):
     def _build_model(self) -> Any:
         from stable_baselines3.common.monitor import Monitor
 
-        kwargs = self.spec.sb3_kwargs(self.action_dim)
+        kwargs = self.spec.sb3_kwargs(self.action_dim, self.episode_steps)
         return self._algorithm_class()(
             "MlpPolicy", Monitor(self.env), seed=self.seed, verbose=0, **kwargs
         )
@@ -132,7 +204,7 @@ class SB3Agent(LearningAgent):
         if transitions <= 0:
             return
         start = self.model.num_timesteps
-        full = transitions - transitions % self.spec.train_freq
+        full = transitions - transitions % self.spec.steps_per_update(self.episode_steps)
         if full:
             self.model.learn(full, reset_num_timesteps=False)
         if transitions - full:
