@@ -46,15 +46,15 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from dlocli.bench_agents import make_bench_env
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.errors import BadInput, DloError
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
 from dlocli.models.spec import LEGACY_VALUES, ModelSpec, saved_spec
-from dlocli.online import stream_seed
 from dlocli.registry import Registry
+from dlocli.rollout import episode_scores, rollout, stream_seed
 from dlocli.specs import TASK_LEGACY_VALUES, EnvSpec, refuse_resume_conflicts
 from dlocli.train_spec import FitSpec
 
@@ -133,6 +133,18 @@ class BenchSpec(EnvSpec):
     )
     threads: int = Field(1, gt=0, description="Torch threads per job.")
     out: Path = Field(Path("runs/bench"), description="Run directory.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _same_information(cls, data: Any) -> Any:
+        """The RL observation holds the segment velocities exactly when the model reads them,
+        unless a spec says otherwise (which check_spec then refuses)."""
+        model = data.get("model") if isinstance(data, dict) else None
+        if isinstance(model, dict) and "velocity_input" in model:
+            task = dict(data.get("task") or {})
+            task.setdefault("observe_velocity", model["velocity_input"])
+            data = {**data, "task": task}
+        return data
 
 
 # ----------------------------------------------------------------------------- schedule
@@ -243,18 +255,7 @@ def check_spec(spec: BenchSpec) -> None:
 def eval_episode(controller: Any, env: Any, seed: int) -> dict[str, float]:
     """Initial and final error, score and cumulative reward of one noise-free episode from
     ``seed`` (a diverged episode stops there; its missing steps count at the clip)."""
-    from dlocli.metrics import episode_result
-
-    obs, info = env.reset(seed=seed)
-    initial = info["shape_error_mm"]
-    controller.reset(env.goal)
-    total, steps_run, steps = 0.0, 0, env.task_spec.episode_steps
-    while steps_run < steps:
-        obs, reward, _, truncated, info = env.step(controller.act(obs))
-        total, steps_run = total + float(reward), steps_run + 1
-        if info["diverged"] or truncated:
-            break
-    return episode_result(initial, info["shape_error_mm"], total, steps_run, steps)
+    return episode_scores(rollout(env, controller, seed), env.task_spec.episode_steps)
 
 
 def evaluate(controller: Any, env: Any, spec: BenchSpec, seed: int) -> dict[str, float]:

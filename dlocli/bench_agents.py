@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dlocli.online import INITIAL, TRAIN, OnlineRun, OnlineSpec, stream_seed
+from dlocli.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
+from dlocli.rollout import episode_scores, stream_seed
 
 if TYPE_CHECKING:
     from dlocli.bench import BenchSpec
@@ -261,7 +262,6 @@ class OfflineMPCLearner(MPCLearner):
 
     def _random_data(self, transitions: int) -> Dataset:
         """Random episodes (those of ``mpc``'s initial dataset first) up to ``transitions``."""
-        from dlocli.collect import random_actions, run_episode
         from dlocli.data import Dataset
 
         episodes = self.data.n_episodes if self.data is not None else 0
@@ -269,13 +269,11 @@ class OfflineMPCLearner(MPCLearner):
         if needed <= 0:
             assert self.data is not None
             return self.data
-        env, steps = train_env(self.spec, self.seed), self.spec.task.episode_steps
+        env = train_env(self.spec, self.seed)
         try:
             new = []
             for e in range(episodes, episodes + needed):
-                rng = np.random.default_rng(stream_seed(self.seed, INITIAL, e, 1))
-                actions = random_actions(rng, steps, env.action_space.shape[0])
-                new.append(run_episode(env, stream_seed(self.seed, INITIAL, e), actions))
+                new.append(random_data_episode(env, self.seed, e))
         finally:
             env.close()
         more = Dataset.from_episodes(new)
@@ -292,10 +290,8 @@ class OfflineMPCLearner(MPCLearner):
 
 def dataset_returns(data: Dataset, steps: int) -> list[float]:
     """Cumulative reward of every episode of ``data`` (diverged steps counted at the clip)."""
-    from dlocli.online import episode_attrs
-
     return [
-        episode_attrs(data.episode(e), steps)["cumulative_reward"] for e in range(data.n_episodes)
+        episode_scores(data.episode(e), steps)["cumulative_reward"] for e in range(data.n_episodes)
     ]
 
 
@@ -319,7 +315,6 @@ def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
         seed=seed,
         iters=iterations + 1,
         trials=trials,
-        steps=spec.task.episode_steps,
         initial_episodes=initial,
         noise_probability=spec.noise_probability,
         noise_std=spec.noise_std,

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -33,7 +33,8 @@ from dlocli.controllers.base import Controller, controller_spec, make_controller
 from dlocli.env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
-from dlocli.metrics import episode_result
+from dlocli.metrics import episode_result, shape_error_mm
+from dlocli.rollout import rollout
 from dlocli.specs import EnvSpec
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -44,8 +45,10 @@ Progress = Callable[[dict[str, float]], None]
 class ControlSpec(EnvSpec):
     """`dlo control`: closed-loop control to a goal shape. The goal is ``task.goal_file``."""
 
-    model: Path | None = Field(
-        None, description="Dynamics model checkpoint (.pt file or `dlo train` run directory)."
+    moved: ClassVar[dict[str, str]] = {"model": "checkpoint", "steps": "task.episode_steps"}
+
+    checkpoint: Path | None = Field(
+        None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."
     )
     device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
     threads: int = Field(
@@ -58,7 +61,6 @@ class ControlSpec(EnvSpec):
         description="The controller's options, fields of its spec (e.g. {iterations: 50, "
         "warm_start: false} for mpc); spec.json holds them all, resolved.",
     )
-    steps: int = Field(200, gt=0, description="Closed-loop control steps.")
     video: Path | None = Field(
         None, description="Write frames of the rod and the goal to this .mp4 or .gif."
     )
@@ -81,15 +83,15 @@ def check_video_path(path: Path | None) -> None:
 
 def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
-    if spec.model is None:
+    if spec.checkpoint is None:
         return None
     from dlocli.models.base import load_model, resolve_device
 
-    model = load_model(spec.model, resolve_device(spec.device))
+    model = load_model(spec.checkpoint, resolve_device(spec.device))
     found = model.n_segments
     if found != n_segments:
         raise BadInput(
-            f"model {spec.model} is for {found} segments but the rod has {n_segments}; "
+            f"model {spec.checkpoint} is for {found} segments but the rod has {n_segments}; "
             f"train one on {n_segments}-segment data or set backend.rod.n_segments={found}"
         )
     return model
@@ -165,36 +167,52 @@ def run_control(
 def closed_loop(
     env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Progress | None
 ) -> tuple[list[dict[str, float]], float, list[np.ndarray], bool]:
-    """Step ``env`` with ``controller`` from a seeded random start.
+    """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.rollout`).
 
     Returns per-step records, the initial shape error (mm), video frames, diverged flag.
     """
-    obs, info = env.reset(seed=spec.seed)
-    initial_error = float(info["shape_error_mm"])
-    controller.reset(env.goal)
-    frames = [env.render()] if spec.video is not None else []
-    records: list[dict[str, float]] = []
-    for step in range(1, spec.steps + 1):
-        cpu = time.process_time()
-        action = controller.act(obs)
-        cpu_ms = 1000.0 * (time.process_time() - cpu)
-        obs, reward, _, _, info = env.step(action)
+    timed = _Recorded(controller, env, spec)
+
+    def on_step(step: int, reward: float, info: dict[str, Any]) -> None:
         record = {
             "step": step,
             "shape_error_mm": float(info["shape_error_mm"]),
             "reward": float(reward),
             "latency_ms": controller.last_latency_ms,
-            "cpu_ms": cpu_ms,
+            "cpu_ms": timed.cpu_ms,
             **controller.last_stats,
         }
-        records.append(record)
+        timed.records.append(record)
         if spec.video is not None and step % spec.video_every == 0:
-            frames.append(env.render())
+            timed.frames.append(env.render())
         if progress is not None:
             progress(record)
-        if info["diverged"]:  # the rest of the episode would be frozen at -1.5 a step
-            return records, initial_error, frames, True
-    return records, initial_error, frames, False
+
+    episode = rollout(env, timed, spec.seed, on_step)
+    initial_error = float(shape_error_mm(episode.positions[0], episode.goal))
+    return timed.records, initial_error, timed.frames, episode.diverged
+
+
+class _Recorded:
+    """``controller`` as a policy that also times its CPU use and keeps the run's records
+    and video frames (the first frame right after the reset)."""
+
+    def __init__(self, controller: Controller, env: DLOShapeEnv, spec: ControlSpec) -> None:
+        self.controller, self.env, self.spec = controller, env, spec
+        self.records: list[dict[str, float]] = []
+        self.frames: list[np.ndarray] = []
+        self.cpu_ms = 0.0
+
+    def reset(self, goal: np.ndarray) -> None:
+        self.controller.reset(goal)
+        if self.spec.video is not None:
+            self.frames.append(self.env.render())
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        cpu = time.process_time()
+        action = self.controller.act(obs)
+        self.cpu_ms = 1000.0 * (time.process_time() - cpu)
+        return action
 
 
 def summarise(
@@ -208,7 +226,9 @@ def summarise(
     errors = np.array([r["shape_error_mm"] for r in records])
     latency = np.array([r["latency_ms"] for r in records])
     reward = float(sum(r["reward"] for r in records))
-    result = episode_result(initial_error, errors[-1], reward, len(records), spec.steps)
+    result = episode_result(
+        initial_error, errors[-1], reward, len(records), spec.task.episode_steps
+    )
     return {
         "initial_error_mm": round(initial_error, 3),
         "final_error_mm": round(float(errors[-1]), 3),
@@ -222,7 +242,7 @@ def summarise(
         "diverged": diverged,
         "controller": spec.controller,
         "goal": str(spec.task.goal_file),
-        "model": None if spec.model is None else str(spec.model),
+        "checkpoint": None if spec.checkpoint is None else str(spec.checkpoint),
         "seed": spec.seed,
         "wall_s": round(wall_s, 2),
         "versions": versions(),

@@ -177,3 +177,34 @@ def _save(fig: Any, path: Path) -> Path:
         fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
     return path
+
+
+def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
+    """`dlo eval`: the errors of ``spec.checkpoint`` on ``spec.data`` (an EvalSpec); with
+    ``spec.out``, the spec and the summary are written there."""
+    from dlocli.data import load_dataset
+    from dlocli.errors import BadInput
+    from dlocli.io import prepare_run_dir, write_json_atomic
+    from dlocli.models.base import load_model
+
+    if spec.checkpoint is None or spec.data is None:
+        raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
+    if spec.plot is not None and spec.plot.suffix != ".png":
+        raise BadInput(f"--plot {spec.plot} must end in .png")
+    net = load_model(spec.checkpoint, spec.device)
+    dataset = load_dataset(spec.data)
+    if dataset.n_segments != net.n_segments:
+        raise BadInput(
+            f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "
+            f"{dataset.n_segments}; evaluate on matching data"
+        )
+    out = prepare_run_dir(spec.out, overwrite) if spec.out is not None else None
+    summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
+    summary.update(evaluate_model(net, dataset, max_starts=spec.max_starts))
+    if spec.plot is not None:
+        plot_rollout(net, dataset, 0, spec.plot)
+        summary["plot"] = str(spec.plot)
+    if out is not None:
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        write_json_atomic(out / "summary.json", summary)
+    return summary

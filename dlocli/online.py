@@ -30,16 +30,16 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
 
-from dlocli.collect import random_actions, run_episode
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.spec import ModelSpec
+from dlocli.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.specs import EnvSpec, resumed_run_spec
 from dlocli.train_spec import FitSpec
 
@@ -49,9 +49,10 @@ Progress = Callable[[str, dict[str, Any]], None]
 class OnlineSpec(EnvSpec):
     """`dlo online`: Algorithm 1 of the paper. Defaults are the paper's parameters."""
 
+    moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
+
     iters: int = Field(20, gt=0, description="Iterations K of model update + MPC trials.")
     trials: int = Field(50, gt=0, description="MPC trials N per iteration.")
-    steps: int = Field(200, gt=0, description="Control steps T per trial.")
     initial_episodes: int = Field(
         10, gt=1, description="Random-action episodes (of T steps) in the initial dataset D."
     )
@@ -76,12 +77,13 @@ class OnlineSpec(EnvSpec):
 
 
 # ----------------------------------------------------------------------------- seeds
-def stream_seed(seed: int, *keys: int) -> int:
-    """An independent seed for one (iteration, trial, purpose) of the run."""
-    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
-
-
 INITIAL, TRAIN, TRIAL, NOISE, OFFLINE = 0, 1, 2, 3, 4
+
+
+def random_data_episode(env: Any, seed: int, e: int) -> Episode:
+    """Random episode ``e`` of the run ``seed``: the initial data D_0, and its continuation
+    for the models trained offline on as much random data (paper Fig. 7)."""
+    return random_episode(env, stream_seed(seed, INITIAL, e), stream_seed(seed, INITIAL, e, 1))
 
 
 # ----------------------------------------------------------------------------- paths
@@ -128,40 +130,14 @@ def _trial_episode(
         model = load_model(checkpoint, spec.fit.device)
         mpc = GradientMPC(env, model, spec.mpc, seed=stream_seed(spec.seed, TRIAL, k, j))
         noise_rng = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
-        reset_seed = stream_seed(spec.seed, TRIAL, k, j)
-        first = {"done": False}
-
-        def policy(obs: np.ndarray) -> np.ndarray:
-            if not first["done"]:
-                mpc.reset(env.goal)  # after env.reset: a random goal is drawn there
-                first["done"] = True
-            action = mpc.act(obs)
-            if noise_rng.random() < spec.noise_probability:
-                action = action + noise_rng.normal(0.0, spec.noise_std, action.shape)
-            return np.clip(action, -1.0, 1.0)
-
-        return run_episode(env, reset_seed, policy)
+        policy = NoisyPolicy(mpc, noise_rng, spec.noise_probability, spec.noise_std)
+        return rollout(env, policy, stream_seed(spec.seed, TRIAL, k, j))
     finally:
         env.close()
 
 
 def _env_spec(spec: OnlineSpec) -> EnvSpec:
-    task = spec.task.model_copy(update={"episode_steps": spec.steps})
-    return EnvSpec(backend=spec.backend, task=task, seed=spec.seed)
-
-
-def episode_attrs(episode: Episode, steps: int) -> dict[str, float]:
-    """Initial and final error, score and cumulative reward (a diverged episode's missing
-    steps at the clip) of a recorded episode of ``steps`` steps."""
-    from dlocli.metrics import episode_result, shape_error_mm
-
-    return episode_result(
-        shape_error_mm(episode.positions[0], episode.goal),
-        shape_error_mm(episode.positions[-1], episode.goal),
-        float(np.sum(episode.rewards)),
-        len(episode.rewards),
-        steps,
-    )
+    return EnvSpec(backend=spec.backend, task=spec.task, seed=spec.seed)
 
 
 def _run_trial_to_file(
@@ -172,7 +148,7 @@ def _run_trial_to_file(
     start = time.perf_counter()
     episode = _trial_episode(spec, Path(checkpoint), k, j, threads)
     attrs = {
-        **episode_attrs(episode, spec.steps),
+        **episode_scores(episode, spec.task.episode_steps),
         "trial_seconds": round(time.perf_counter() - start, 3),
     }
     Dataset.from_episodes([episode], {**attrs, "iteration": k, "trial": j}).save(Path(path))
@@ -202,9 +178,7 @@ class OnlineRun:
         episodes = []
         try:
             for e in range(self.spec.initial_episodes):
-                rng = np.random.default_rng(stream_seed(self.spec.seed, INITIAL, e, 1))
-                actions = random_actions(rng, self.spec.steps, env.action_space.shape[0])
-                episodes.append(run_episode(env, stream_seed(self.spec.seed, INITIAL, e), actions))
+                episodes.append(random_data_episode(env, self.spec.seed, e))
                 self.progress("initial", {"episode": e + 1, "total": self.spec.initial_episodes})
         finally:
             env.close()
@@ -348,10 +322,9 @@ class OnlineRun:
         try:
             e = self.spec.initial_episodes
             while data.n_transitions < n_transitions:
-                rng = np.random.default_rng(stream_seed(self.spec.seed, INITIAL, e, 1))
-                actions = random_actions(rng, self.spec.steps, env.action_space.shape[0])
-                episode = run_episode(env, stream_seed(self.spec.seed, INITIAL, e), actions)
-                data = data.concat(Dataset.from_episodes([episode]))
+                data = data.concat(
+                    Dataset.from_episodes([random_data_episode(env, self.spec.seed, e)])
+                )
                 e += 1
         finally:
             env.close()
@@ -393,7 +366,7 @@ class OnlineRun:
                         "trial": j,
                         "transitions": transitions if not offline else None,
                         # from the recorded episode: trial files of older runs lack the score
-                        **episode_attrs(data.episode(0), self.spec.steps),
+                        **episode_scores(data.episode(0), self.spec.task.episode_steps),
                         "trial_seconds": data.attrs["trial_seconds"],
                     }
                 )

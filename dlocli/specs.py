@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -18,9 +18,25 @@ from dlocli.errors import BadInput
 
 
 class Spec(BaseModel):
-    """Base of all specs: unknown fields are refused, values validated on assignment."""
+    """Base of all specs: unknown fields are refused, values validated on assignment.
+
+    ``moved`` maps the names of fields that moved to their new dotted path, so spec files
+    and saved runs written before the move still load.
+    """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    moved: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _move_fields(cls, data: Any) -> Any:
+        if not isinstance(data, dict) or not any(old in data for old in cls.moved):
+            return data
+        data = dict(data)
+        for old, dotted in cls.moved.items():
+            if old in data:
+                _set_dotted(data, dotted, data.pop(old), copy=True)
+        return data
 
 
 # --------------------------------------------------------------------------- physics
@@ -185,8 +201,9 @@ class GoalSpec(EnvSpec):
 class CollectSpec(EnvSpec):
     """`dlo collect --random`: random-action trajectories into an HDF5 dataset."""
 
+    moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
+
     episodes: int = Field(10, gt=0, description="Number of episodes.")
-    steps: int = Field(200, gt=0, description="Control steps per episode.")
     workers: int = Field(1, gt=0, description="Parallel worker processes (same data as 1 worker).")
     out: Path = Field(Path("runs/collect"), description="Run directory for the dataset.")
 
@@ -214,13 +231,16 @@ def load_spec_file(path: Path) -> dict[str, Any]:
     return data
 
 
-def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+def _set_dotted(data: dict[str, Any], dotted: str, value: Any, copy: bool = False) -> None:
+    """Set ``data[a][b]... = value`` for ``dotted`` "a.b...", making the dicts on the way
+    (with ``copy``: fresh copies of those there, so the caller's nested dicts stay as they were)."""
     keys = dotted.split(".")
     for key in keys[:-1]:
         node = data.get(key)
-        if not isinstance(node, dict):
-            node = {}
-            data[key] = node
+        if isinstance(node, BaseModel):  # a spec given as an instance, e.g. task=TaskSpec(...)
+            node = node.model_dump()
+        node = (dict(node) if copy else node) if isinstance(node, dict) else {}
+        data[key] = node
         data = node
     data[keys[-1]] = value
 
@@ -293,15 +313,18 @@ def refuse_resume_conflicts(
             )
 
 
-def field_help(cls: type[Spec], dotted: str) -> str:
-    """The description (and default) of a possibly nested field: the CLI's --help text."""
+def field_info(cls: type[Spec], dotted: str) -> Any:
+    """The pydantic FieldInfo of a possibly nested field (``task.episode_steps``)."""
     model: Any = cls
     info = None
     for key in dotted.split("."):
         info = model.model_fields[key]
-        model = info.annotation
-        if info.default_factory is not None:
-            model = info.default_factory
-    assert info is not None
+        model = info.default_factory if info.default_factory is not None else info.annotation
+    return info
+
+
+def field_help(cls: type[Spec], dotted: str) -> str:
+    """The description (and default) of a possibly nested field: the CLI's --help text."""
+    info = field_info(cls, dotted)
     default = "" if info.default_factory is not None else f" (spec default: {info.default})"
     return f"{info.description}{default}"

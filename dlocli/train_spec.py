@@ -44,3 +44,25 @@ class TrainSpec(FitSpec):
     # MuJoCo transitions in-bilstm's one-step / 5-step / 50-step errors went 0.161 / 0.867 /
     # 5.26 mm -> 0.140 / 0.784 / 4.89 mm.
     batch_size: int = Field(16, gt=0, description="Transitions per gradient step.")
+
+
+class EvalSpec(Spec):
+    """`dlo eval`: a trained model's one-step and open-loop errors on a dataset."""
+
+    checkpoint: Path | None = Field(
+        None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."
+    )
+    data: Path | None = Field(
+        None, description="Dataset file or collect run directory; every episode is evaluated."
+    )
+    device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
+    max_starts: int = Field(
+        512, gt=0, description="Most start states per rollout horizon (evenly spread)."
+    )
+    plot: Path | None = Field(
+        None, description="Also write a PNG of the predicted vs true rod over a rollout of the "
+        "first episode.",
+    )  # fmt: skip
+    out: Path | None = Field(
+        None, description="Run directory for spec.json and summary.json (none: print only)."
+    )

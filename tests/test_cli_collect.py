@@ -123,7 +123,11 @@ def test_spec_file_then_flags(tmp_path):
     res = run("collect", "--spec", str(spec), "--episodes", "1", "--out", str(out), "--json")
     assert res.exit_code == 0, res.output
     saved = json.loads((out / "spec.json").read_text())
-    assert saved["episodes"] == 1 and saved["steps"] == 7 and saved["task"]["name"] == "bimanual"
+    assert (
+        saved["episodes"] == 1
+        and saved["task"]["episode_steps"] == 7
+        and saved["task"]["name"] == "bimanual"
+    )
     assert load_dataset(out).actions[:, 0].any(), "bimanual moves the left gripper too"
 
 

@@ -217,7 +217,8 @@ def test_mpc_reduces_true_error_in_mujoco(tmp_path, checkpoint):
     """Gradient MPC through the tiny learned model brings the simulated rod closer to an easy
     goal; the run directory holds the summary, metrics, plot, resolved spec and a GIF."""
     task = TaskSpec(goal_file=easy_goal(tmp_path, 3))
-    spec = ControlSpec(task=task, model=checkpoint, seed=3, steps=30, out=tmp_path / "run",
+    task = task.model_copy(update={"episode_steps": 30})
+    spec = ControlSpec(task=task, checkpoint=checkpoint, seed=3, out=tmp_path / "run",
                        video=tmp_path / "run.gif", video_every=10)  # fmt: skip
     records = []
     summary = run_control(spec, records.append)
@@ -247,7 +248,7 @@ def test_cli_bimanual_with_single_model(tmp_path, checkpoint):
     """`dlo control --task bimanual` with a model trained on the single task, JSON summary."""
     goal = tmp_path / "goal.npy"
     assert runner.invoke(app, ["goal", "--out", str(goal), "--task", "bimanual"]).exit_code == 0
-    res = control("--goal", str(goal), "--model", str(checkpoint), "--task", "bimanual",
+    res = control("--goal", str(goal), "--checkpoint", str(checkpoint), "--task", "bimanual",
                   "--steps", "4", "-o", "iterations=1", "--out", str(tmp_path / "r"),
                   "--json")  # fmt: skip
     assert res.exit_code == 0, res.output
@@ -281,7 +282,7 @@ def bad_goal(tmp_path, kind: str) -> str:
      ("far", "reach")],
 )  # fmt: skip
 def test_cli_bad_goal_exit_2(tmp_path, checkpoint, kind, needle):
-    res = control("--goal", bad_goal(tmp_path, kind), "--model", str(checkpoint),
+    res = control("--goal", bad_goal(tmp_path, kind), "--checkpoint", str(checkpoint),
                   "--out", str(tmp_path / "r"))  # fmt: skip
     assert res.exit_code == 2, res.output
     assert needle in res.output
@@ -296,16 +297,16 @@ def test_cli_bad_model_exit_2(tmp_path):
     np.save(goal, env.goal)
     env.close()
     other = save_checkpoint(build_model(TINY, 10), tmp_path / "ten.pt")
-    res = control("--goal", str(goal), "--model", str(other), "--out", str(tmp_path / "r"))
+    res = control("--goal", str(goal), "--checkpoint", str(other), "--out", str(tmp_path / "r"))
     assert res.exit_code == 2 and "10 segments" in res.output and "20" in res.output
     assert len(res.output.strip().splitlines()) == 1
     for args, needle in [
-        (["--model", str(goal)], "checkpoint"),  # not a checkpoint
-        (["--model", str(tmp_path / "none.pt")], "does not exist"),
+        (["--checkpoint", str(goal)], "checkpoint"),  # not a checkpoint
+        (["--checkpoint", str(tmp_path / "none.pt")], "does not exist"),
         ([], "needs a model"),
-        (["--model", str(other), "--controller", "mcp"], "Did you mean 'mpc'"),
-        (["--model", str(other), "-o", "iterations=0"], "iterations"),
-        (["--model", str(other), "--video", str(tmp_path / "v.avi")], ".gif or .mp4"),
+        (["--checkpoint", str(other), "--controller", "mcp"], "Did you mean 'mpc'"),
+        (["--checkpoint", str(other), "-o", "iterations=0"], "iterations"),
+        (["--checkpoint", str(other), "--video", str(tmp_path / "v.avi")], ".gif or .mp4"),
     ]:
         res = control("--goal", str(goal), *args, "--out", str(tmp_path / "r"))
         assert res.exit_code == 2 and needle in res.output, (args, res.output)

@@ -42,7 +42,7 @@ TINY = [
 
 def test_defaults_are_the_papers():
     spec = OnlineSpec()
-    assert (spec.iters, spec.fit.epochs, spec.trials, spec.steps) == (20, 50, 50, 200)
+    assert (spec.iters, spec.fit.epochs, spec.trials, spec.task.episode_steps) == (20, 50, 50, 200)
     assert spec.mpc.horizon == 5 and spec.fit.lr == 1e-4 and spec.noise_probability == 0.2
     assert spec.model.name == "in-bilstm" and spec.model.hidden == 150
     assert spec.task.goal == "fixed"

@@ -120,7 +120,7 @@ def test_train_and_eval_commands(small_dataset_dir, tmp_path):
     assert load_model(run).spec.hidden == 16
 
     plot = tmp_path / "eval.png"
-    res = cli("eval", "--model", str(run), "--data", str(small_dataset_dir), "--device", "cpu",
+    res = cli("eval", "--checkpoint", str(run), "--data", str(small_dataset_dir), "--device", "cpu",
               "--plot", str(plot), "--json")  # fmt: skip
     assert res.exit_code == 0, res.output
     assert EVAL_KEYS <= json.loads(res.stdout.strip().splitlines()[-1]).keys()
@@ -157,9 +157,9 @@ def test_bad_input_exits_2(small_dataset_dir, tmp_path):
         ("train", "--data", data, "--model", "lstm", "--out", out),
         ("train", "--data", data, "--epochs", "-1", "--out", out),
         ("train", "--data", data, "--init-from", str(corrupt), "--out", out),
-        ("eval", "--model", str(corrupt), "--data", data),
-        ("eval", "--model", str(tmp_path), "--data", data),
-        ("eval", "--model", str(corrupt), "--data", str(not_data)),
+        ("eval", "--checkpoint", str(corrupt), "--data", data),
+        ("eval", "--checkpoint", str(tmp_path), "--data", data),
+        ("eval", "--checkpoint", str(corrupt), "--data", str(not_data)),
     ]
     for args in cases:
         res = cli(*args)

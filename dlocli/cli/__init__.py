@@ -15,6 +15,9 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    invoke_without_command=True,
+    # plain help: the rich panels of this Typer/Click show flags as `--json <bool>`
+    rich_markup_mode=None,
 )
 
 # (command name, "module:function"); each command module imports its heavy libraries (torch,
@@ -36,6 +39,22 @@ def _register() -> None:
     for name, target in COMMANDS:
         module_name, _, attr = target.partition(":")
         app.command(name)(getattr(importlib.import_module(module_name), attr))
+
+
+@app.callback()
+def _root(
+    ctx: typer.Context,
+    version: bool = typer.Option(False, "--version", help="Print dlocli's version and exit."),
+) -> None:
+    """Learn and control the 3D shape of deformable linear objects (cables, ropes)."""
+    if version:
+        from dlocli import __version__
+
+        typer.echo(f"dlocli {__version__}")
+        raise typer.Exit(0)
+    if ctx.invoked_subcommand is None:
+        typer.echo(ctx.get_help())
+        raise typer.Exit(0)
 
 
 _register()

@@ -10,40 +10,25 @@ from typing import Annotated, Any
 import typer
 
 from dlocli.bench import BenchSpec as S
-from dlocli.cli.common import (
-    JsonFlag,
-    OverwriteFlag,
-    SpecFile,
-    VelocityInputFlag,
-    build_spec,
-    console,
-    handle_errors,
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, console, handle_errors
+from dlocli.cli.flags import parse_options, spec_flags
+
+OPTION_HELP = (
+    "An option of a learning agent, AGENT.KEY=VALUE (a field of its spec), repeatable: "
+    "-o sac.gamma=0.99 -o td3.action_noise=0.2."
 )
-from dlocli.cli.common import opt_help as h
 
 
 @handle_errors
+@spec_flags(
+    S,
+    ["agents", "budget", "seeds", "task.goal", "task.name", "task.shapes", "backend.name",
+     "task.episode_steps", "evals", "eval_trials", "model.hidden", "model.velocity_input",
+     "fit.epochs", "transfer", "executor", "ray_address", "workers", "threads", "seed", "out"],
+)  # fmt: skip
 def bench(
-    agents: Annotated[str | None, typer.Option(help=h(S, "agents") + " Comma-separated.")] = None,
-    budget: Annotated[int | None, typer.Option(help=h(S, "budget"))] = None,
-    seeds: Annotated[int | None, typer.Option(help=h(S, "seeds"))] = None,
-    goals: Annotated[str | None, typer.Option(help=h(S, "task.goal"))] = None,
-    task: Annotated[str | None, typer.Option(help=h(S, "task.name"))] = None,
-    backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
-    steps: Annotated[int | None, typer.Option(help=h(S, "task.episode_steps"))] = None,
-    evals: Annotated[int | None, typer.Option(help=h(S, "evals"))] = None,
-    eval_trials: Annotated[int | None, typer.Option(help=h(S, "eval_trials"))] = None,
-    hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
-    velocity_input: VelocityInputFlag = None,
-    epochs: Annotated[int | None, typer.Option(help=h(S, "fit.epochs"))] = None,
-    transfer: Annotated[
-        bool | None, typer.Option("--transfer/--no-transfer", help=h(S, "transfer"))
-    ] = None,
-    executor: Annotated[str | None, typer.Option(help=h(S, "executor"))] = None,
-    ray_address: Annotated[str | None, typer.Option(help=h(S, "ray_address"))] = None,
-    workers: Annotated[int | None, typer.Option(help=h(S, "workers"))] = None,
-    seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
-    out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
+    overrides: dict[str, Any],
+    option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
     resume: Annotated[
         Path | None,
         typer.Option(help="Run the missing jobs of this bench directory (finished jobs are kept)."),
@@ -67,44 +52,18 @@ def bench(
         dlo bench --spec examples/bench_small.yaml --out runs/bench-small
     """
     from dlocli.bench import report_bench, resume_bench, start_bench
+    from dlocli.specs import resolve_spec
 
     if report:
         summary = report_bench(report)
     else:
-        overrides: dict[str, Any] = {
-            "agents": _names(agents),
-            "budget": budget,
-            "seeds": seeds,
-            "task.goal": goals,
-            "task.name": task,
-            "backend.name": backend,
-            "task.episode_steps": steps,
-            "evals": evals,
-            "eval_trials": eval_trials,
-            "model.hidden": hidden,
-            # every agent gets the same information: the model's input, the RL observation
-            "model.velocity_input": velocity_input,
-            "task.observe_velocity": velocity_input,
-            "fit.epochs": epochs,
-            "transfer": transfer,
-            "executor": executor,
-            "ray_address": ray_address,
-            "workers": workers,
-            "seed": seed,
-            "out": out,
-        }
+        overrides |= parse_options(option or [], "options")
         progress = _quiet if json_out else _print_progress
         if resume is not None:
             summary = resume_bench(resume, overrides, progress)
         else:
-            summary = start_bench(build_spec(S, spec_file, overrides), overwrite, progress)
+            summary = start_bench(resolve_spec(S, spec_file, overrides), overwrite, progress)
     _emit(summary, json_out)
-
-
-def _names(agents: str | None) -> list[str] | None:
-    if agents is None:
-        return None
-    return [name.strip() for name in agents.split(",") if name.strip()]
 
 
 def _quiet(event: str, info: dict[str, Any]) -> None:

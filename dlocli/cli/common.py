@@ -14,8 +14,6 @@ from rich.console import Console
 from rich.table import Table
 
 from dlocli.errors import DloError
-from dlocli.models.spec import ModelSpec
-from dlocli.specs import Spec, field_help, resolve_spec
 
 F = TypeVar("F", bound=Callable[..., Any])
 console = Console(stderr=True)
@@ -28,17 +26,6 @@ JsonFlag = Annotated[bool, typer.Option("--json", help="Print the summary as JSO
 OverwriteFlag = Annotated[
     bool, typer.Option("--overwrite", help="Allow writing into an existing non-empty --out.")
 ]
-VelocityInputFlag = Annotated[
-    bool | None,
-    typer.Option(
-        "--velocity-input/--no-velocity-input", help=field_help(ModelSpec, "velocity_input")
-    ),
-]
-
-
-def opt_help(spec_cls: type[Spec], dotted: str) -> str:
-    """--help text of a flag: the spec field's description."""
-    return field_help(spec_cls, dotted)
 
 
 def handle_errors(fn: F) -> F:
@@ -56,10 +43,6 @@ def handle_errors(fn: F) -> F:
             raise typer.Exit(130) from None
 
     return wrapper  # type: ignore[return-value]
-
-
-def build_spec(spec_cls: type[Spec], spec_file: Path | None, overrides: dict[str, Any]) -> Any:
-    return resolve_spec(spec_cls, spec_file, overrides)
 
 
 def emit_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:

@@ -2,29 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-import yaml
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-from dlocli.cli.common import (
-    JsonFlag,
-    OverwriteFlag,
-    SpecFile,
-    build_spec,
-    emit_summary,
-    handle_errors,
-)
-from dlocli.cli.common import opt_help as h
-from dlocli.control import ControlSpec as S
-from dlocli.errors import BadInput
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
+from dlocli.cli.flags import parse_options, spec_flags
+from dlocli.control import ControlSpec
 
-GOAL_HELP = (
-    "Goal shape: a .npy float array (N,3) of segment centres in metres (make one with "
-    "`dlo goal`). Sets task.goal_file."
-)
 OPTION_HELP = (
     "Controller option KEY=VALUE, a field of the controller's spec; repeatable. mpc: horizon, "
     "iterations, step_size, optimizer, restarts, warm_start, replan_every, tolerance; mppi: "
@@ -33,39 +19,32 @@ OPTION_HELP = (
 
 
 @handle_errors
+@spec_flags(
+    ControlSpec,
+    ["task.goal_file", "checkpoint", "controller", "out", "backend.name", "task.name",
+     "task.shapes", "task.episode_steps", "seed", "device", "threads", "video", "video_every"],
+)  # fmt: skip
 def control(
-    goal: Annotated[Path | None, typer.Option(help=GOAL_HELP)] = None,
-    model: Annotated[Path | None, typer.Option(help=h(S, "model"))] = None,
-    out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
-    backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
-    task: Annotated[str | None, typer.Option(help=h(S, "task.name"))] = None,
-    controller: Annotated[str | None, typer.Option(help=h(S, "controller"))] = None,
+    overrides: dict[str, Any],
     option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
-    steps: Annotated[int | None, typer.Option(help=h(S, "steps"))] = None,
-    seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
-    device: Annotated[str | None, typer.Option(help=h(S, "device"))] = None,
-    threads: Annotated[int | None, typer.Option(help=h(S, "threads"))] = None,
-    video: Annotated[Path | None, typer.Option(help=h(S, "video"))] = None,
     spec_file: SpecFile = None,
     overwrite: OverwriteFlag = False,
     json_out: JsonFlag = False,
 ) -> None:
     """Drive the rod from a seeded random start to the --goal shape; write OUT/summary.json."""
     from dlocli.control import run_control
+    from dlocli.specs import resolve_spec
 
-    overrides: dict[str, Any] = {
-        "task.goal_file": goal, "model": model, "out": out, "backend.name": backend,
-        "task.name": task, "controller": controller, "steps": steps, "seed": seed,
-        "device": device, "threads": threads, "video": video,
-    }  # fmt: skip
-    overrides.update(parse_options(option or []))
-    spec = build_spec(S, spec_file, overrides)
+    overrides |= parse_options(option or [], "controller_options")
+    spec = resolve_spec(ControlSpec, spec_file, overrides)
     columns = (
         TextColumn("control"), BarColumn(), MofNCompleteColumn(),
         TextColumn("error {task.fields[error]:7.1f} mm  latency {task.fields[latency]:6.1f} ms"),
     )  # fmt: skip
     progress = Progress(*columns, transient=json_out, disable=json_out)
-    bar = progress.add_task("control", total=spec.steps, error=float("nan"), latency=0.0)
+    bar = progress.add_task(
+        "control", total=spec.task.episode_steps, error=float("nan"), latency=0.0
+    )
 
     def show(record: dict[str, float]) -> None:
         progress.start()  # on the first step: bad input never shows a bar
@@ -80,20 +59,3 @@ def control(
         progress.stop()
     summary.pop("versions", None)
     emit_summary(summary, json_out, "dlo control")
-
-
-def parse_options(pairs: list[str]) -> dict[str, Any]:
-    """``["iterations=50", "warm_start=false"]`` -> dotted overrides of controller_options."""
-    parsed: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, text = pair.partition("=")
-        if not sep or not key.strip():
-            raise BadInput(
-                f"--option {pair!r} must look like KEY=VALUE, e.g. --option iterations=50"
-            )
-        try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
-            value = text
-        parsed[f"controller_options.{key.strip()}"] = value
-    return parsed

@@ -2,42 +2,30 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Annotated
+from typing import Any
 
-import typer
-
-from dlocli.cli.common import (
-    JsonFlag,
-    OverwriteFlag,
-    SpecFile,
-    build_spec,
-    emit_summary,
-    handle_errors,
-)
-from dlocli.cli.common import opt_help as h
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
+from dlocli.cli.flags import spec_flags
 from dlocli.errors import BadInput
-from dlocli.specs import GoalSpec as S
+from dlocli.specs import GoalSpec
 
 
 @handle_errors
+@spec_flags(GoalSpec, ["out", "backend.name", "task.name", "task.shapes", "seed"])
 def goal(
-    out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
-    backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
-    task: Annotated[str | None, typer.Option(help=h(S, "task.name"))] = None,
-    seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
+    overrides: dict[str, Any],
     spec_file: SpecFile = None,
     overwrite: OverwriteFlag = False,
     json_out: JsonFlag = False,
 ) -> None:
-    """Move the grippers randomly from rest (seeded), let the rod settle, save its shape."""
+    """Drive the grippers to a random pose (seeded), let the rod settle, save its shape: a
+    goal drawn from the same distribution as the env's goals."""
     from dlocli.goals import make_goal, save_goal
     from dlocli.metrics import shape_error_mm
     from dlocli.registry import backends, tasks
+    from dlocli.specs import resolve_spec
 
-    spec = build_spec(
-        S, spec_file, {"out": out, "backend.name": backend, "task.name": task, "seed": seed}
-    )
+    spec = resolve_spec(GoalSpec, spec_file, overrides)
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     if spec.out.suffix != ".npy":
@@ -59,7 +47,7 @@ def goal(
     )
 
 
-def _rest_shape(spec: S):
+def _rest_shape(spec: GoalSpec):
     from dlocli.env import make_backend
 
     backend = make_backend(spec.backend, spec.task.control_dt)

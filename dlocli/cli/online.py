@@ -15,41 +15,21 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dlocli.cli.common import (
-    JsonFlag,
-    OverwriteFlag,
-    SpecFile,
-    VelocityInputFlag,
-    build_spec,
-    emit_summary,
-    handle_errors,
-)
-from dlocli.cli.common import opt_help as h
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
+from dlocli.cli.flags import spec_flags
 from dlocli.online import OnlineSpec as S
 
 
 @handle_errors
+@spec_flags(
+    S,
+    ["iters", "trials", "task.episode_steps", "fit.epochs", "initial_episodes", "mpc.horizon",
+     "fit.lr", "model.name", "model.hidden", "model.velocity_input", "task.goal", "task.name",
+     "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
+     "offline", "seed", "out"],
+)  # fmt: skip
 def online(
-    iters: Annotated[int | None, typer.Option(help=h(S, "iters"))] = None,
-    trials: Annotated[int | None, typer.Option(help=h(S, "trials"))] = None,
-    steps: Annotated[int | None, typer.Option(help=h(S, "steps"))] = None,
-    epochs: Annotated[int | None, typer.Option(help=h(S, "fit.epochs"))] = None,
-    initial_episodes: Annotated[int | None, typer.Option(help=h(S, "initial_episodes"))] = None,
-    horizon: Annotated[int | None, typer.Option(help=h(S, "mpc.horizon"))] = None,
-    lr: Annotated[float | None, typer.Option(help=h(S, "fit.lr"))] = None,
-    hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
-    velocity_input: VelocityInputFlag = None,
-    model: Annotated[str | None, typer.Option(help=h(S, "model.name"))] = None,
-    goals: Annotated[str | None, typer.Option(help=h(S, "task.goal"))] = None,
-    task: Annotated[str | None, typer.Option(help=h(S, "task.name"))] = None,
-    backend: Annotated[str | None, typer.Option(help=h(S, "backend.name"))] = None,
-    device: Annotated[str | None, typer.Option(help=h(S, "fit.device"))] = None,
-    workers: Annotated[int | None, typer.Option(help=h(S, "workers"))] = None,
-    offline: Annotated[
-        bool | None, typer.Option("--offline/--no-offline", help=h(S, "offline"))
-    ] = None,
-    seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
-    out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
+    overrides: dict[str, Any],
     resume: Annotated[
         Path | None, typer.Option(help="Continue the killed run in this directory.")
     ] = None,
@@ -60,35 +40,16 @@ def online(
     """Learn the dynamics model online with MPC (paper Algorithm 1); plot the learning curve.
 
     With no flags this is the paper's setting (K=20, E=50, N=50, T=200, H=5, lr 1e-4): a GPU
-    job. For a CPU demo try: dlo online --iters 3 --trials 4 --steps 100 --epochs 5
+    job. For a CPU demo, see the README's first command.
     """
     from dlocli.online import resume_online, start_online
+    from dlocli.specs import resolve_spec
 
-    overrides: dict[str, Any] = {
-        "iters": iters,
-        "trials": trials,
-        "steps": steps,
-        "fit.epochs": epochs,
-        "initial_episodes": initial_episodes,
-        "mpc.horizon": horizon,
-        "fit.lr": lr,
-        "model.hidden": hidden,
-        "model.velocity_input": velocity_input,
-        "model.name": model,
-        "task.goal": goals,
-        "task.name": task,
-        "backend.name": backend,
-        "fit.device": device,
-        "workers": workers,
-        "offline": offline,
-        "seed": seed,
-        "out": out,
-    }
     with _progress(json_out) as callback:
         if resume is not None:
             summary = resume_online(resume, overrides, callback)
         else:
-            spec = build_spec(S, spec_file, overrides)
+            spec = resolve_spec(S, spec_file, overrides)
             summary = start_online(spec, overwrite, callback)
     summary = {k: v for k, v in summary.items() if k not in ("curve", "offline_curve")} | {
         "curve": [(c["transitions"], round(c["final_error_mm_mean"], 1)) for c in summary["curve"]]

@@ -8,34 +8,19 @@ from typing import Annotated, Any
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import (
-    JsonFlag,
-    OverwriteFlag,
-    SpecFile,
-    VelocityInputFlag,
-    build_spec,
-    emit_summary,
-    handle_errors,
-)
-from dlocli.cli.common import opt_help as h
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
+from dlocli.cli.flags import spec_flags
 from dlocli.train_spec import TrainSpec as S
 
 
 @handle_errors
+@spec_flags(
+    S,
+    ["data", "model.name", "model.hidden", "model.velocity_input", "epochs", "lr", "batch_size",
+     "input_noise", "val_fraction", "device", "seed", "init_from", "out"],
+)  # fmt: skip
 def train(
-    data: Annotated[Path | None, typer.Option(help=h(S, "data"))] = None,
-    model: Annotated[str | None, typer.Option(help=h(S, "model.name"))] = None,
-    hidden: Annotated[int | None, typer.Option(help=h(S, "model.hidden"))] = None,
-    velocity_input: VelocityInputFlag = None,
-    epochs: Annotated[int | None, typer.Option(help=h(S, "epochs"))] = None,
-    lr: Annotated[float | None, typer.Option(help=h(S, "lr"))] = None,
-    batch_size: Annotated[int | None, typer.Option(help=h(S, "batch_size"))] = None,
-    input_noise: Annotated[float | None, typer.Option(help=h(S, "input_noise"))] = None,
-    val_fraction: Annotated[float | None, typer.Option(help=h(S, "val_fraction"))] = None,
-    device: Annotated[str | None, typer.Option(help=h(S, "device"))] = None,
-    seed: Annotated[int | None, typer.Option(help=h(S, "seed"))] = None,
-    init_from: Annotated[Path | None, typer.Option(help=h(S, "init_from"))] = None,
-    out: Annotated[Path | None, typer.Option(help=h(S, "out"))] = None,
+    overrides: dict[str, Any],
     resume: Annotated[
         Path | None, typer.Option(help="Finish the stopped run in this directory, as if unstopped.")
     ] = None,
@@ -45,18 +30,13 @@ def train(
 ) -> None:
     """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json."""
     from dlocli.registry import models
+    from dlocli.specs import resolve_spec
     from dlocli.training import resumed_spec, run_training
 
-    overrides: dict[str, Any] = {
-        "data": data, "model.name": model, "model.hidden": hidden,
-        "model.velocity_input": velocity_input, "epochs": epochs, "lr": lr,
-        "batch_size": batch_size, "input_noise": input_noise, "val_fraction": val_fraction,
-        "device": device, "seed": seed, "init_from": init_from, "out": out,
-    }  # fmt: skip
     if resume is not None:
         spec = resumed_spec(resume, overrides)
     else:
-        spec = build_spec(S, spec_file, overrides)
+        spec = resolve_spec(S, spec_file, overrides)
     models.check(spec.model.name)
     columns = (
         TextColumn("epoch {task.fields[epoch]}/{task.fields[epochs]}"), BarColumn(),

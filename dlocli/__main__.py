@@ -1,0 +1,5 @@
+"""`python -m dlocli`: the `dlo` command."""
+
+from dlocli.cli import main
+
+main()

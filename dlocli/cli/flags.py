@@ -1,0 +1,138 @@
+"""Command-line flags generated from the run specs: one name, one meaning, in every command.
+
+A command lists the spec fields it offers as flags (dotted paths); :func:`spec_flags` adds
+one Typer option per field to the command's signature — its name from :data:`ALIASES` or
+else the path itself (``fit.batch_size`` -> ``--fit-batch-size``), its type, and the field's
+description as help — and hands the command the given values as ``overrides``, a dict
+``{dotted path: value}`` for :func:`dlocli.specs.resolve_spec` (None = not given). Every field,
+flag or not, is reachable through ``--spec FILE``; ``-o KEY=VALUE`` (:func:`parse_options`)
+sets the free-form option dicts.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import types
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, Literal, get_args, get_origin
+
+import typer
+import yaml
+
+from dlocli.errors import BadInput
+from dlocli.specs import Spec, field_info
+
+#: the flags whose name is not their field's path; one table for every command
+ALIASES: dict[str, str] = {
+    "backend.name": "backend",
+    "task.name": "task",
+    "task.goal": "goal-mode",
+    "task.goal_file": "goal",
+    "task.episode_steps": "steps",
+    "task.shapes": "shapes",
+    "model.name": "model",
+    "model.hidden": "hidden",
+    "model.velocity_input": "velocity-input",
+    "fit.epochs": "epochs",
+    "fit.lr": "lr",
+    "fit.device": "device",
+    "mpc.horizon": "horizon",
+}
+
+
+def flag_name(dotted: str) -> str:
+    """The flag of a spec field (without the leading dashes)."""
+    return ALIASES.get(dotted, dotted.replace(".", "-").replace("_", "-"))
+
+
+def _flag_type(annotation: Any) -> tuple[Any, str]:
+    """(the Python type Typer parses, a note for --help) of a field's annotation."""
+    annotation = strip_none(annotation)
+    if get_origin(annotation) is Literal:
+        return str, " One of: " + ", ".join(str(a) for a in get_args(annotation)) + "."
+    if get_origin(annotation) is list:
+        return str, " Comma-separated."
+    if annotation in (int, float, bool, str, Path):
+        return annotation, ""
+    raise TypeError(f"no flag type for {annotation!r}; offer the field through --spec only")
+
+
+def _option(spec_cls: type[Spec], dotted: str) -> tuple[str, Any]:
+    """(parameter name, Annotated type) of the flag of ``dotted``."""
+    name = flag_name(dotted)
+    kind, note = _flag_type(field_info(spec_cls, dotted).annotation)
+    info = field_info(spec_cls, dotted)
+    default = "" if info.default_factory is not None else f" (spec default: {info.default})"
+    text = f"{info.description}{note}{default}"
+    decls = [f"--{name}/--no-{name}"] if kind is bool else [f"--{name}"]
+    return name.replace("-", "_"), Annotated[kind | None, typer.Option(*decls, help=text)]
+
+
+def _value(spec_cls: type[Spec], dotted: str, value: Any) -> Any:
+    """A flag's value as the field takes it (a comma-separated list split)."""
+    annotation = strip_none(field_info(spec_cls, dotted).annotation)
+    if value is not None and get_origin(annotation) is list:
+        return [part.strip() for part in str(value).split(",") if part.strip()]
+    return value
+
+
+def strip_none(annotation: Any) -> Any:
+    if get_origin(annotation) in (typing.Union, types.UnionType):
+        return next(a for a in get_args(annotation) if a is not type(None))
+    return annotation
+
+
+def spec_flags(spec_cls: type[Spec], fields: list[str]) -> Callable[[Callable], Callable]:
+    """Decorate a command ``fn(overrides, **own_flags)``: add a flag per field of ``fields``."""
+
+    def decorate(fn: Callable) -> Callable:
+        generated = dict(_option(spec_cls, dotted) for dotted in fields)
+        params = {name: dotted for name, dotted in zip(generated, fields, strict=True)}
+        hints = typing.get_type_hints(fn, include_extras=True)  # resolved in fn's module
+        own = [
+            p.replace(kind=inspect.Parameter.KEYWORD_ONLY, annotation=hints[p.name])
+            for p in inspect.signature(fn).parameters.values()
+            if p.name != "overrides"
+        ]
+        clash = set(generated) & {p.name for p in own}
+        if clash:
+            raise TypeError(f"{fn.__name__}: flags {sorted(clash)} are also its own parameters")
+
+        @functools.wraps(fn)
+        def command(**kwargs: Any) -> Any:
+            overrides = {
+                dotted: _value(spec_cls, dotted, kwargs.pop(name))
+                for name, dotted in params.items()
+            }
+            return fn(overrides, **kwargs)
+
+        options = [
+            inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=kind)
+            for name, kind in generated.items()
+        ]
+        command.__signature__ = inspect.Signature([*options, *own])  # type: ignore[attr-defined]
+        command.__annotations__ = {**generated, **{p.name: p.annotation for p in own}}
+        del command.__wrapped__  # Typer must read the generated signature, not fn's
+        command.spec_cls = spec_cls  # type: ignore[attr-defined]
+        command.spec_fields = {flag_name(d): d for d in fields}  # type: ignore[attr-defined]
+        return command
+
+    return decorate
+
+
+def parse_options(pairs: list[str], prefix: str) -> dict[str, Any]:
+    """``["iterations=50", "warm_start=false"]`` -> ``{prefix.iterations: 50, ...}``."""
+    parsed: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key.strip():
+            raise BadInput(f"--option {pair!r} must look like KEY=VALUE, e.g. -o iterations=50")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            value = text
+        parsed[f"{prefix}.{key.strip()}"] = value
+    return parsed

@@ -1,0 +1,79 @@
+"""The CLI's flags come from the run specs: one name means one thing in every command."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+from collections import defaultdict
+
+from typer.testing import CliRunner
+
+from dlocli.cli import COMMANDS, app
+from dlocli.cli.flags import strip_none
+from dlocli.specs import field_info
+
+runner = CliRunner()
+
+
+def spec_commands():
+    for name, target in COMMANDS:
+        module, _, attr = target.partition(":")
+        command = getattr(importlib.import_module(module), attr)
+        if hasattr(command, "spec_fields"):
+            yield name, command
+
+
+def test_every_run_command_offers_its_spec_and_flags_that_reach_its_fields():
+    names = {name for name, _ in spec_commands()}
+    assert {"goal", "collect", "train", "eval", "control", "online", "bench"} <= names
+    for name, command in spec_commands():
+        help_text = runner.invoke(app, [name, "--help"], env={"COLUMNS": "200"}).output
+        for flag in ("--spec", "--json", "--out"):
+            assert flag in help_text, (name, flag)
+        for flag, dotted in command.spec_fields.items():
+            assert f"--{flag} " in help_text, (name, flag)
+            assert field_info(command.spec_cls, dotted).description, (name, dotted)
+
+
+def test_one_flag_name_one_meaning():
+    meanings = defaultdict(set)
+    for _, command in spec_commands():
+        for flag, dotted in command.spec_fields.items():
+            info = field_info(command.spec_cls, dotted)
+            meanings[flag].add((dotted.split(".")[-1], str(strip_none(info.annotation))))
+    mixed = {flag: sorted(m) for flag, m in meanings.items() if len(m) > 1}
+    assert not mixed, mixed
+    assert meanings["model"] == {("name", "<class 'str'>")}  # a trained model is --checkpoint
+
+
+def test_flags_override_spec_fields(tmp_path):
+    spec = tmp_path / "s.yaml"
+    spec.write_text("task: {episode_steps: 7, shapes: near-rest}\nepisodes: 2\n")
+    out = tmp_path / "run"
+    res = runner.invoke(
+        app, ["collect", "--spec", str(spec), "--steps", "5", "--out", str(out), "--json"]
+    )
+    assert res.exit_code == 0, res.output
+    import json
+
+    saved = json.loads((out / "spec.json").read_text())
+    assert saved["task"]["episode_steps"] == 5 and saved["task"]["shapes"] == "near-rest"
+    assert saved["episodes"] == 2
+
+
+def test_version_and_python_dash_m():
+    assert runner.invoke(app, ["--version"]).output.startswith("dlocli ")
+    res = subprocess.run([sys.executable, "-m", "dlocli", "--version"], capture_output=True)
+    assert res.returncode == 0 and res.stdout.decode().startswith("dlocli ")
+
+
+def test_fields_that_moved_still_load():
+    """Spec files and saved runs written before a field moved keep their meaning."""
+    from dlocli.control import ControlSpec
+    from dlocli.specs import TaskSpec
+
+    task = TaskSpec(goal_file="g.npy")
+    spec = ControlSpec(task=task, model="m.pt", steps=30)
+    assert spec.checkpoint.name == "m.pt" and spec.task.episode_steps == 30
+    assert spec.task.goal_file.name == "g.npy" and task.episode_steps == 200
