@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 
-from dlocli.env import make_backend
+from dlocli.backends.rotations import quat_multiply, quat_rotate
+from dlocli.env.shape_env import make_backend
 from dlocli.registry import backends
-from dlocli.rotations import quat_multiply, quat_rotate
 from dlocli.specs import BackendSpec
 
 MAX_TWIST = np.array([0.1] * 3 + [0.5] * 3)  # m/s, rad/s

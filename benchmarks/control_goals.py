@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from dlocli.cli.control import parse_options
-from dlocli.control import ControlSpec, run_control
-from dlocli.goals import make_goal, save_goal
+from dlocli.env.shape_env import make_goal, save_goal
+from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import GoalSpec, TaskSpec, resolve_spec
 
 

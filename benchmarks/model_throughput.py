@@ -22,7 +22,7 @@ from collections.abc import Callable
 import torch
 
 from dlocli.models.base import STATE_DIM, DynamicsModel, ModelSpec, build_model
-from dlocli.train_spec import TrainSpec
+from dlocli.models.spec import TrainSpec
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, device: str = "cpu") -> float:

@@ -189,8 +189,8 @@ def main() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     cpu_start, wall_start = time.process_time(), time.perf_counter()
 
+    from dlocli.env.shape_env import make_goal
     from dlocli.errors import BadInput
-    from dlocli.goals import make_goal
     from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
 
     try:

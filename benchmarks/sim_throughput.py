@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 import dlocli
-from dlocli.collect import collect_random
+from dlocli.runs.collect import collect_random
 from dlocli.specs import CollectSpec
 
 

@@ -25,8 +25,8 @@ import time
 
 import numpy as np
 
-from dlocli.env import make_env
-from dlocli.shapes import ARRIVED, gripper_twists_towards
+from dlocli.env.shape_env import make_env
+from dlocli.env.shapes import ARRIVED, gripper_twists_towards
 from dlocli.specs import BackendSpec, TaskSpec
 
 

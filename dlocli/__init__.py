@@ -14,8 +14,8 @@ from typing import Any
 __version__ = "0.1.0"
 
 _LAZY = {
-    "make_env": "dlocli.env:make_env",
-    "DLOShapeEnv": "dlocli.env:DLOShapeEnv",
+    "make_env": "dlocli.env.shape_env:make_env",
+    "DLOShapeEnv": "dlocli.env.shape_env:DLOShapeEnv",
     "load_dataset": "dlocli.data:load_dataset",
     "Dataset": "dlocli.data:Dataset",
 }
@@ -40,7 +40,7 @@ def _register_gym_ids() -> None:
             if env_id not in gym.registry:
                 gym.register(
                     env_id,
-                    entry_point="dlocli.env:make_env",
+                    entry_point="dlocli.env.shape_env:make_env",
                     kwargs={"backend": backend, "task": task},
                     max_episode_steps=None,
                 )

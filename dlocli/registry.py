@@ -96,8 +96,8 @@ backends.register(
     "dlocli.backends.pybullet_chain:PybulletChain",
     "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l",
 )
-tasks.register("single", "dlocli.tasks:SingleGripperTask", "6-D action: right gripper moves")
-tasks.register("bimanual", "dlocli.tasks:BimanualTask", "12-D action: both grippers move")
+tasks.register("single", "dlocli.env.tasks:SingleGripperTask", "6-D action: right gripper moves")
+tasks.register("bimanual", "dlocli.env.tasks:BimanualTask", "12-D action: both grippers move")
 models.register(
     "in-bilstm",
     "dlocli.models.in_bilstm:INBiLSTM",

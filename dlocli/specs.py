@@ -268,51 +268,6 @@ def resolve_spec(
         raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
 
 
-def resumed_run_spec(
-    cls: type[SpecT], run_dir: Path, overrides: dict[str, Any], kind: str, command: str
-) -> SpecT:
-    """The saved spec of the ``command`` run (a ``kind`` run) in ``run_dir``, its ``out`` set
-    to ``run_dir``; BadInput if there is none or a flag contradicts it."""
-    from dlocli.models.spec import saved_spec  # models.spec imports this module
-
-    spec_path = Path(run_dir) / "spec.json"
-    if not spec_path.is_file():
-        raise BadInput(
-            f"--resume {run_dir} is not {kind} run (no spec.json); "
-            f"pass the --out directory of an earlier `{command}`"
-        )
-    try:
-        spec = cls.model_validate(saved_spec(spec_path))
-    except ValueError as exc:
-        raise BadInput(
-            f"--resume {run_dir}: spec.json is not {kind} spec; pass the directory of a "
-            f"`{command}` run"
-        ) from exc
-    refuse_resume_conflicts(spec.model_dump(), overrides, run_dir)
-    return spec.model_copy(update={"out": Path(run_dir)})
-
-
-def refuse_resume_conflicts(
-    saved: dict[str, Any], overrides: dict[str, Any], run_dir: Path, free: frozenset = frozenset()
-) -> None:
-    """BadInput if a flag given with ``--resume`` contradicts the run's saved spec.
-
-    ``saved`` is the spec as data, ``overrides`` the flags (dotted paths, None = not given);
-    fields whose first part is in ``free`` may change on resume.
-    """
-    for dotted, value in overrides.items():
-        if value is None or dotted.split(".")[0] in free:
-            continue
-        current: Any = saved
-        for key in dotted.split("."):
-            current = current[key]
-        if str(current) != str(value):
-            raise BadInput(
-                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
-                f"{dotted}={current!r}; drop the flag or start a new run"
-            )
-
-
 def field_info(cls: type[Spec], dotted: str) -> Any:
     """The pydantic FieldInfo of a possibly nested field (``task.episode_steps``)."""
     model: Any = cls

@@ -21,7 +21,7 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.fixture(scope="session")
 def small_dataset_dir(tmp_path_factory: pytest.TempPathFactory):
     """A small real MuJoCo single-gripper random dataset (6 episodes x 60 steps)."""
-    from dlocli.collect import collect_random
+    from dlocli.runs.collect import collect_random
     from dlocli.specs import CollectSpec
 
     out = tmp_path_factory.mktemp("small_dataset")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dlocli.env import make_backend
+from dlocli.backends.rotations import quat_rotate
+from dlocli.env.shape_env import make_backend
 from dlocli.registry import backends
-from dlocli.rotations import quat_rotate
 from dlocli.specs import BackendSpec
 
 BACKENDS = backends.names()

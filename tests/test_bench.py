@@ -180,7 +180,8 @@ def test_ray_gives_the_same_results_as_local_processes(tmp_path: Path):
 def test_runs_saved_before_a_model_field_existed_keep_their_jobs(tmp_path: Path):
     """A spec.json written before `absolute_position` existed means the model it had then
     (absolute positions), and its jobs keep their fingerprint, so --resume reuses them."""
-    from dlocli.bench import BenchSpec, fingerprint, load_bench_spec
+    from dlocli.bench.run import load_bench_spec
+    from dlocli.bench.spec import BenchSpec, fingerprint
 
     spec = BenchSpec(model={"absolute_position": True})
     saved = spec.model_dump(mode="json")
@@ -196,8 +197,9 @@ def test_runs_saved_before_a_model_field_existed_keep_their_jobs(tmp_path: Path)
 
 
 def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
-    from dlocli.bench import BenchSpec, check_spec, eval_points, fingerprint
-    from dlocli.bench_agents import fixed_goal
+    from dlocli.bench.agents import fixed_goal
+    from dlocli.bench.run import check_spec
+    from dlocli.bench.spec import BenchSpec, eval_points, fingerprint
 
     spec = BenchSpec.model_validate({**TINY, "budgets": {"sac": 100}})
     assert np.abs(fixed_goal(spec, "single", 0) - fixed_goal(spec, "single", 1)).max() > 0.01

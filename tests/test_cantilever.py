@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dlocli.backends.rotations import quat_rotate
 from dlocli.registry import backends
-from dlocli.rotations import quat_rotate
 from dlocli.specs import BackendSpec, RodSpec
 
 GRAVITY = 9.81

@@ -70,7 +70,7 @@ def test_version_and_python_dash_m():
 
 def test_fields_that_moved_still_load():
     """Spec files and saved runs written before a field moved keep their meaning."""
-    from dlocli.control import ControlSpec
+    from dlocli.runs.control import ControlSpec
     from dlocli.specs import TaskSpec
 
     task = TaskSpec(goal_file="g.npy")

@@ -15,7 +15,6 @@ from typer.testing import CliRunner
 
 import dlocli
 from dlocli.cli import app
-from dlocli.control import ControlSpec, run_control
 from dlocli.controllers.base import LearningAgent, make_controller
 from dlocli.controllers.mpc import GradientMPC, MPCSpec
 from dlocli.controllers.mppi import MPPI, MPPISpec
@@ -23,10 +22,11 @@ from dlocli.controllers.planning import shift_plan
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
 from dlocli.models import ModelSpec, build_model, save_checkpoint
+from dlocli.models.spec import FitSpec
+from dlocli.models.training import train_model
 from dlocli.registry import controllers
+from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
-from dlocli.train_spec import FitSpec
-from dlocli.training import train_model
 
 TINY = ModelSpec(hidden=32, edge_layers=2, node_layers=2, lstm_layers=1)
 SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "score", "best_error_mm",

@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from dlocli.cli import app
 from dlocli.data import load_dataset
-from dlocli.online import OnlineSpec
+from dlocli.runs.online import OnlineSpec
 
 runner = CliRunner()
 TINY = [

@@ -8,8 +8,8 @@ import pytest
 
 import dlocli
 from dlocli.controllers.base import Controller, ZeroController
+from dlocli.env.shapes import draw_gripper_targets, rotation_between
 from dlocli.registry import backends, controllers
-from dlocli.shapes import draw_gripper_targets, rotation_between
 from dlocli.specs import TaskSpec
 
 
@@ -69,7 +69,7 @@ def test_goal_is_where_the_grippers_were_driven():
     env = dlocli.make_env(task=TaskSpec(goal="random"), seed=0)
     try:
         env.reset(seed=4)
-        from dlocli.shapes import gripper_twists_towards
+        from dlocli.env.shapes import gripper_twists_towards
 
         for _ in range(env.task_spec.episode_steps):
             twists = gripper_twists_towards(
@@ -126,7 +126,7 @@ class Diverger(Controller):
 
 
 def test_diverging_scores_the_clip_for_every_step_it_did_not_run():
-    from dlocli.bench import eval_episode
+    from dlocli.bench.jobs import eval_episode
 
     env = dlocli.make_env(task=TaskSpec(episode_steps=30), seed=0)
     try:
@@ -152,7 +152,7 @@ def test_diverging_scores_the_clip_for_every_step_it_did_not_run():
 
 
 def test_zero_controller_is_registered_and_keeps_the_initial_error():
-    from dlocli.bench import eval_episode
+    from dlocli.bench.jobs import eval_episode
 
     assert "zero" in controllers
     env = dlocli.make_env(task=TaskSpec(episode_steps=10), seed=0)

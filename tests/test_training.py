@@ -10,9 +10,9 @@ import torch
 from typer.testing import CliRunner
 
 from dlocli.data import load_dataset
-from dlocli.evaluation import evaluate_model
 from dlocli.models.base import ModelSpec, build_model, load_model, read_checkpoint
-from dlocli.training import (
+from dlocli.models.evaluation import evaluate_model
+from dlocli.models.training import (
     FitSpec,
     split_episodes,
     train_model,
@@ -169,8 +169,8 @@ def test_bad_input_exits_2(small_dataset_dir, tmp_path):
 
 
 def test_stopped_training_resumes_to_the_same_model(small_dataset_dir, tmp_path):
-    from dlocli.train_spec import TrainSpec
-    from dlocli.training import resumed_spec, run_training
+    from dlocli.models.spec import TrainSpec
+    from dlocli.models.training import resumed_spec, run_training
 
     spec = TrainSpec(data=small_dataset_dir, model=ModelSpec(**TINY), epochs=3, **FAST_FIT)
     whole = run_training(spec.model_copy(update={"out": tmp_path / "whole"}))

@@ -44,8 +44,8 @@ import weakref
 import numpy as np
 
 from dlocli.backends.base import Backend
-from dlocli.render import finite_points, render_rod
-from dlocli.rotations import quat_multiply, quat_normalize
+from dlocli.backends.render import finite_points, render_rod
+from dlocli.backends.rotations import quat_multiply, quat_normalize
 from dlocli.specs import BackendSpec, RodSpec
 
 

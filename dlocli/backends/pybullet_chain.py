@@ -52,8 +52,8 @@ import numpy as np
 import pybullet as p
 
 from dlocli.backends.base import REST_HEIGHT, Backend
+from dlocli.backends.rotations import quat_normalize
 from dlocli.errors import BadInput, SimulationDiverged
-from dlocli.rotations import quat_normalize
 from dlocli.specs import BackendSpec, RodSpec
 
 COURANT = 0.5  # target omega_max * dt of the fastest chain mode (explicit stability < 2)
@@ -551,7 +551,7 @@ class PybulletChain(Backend):
 
     def _fallback_image(self, width: int, height: int, goal: np.ndarray | None) -> np.ndarray:
         try:
-            from dlocli.render import render_rod
+            from dlocli.backends.render import render_rod
 
             return render_rod(self.segment_positions(), self.gripper_poses(), goal, width, height)
         except Exception:  # noqa: BLE001 - last resort: a blank frame, never a crash

@@ -9,9 +9,9 @@ from typing import Annotated, Any
 
 import typer
 
-from dlocli.bench import BenchSpec as S
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, console, handle_errors
-from dlocli.cli.flags import parse_options, spec_flags
+from dlocli.bench.spec import BenchSpec as S
+from dlocli.cli.common import console, handle_errors
+from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 
 OPTION_HELP = (
     "An option of a learning agent, AGENT.KEY=VALUE (a field of its spec), repeatable: "
@@ -27,7 +27,7 @@ OPTION_HELP = (
      "fit.epochs", "transfer", "executor", "ray_address", "workers", "threads", "seed", "out"],
 )  # fmt: skip
 def bench(
-    overrides: dict[str, Any],
+    run: RunFlags,
     option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
     resume: Annotated[
         Path | None,
@@ -40,9 +40,6 @@ def bench(
             "into the first)."
         ),
     ] = None,
-    spec_file: SpecFile = None,
-    overwrite: OverwriteFlag = False,
-    json_out: JsonFlag = False,
 ) -> None:
     """Compare agents' sample efficiency under one transition budget (paper Figs. 4-7).
 
@@ -51,19 +48,18 @@ def bench(
 
         dlo bench --spec examples/bench_small.yaml --out runs/bench-small
     """
-    from dlocli.bench import report_bench, resume_bench, start_bench
-    from dlocli.specs import resolve_spec
+    from dlocli.bench.run import report_bench, resume_bench, start_bench
 
     if report:
         summary = report_bench(report)
     else:
-        overrides |= parse_options(option or [], "options")
-        progress = _quiet if json_out else _print_progress
+        run.overrides |= parse_options(option or [], "options")
+        progress = _quiet if run.json else _print_progress
         if resume is not None:
-            summary = resume_bench(resume, overrides, progress)
+            summary = resume_bench(resume, run.overrides, progress)
         else:
-            summary = start_bench(resolve_spec(S, spec_file, overrides), overwrite, progress)
-    _emit(summary, json_out)
+            summary = start_bench(run.spec(), run.overwrite, progress)
+    _emit(summary, run.json)
 
 
 def _quiet(event: str, info: dict[str, Any]) -> None:
@@ -84,7 +80,7 @@ def _emit(summary: dict[str, Any], as_json: bool) -> None:
     if as_json:
         sys.stdout.write(json.dumps(summary, default=str) + "\n")
         return
-    from dlocli.bench_plots import markdown_table
+    from dlocli.bench.report import markdown_table
 
     sys.stdout.write(markdown_table(summary["table"]))
     sys.stdout.write(f"results: {summary['out']}  figures: {len(summary['figures'])}\n")

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
-from dlocli.cli.flags import parse_options, spec_flags
-from dlocli.control import ControlSpec
+from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, parse_options, spec_flags
+from dlocli.runs.control import ControlSpec
 
 OPTION_HELP = (
     "Controller option KEY=VALUE, a field of the controller's spec; repeatable. mpc: horizon, "
@@ -25,23 +25,19 @@ OPTION_HELP = (
      "task.shapes", "task.episode_steps", "seed", "device", "threads", "video", "video_every"],
 )  # fmt: skip
 def control(
-    overrides: dict[str, Any],
+    run: RunFlags,
     option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
-    spec_file: SpecFile = None,
-    overwrite: OverwriteFlag = False,
-    json_out: JsonFlag = False,
 ) -> None:
     """Drive the rod from a seeded random start to the --goal shape; write OUT/summary.json."""
-    from dlocli.control import run_control
-    from dlocli.specs import resolve_spec
+    from dlocli.runs.control import run_control
 
-    overrides |= parse_options(option or [], "controller_options")
-    spec = resolve_spec(ControlSpec, spec_file, overrides)
+    run.overrides |= parse_options(option or [], "controller_options")
+    spec = run.spec()
     columns = (
         TextColumn("control"), BarColumn(), MofNCompleteColumn(),
         TextColumn("error {task.fields[error]:7.1f} mm  latency {task.fields[latency]:6.1f} ms"),
     )  # fmt: skip
-    progress = Progress(*columns, transient=json_out, disable=json_out)
+    progress = Progress(*columns, transient=run.json, disable=run.json)
     bar = progress.add_task(
         "control", total=spec.task.episode_steps, error=float("nan"), latency=0.0
     )
@@ -54,8 +50,8 @@ def control(
         )  # fmt: skip
 
     try:
-        summary = run_control(spec, show, overwrite=overwrite)
+        summary = run_control(spec, show, overwrite=run.overwrite)
     finally:
         progress.stop()
     summary.pop("versions", None)
-    emit_summary(summary, json_out, "dlo control")
+    emit_summary(summary, run.json, "dlo control")

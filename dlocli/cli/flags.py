@@ -4,9 +4,9 @@ A command lists the spec fields it offers as flags (dotted paths); :func:`spec_f
 one Typer option per field to the command's signature — its name from :data:`ALIASES` or
 else the path itself (``fit.batch_size`` -> ``--fit-batch-size``), its type, and the field's
 description as help — and hands the command the given values as ``overrides``, a dict
-``{dotted path: value}`` for :func:`dlocli.specs.resolve_spec` (None = not given). Every field,
-flag or not, is reachable through ``--spec FILE``; ``-o KEY=VALUE`` (:func:`parse_options`)
-sets the free-form option dicts.
+``{dotted path: value}`` (None = not given), with ``--spec``, ``--overwrite`` and ``--json``, in
+a :class:`RunFlags`. Every field, flag or not, is reachable through ``--spec FILE``;
+``-o KEY=VALUE`` (:func:`parse_options`) sets the free-form option dicts.
 """
 
 from __future__ import annotations
@@ -16,14 +16,16 @@ import inspect
 import types
 import typing
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args, get_origin
 
 import typer
 import yaml
 
+from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile
 from dlocli.errors import BadInput
-from dlocli.specs import Spec, field_info
+from dlocli.specs import Spec, field_info, resolve_spec
 
 #: the flags whose name is not their field's path; one table for every command
 ALIASES: dict[str, str] = {
@@ -85,8 +87,29 @@ def strip_none(annotation: Any) -> Any:
     return annotation
 
 
+@dataclass
+class RunFlags:
+    """What every run command is given: the flags' field values, ``--spec``, ``--overwrite``
+    and ``--json``."""
+
+    spec_cls: type[Spec]
+    overrides: dict[str, Any]
+    spec_file: Path | None
+    overwrite: bool
+    json: bool
+
+    def spec(self) -> Any:
+        """The run's spec: defaults, then the spec file, then the flags given."""
+        return resolve_spec(self.spec_cls, self.spec_file, self.overrides)
+
+
+COMMON: dict[str, Any] = {"spec_file": SpecFile, "overwrite": OverwriteFlag, "json_out": JsonFlag}
+COMMON_DEFAULTS = {"spec_file": None, "overwrite": False, "json_out": False}
+
+
 def spec_flags(spec_cls: type[Spec], fields: list[str]) -> Callable[[Callable], Callable]:
-    """Decorate a command ``fn(overrides, **own_flags)``: add a flag per field of ``fields``."""
+    """Decorate a command ``fn(run: RunFlags, **own_flags)``: add a flag per field of
+    ``fields``, and ``--spec``, ``--overwrite`` and ``--json``."""
 
     def decorate(fn: Callable) -> Callable:
         generated = dict(_option(spec_cls, dotted) for dotted in fields)
@@ -95,7 +118,7 @@ def spec_flags(spec_cls: type[Spec], fields: list[str]) -> Callable[[Callable], 
         own = [
             p.replace(kind=inspect.Parameter.KEYWORD_ONLY, annotation=hints[p.name])
             for p in inspect.signature(fn).parameters.values()
-            if p.name != "overrides"
+            if p.name != "run"
         ]
         clash = set(generated) & {p.name for p in own}
         if clash:
@@ -107,14 +130,21 @@ def spec_flags(spec_cls: type[Spec], fields: list[str]) -> Callable[[Callable], 
                 dotted: _value(spec_cls, dotted, kwargs.pop(name))
                 for name, dotted in params.items()
             }
-            return fn(overrides, **kwargs)
+            common = [kwargs.pop(name) for name in COMMON]
+            return fn(RunFlags(spec_cls, overrides, *common), **kwargs)
 
+        keyword = inspect.Parameter.KEYWORD_ONLY
         options = [
-            inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=kind)
+            inspect.Parameter(name, keyword, default=None, annotation=kind)
             for name, kind in generated.items()
         ]
-        command.__signature__ = inspect.Signature([*options, *own])  # type: ignore[attr-defined]
-        command.__annotations__ = {**generated, **{p.name: p.annotation for p in own}}
+        common = [
+            inspect.Parameter(name, keyword, default=COMMON_DEFAULTS[name], annotation=kind)
+            for name, kind in COMMON.items()
+        ]
+        signature = inspect.Signature([*options, *own, *common])
+        command.__signature__ = signature  # type: ignore[attr-defined]
+        command.__annotations__ = {**generated, **{p.name: p.annotation for p in own}, **COMMON}
         del command.__wrapped__  # Typer must read the generated signature, not fn's
         command.spec_cls = spec_cls  # type: ignore[attr-defined]
         command.spec_fields = {flag_name(d): d for d in fields}  # type: ignore[attr-defined]

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any
-
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
-from dlocli.cli.flags import spec_flags
+from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.errors import BadInput
 from dlocli.specs import GoalSpec
 
@@ -13,24 +11,20 @@ from dlocli.specs import GoalSpec
 @handle_errors
 @spec_flags(GoalSpec, ["out", "backend.name", "task.name", "task.shapes", "seed"])
 def goal(
-    overrides: dict[str, Any],
-    spec_file: SpecFile = None,
-    overwrite: OverwriteFlag = False,
-    json_out: JsonFlag = False,
+    run: RunFlags,
 ) -> None:
     """Drive the grippers to a random pose (seeded), let the rod settle, save its shape: a
     goal drawn from the same distribution as the env's goals."""
-    from dlocli.goals import make_goal, save_goal
-    from dlocli.metrics import shape_error_mm
+    from dlocli.env.metrics import shape_error_mm
+    from dlocli.env.shape_env import make_goal, save_goal
     from dlocli.registry import backends, tasks
-    from dlocli.specs import resolve_spec
 
-    spec = resolve_spec(GoalSpec, spec_file, overrides)
+    spec = run.spec()
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     if spec.out.suffix != ".npy":
         raise BadInput(f"--out {spec.out} must end in .npy (the goal format is a (N,3) .npy array)")
-    if spec.out.exists() and not overwrite:
+    if spec.out.exists() and not run.overwrite:
         raise BadInput(f"--out {spec.out} exists; pass --overwrite or another --out")
     shape = make_goal(spec)
     save_goal(shape, spec.out)
@@ -42,13 +36,13 @@ def goal(
             "seed": spec.seed,
             "distance_from_rest_mm": round(float(shape_error_mm(rest, shape)), 1),
         },
-        json_out,
+        run.json,
         "dlo goal",
     )
 
 
 def _rest_shape(spec: GoalSpec):
-    from dlocli.env import make_backend
+    from dlocli.env.shape_env import make_backend
 
     backend = make_backend(spec.backend, spec.task.control_dt)
     backend.reset(spec.seed)

@@ -15,9 +15,9 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
-from dlocli.cli.flags import spec_flags
-from dlocli.online import OnlineSpec as S
+from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.runs.online import OnlineSpec as S
 
 
 @handle_errors
@@ -29,32 +29,28 @@ from dlocli.online import OnlineSpec as S
      "offline", "seed", "out"],
 )  # fmt: skip
 def online(
-    overrides: dict[str, Any],
+    run: RunFlags,
     resume: Annotated[
         Path | None, typer.Option(help="Continue the killed run in this directory.")
     ] = None,
-    spec_file: SpecFile = None,
-    overwrite: OverwriteFlag = False,
-    json_out: JsonFlag = False,
 ) -> None:
     """Learn the dynamics model online with MPC (paper Algorithm 1); plot the learning curve.
 
     With no flags this is the paper's setting (K=20, E=50, N=50, T=200, H=5, lr 1e-4): a GPU
     job. For a CPU demo, see the README's first command.
     """
-    from dlocli.online import resume_online, start_online
-    from dlocli.specs import resolve_spec
+    from dlocli.runs.online import resume_online, start_online
 
-    with _progress(json_out) as callback:
+    with _progress(run.json) as callback:
         if resume is not None:
-            summary = resume_online(resume, overrides, callback)
+            summary = resume_online(resume, run.overrides, callback)
         else:
-            spec = resolve_spec(S, spec_file, overrides)
-            summary = start_online(spec, overwrite, callback)
+            spec = run.spec()
+            summary = start_online(spec, run.overwrite, callback)
     summary = {k: v for k, v in summary.items() if k not in ("curve", "offline_curve")} | {
         "curve": [(c["transitions"], round(c["final_error_mm_mean"], 1)) for c in summary["curve"]]
     }
-    emit_summary(summary, json_out, "dlo online")
+    emit_summary(summary, run.json, "dlo online")
 
 
 class _progress:

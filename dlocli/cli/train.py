@@ -8,9 +8,9 @@ from typing import Annotated, Any
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile, emit_summary, handle_errors
-from dlocli.cli.flags import spec_flags
-from dlocli.train_spec import TrainSpec as S
+from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.models.spec import TrainSpec as S
 
 
 @handle_errors
@@ -20,30 +20,23 @@ from dlocli.train_spec import TrainSpec as S
      "input_noise", "val_fraction", "device", "seed", "init_from", "out"],
 )  # fmt: skip
 def train(
-    overrides: dict[str, Any],
+    run: RunFlags,
     resume: Annotated[
         Path | None, typer.Option(help="Finish the stopped run in this directory, as if unstopped.")
     ] = None,
-    spec_file: SpecFile = None,
-    overwrite: OverwriteFlag = False,
-    json_out: JsonFlag = False,
 ) -> None:
     """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json."""
+    from dlocli.models.training import resumed_spec, run_training
     from dlocli.registry import models
-    from dlocli.specs import resolve_spec
-    from dlocli.training import resumed_spec, run_training
 
-    if resume is not None:
-        spec = resumed_spec(resume, overrides)
-    else:
-        spec = resolve_spec(S, spec_file, overrides)
+    spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     models.check(spec.model.name)
     columns = (
         TextColumn("epoch {task.fields[epoch]}/{task.fields[epochs]}"), BarColumn(),
         MofNCompleteColumn(), TextColumn("loss {task.fields[loss]:.4g}"),
         TextColumn("val {task.fields[val]:.4g}"), TimeRemainingColumn(),
     )  # fmt: skip
-    with Progress(*columns, transient=json_out, disable=json_out) as progress:
+    with Progress(*columns, transient=run.json, disable=run.json) as progress:
         bar = progress.add_task("train", total=None, epoch=0, epochs=spec.epochs,
                                 loss=float("nan"), val=float("nan"))  # fmt: skip
 
@@ -54,5 +47,5 @@ def train(
             progress.update(bar, epoch=event["epoch"], total=event["batches"],
                             completed=event["batch"], loss=event["loss"])  # fmt: skip
 
-        summary = run_training(spec, overwrite, show, resume=resume is not None)
-    emit_summary(summary, json_out, "dlo train")
+        summary = run_training(spec, run.overwrite, show, resume=resume is not None)
+    emit_summary(summary, run.json, "dlo train")

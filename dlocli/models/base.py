@@ -32,10 +32,10 @@ import torch
 from pydantic import ValidationError
 from torch import Tensor
 
+from dlocli.backends.rotations import state_change
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, versions
 from dlocli.models.spec import ModelSpec, with_legacy_fields
-from dlocli.rotations import state_change
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)

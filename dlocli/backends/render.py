@@ -12,7 +12,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from dlocli.backends.base import GripperLimits
-from dlocli.rotations import quat_rotate
+from dlocli.backends.rotations import quat_rotate
 
 ROD_COLOR = "#d9591a"
 GOAL_COLOR = "#2ca02c"

@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from dlocli.data import DATASET_FILE, Dataset, Episode
-from dlocli.env import DLOShapeEnv, make_env_from_spec
+from dlocli.env.rollout import random_episode, stream_seed
+from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
-from dlocli.rollout import random_episode, stream_seed
 from dlocli.specs import CollectSpec, EnvSpec
 
 # One env per worker process, built once (the goal is derived from the spec's seed, so every

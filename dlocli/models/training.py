@@ -31,7 +31,7 @@ from dlocli.models.base import (
     resolve_device,
     save_checkpoint,
 )
-from dlocli.train_spec import FitSpec, TrainSpec
+from dlocli.models.spec import FitSpec, TrainSpec
 
 GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e + 1) * GOLDEN) < fraction
 EVAL_BATCH = 1024
@@ -254,8 +254,8 @@ def run_training(
 
     ``resume``: continue the run in ``spec.out`` (its saved spec) from ``checkpoints/last.pt``.
     """
-    from dlocli.evaluation import evaluate_model, plot_losses, plot_rollout
     from dlocli.io import prepare_run_dir, write_json_atomic
+    from dlocli.models.evaluation import evaluate_model, plot_losses, plot_rollout
 
     dataset = load_training_data(spec)
     if resume:
@@ -316,7 +316,7 @@ def run_training(
 def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> TrainSpec:
     """`dlo train --resume RUN`: the spec of the run in ``run_dir`` (pass it to
     :func:`run_training` with ``resume=True``); flags that contradict it are refused."""
-    from dlocli.specs import resumed_run_spec
+    from dlocli.resume import resumed_run_spec
 
     return resumed_run_spec(TrainSpec, run_dir, overrides, "a training", "dlo train")
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from dlocli.data import Episode
-from dlocli.metrics import episode_result, shape_error_mm
+from dlocli.env.metrics import episode_result, shape_error_mm
 
 #: the most control steps a random action is held (random holds explore further than noise)
 MAX_HOLD = 10

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from dlocli.backends.base import Backend
-from dlocli.rotations import quat_from_rotvec, quat_multiply, quat_normalize
+from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize
 from dlocli.specs import TaskSpec
 
 #: how many control steps a near-rest motion keeps one velocity before drawing the next

@@ -30,11 +30,11 @@ import numpy as np
 from pydantic import Field
 
 from dlocli.controllers.base import Controller, controller_spec, make_controller
-from dlocli.env import DLOShapeEnv, load_goal, make_env
+from dlocli.env.metrics import episode_result, shape_error_mm
+from dlocli.env.rollout import rollout
+from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
-from dlocli.metrics import episode_result, shape_error_mm
-from dlocli.rollout import rollout
 from dlocli.specs import EnvSpec
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -167,7 +167,7 @@ def run_control(
 def closed_loop(
     env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Progress | None
 ) -> tuple[list[dict[str, float]], float, list[np.ndarray], bool]:
-    """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.rollout`).
+    """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.env.rollout`).
 
     Returns per-step records, the initial shape error (mm), video frames, diverged flag.
     """

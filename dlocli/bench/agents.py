@@ -27,25 +27,27 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dlocli.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
-from dlocli.rollout import episode_scores, stream_seed
+from dlocli.bench.spec import eval_points, mpc_points, mpc_schedule
+from dlocli.env.rollout import episode_scores, stream_seed
+from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
 
 if TYPE_CHECKING:
-    from dlocli.bench import BenchSpec
+    from dlocli.bench.spec import BenchSpec
     from dlocli.controllers.base import Controller, LearningAgent
     from dlocli.data import Dataset
-    from dlocli.env import DLOShapeEnv
+    from dlocli.env.shape_env import DLOShapeEnv
     from dlocli.models.base import DynamicsModel
 
 #: seed stream of the controllers used in evaluation (random actions, MPC restarts)
 EVAL_CONTROLLER = 7
+#: the planner whose model the online loop (paper Algorithm 1) learns
+ONLINE_PLANNER = "mpc"
 
 
 # ----------------------------------------------------------------------------- envs
 @lru_cache(maxsize=8)
 def _goal(backend_json: str, task_json: str, seed: int) -> np.ndarray:
-    from dlocli.env import load_goal
-    from dlocli.goals import make_goal
+    from dlocli.env.shape_env import load_goal, make_goal
     from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
 
     backend = BackendSpec.model_validate_json(backend_json)
@@ -63,7 +65,7 @@ def fixed_goal(spec: BenchSpec, task: str, seed: int) -> np.ndarray:
 
 def make_bench_env(spec: BenchSpec, task: str, goals: str, seed: int) -> DLOShapeEnv:
     """A DLOShapeEnv of ``task`` with the seed's fixed goal or random goals."""
-    from dlocli.env import make_env
+    from dlocli.env.shape_env import make_env
 
     task_spec = spec.task.model_copy(update={"name": task, "goal": goals, "goal_file": None})
     goal = fixed_goal(spec, task, seed) if goals == "fixed" else None
@@ -76,6 +78,53 @@ def train_env(spec: BenchSpec, seed: int) -> DLOShapeEnv:
 
 
 # ----------------------------------------------------------------------------- agents
+#: the suffix of an agent whose model is trained offline on random data (paper Fig. 7)
+OFFLINE = "-offline"
+
+
+def learner_class(name: str) -> type[BenchLearner]:
+    """How the registered controller ``name`` learns in the bench, from what it is: a
+    LearningAgent (sac, td3, pilco, ...) learns by itself; the planner ``mpc`` learns its
+    model online (paper Algorithm 1), ``mpc-offline`` from as much random data; a controller
+    that needs nothing (zero, random, ...) does not learn."""
+    from dlocli.controllers.base import LearningAgent
+    from dlocli.registry import controllers
+
+    check_agent(name)
+    if name.endswith(OFFLINE):
+        return OfflineMPCLearner
+    cls = controllers.get(name)
+    if issubclass(cls, LearningAgent):
+        return AgentLearner
+    return OnlineMPCLearner if name == ONLINE_PLANNER else FixedLearner
+
+
+def agent_names() -> list[str]:
+    """Every registered controller the bench can run, and ``mpc-offline``."""
+    from dlocli.controllers.base import LearningAgent
+    from dlocli.registry import controllers
+
+    names = []
+    for name in controllers.names():
+        cls = controllers.get(name)
+        if issubclass(cls, LearningAgent) or not cls.needs or name == ONLINE_PLANNER:
+            names.append(name)
+    return sorted([*names, ONLINE_PLANNER + OFFLINE])
+
+
+def check_agent(name: str) -> None:
+    """UnknownName listing the bench's agents if ``name`` is not one of them."""
+    import difflib
+
+    from dlocli.errors import UnknownName
+
+    names = agent_names()
+    if name not in names:
+        close = difflib.get_close_matches(name, names, n=1)
+        hint = f" Did you mean '{close[0]}'?" if close else ""
+        raise UnknownName(f"unknown agent '{name}'; valid agents: {', '.join(names)}.{hint}")
+
+
 class BenchLearner(ABC):
     """One agent x seed of a benchmark. ``transitions``: env steps used so far."""
 
@@ -88,8 +137,6 @@ class BenchLearner(ABC):
 
     def points(self) -> list[int]:
         """Transition counts after which the agent is evaluated (the bench's schedule)."""
-        from dlocli.bench import eval_points
-
         return eval_points(self.spec, self.name)
 
     @abstractmethod
@@ -109,25 +156,16 @@ class BenchLearner(ABC):
         """Release the training env, if any."""
 
 
-class RandomLearner(BenchLearner):
-    """Uniform random actions: the floor every agent must beat."""
+class FixedLearner(BenchLearner):
+    """A controller that learns nothing (zero, random): the references every agent must beat."""
 
     def learn_to(self, transitions: int) -> None:
         self.transitions = transitions  # learns nothing: a flat line at the schedule's points
 
     def controller(self, env: DLOShapeEnv) -> Controller:
-        from dlocli.controllers.base import RandomController
+        from dlocli.controllers.base import make_controller
 
-        return RandomController(env, seed=stream_seed(self.seed, EVAL_CONTROLLER))
-
-
-class ZeroLearner(RandomLearner):
-    """All-zero actions: doing nothing, the reference of every score."""
-
-    def controller(self, env: DLOShapeEnv) -> Controller:
-        from dlocli.controllers.base import ZeroController
-
-        return ZeroController(env)
+        return make_controller(self.name, env, seed=stream_seed(self.seed, EVAL_CONTROLLER))
 
 
 class AgentLearner(BenchLearner):
@@ -158,30 +196,6 @@ class AgentLearner(BenchLearner):
 
 
 # ----------------------------------------------------------------------------- MPC agents
-def mpc_schedule(spec: BenchSpec, agent: str = "mpc") -> tuple[int, int, int]:
-    """(initial episodes I, trials per iteration N, iterations K) of ``agent`` (mpc or
-    mpc-offline) in its budget.
-
-    Iterations are as long as the bench's evaluation interval; the initial dataset as well,
-    but at least two episodes (a validation split needs two). ``mpc`` uses I*T + K*N*T
-    transitions: at most the budget, less by a remainder shorter than one iteration.
-    """
-    from dlocli.bench import budget_of, eval_interval
-
-    steps = spec.task.episode_steps
-    trials = eval_interval(spec) // steps
-    initial = max(2, trials)
-    iterations = max(0, (budget_of(spec, agent) // steps - initial) // trials)
-    return initial, trials, iterations
-
-
-def mpc_points(spec: BenchSpec, agent: str = "mpc") -> list[int]:
-    """Where ``agent`` is evaluated: after the initial data and after every iteration."""
-    initial, trials, iterations = mpc_schedule(spec, agent)
-    steps = spec.task.episode_steps
-    return [(initial + k * trials) * steps for k in range(iterations + 1)]
-
-
 class MPCLearner(BenchLearner):
     """Base of the model-based agents: evaluated with gradient MPC through ``model()``."""
 
@@ -200,7 +214,7 @@ class MPCLearner(BenchLearner):
 
 
 class OnlineMPCLearner(MPCLearner):
-    """Algorithm 1 (``dlocli.online``) in ``work``; evaluated after every model update."""
+    """Algorithm 1 (``dlocli.runs.online``) in ``work``; evaluated after every model update."""
 
     def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
         super().__init__(name, spec, seed, work)
@@ -243,7 +257,7 @@ class OfflineMPCLearner(MPCLearner):
         import torch
 
         from dlocli.models.base import build_model, resolve_device
-        from dlocli.training import train_model
+        from dlocli.models.training import train_model
 
         k = self.points().index(transitions)
         data = self._random_data(transitions)

@@ -37,11 +37,11 @@ from pydantic import Field
 
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
+from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
-from dlocli.models.spec import ModelSpec
-from dlocli.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
-from dlocli.specs import EnvSpec, resumed_run_spec
-from dlocli.train_spec import FitSpec
+from dlocli.models.spec import FitSpec, ModelSpec
+from dlocli.resume import resumed_run_spec
+from dlocli.specs import EnvSpec
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -120,7 +120,7 @@ def _trial_episode(
     import torch
 
     from dlocli.controllers.mpc import GradientMPC
-    from dlocli.env import make_env_from_spec
+    from dlocli.env.shape_env import make_env_from_spec
     from dlocli.models.base import load_model
 
     if threads is not None:
@@ -171,8 +171,8 @@ class OnlineRun:
         path = self.paths.initial()
         if path.is_file():
             return load_dataset(path)
-        from dlocli.collect import dataset_attrs
-        from dlocli.env import make_env_from_spec
+        from dlocli.env.shape_env import make_env_from_spec
+        from dlocli.runs.collect import dataset_attrs
 
         env = make_env_from_spec(_env_spec(self.spec))
         episodes = []
@@ -206,7 +206,7 @@ class OnlineRun:
             resolve_device,
             save_checkpoint,
         )
-        from dlocli.training import train_model
+        from dlocli.models.training import train_model
 
         if self.paths.checkpoint(k).is_file():
             return
@@ -288,7 +288,7 @@ class OnlineRun:
         import torch
 
         from dlocli.models.base import build_model, resolve_device, save_checkpoint
-        from dlocli.training import train_model
+        from dlocli.models.training import train_model
 
         ckpt = self.paths.checkpoint(k, offline=True)
         if not ckpt.is_file():
@@ -315,7 +315,7 @@ class OnlineRun:
         path = self.paths.offline_data(k)
         if path.is_file():
             return load_dataset(path)
-        from dlocli.env import make_env_from_spec
+        from dlocli.env.shape_env import make_env_from_spec
 
         data = load_dataset(self.paths.initial())
         env = make_env_from_spec(_env_spec(self.spec))

@@ -6,7 +6,7 @@ velocities (N*7: the change of each segment's position and quaternion over the l
 step, divided by the step; zero right after a reset, when the rod has settled). Use
 :meth:`DLOShapeEnv.split_observation` to get the parts back.
 Action: Box(-1, 1, (6,)) for ``single`` or (12,) for ``bimanual``, scaled to the task's
-maximum gripper velocities. Reward: paper eq. 12. Starts and goals: :mod:`dlocli.shapes`.
+maximum gripper velocities. Reward: paper eq. 12. Starts and goals: :mod:`dlocli.env.shapes`.
 
 A diverged simulation does not end the episode early, so that blowing the simulation up never
 scores better than trying: every remaining step returns the clip reward -1.5 and the last
@@ -24,14 +24,15 @@ import gymnasium as gym
 import numpy as np
 
 from dlocli.backends.base import Backend
+from dlocli.backends.rotations import state_change
+from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
+from dlocli.env.metrics import reward as shape_reward
+from dlocli.env.shapes import make_shape, max_twist
+from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput
-from dlocli.metrics import REWARD_CLIP, shape_error_mm
-from dlocli.metrics import reward as shape_reward
+from dlocli.io import atomic_path
 from dlocli.registry import backends as backend_registry
-from dlocli.rotations import state_change
-from dlocli.shapes import make_shape, max_twist
-from dlocli.specs import BackendSpec, EnvSpec, TaskSpec
-from dlocli.tasks import Task, make_task
+from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec
 
 
 def make_backend(spec: BackendSpec, control_dt: float = 0.02) -> Backend:
@@ -163,7 +164,7 @@ class DLOShapeEnv(gym.Env):
 
     # ------------------------------------------------------------------ random shapes
     def _random_shape(self, rng: np.random.Generator, motion_steps: int) -> bool:
-        """Reset the backend and make a random shape (:mod:`dlocli.shapes`); False if the
+        """Reset the backend and make a random shape (:mod:`dlocli.env.shapes`); False if the
         simulation diverged 10 times."""
         for attempt in range(1, 11):
             self.backend.reset(int(rng.integers(2**31)))
@@ -174,7 +175,7 @@ class DLOShapeEnv(gym.Env):
         return False
 
     def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
-        """A reachable goal: a random shape (:mod:`dlocli.shapes`) the rod settled in."""
+        """A reachable goal: a random shape (:mod:`dlocli.env.shapes`) the rod settled in."""
         if not self._random_shape(rng, 2 * self.task_spec.reset_motion_steps):
             raise RuntimeError("could not generate a goal: the simulation diverged 10 times")
         self.goal_gripper_poses = self.backend.gripper_poses()
@@ -298,3 +299,23 @@ def make_env(
 
 def make_env_from_spec(spec: EnvSpec, goal: np.ndarray | Path | str | None = None) -> DLOShapeEnv:
     return make_env(spec.backend, spec.task, goal=goal, seed=spec.seed)
+
+
+# ----------------------------------------------------------------------------- goal files
+def make_goal(spec: GoalSpec) -> np.ndarray:
+    """The (N,3) goal the env would use as its fixed goal for ``spec.seed``."""
+    env = make_env_from_spec(
+        spec.model_copy(
+            update={"task": spec.task.model_copy(update={"goal": "fixed", "goal_file": None})}
+        )
+    )
+    try:
+        return np.asarray(env.goal, dtype=np.float64)
+    finally:
+        env.close()
+
+
+def save_goal(goal: np.ndarray, path) -> None:
+    """Write the goal .npy atomically."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, goal)

@@ -1,11 +1,11 @@
 """Where the jobs of ``dlo bench`` run: local processes, or Ray tasks on a cluster.
 
 An executor is connected first and closed after (:func:`open_executor`); its ``run`` takes the
-resolved spec (JSON) and a list of :class:`dlocli.bench.Job` and yields ``(job, result)`` as
-jobs finish, where ``result`` is :func:`dlocli.bench.run_job`'s dict or the exception the job
-raised (the caller saves finished jobs and reports failed ones). Both executors call the same
-:func:`run_job`, which reseeds everything it uses, so the same seeds give the same results on
-either. A new executor is one class with ``connect``, ``run`` and ``close``.
+resolved spec (JSON) and a list of :class:`dlocli.bench.jobs.Job` and yields ``(job, result)``
+as jobs finish, where ``result`` is :func:`dlocli.bench.jobs.run_job`'s dict or the exception
+the job raised (the caller saves finished jobs and reports failed ones). Both executors call
+the same :func:`run_job`, which reseeds everything it uses, so the same seeds give the same
+results on either. A new executor is one class with ``connect``, ``run`` and ``close``.
 
 Ray is optional (``pip install 'dlocli[ray]'``) and imported only here, when used. Each job is
 one Ray task with one CPU; its results travel back to the driver, which writes the files, so
@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from dlocli.bench import Job, run_job
+from dlocli.bench.jobs import Job, run_job
 from dlocli.errors import BadInput
 
 Outcome = tuple[Job, "dict[str, Any] | BaseException"]

@@ -1,0 +1,1 @@
+"""`dlo bench`: the spec and schedule, the agents, the jobs, where they run, and the report."""

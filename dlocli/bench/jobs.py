@@ -1,0 +1,172 @@
+"""One job of the bench: an agent x seed learns to its budget and is evaluated on the way
+(:func:`run_job`, the entry point of every executor)."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dlocli.bench.agents import learner_class, make_bench_env
+from dlocli.bench.spec import BenchSpec, fingerprint, resolved_options
+from dlocli.env.rollout import episode_scores, rollout, stream_seed
+from dlocli.io import versions
+
+EVAL = 5  # seed stream of evaluation starts
+
+
+# ----------------------------------------------------------------------------- evaluation
+def eval_episode(controller: Any, env: Any, seed: int) -> dict[str, float]:
+    """Initial and final error, score and cumulative reward of one noise-free episode from
+    ``seed`` (a diverged episode stops there; its missing steps count at the clip)."""
+    return episode_scores(rollout(env, controller, seed), env.task_spec.episode_steps)
+
+
+def evaluate(controller: Any, env: Any, spec: BenchSpec, seed: int) -> dict[str, float]:
+    """Mean (and std) over ``eval_trials`` episodes from the seed's evaluation starts."""
+    start = time.perf_counter()
+    results = [
+        eval_episode(controller, env, stream_seed(seed, EVAL, i)) for i in range(spec.eval_trials)
+    ]
+    column = {key: np.array([r[key] for r in results]) for key in results[0]}
+    return {
+        "cumulative_reward": float(column["cumulative_reward"].mean()),
+        "cumulative_reward_std": float(column["cumulative_reward"].std()),
+        "initial_error_mm": float(column["initial_error_mm"].mean()),
+        "final_error_mm": float(column["final_error_mm"].mean()),
+        "score": float(column["score"].mean()),
+        "score_std": float(column["score"].std()),
+        "eval_seconds": round(time.perf_counter() - start, 3),
+    }
+
+
+def curve_settings(spec: BenchSpec) -> list[tuple[str, str]]:
+    """(task, goals) where agents are evaluated at every point: where they learn, and random
+    goals after a fixed one (paper Fig. 6)."""
+    settings = [(spec.task.name, spec.task.goal)]
+    if spec.transfer and spec.task.goal == "fixed":
+        settings.append((spec.task.name, "random"))
+    return settings
+
+
+def final_settings(spec: BenchSpec) -> list[tuple[str, str]]:
+    """(task, goals) where final agents are also evaluated: the bimanual task after the
+    single-gripper one (paper Fig. 5)."""
+    if spec.transfer and spec.task.name == "single":
+        return [("bimanual", spec.task.goal)]
+    return []
+
+
+# ----------------------------------------------------------------------------- one job
+def _seed_globals(seed: int) -> None:
+    import random
+
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+@contextmanager
+def _workdir(scratch: str | None) -> Iterator[Path]:
+    if scratch is not None:
+        yield Path(scratch)  # created by the agents that write there
+        return
+    with tempfile.TemporaryDirectory(prefix="dlo-bench-") as tmp:
+        yield Path(tmp)
+
+
+def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -> dict[str, Any]:
+    """Learn and evaluate one agent x seed; returns its result (rows of results.csv)."""
+    import torch
+
+    spec = BenchSpec.model_validate_json(spec_json)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(spec.threads)
+    _seed_globals(seed)
+    start = time.perf_counter()
+    try:
+        with _workdir(scratch) as work:
+            rows = _learn_and_evaluate(spec, agent, seed, work)
+    finally:
+        torch.set_num_threads(threads)
+    return {
+        "agent": agent,
+        "seed": seed,
+        "fingerprint": fingerprint(spec, agent),
+        "options": resolved_options(spec, agent),
+        "rows": rows,
+        "seconds": round(time.perf_counter() - start, 1),
+        "versions": versions(),
+    }
+
+
+def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> list[dict]:
+    learner = learner_class(agent)(agent, spec, seed, work)
+    envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
+    rows, wall, trained = [], 0.0, 0
+    try:
+        for index, point in enumerate(learner.points()):
+            start = time.perf_counter()
+            learner.learn_to(point)
+            wall += time.perf_counter() - start
+            returns = learner.training_returns()
+            point_row = {
+                "agent": agent,
+                "seed": seed,
+                "train_task": spec.task.name,
+                "train_goals": spec.task.goal,
+                "eval": index,
+                "transitions": learner.transitions,
+                "wall_seconds": round(wall, 3),
+                "train_reward": float(np.mean(returns[trained:])) if returns[trained:] else None,
+                "train_episodes": len(returns) - trained,
+            }
+            trained = len(returns)
+            for setting, env in envs.items():
+                rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
+        for setting in final_settings(spec):
+            env = make_bench_env(spec, *setting, seed)
+            try:
+                rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
+            finally:
+                env.close()
+    finally:
+        for env in envs.values():
+            env.close()
+        learner.close()
+    return rows
+
+
+def _evaluation_rows(
+    spec: BenchSpec, learner: Any, env: Any, setting: tuple[str, str], seed: int, point: dict
+) -> list[dict[str, Any]]:
+    """The row of one evaluation of ``learner`` on ``env`` (none where it cannot act)."""
+    controller = learner.controller(env)
+    if controller is None:
+        return []
+    task, goals = setting
+    return [
+        {**point, "eval_task": task, "eval_goals": goals, **evaluate(controller, env, spec, seed)}
+    ]
+
+
+# ----------------------------------------------------------------------------- jobs
+@dataclass(frozen=True)
+class Job:
+    """One agent x seed; ``scratch``: its work directory (None: a temporary one)."""
+
+    agent: str
+    seed: int
+    scratch: str | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.agent}-s{self.seed}"

@@ -1,0 +1,244 @@
+"""``dlo bench``: sample efficiency of the agents under one transition budget (paper Sec. V).
+
+Every agent x seed is one *job*: the agent learns for its budget of env transitions
+(``budget``, or its entry in ``budgets``) and is evaluated at regular transition counts with
+``eval_trials`` noise-free episodes from fixed random starts (the same starts for every agent
+of a seed; evaluation transitions are not counted). Each seed has its own fixed goal. With
+``transfer``, the agent is also evaluated where it did not learn: on random goals after
+learning a fixed goal, at every evaluation point (paper Fig. 6), and, at the end, the
+model-based agents on the bimanual task after learning the single-gripper one (paper Fig. 5).
+Every row carries its reference: the evaluation episodes' initial error (what doing nothing
+keeps) and the score ``1 - final/initial``; ``zero`` (do nothing) and ``random`` run by
+default. Next to the noise-free evaluation, each row holds the mean cumulative reward of the
+agent's own training episodes since the previous point (with their exploration: the paper's
+Fig. 4 protocol). The agents are in :mod:`dlocli.bench.agents`; the figures in
+:mod:`dlocli.bench.report`.
+
+Run directory (every file written atomically)::
+
+    spec.json                   resolved BenchSpec
+    jobs/AGENT-sSEED.json       one finished job: its evaluation rows (resume skips it)
+    work/FINGERPRINT/AGENT-sSEED/   a job's own files (mpc's online run), local executor only
+    results.csv                 agent, seed, eval, transitions, train_task, train_goals,
+                                eval_task, eval_goals, cumulative_reward(_std), final_error_mm,
+                                wall_seconds (learning time so far), eval_seconds, initial_error_mm,
+                                score(_std), train_reward, train_episodes
+    summary.md, summary.json    final results per agent and evaluation setting
+    plots/fig4_learning_curves.png, fig5_bimanual.png, fig6_random_goals.png,
+    plots/fig7_online_offline.png   (those the results allow)
+
+Seeds: job i uses seed ``seed + i``; every random stream of a job derives from it, and the
+global generators are reseeded at the start of each job, so results do not depend on the
+executor (local processes or Ray) or on the order of jobs. The fixed goal of job seed s comes
+from s alone: one goal shape per seed, the same for every agent.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from dlocli.bench.agents import agent_names, check_agent
+from dlocli.bench.jobs import Job
+from dlocli.bench.spec import (
+    FREE_FIELDS,
+    BenchSpec,
+    budget_of,
+    fingerprint,
+    mpc_schedule,
+    option_agents,
+    seeds_of,
+)
+from dlocli.errors import BadInput, DloError
+from dlocli.io import prepare_run_dir, write_json_atomic
+from dlocli.resume import resumed_run_spec
+
+Progress = Callable[[str, dict[str, Any]], None]
+
+
+# ----------------------------------------------------------------------------- checks
+def check_spec(spec: BenchSpec) -> None:
+    """Refuse what cannot run, with one line naming the fix (BadInput)."""
+    from dlocli.bench.executors import check_executor
+    from dlocli.controllers.base import controller_spec
+    from dlocli.registry import backends, tasks
+
+    backends.check(spec.backend.name)
+    tasks.check(spec.task.name)
+    if not spec.agents:
+        raise BadInput(f"--agents is empty; pass some of {', '.join(agent_names())}")
+    for name in spec.agents:
+        check_agent(name)
+    if len(set(spec.agents)) != len(spec.agents):
+        raise BadInput(f"--agents {','.join(spec.agents)} names an agent twice; list each once")
+    steps = spec.task.episode_steps
+    if spec.budget < steps:
+        raise BadInput(
+            f"--budget {spec.budget} is less than one episode ({steps} steps); "
+            f"pass --budget {steps} or more"
+        )
+    for name, budget in spec.budgets.items():
+        check_agent(name)
+        if budget < spec.budget:
+            raise BadInput(
+                f"budgets: {name}={budget} is below --budget {spec.budget}; per-agent budgets "
+                "extend the common one (lower --budget instead)"
+            )
+    for name in {"mpc", "mpc-offline"} & set(spec.agents):
+        if mpc_schedule(spec, name)[0] * steps > budget_of(spec, name):
+            raise BadInput(
+                f"--budget {spec.budget}: mpc needs at least two episodes "
+                f"({2 * steps} transitions); raise --budget or drop mpc"
+            )
+    if spec.task.observe_velocity != spec.model.velocity_input:
+        raise BadInput(
+            f"task.observe_velocity={spec.task.observe_velocity} but "
+            f"model.velocity_input={spec.model.velocity_input}: every agent must get the same "
+            "information; set both to the same value"
+        )
+    for name, options in spec.options.items():
+        if name not in option_agents():
+            raise BadInput(
+                f"options for '{name}': only {', '.join(option_agents())} take options "
+                "(mpc uses the spec's model, fit and mpc fields)"
+            )
+        controller_spec(name, options)
+    check_executor(spec.executor, spec.ray_address)
+
+
+# ----------------------------------------------------------------------------- the run
+class BenchRun:
+    """The jobs of a bench over a run directory; :meth:`run` again resumes."""
+
+    def __init__(self, spec: BenchSpec, progress: Progress | None = None) -> None:
+        self.spec = spec
+        self.out = Path(spec.out)
+        self.progress = progress or (lambda event, info: None)
+
+    def job_file(self, agent: str, seed: int) -> Path:
+        return self.out / "jobs" / f"{agent}-s{seed}.json"
+
+    def finished(self, agent: str, seed: int) -> dict[str, Any] | None:
+        """The job's saved result, if it was run with this spec."""
+
+        path = self.job_file(agent, seed)
+        if not path.is_file():
+            return None
+        result = json.loads(path.read_text())
+        return result if result.get("fingerprint") == fingerprint(self.spec, agent) else None
+
+    def jobs(self) -> list[Job]:
+        """The jobs still to run (finished ones are kept), seed-major so seeds finish early."""
+        local = self.spec.executor == "local"
+        work = self.out / "work" / fingerprint(self.spec)
+        return [
+            Job(agent, seed, str(work / f"{agent}-s{seed}") if local else None)
+            for seed in seeds_of(self.spec)
+            for agent in self.spec.agents
+            if self.finished(agent, seed) is None
+        ]
+
+    def run(self, executor: Any) -> dict[str, Any]:
+        """Run the missing jobs on ``executor`` (:mod:`dlocli.bench.executors`), saving each
+        as it finishes; then write the results."""
+        todo, failed = self.jobs(), []
+        total = len(self.spec.agents) * self.spec.seeds
+        self.progress("start", {"total": total, "todo": len(todo)})
+        if todo:
+            for job, result in executor.run(self.spec.model_dump_json(), todo):
+                if isinstance(result, BaseException):
+                    failed.append(f"{job.name}: {type(result).__name__}: {result}")
+                    self.progress("failed", {"job": job.name, "error": failed[-1]})
+                    continue
+                write_json_atomic(self.job_file(job.agent, job.seed), result)
+                self.progress("job", {"job": job.name, "seconds": result["seconds"]})
+        summary = self.write_results()
+        if failed:
+            raise DloError(
+                f"{len(failed)} job(s) failed (finished ones are saved; rerun with "
+                f"--resume {self.out}): {failed[0]}"
+            )
+        return summary
+
+    def rows(self) -> list[dict[str, Any]]:
+        rows = []
+        for agent in self.spec.agents:
+            for seed in seeds_of(self.spec):
+                result = self.finished(agent, seed)
+                rows += result["rows"] if result else []
+        return rows
+
+    def write_results(self) -> dict[str, Any]:
+        from dlocli.bench.report import (
+            draw_figures,
+            summary_table,
+            write_results_csv,
+            write_summary,
+        )
+
+        rows = self.rows()
+        write_results_csv(self.out / "results.csv", rows)
+        table = summary_table(rows)
+        figures = draw_figures(rows, self.out / "plots")
+        return write_summary(
+            self.out,
+            table,
+            figures,
+            {
+                "jobs_done": len({(r["agent"], r["seed"]) for r in rows}),
+                "jobs": len(self.spec.agents) * self.spec.seeds,
+            },
+        )
+
+
+# ----------------------------------------------------------------------------- entry points
+def start_bench(
+    spec: BenchSpec, overwrite: bool = False, progress: Progress | None = None
+) -> dict[str, Any]:
+    """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept)."""
+    from dlocli.bench.executors import open_executor
+
+    check_spec(spec)
+    if (Path(spec.out) / "spec.json").is_file() and not overwrite:
+        raise BadInput(
+            f"--out {spec.out} holds a bench run; continue it with --resume "
+            f"{spec.out}, or pass --overwrite or another --out"
+        )
+    with open_executor(spec) as executor:  # a Ray address that fails is refused before writing
+        out = prepare_run_dir(spec.out, overwrite)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        return BenchRun(spec, progress).run(executor)
+
+
+def load_bench_spec(run_dir: Path, overrides: dict[str, Any] | None = None) -> BenchSpec:
+    """The spec of the bench run in ``run_dir``, the free fields of ``overrides`` applied."""
+    free = frozenset(FREE_FIELDS)
+    return resumed_run_spec(BenchSpec, run_dir, overrides or {}, "a bench", "dlo bench", free)
+
+
+def resume_bench(
+    run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
+    """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change."""
+    from dlocli.bench.executors import open_executor
+
+    spec = load_bench_spec(run_dir, overrides)
+    check_spec(spec)
+    with open_executor(spec) as executor:
+        write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
+        return BenchRun(spec, progress).run(executor)
+
+
+def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
+    """Redraw figures and table from results.csv of one run (or several, merged into the first)."""
+    from dlocli.bench.report import draw_figures, read_results_csv, summary_table, write_summary
+
+    if not run_dirs:
+        raise BadInput("--report needs a run directory")
+    rows = [row for run in run_dirs for row in read_results_csv(Path(run) / "results.csv")]
+    out = Path(run_dirs[0])
+    table = summary_table(rows)
+    figures = draw_figures(rows, out / "plots")
+    return write_summary(out, table, figures, {"runs": [str(r) for r in run_dirs]})

@@ -1,0 +1,169 @@
+"""The bench's spec and schedule: what every job of a ``dlo bench`` run learns and when it
+is evaluated, and the fingerprint that says whether a saved job still holds."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, model_validator
+
+from dlocli.controllers.mpc import MPCSpec
+from dlocli.models.spec import LEGACY_VALUES, FitSpec, ModelSpec
+from dlocli.specs import TASK_LEGACY_VALUES, EnvSpec
+
+#: fields that may change between runs of one directory: they do not change any result
+#: (``budgets`` enters the fingerprint of each job through that agent's own budget)
+FREE_FIELDS = {"agents", "seeds", "executor", "workers", "ray_address", "out", "budgets"}
+
+
+class BenchSpec(EnvSpec):
+    """`dlo bench`: every agent x seed learns under the same transition budget."""
+
+    agents: list[str] = Field(
+        default_factory=lambda: ["zero", "random", "sac", "td3", "pilco", "mpc"],
+        description="Agents to compare: zero, random, sac, td3, pilco, mpc, mpc-offline "
+        "(zero and random are the references every result is read against).",
+    )
+    budget: int = Field(5000, gt=0, description="Env transitions each agent may learn from.")
+    budgets: dict[str, int] = Field(
+        default_factory=dict,
+        description="Per-agent budgets overriding `budget`, e.g. {sac: 50000, td3: 50000}; "
+        "evaluation points stay `budget / evals` apart, so curves share their x values.",
+    )
+    seeds: int = Field(3, gt=0, description="Seeds per agent: seed, seed+1, ...")
+    evals: int = Field(
+        10, gt=0, description="Evaluation points, at regular transition counts (whole episodes)."
+    )
+    eval_trials: int = Field(5, gt=0, description="Noise-free episodes per evaluation point.")
+    options: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="Options of the learning agents by name, e.g. {sac: {net_arch: [64, 64]}}.",
+    )
+    model: ModelSpec = Field(default_factory=ModelSpec, description="Dynamics model of mpc.")
+    fit: FitSpec = Field(default_factory=FitSpec, description="mpc's model update per iteration.")
+    mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC of mpc and mpc-offline.")
+    noise_probability: float = Field(
+        0.2, ge=0, le=1, description="Probability that an mpc training step gets action noise."
+    )
+    noise_std: float = Field(0.3, ge=0, description="Std of mpc's training action noise.")
+    transfer: bool = Field(
+        True,
+        description="Also evaluate final agents on random goals (after a fixed goal) and "
+        "model-based ones on the bimanual task (after the single one).",
+    )
+    executor: Literal["local", "ray"] = Field(
+        "local", description="Where jobs run: local processes, or Ray tasks."
+    )
+    workers: int | None = Field(
+        None, gt=0, description="Parallel jobs (local processes or Ray CPUs); None = CPU count."
+    )
+    ray_address: str | None = Field(
+        None,
+        description="Ray cluster to join (host:port, ray://host:port or auto); None = "
+        "start a local Ray instance.",
+    )
+    threads: int = Field(1, gt=0, description="Torch threads per job.")
+    out: Path = Field(Path("runs/bench"), description="Run directory.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _same_information(cls, data: Any) -> Any:
+        """The RL observation holds the segment velocities exactly when the model reads them,
+        unless a spec says otherwise (which check_spec then refuses)."""
+        model = data.get("model") if isinstance(data, dict) else None
+        if isinstance(model, dict) and "velocity_input" in model:
+            task = dict(data.get("task") or {})
+            task.setdefault("observe_velocity", model["velocity_input"])
+            data = {**data, "task": task}
+        return data
+
+
+# ----------------------------------------------------------------------------- schedule
+def eval_interval(spec: BenchSpec) -> int:
+    """Transitions between evaluations: budget / evals, rounded down to whole episodes."""
+    steps = spec.task.episode_steps
+    return max(1, spec.budget // steps // spec.evals) * steps
+
+
+def budget_of(spec: BenchSpec, agent: str) -> int:
+    """The transitions ``agent`` may learn from."""
+    return spec.budgets.get(agent, spec.budget)
+
+
+def eval_points(spec: BenchSpec, agent: str | None = None) -> list[int]:
+    """Transition counts of the evaluations of ``agent``: every interval, and its budget last."""
+    budget = spec.budget if agent is None else budget_of(spec, agent)
+    points = list(range(eval_interval(spec), budget + 1, eval_interval(spec)))
+    return points if points and points[-1] == budget else [*points, budget]
+
+
+def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
+    """Hash of the fields that determine a job's result; with ``agent``, of that agent's job:
+    its own budget and its own options, resolved (so a new default reruns its jobs only)."""
+    # fields at the value they had before they existed are left out, so the jobs of runs
+    # made before a field was added keep their fingerprint; so are fields without effect
+    legacy_model = {k for k, v in LEGACY_VALUES.items() if getattr(spec.model, k) == v}
+    legacy_task = {k for k, v in TASK_LEGACY_VALUES.items() if getattr(spec.task, k) == v}
+    legacy_task |= spec.task.inert_fields()
+    exclude = {**dict.fromkeys(FREE_FIELDS, True), "model": legacy_model, "task": legacy_task}
+    if agent is None:
+        text = spec.model_dump_json(exclude=exclude)
+    else:
+        text = spec.model_dump_json(exclude={**exclude, "options": True})
+        if agent in option_agents():
+            text += f"|options={json.dumps(resolved_options(spec, agent), sort_keys=True)}"
+        if budget_of(spec, agent) != spec.budget:
+            text += f"|budget={budget_of(spec, agent)}"
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def option_agents() -> list[str]:
+    """The agents that take options: the learning agents with a spec (sac, td3, pilco, ...);
+    mpc's are the bench spec's own model, fit and mpc fields."""
+    from dlocli.controllers.base import LearningAgent
+    from dlocli.registry import controllers
+
+    return [
+        name
+        for name in controllers.names()
+        if issubclass(cls := controllers.get(name), LearningAgent) and cls.spec_cls is not None
+    ]
+
+
+def resolved_options(spec: BenchSpec, agent: str) -> dict[str, Any] | None:
+    """The options ``agent`` ran with, defaults filled in (None for agents without any)."""
+    from dlocli.controllers.base import controller_spec
+
+    if agent not in option_agents():
+        return None
+    options = controller_spec(agent, spec.options.get(agent))
+    return options.model_dump(mode="json") if options else None
+
+
+def seeds_of(spec: BenchSpec) -> list[int]:
+    return [spec.seed + i for i in range(spec.seeds)]
+
+
+def mpc_schedule(spec: BenchSpec, agent: str = "mpc") -> tuple[int, int, int]:
+    """(initial episodes I, trials per iteration N, iterations K) of ``agent`` (mpc or
+    mpc-offline) in its budget.
+
+    Iterations are as long as the bench's evaluation interval; the initial dataset as well,
+    but at least two episodes (a validation split needs two). ``mpc`` uses I*T + K*N*T
+    transitions: at most the budget, less by a remainder shorter than one iteration.
+    """
+    steps = spec.task.episode_steps
+    trials = eval_interval(spec) // steps
+    initial = max(2, trials)
+    iterations = max(0, (budget_of(spec, agent) // steps - initial) // trials)
+    return initial, trials, iterations
+
+
+def mpc_points(spec: BenchSpec, agent: str = "mpc") -> list[int]:
+    """Where ``agent`` is evaluated: after the initial data and after every iteration."""
+    initial, trials, iterations = mpc_schedule(spec, agent)
+    steps = spec.task.episode_steps
+    return [(initial + k * trials) * steps for k in range(iterations + 1)]

@@ -1,0 +1,76 @@
+"""Resuming a run from its directory: the saved spec (completed with the fields it predates)
+and the check that flags given with ``--resume`` do not contradict it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, TypeVar
+
+from dlocli.errors import BadInput
+from dlocli.models.spec import with_legacy_fields
+from dlocli.specs import TASK_LEGACY_VALUES, Spec
+
+SpecT = TypeVar("SpecT", bound=Spec)
+
+
+def saved_spec(path: Path) -> Any:
+    """A run's spec.json as data, its model and task specs completed with the fields they
+    predate (ValueError if it is not JSON)."""
+    data = json.loads(Path(path).read_text())
+    if isinstance(data, dict) and isinstance(data.get("model"), dict):
+        data["model"] = with_legacy_fields(data["model"])
+    if isinstance(data, dict) and isinstance(data.get("task"), dict):
+        data["task"] = {**TASK_LEGACY_VALUES, **data["task"]}
+    return data
+
+
+def resumed_run_spec(
+    cls: type[SpecT],
+    run_dir: Path,
+    overrides: dict[str, Any],
+    kind: str,
+    command: str,
+    free: frozenset = frozenset(),
+) -> SpecT:
+    """The saved spec of the ``command`` run (a ``kind`` run) in ``run_dir``, its ``out`` set
+    to ``run_dir`` and the ``free`` fields given in ``overrides`` applied; BadInput if there is
+    none or a flag contradicts it."""
+    spec_path = Path(run_dir) / "spec.json"
+    if not spec_path.is_file():
+        raise BadInput(
+            f"--resume {run_dir} is not {kind} run (no spec.json); "
+            f"pass the --out directory of an earlier `{command}`"
+        )
+    try:
+        spec = cls.model_validate(saved_spec(spec_path))
+    except ValueError as exc:
+        raise BadInput(
+            f"--resume {run_dir}: spec.json is not {kind} spec; pass the directory of a "
+            f"`{command}` run"
+        ) from exc
+    data = spec.model_dump()
+    refuse_resume_conflicts(data, overrides, run_dir, free)
+    changed = {k: v for k, v in overrides.items() if k in free and v is not None}
+    return cls.model_validate({**data, **changed, "out": Path(run_dir)})
+
+
+def refuse_resume_conflicts(
+    saved: dict[str, Any], overrides: dict[str, Any], run_dir: Path, free: frozenset = frozenset()
+) -> None:
+    """BadInput if a flag given with ``--resume`` contradicts the run's saved spec.
+
+    ``saved`` is the spec as data, ``overrides`` the flags (dotted paths, None = not given);
+    fields whose first part is in ``free`` may change on resume.
+    """
+    for dotted, value in overrides.items():
+        if value is None or dotted.split(".")[0] in free:
+            continue
+        current: Any = saved
+        for key in dotted.split("."):
+            current = current[key]
+        if str(current) != str(value):
+            raise BadInput(
+                f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "
+                f"{dotted}={current!r}; drop the flag or start a new run"
+            )
