@@ -139,13 +139,13 @@ def test_gauss_newton_gradient_matches_backprop(envs, tiny_model):
     mpc.reset(env.goal)
     state = mpc.state_tensor(obs)
     plan = torch.linspace(-0.5, 0.5, 30).view(5, 6)
-    mpc._refresh_curvature(state, plan)
-    cost, lagged = mpc._cost_and_gradient(state, plan[None])
+    mpc.rule.refresh(mpc, state, plan)
+    cost, lagged = mpc.rule.cost_and_gradient(mpc, state, plan[None])
     plans = plan[None].clone().requires_grad_(True)
     (exact,) = torch.autograd.grad(mpc.predict_cost(state, plans).sum(), plans)
     assert torch.nn.functional.cosine_similarity(lagged.flatten(), exact.flatten(), 0) > 0.95
     with torch.no_grad():
-        stepped = plan[None] - mpc._gauss_newton_step(lagged)
+        stepped = plan[None] - mpc.rule.step(lagged, 1)
         assert mpc.predict_cost(state, stepped)[0] < cost[0]
 
 

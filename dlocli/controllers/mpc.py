@@ -24,14 +24,12 @@ Update rules (``optimizer``):
   one forward rollout gives r and J_r^T r the (lagged) gradient: no back-propagation. Steps
   are clipped to ``max_step`` per action coordinate.
 
-Why gauss-newton by default (``benchmarks/control_goals.py``, 10 goals, 100 steps, MuJoCo,
-in-bilstm trained on 22k random transitions): with one iteration per control step, Adam's
-first step is a sign step of ``step_size`` in every coordinate, so the warm-started plan's
-actions sit on a lattice of multiples of step_size and the executed actions dither by at
-least that much every other step (median final error 2.5 mm; the rod never settles). The
-Gauss-Newton step vanishes with the residual's gradient: median final error 0.9 mm, 10/10
-goals improved, against 0.93 mm for the paper-like setting at ~3 s per step; ~30 ms per
-control step, since a forward rollout costs about 40% of a rollout + backward.
+Why gauss-newton by default (measured by ``benchmarks/control_goals.py``): with one iteration
+per control step, Adam's first step is a sign step of ``step_size`` in every coordinate, so
+the warm-started plan's actions sit on a lattice of multiples of step_size and the executed
+actions dither by at least that much (the rod never settles). The Gauss-Newton step vanishes
+with the residual's gradient, and it needs forward rollouts only, which cost well under a
+rollout + backward. The update rules are small classes (:data:`UPDATE_RULES`).
 
 What else makes it fast (``benchmarks/mpc_latency.py``): the previous plan shifted by the
 executed steps is the starting point, so each action is refined over H consecutive
@@ -42,7 +40,7 @@ one batch; no host-device syncs inside the loop unless early stopping is on.
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -107,31 +105,153 @@ class MPCSpec(PlannerSpec):
     )
 
 
+# ----------------------------------------------------------------------------- update rules
+class UpdateRule:
+    """How the plans move at each iteration: :meth:`start` at every re-plan, then per
+    iteration :meth:`cost_and_gradient` and :meth:`step` (the change to subtract)."""
+
+    #: whether the plans need autograd (the gradient is back-propagated through the rollout)
+    backprop = True
+
+    def __init__(self, spec: MPCSpec) -> None:
+        self.spec = spec
+
+    def reset(self) -> None:
+        """A new episode."""
+
+    def start(self, planner: ModelPlanner, state: torch.Tensor, plans: torch.Tensor) -> None:
+        """A new re-plan from ``state`` with candidate ``plans`` (R, H, A)."""
+
+    def cost_and_gradient(
+        self, planner: ModelPlanner, state: torch.Tensor, plans: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cost (R,) and its gradient (R, H, A) with respect to the actions only (never the
+        weights), back-propagated through the rollout."""
+        cost = planner.predict_cost(state, plans)
+        (grad,) = torch.autograd.grad(cost.sum(), plans)
+        return cost.detach(), grad
+
+    def step(self, grad: torch.Tensor, iteration: int) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class SGD(UpdateRule):
+    """Plain gradient descent: ``step_size`` x gradient."""
+
+    def step(self, grad: torch.Tensor, iteration: int) -> torch.Tensor:
+        return self.spec.step_size * grad
+
+
+class Adam(UpdateRule):
+    """Adam on the actions (the paper's), bias-corrected, its moments fresh at each re-plan."""
+
+    def start(self, planner: ModelPlanner, state: torch.Tensor, plans: torch.Tensor) -> None:
+        self.mean, self.square = torch.zeros_like(plans), torch.zeros_like(plans)
+
+    def step(self, grad: torch.Tensor, iteration: int) -> torch.Tensor:
+        b1, b2 = ADAM_BETAS
+        self.mean.mul_(b1).add_(grad, alpha=1 - b1)
+        self.square.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+        denom = (self.square / (1 - b2**iteration)).sqrt_().add_(ADAM_EPS)
+        return (self.spec.step_size / (1 - b1**iteration)) * self.mean / denom
+
+
+class GaussNewton(UpdateRule):
+    """Gauss-Newton steps on J = ||r||^2 with a lagged finite-difference Jacobian (see the
+    module docstring): forward rollouts only, unless ``exact_gradient``."""
+
+    def __init__(self, spec: MPCSpec) -> None:
+        super().__init__(spec)
+        self.backprop = spec.exact_gradient
+        self.reset()
+
+    def reset(self) -> None:
+        self.curvature: torch.Tensor | None = None  # Cholesky factor of J^T J + damping
+        self.jacobian_t: torch.Tensor | None = None  # J^T (H*A, residuals)
+        self.replans = 0
+
+    def start(self, planner: ModelPlanner, state: torch.Tensor, plans: torch.Tensor) -> None:
+        self.refresh(planner, state, plans[0])
+
+    def refresh(self, planner: ModelPlanner, state: torch.Tensor, plan: torch.Tensor) -> None:
+        """Every ``curvature_every`` re-plans: the Gauss-Newton matrix J^T J of the residuals
+        (:meth:`ModelPlanner.residuals`) at ``plan`` (H, A), J by forward differences in one
+        batched rollout, each action nudged towards the inside of [-1, 1]. Between refreshes
+        the matrix is reused while the gradient is exact (a lagged-Hessian real-time scheme:
+        the matrix changes slowly with the rod's state, the gradient does not)."""
+        self.replans += 1
+        if self.curvature is not None and (self.replans - 1) % self.spec.curvature_every:
+            return
+        n = plan.numel()
+        signs = torch.where(plan.flatten() > 0, -1.0, 1.0)
+        nudges = (torch.eye(n, device=plan.device) * (FD_STEP * signs)).view(n, *plan.shape)
+        with torch.no_grad():
+            res = planner.residuals(state, torch.cat([plan[None], plan[None] + nudges]))
+        jac_t = (res[1:] - res[:1]) / (FD_STEP * signs)[:, None]  # (n, residuals) = J^T
+        self.jacobian_t = jac_t
+        gram = jac_t @ jac_t.T
+        damping = GN_DAMPING * gram.diagonal().mean().clamp_min(1e-12)
+        gram.diagonal().add_(damping)
+        self.curvature = torch.linalg.cholesky(gram)
+
+    def cost_and_gradient(
+        self, planner: ModelPlanner, state: torch.Tensor, plans: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """2 J^T r from a forward rollout, J from the latest refresh (or back-propagated)."""
+        if self.spec.exact_gradient:
+            return super().cost_and_gradient(planner, state, plans)
+        assert self.jacobian_t is not None
+        with torch.no_grad():
+            res = planner.residuals(state, plans)
+        grad = 2.0 * (res @ self.jacobian_t.T).view_as(plans)
+        return res.square().sum(dim=1), grad
+
+    def step(self, grad: torch.Tensor, iteration: int) -> torch.Tensor:
+        """(R, H, A) step from the cost's gradient (2 J^T r): (J^T J)^-1 J^T r, clipped to
+        ``max_step`` per action so a stale matrix cannot throw the plan far; it vanishes
+        with the gradient, unlike Adam's sign-like first step, so a converged plan stays."""
+        assert self.curvature is not None
+        flat = grad.flatten(1).T / 2  # (n, R)
+        step = torch.cholesky_solve(flat, self.curvature).T.view_as(grad)
+        return step.clamp(-self.spec.max_step, self.spec.max_step)
+
+
+#: the update rules by ``MPCSpec.optimizer``
+UPDATE_RULES: dict[str, type[UpdateRule]] = {"gauss-newton": GaussNewton, "adam": Adam, "sgd": SGD}
+
+
+# ----------------------------------------------------------------------------- the planner
 class GradientMPC(ModelPlanner):
-    """Shooting MPC: Adam (or SGD) on the action sequence through ``model.rollout``."""
+    """Shooting MPC: iterations of an update rule on the action sequence through the model."""
 
     name = "mpc"
     spec_cls: ClassVar[type[MPCSpec]] = MPCSpec
     spec: MPCSpec
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.rule: UpdateRule = UPDATE_RULES[self.spec.optimizer](self.spec)
+
+    def reset(self, goal: np.ndarray) -> None:
+        super().reset(goal)
+        self.rule.reset()
+
     def _optimise(
         self, state: torch.Tensor, init: torch.Tensor
     ) -> tuple[torch.Tensor, dict[str, float]]:
-        if self.spec.optimizer == "gauss-newton":
-            self._refresh_curvature(state, init)
         plans = self._candidates(init)  # (R, H, A)
-        plans.requires_grad_(self.spec.optimizer != "gauss-newton" or self.spec.exact_gradient)
-        moments = (torch.zeros_like(plans), torch.zeros_like(plans))  # Adam's
+        self.rule.start(self, state, plans)
+        plans.requires_grad_(self.rule.backprop)
         first = last = None
         done = 0
         for step in range(1, self.spec.iterations + 1):
-            cost, grad = self._cost_and_gradient(state, plans)
+            cost, grad = self.rule.cost_and_gradient(self, state, plans)
             first = cost if first is None else first
             converged, last = self._converged(last, cost), cost
             if converged:
                 break
             with torch.no_grad():
-                plans -= self._update(grad, moments, step)
+                plans -= self.rule.step(grad, step)
                 plans.clamp_(-1.0, 1.0)
             done = step
         assert first is not None and last is not None
@@ -142,57 +262,6 @@ class GradientMPC(ModelPlanner):
             "cost_final": float(last[best]),
         }
         return plans.detach()[best], stats
-
-    def _cost_and_gradient(
-        self, state: torch.Tensor, plans: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Cost (R,) and its gradient (R, H, A) with respect to the actions only (never the
-        weights): back-propagated, or 2 J^T r from a forward rollout (gauss-newton)."""
-        if self.spec.optimizer == "gauss-newton" and not self.spec.exact_gradient:
-            assert self._jacobian_t is not None
-            with torch.no_grad():
-                res = self.residuals(state, plans)
-            grad = 2.0 * (res @ self._jacobian_t.T).view_as(plans)
-            return res.square().sum(dim=1), grad
-        cost = self.predict_cost(state, plans)
-        (grad,) = torch.autograd.grad(cost.sum(), plans)
-        return cost.detach(), grad
-
-    def reset(self, goal: np.ndarray) -> None:
-        super().reset(goal)
-        self._curvature: torch.Tensor | None = None  # Cholesky factor of J^T J + damping
-        self._jacobian_t: torch.Tensor | None = None  # J^T (H*A, residuals)
-        self._replans = 0
-
-    def _refresh_curvature(self, state: torch.Tensor, plan: torch.Tensor) -> None:
-        """Every ``curvature_every`` re-plans: the Gauss-Newton matrix J^T J of the residuals
-        (:meth:`ModelPlanner.residuals`) at ``plan`` (H, A), J by forward differences in one
-        batched rollout, each action nudged towards the inside of [-1, 1]. Between refreshes
-        the matrix is reused while the gradient is exact (a lagged-Hessian real-time scheme:
-        the matrix changes slowly with the rod's state, the gradient does not)."""
-        self._replans += 1
-        if self._curvature is not None and (self._replans - 1) % self.spec.curvature_every:
-            return
-        n = plan.numel()
-        signs = torch.where(plan.flatten() > 0, -1.0, 1.0)
-        nudges = (torch.eye(n, device=plan.device) * (FD_STEP * signs)).view(n, *plan.shape)
-        with torch.no_grad():
-            res = self.residuals(state, torch.cat([plan[None], plan[None] + nudges]))
-        jac_t = (res[1:] - res[:1]) / (FD_STEP * signs)[:, None]  # (n, residuals) = J^T
-        self._jacobian_t = jac_t
-        gram = jac_t @ jac_t.T
-        damping = GN_DAMPING * gram.diagonal().mean().clamp_min(1e-12)
-        gram.diagonal().add_(damping)
-        self._curvature = torch.linalg.cholesky(gram)
-
-    def _gauss_newton_step(self, grad: torch.Tensor) -> torch.Tensor:
-        """(R, H, A) step from the cost's gradient (2 J^T r): (J^T J)^-1 J^T r, clipped to
-        ``max_step`` per action so a stale matrix cannot throw the plan far; it vanishes
-        with the gradient, unlike Adam's sign-like first step, so a converged plan stays."""
-        assert self._curvature is not None
-        flat = grad.flatten(1).T / 2  # (n, R)
-        step = torch.cholesky_solve(flat, self._curvature).T.view_as(grad)
-        return step.clamp(-self.spec.max_step, self.spec.max_step)
 
     def _candidates(self, init: torch.Tensor) -> torch.Tensor:
         """(R, H, A): the warm start then R-1 uniform random plans."""
@@ -206,18 +275,3 @@ class GradientMPC(ModelPlanner):
             return False
         previous, now = float(last.sum()), float(cost.sum())
         return previous - now < self.spec.tolerance * previous
-
-    def _update(
-        self, grad: torch.Tensor, moments: tuple[torch.Tensor, torch.Tensor], step: int
-    ) -> torch.Tensor:
-        """The step to subtract from the plans: Adam (bias-corrected) or plain SGD."""
-        if self.spec.optimizer == "sgd":
-            return self.spec.step_size * grad
-        if self.spec.optimizer == "gauss-newton":
-            return self._gauss_newton_step(grad)
-        mean, square = moments
-        b1, b2 = ADAM_BETAS
-        mean.mul_(b1).add_(grad, alpha=1 - b1)
-        square.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-        denom = (square / (1 - b2**step)).sqrt_().add_(ADAM_EPS)
-        return (self.spec.step_size / (1 - b1**step)) * mean / denom

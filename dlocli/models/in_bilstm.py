@@ -61,9 +61,7 @@ class INBiLSTM(DynamicsModel):
         (v_i, a_i, v_j, a_j), so f_e is the same family of functions, but its first layer
         sees the neighbours' relative pose at unit scale instead of a small difference of two
         large absolute coordinates. Without ``absolute_position``, v_i stands for v_i less
-        its position, so positions are seen only relative to the neighbours. Measured (8k
-        MuJoCo transitions, hidden 64, 8 epochs): validation loss 0.24 instead of 0.35,
-        one-step error 0.62 instead of 0.78 mm.
+        its position, so positions are seen only relative to the neighbours.
         """
         pose, rest = v[..., :STATE_DIM], v[..., STATE_DIM:]
         diff = (pose[:, 1:] - pose[:, :-1]) * self.relation_scale  # k (p_{i+1} - p_i)

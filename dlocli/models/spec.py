@@ -47,8 +47,7 @@ class FitSpec(Spec):
         description="Std of Gaussian noise on the input state (paper Sec. IV-C), in units of "
         "each feature's one-step change std; the target is the change from the noisy state.",
     )  # fmt: skip
-    # 0.1, not 0.5: with the velocity input (hidden 64, 10 epochs, 20k MuJoCo transitions)
-    # 0.5 gave one-step / 5-step / 50-step errors of 0.45 / 2.5 / 30 mm, 0.1 gave 0.35 / 2.2 / 19.
+    # small: noise on the state also corrupts the velocity input read from it
     val_fraction: float = Field(
         0.1, ge=0, lt=1, description="Fraction of trajectories held out for validation."
     )
@@ -65,10 +64,8 @@ class TrainSpec(FitSpec):
         None, description="Checkpoint or run directory to continue training from."
     )
     out: Path = Field(Path("runs/train"), description="Run directory for the results.")
-    # 16, not the online loop's 64: at lr 1e-4 the deep f_e -> LSTM -> f_v path is still
-    # learning after 50 epochs at 64, and at 16 an epoch costs only ~1.4x (one thread). On 20k
-    # MuJoCo transitions in-bilstm's one-step / 5-step / 50-step errors went 0.161 / 0.867 /
-    # 5.26 mm -> 0.140 / 0.784 / 4.89 mm.
+    # smaller than the online loop's: at lr 1e-4 the deep f_e -> LSTM -> f_v path needs the
+    # extra steps within 50 epochs (README, model accuracy)
     batch_size: int = Field(16, gt=0, description="Transitions per gradient step.")
 
 
