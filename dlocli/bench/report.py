@@ -29,7 +29,7 @@ import numpy as np
 
 from dlocli.errors import BadInput
 from dlocli.io import write_json_atomic, write_text_atomic
-from dlocli.plots import save_figure, shaded_curve
+from dlocli.plots import figure, save_figure, shaded_curve
 
 Row = dict[str, Any]
 GOALS = {"fixed": "fixed goal", "random": "random goals"}
@@ -212,15 +212,6 @@ def markdown_half(table: list[Row]) -> str:
 
 
 # ----------------------------------------------------------------------------- figures
-def _figure() -> tuple[Any, Any]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(figsize=(6.4, 4.0), dpi=120)
-
-
 def curve(
     rows: list[Row], key: str = "cumulative_reward"
 ) -> tuple[list[float], list[float], list[float]]:
@@ -241,7 +232,7 @@ def plot_curves(
 ) -> Path:
     """``key`` against transitions, one shaded curve per agent (and learning setting); the
     ``zero`` reference dashed."""
-    fig, ax = _figure()
+    fig, ax = figure()
     groups = _group(rows, ("agent", "train_task", "train_goals"))
     several = len({key[1:] for key in groups}) > 1
     for (agent, task, goals), group in groups.items():
@@ -263,7 +254,7 @@ def plot_curves(
 
 def plot_bars(bars: dict[str, dict[str, list[float]]], path: Path, title: str) -> Path:
     """Grouped bars: ``bars[agent][series]`` = per-seed rewards; mean with std error bars."""
-    fig, ax = _figure()
+    fig, ax = figure()
     series = sorted({s for by_series in bars.values() for s in by_series})
     width = 0.8 / len(series)
     for i, name in enumerate(series):

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import typer
 
 from dlocli.bench.spec import BenchSpec as S
-from dlocli.cli.common import console, handle_errors
+from dlocli.cli.common import ResumeFlag, console, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 
 OPTION_HELP = (
@@ -29,10 +29,7 @@ OPTION_HELP = (
 def bench(
     run: RunFlags,
     option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
-    resume: Annotated[
-        Path | None,
-        typer.Option(help="Run the missing jobs of this bench directory (finished jobs are kept)."),
-    ] = None,
+    resume: ResumeFlag = None,
     report: Annotated[
         list[Path] | None,
         typer.Option(

@@ -23,6 +23,14 @@ SpecFile = Annotated[
     typer.Option("--spec", help="Run spec file (YAML or JSON); flags override its fields."),
 ]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")]
+ResumeFlag = Annotated[
+    Path | None,
+    typer.Option(
+        "--resume",
+        help="Continue the stopped run in this directory: its spec.json rules, flags that "
+        "contradict it are refused, finished work is kept.",
+    ),
+]
 OverwriteFlag = Annotated[
     bool, typer.Option("--overwrite", help="Allow writing into an existing non-empty --out.")
 ]

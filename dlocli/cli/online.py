@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-import typer
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -15,7 +13,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.runs.online import OnlineSpec as S
 
@@ -30,9 +28,7 @@ from dlocli.runs.online import OnlineSpec as S
 )  # fmt: skip
 def online(
     run: RunFlags,
-    resume: Annotated[
-        Path | None, typer.Option(help="Continue the killed run in this directory.")
-    ] = None,
+    resume: ResumeFlag = None,
 ) -> None:
     """Learn the dynamics model online with MPC (paper Algorithm 1); plot the learning curve.
 

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.models.spec import TrainSpec as S
 
@@ -21,9 +19,7 @@ from dlocli.models.spec import TrainSpec as S
 )  # fmt: skip
 def train(
     run: RunFlags,
-    resume: Annotated[
-        Path | None, typer.Option(help="Finish the stopped run in this directory, as if unstopped.")
-    ] = None,
+    resume: ResumeFlag = None,
 ) -> None:
     """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json."""
     from dlocli.models.training import resumed_spec, run_training

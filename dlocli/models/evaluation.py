@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from dlocli.data import Dataset
-from dlocli.io import atomic_path
 from dlocli.models.base import DynamicsModel
 
 HORIZONS = (5, 50)
@@ -116,67 +115,17 @@ def plot_rollout(
 ) -> Path:
     """PNG: true vs predicted rod over an open-loop rollout from the episode's second state,
     at a few instants (3D), and the error per step next to persistence's."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dlocli.plots import plot_rollout_figure
 
     start = 1 if dataset.episode_lengths[episode] > 1 else 0  # t = 1: s_{t-1} is recorded
     h = int(min(horizon, dataset.episode_lengths[episode] - start))
     state, actions, truth, previous = windows(dataset, [(episode, start)], h)
     pred = predict(model, state, actions, previous)[0]
-    fig = plt.figure(figsize=(11, 4.5))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
-    shown = sorted({0, h // 3, (2 * h) // 3, h - 1})
-    colors = plt.cm.viridis(np.linspace(0, 0.9, len(shown)))
-    for color, k in zip(colors, shown, strict=True):
-        t, p = truth[0, k, :, :3], pred[k, :, :3]
-        ax.plot(t[:, 0], t[:, 1], t[:, 2], "-", color=color, label=f"true t+{k + 1}")
-        ax.plot(p[:, 0], p[:, 1], p[:, 2], "--", color=color, label=f"model t+{k + 1}")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_zlabel("z (m)")
-    ax.legend(fontsize=6, loc="upper left")
-    ax.set_title(f"episode {episode}: open-loop rollout")
-    err = fig.add_subplot(1, 2, 2)
-    steps = np.arange(1, h + 1)
-    err.plot(steps, position_error_mm(pred, truth[0]), label=f"{model.spec.name}")
-    err.plot(steps, position_error_mm(state[:, None], truth)[0], label="persistence")
-    err.set_xlabel("prediction step")
-    err.set_ylabel("mean segment position error (mm)")
-    err.legend()
-    err.grid(alpha=0.3)
-    return _save(fig, path)
-
-
-def plot_losses(history: list[dict[str, float]], path: Path) -> Path:
-    """PNG: training and validation loss per epoch (log scale)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    epochs = [r["epoch"] for r in history]
-    ax.plot(epochs, [r["train_loss"] for r in history], label="train (with input noise)")
-    ax.plot(epochs, [r["val_loss"] for r in history], label="validation")
-    ax.set_yscale("log")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("MSE of normalised state change")
-    ax.legend()
-    ax.grid(alpha=0.3)
-    return _save(fig, path)
-
-
-def _save(fig: Any, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    return path
+    errors = {
+        model.spec.name: position_error_mm(pred, truth[0]),
+        "persistence": position_error_mm(state[:, None], truth)[0],
+    }
+    return plot_rollout_figure(truth[0], pred, errors, f"episode {episode}", path)
 
 
 def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:

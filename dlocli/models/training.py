@@ -255,7 +255,8 @@ def run_training(
     ``resume``: continue the run in ``spec.out`` (its saved spec) from ``checkpoints/last.pt``.
     """
     from dlocli.io import prepare_run_dir, write_json_atomic
-    from dlocli.models.evaluation import evaluate_model, plot_losses, plot_rollout
+    from dlocli.models.evaluation import evaluate_model, plot_rollout
+    from dlocli.plots import plot_losses
 
     dataset = load_training_data(spec)
     if resume:

@@ -35,6 +35,7 @@ from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
+from dlocli.plots import plot_errors
 from dlocli.specs import EnvSpec
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -257,30 +258,6 @@ def write_metrics(path: Path, records: list[dict[str, float]]) -> None:
         writer = csv.DictWriter(f, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(records)
-
-
-def plot_errors(
-    path: Path, records: list[dict[str, float]], initial_error: float, label: str
-) -> None:
-    """Shape error (mm) and controller latency (ms) over the control steps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from dlocli.plots import save_figure
-
-    steps = [0] + [r["step"] for r in records]
-    errors = [initial_error] + [r["shape_error_mm"] for r in records]
-    fig, (ax_err, ax_lat) = plt.subplots(2, 1, figsize=(6, 5), sharex=True, height_ratios=(2, 1))
-    ax_err.plot(steps, errors, label=label)
-    ax_err.set_ylabel("shape error (mm)")
-    ax_err.set_ylim(bottom=0)
-    ax_err.legend()
-    ax_lat.plot(steps[1:], [r["latency_ms"] for r in records], lw=0.8)
-    ax_lat.set_ylabel("latency (ms)")
-    ax_lat.set_xlabel("control step")
-    save_figure(fig, path)
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
