@@ -24,7 +24,7 @@ class Spec(BaseModel):
     and saved runs written before the move still load.
     """
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
     moved: ClassVar[dict[str, str]] = {}
 
     @model_validator(mode="before")
@@ -251,7 +251,17 @@ def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
     field = ".".join(str(p) for p in err["loc"]) or "(root)"
     if err["type"] == "extra_forbidden":
         return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
-    return f"{source}: field '{field}': {err['msg']} (got {err.get('input')!r})"
+    return f"{source}: field '{field}': {err['msg']} (got {_bounded_repr(err.get('input'))})"
+
+
+def _bounded_repr(value: Any) -> str:
+    """repr of a value cut to a few elements and levels: an input built from YAML aliases
+    can expand to gigabytes if printed whole."""
+    import reprlib
+
+    short = reprlib.Repr()
+    short.maxlevel, short.maxlist, short.maxdict, short.maxstring, short.maxother = 2, 4, 4, 60, 60
+    return short.repr(value)
 
 
 def resolve_spec(

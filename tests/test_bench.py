@@ -215,3 +215,16 @@ def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
     )
     with pytest.raises(BadInput, match="same information"):
         check_spec(mismatched)
+
+
+def test_committed_paper_bench_jobs_resume_without_rerunning(tmp_path: Path):
+    """examples/bench_paper's job files hold under today's code: a resume keeps them."""
+    from dlocli.bench.run import BenchRun, load_bench_spec
+
+    source = Path(__file__).parent.parent / "examples" / "bench_paper"
+    run = BenchRun(load_bench_spec(source))
+    jobs = sorted((source / "jobs").glob("*.json"))
+    assert jobs
+    for path in jobs:
+        agent, _, seed = path.stem.rpartition("-s")
+        assert run.finished(agent, int(seed)) is not None, f"{path.name} would run again"

@@ -158,7 +158,12 @@ def summary_table(rows: list[Row]) -> list[Row]:
         setting = [r for r in rows if tuple(r[k] for k in SETTING) == key]
         entry["half_closed_at"] = half_closed_at(setting)
         table.append(entry)
-    return sorted(table, key=lambda t: (not is_home(t), t["eval_task"], t["eval_goals"]))
+    return sorted(table, key=lambda t: (not is_home(t), t["eval_task"], t["eval_goals"], _rank(t)))
+
+
+def _rank(row: Row) -> tuple[int, str]:
+    """The references (zero, then random) first, then the agents by name."""
+    return ({REFERENCE: 0, "random": 1}.get(row["agent"], 2), row["agent"])
 
 
 def half_closed_at(rows: list[Row]) -> int | None:

@@ -162,6 +162,17 @@ class BenchRun:
             )
         return summary
 
+    def write_results_csv_from_jobs(self) -> None:
+        """results.csv from every job file of this spec in jobs/, whatever the agents."""
+        from dlocli.bench.report import write_results_csv
+
+        rows = []
+        for path in sorted((self.out / "jobs").glob("*-s*.json")):
+            agent, _, seed = path.stem.rpartition("-s")
+            result = self.finished(agent, int(seed)) if seed.isdigit() else None
+            rows += result["rows"] if result else []
+        write_results_csv(self.out / "results.csv", rows)
+
     def rows(self) -> list[dict[str, Any]]:
         rows = []
         for agent in self.spec.agents:
@@ -232,11 +243,16 @@ def resume_bench(
 
 
 def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
-    """Redraw figures and table from results.csv of one run (or several, merged into the first)."""
+    """Redraw figures and table of one run (or several, merged into the first): a run's
+    results.csv is first rewritten from its finished job files, so a run still in progress
+    (or one whose jobs ran in several processes) reports everything finished so far."""
     from dlocli.bench.report import draw_figures, read_results_csv, summary_table, write_summary
 
     if not run_dirs:
         raise BadInput("--report needs a run directory")
+    for run in run_dirs:
+        if (Path(run) / "spec.json").is_file() and (Path(run) / "jobs").is_dir():
+            BenchRun(load_bench_spec(Path(run))).write_results_csv_from_jobs()
     rows = [row for run in run_dirs for row in read_results_csv(Path(run) / "results.csv")]
     out = Path(run_dirs[0])
     table = summary_table(rows)
