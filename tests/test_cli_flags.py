@@ -77,3 +77,15 @@ def test_fields_that_moved_still_load():
     spec = ControlSpec(task=task, model="m.pt", steps=30)
     assert spec.checkpoint.name == "m.pt" and spec.task.episode_steps == 30
     assert spec.task.goal_file.name == "g.npy" and task.episode_steps == 200
+
+
+def test_os_errors_are_one_line(tmp_path):
+    """A path the system refuses is one line and exit 2, never a traceback."""
+    from dlocli.cli.common import os_error_line
+
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    res = runner.invoke(app, ["collect", "--episodes", "1", "--out", str(blocked / "run")])
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    assert len(res.output.strip().splitlines()) == 1
+    assert "free space" in os_error_line(OSError(28, "No space left on device", "x.h5"))

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.common import emit_summary, handle_errors, progress_bars
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.specs import CollectSpec
 
@@ -39,7 +39,12 @@ def collect(
         TextColumn("collect"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
         TimeRemainingColumn(),
     )  # fmt: skip
-    with Progress(*columns, transient=run.json, disable=run.json) as progress:
+    with progress_bars(*columns, quiet=run.json) as progress:
         bar = progress.add_task("collect", total=spec.episodes)
-        summary = collect_random(spec, run.overwrite, lambda i, ep: progress.advance(bar))
+
+        def show(index: int, episode: Any) -> None:
+            progress.start()
+            progress.advance(bar)
+
+        summary = collect_random(spec, run.overwrite, show)
     emit_summary(summary, run.json, "dlo collect")

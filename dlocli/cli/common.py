@@ -5,12 +5,14 @@ from __future__ import annotations
 import functools
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.progress import Progress
 from rich.table import Table
 
 from dlocli.errors import DloError
@@ -44,13 +46,44 @@ def handle_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except DloError as exc:
-            console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+            print_error(str(exc))
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/yellow]: finished work was saved")
             raise typer.Exit(130) from None
+        except OSError as exc:
+            print_error(os_error_line(exc))
+            raise typer.Exit(2 if isinstance(exc, PATH_ERRORS) else 1) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def print_error(line: str) -> None:
+    console.print(f"[red]error:[/red] {line}", highlight=False, soft_wrap=True)
+
+
+#: operating-system errors about a path the user gave (exit 2); others (disk full, ...) exit 1
+PATH_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line naming the path, what the system said and what to do."""
+    where = f" {exc.filename}" if exc.filename else ""
+    what = exc.strerror or type(exc).__name__
+    if isinstance(exc, PATH_ERRORS):
+        return f"cannot use{where}: {what}; pass a path you can write to (or read from)"
+    return f"{what}{where}; free space or fix the file system and run again"
+
+
+@contextmanager
+def progress_bars(*columns: Any, quiet: bool) -> Iterator[Progress]:
+    """Rich progress bars that show nothing until a callback calls ``start()`` (so bad input
+    stays one line), hidden with ``quiet`` (--json), stopped at the end."""
+    progress = Progress(*columns, transient=quiet, disable=quiet)
+    try:
+        yield progress
+    finally:
+        progress.stop()
 
 
 def emit_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:

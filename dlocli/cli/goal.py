@@ -24,6 +24,8 @@ def goal(
     tasks.check(spec.task.name)
     if spec.out.suffix != ".npy":
         raise BadInput(f"--out {spec.out} must end in .npy (the goal format is a (N,3) .npy array)")
+    if spec.out.is_dir():
+        raise BadInput(f"--out {spec.out} is a directory; pass a .npy file path")
     if spec.out.exists() and not run.overwrite:
         raise BadInput(f"--out {spec.out} exists; pass --overwrite or another --out")
     shape = make_goal(spec)

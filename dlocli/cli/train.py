@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
+from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors, progress_bars
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.models.spec import TrainSpec as S
 
@@ -32,11 +32,12 @@ def train(
         MofNCompleteColumn(), TextColumn("loss {task.fields[loss]:.4g}"),
         TextColumn("val {task.fields[val]:.4g}"), TimeRemainingColumn(),
     )  # fmt: skip
-    with Progress(*columns, transient=run.json, disable=run.json) as progress:
+    with progress_bars(*columns, quiet=run.json) as progress:
         bar = progress.add_task("train", total=None, epoch=0, epochs=spec.epochs,
                                 loss=float("nan"), val=float("nan"))  # fmt: skip
 
         def show(event: dict[str, Any]) -> None:
+            progress.start()
             if "val_loss" in event:
                 progress.update(bar, val=event["val_loss"])
                 return
