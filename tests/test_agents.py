@@ -132,7 +132,7 @@ def test_agents_build_from_registry_spec_and_refuse_unknown_options():
         make_controller("pilco", env, options={"bogus": 1})
 
 
-def test_sb3_defaults_are_the_zoo_bullet_values_and_reach_sb3():
+def test_sb3_defaults_are_the_swept_values_and_reach_sb3():
     env = dlocli.make_env(backend="mujoco", task="single", seed=0, episode_steps=20)
     sac = make_controller("sac", env, options={"net_arch": [16, 16]}, seed=0)
     assert (sac.model.gamma, sac.model.tau, sac.model.learning_starts) == (0.98, 0.02, 1000)
@@ -140,10 +140,12 @@ def test_sb3_defaults_are_the_zoo_bullet_values_and_reach_sb3():
     plain = make_controller("sac", env, options={"net_arch": [16, 16], "use_sde": False})
     assert not plain.model.use_sde
     td3 = make_controller("td3", env, options={"net_arch": [16, 16]}, seed=0)
-    assert td3.model.train_freq.frequency == 20 and td3.model.gradient_steps == -1
-    np.testing.assert_allclose(td3.model.action_noise._sigma, 0.1)
-    silent = make_controller("td3", env, options={"net_arch": [16, 16], "action_noise": 0.0})
-    assert silent.model.action_noise is None  # SB3's default: no exploration noise
+    assert (td3.model.gamma, td3.model.learning_starts, td3.model.gradient_steps) == (0.99, 100, 1)
+    assert td3.model.action_noise is None  # SB3's default: no exploration noise
+    zoo = {"net_arch": [16, 16], "train_freq": "episode", "gradient_steps": -1, "action_noise": 0.1}
+    per_episode = make_controller("td3", env, options=zoo, seed=0)
+    assert per_episode.model.train_freq.frequency == 20 and per_episode.model.gradient_steps == -1
+    np.testing.assert_allclose(per_episode.model.action_noise._sigma, 0.1)
 
 
 # ---------------------------------------------------------------------- PILCO math vs MC
@@ -199,3 +201,18 @@ def test_expected_saturating_cost_matches_monte_carlo():
     mc = (1.0 - torch.exp(-0.5 * ((diff @ weight) * diff).sum(1))).mean()
     expected = expected_saturating_cost(m, s, target, weight)
     torch.testing.assert_close(expected, mc, atol=3e-3, rtol=0)
+
+
+def test_the_defaults_are_the_sweeps_winners():
+    """SAC and TD3 default to the configurations benchmarks/rl_sweep.py picked."""
+    import importlib.util
+    from pathlib import Path
+
+    from dlocli.controllers.sb3_agents import SACSpec, TD3Spec
+
+    path = Path(__file__).parent.parent / "benchmarks" / "rl_sweep.py"
+    module_spec = importlib.util.spec_from_file_location("rl_sweep", path)
+    sweep = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(sweep)
+    assert SACSpec.model_validate(sweep.CONFIGS["sac/zoo"][1]) == SACSpec()
+    assert TD3Spec.model_validate(sweep.CONFIGS["td3/sb3"][1]) == TD3Spec()
