@@ -47,9 +47,3 @@ def episode_result(
         "score": score(initial_error, final_error),
         "cumulative_reward": float(reward_sum) + diverged_remainder(steps_run, steps),
     }
-
-
-def mean_std(values: list[float] | np.ndarray) -> tuple[float, float]:
-    """(mean, std) as floats."""
-    array = np.asarray(values, dtype=np.float64)
-    return float(array.mean()), float(array.std())
