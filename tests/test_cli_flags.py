@@ -89,3 +89,17 @@ def test_os_errors_are_one_line(tmp_path):
     assert res.exit_code == 2 and "Traceback" not in res.output, res.output
     assert len(res.output.strip().splitlines()) == 1
     assert "free space" in os_error_line(OSError(28, "No space left on device", "x.h5"))
+
+
+def test_written_files_get_the_usual_permissions(tmp_path):
+    """Atomic writes follow the umask like any other file (mkstemp alone gives 0600)."""
+    import os
+
+    from dlocli.io import write_text_atomic
+
+    before = os.umask(0o022)
+    try:
+        write_text_atomic(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(before)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
