@@ -162,3 +162,18 @@ def test_zero_controller_is_registered_and_keeps_the_initial_error():
         assert abs(result["score"]) < 0.02
     finally:
         env.close()
+
+
+def test_make_env_refuses_misspelt_fields_and_takes_the_goal_mode():
+    import gymnasium as gym
+
+    from dlocli.errors import BadInput
+
+    with pytest.raises(BadInput, match="unknown field 'episode_step'"):
+        dlocli.make_env(episode_step=50)
+    env = gym.make("dlocli/MujocoSingle-v0", goal="random", episode_steps=5)
+    try:
+        assert env.unwrapped.task_spec.goal == "random"
+        assert env.unwrapped.task_spec.episode_steps == 5
+    finally:
+        env.close()

@@ -22,6 +22,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from pydantic import ValidationError
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
@@ -32,7 +33,7 @@ from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path
 from dlocli.registry import backends as backend_registry
-from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec
+from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec, format_validation_error
 
 
 def make_backend(spec: BackendSpec, control_dt: float = 0.02) -> Backend:
@@ -284,13 +285,18 @@ def make_env(
     seed: int = 0,
     **task_overrides: Any,
 ) -> DLOShapeEnv:
-    """Build a shape-control environment; ``task_overrides`` set TaskSpec fields."""
+    """Build a shape-control environment; ``task_overrides`` set TaskSpec fields. ``goal`` is
+    a goal shape (array or .npy path) or the goal mode, "fixed" or "random"."""
+    if isinstance(goal, str) and goal in ("fixed", "random"):
+        task_overrides["goal"], goal = goal, None
     backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
     backend_registry.check(backend_spec.name)
     task_spec = TaskSpec(name=task) if isinstance(task, str) else task
     if task_overrides:
-        task_spec = task_spec.model_copy(update=task_overrides)
-        task_spec = TaskSpec.model_validate(task_spec.model_dump())
+        try:  # validated as a whole: a misspelt field is refused, not silently dropped
+            task_spec = TaskSpec.model_validate({**task_spec.model_dump(), **task_overrides})
+        except ValidationError as exc:
+            raise BadInput(format_validation_error(exc, "make_env")) from exc
     from dlocli.registry import tasks as task_registry
 
     task_registry.check(task_spec.name)
