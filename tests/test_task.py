@@ -177,3 +177,17 @@ def test_make_env_refuses_misspelt_fields_and_takes_the_goal_mode():
         assert env.unwrapped.task_spec.episode_steps == 5
     finally:
         env.close()
+
+
+def test_gym_make_with_the_module_in_the_id():
+    """Gymnasium imports ``dlocli`` itself when the id names it (no plugin hook in 1.x)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gymnasium as gym; "
+        "env = gym.make('dlocli:dlocli/MujocoSingle-v0', goal='random', episode_steps=5); "
+        "print(env.unwrapped.task_spec.goal)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "random"
