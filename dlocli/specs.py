@@ -286,10 +286,3 @@ def field_info(cls: type[Spec], dotted: str) -> Any:
         info = model.model_fields[key]
         model = info.default_factory if info.default_factory is not None else info.annotation
     return info
-
-
-def field_help(cls: type[Spec], dotted: str) -> str:
-    """The description (and default) of a possibly nested field: the CLI's --help text."""
-    info = field_info(cls, dotted)
-    default = "" if info.default_factory is not None else f" (spec default: {info.default})"
-    return f"{info.description}{default}"

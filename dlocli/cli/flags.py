@@ -64,9 +64,8 @@ def _flag_type(annotation: Any) -> tuple[Any, str]:
 
 def _option(spec_cls: type[Spec], dotted: str) -> tuple[str, Any]:
     """(parameter name, Annotated type) of the flag of ``dotted``."""
-    name = flag_name(dotted)
-    kind, note = _flag_type(field_info(spec_cls, dotted).annotation)
-    info = field_info(spec_cls, dotted)
+    name, info = flag_name(dotted), field_info(spec_cls, dotted)
+    kind, note = _flag_type(info.annotation)
     default = "" if info.default_factory is not None else f" (spec default: {info.default})"
     text = f"{info.description}{note}{default}"
     decls = [f"--{name}/--no-{name}"] if kind is bool else [f"--{name}"]
