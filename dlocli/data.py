@@ -240,6 +240,15 @@ def _decode_attr(value: Any) -> Any:
 
 
 def _check_consistent(data: Dataset, path: Path) -> None:
+    """BadInput unless every array holds finite numbers and the shapes agree."""
+    for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals"):
+        array = getattr(data, name)
+        if array.dtype.kind not in "fiu":
+            raise BadInput(
+                f"dataset {path}: {name} holds {array.dtype}, not numbers; re-collect it"
+            )
+        if not np.isfinite(array).all():
+            raise BadInput(f"dataset {path}: {name} contains NaN or inf; re-collect it")
     n_states = int((data.episode_lengths + 1).sum())
     ok = (
         data.positions.shape[0] == n_states

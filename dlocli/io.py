@@ -12,6 +12,9 @@ from typing import Any
 
 from dlocli.errors import BadInput
 
+#: the lock file of a run directory (:mod:`dlocli.rundir`); it alone leaves a directory empty
+LOCK_FILE = ".dlo.lock"
+
 
 @contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
@@ -55,10 +58,23 @@ def prepare_run_dir(out: Path, overwrite: bool) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out} is a file; pass a directory path")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
+    if out.is_dir() and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
         raise BadInput(f"--out {out} exists and is not empty; pass --overwrite or another --out")
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def check_writable(path: Path, flag: str) -> None:
+    """BadInput unless a file could be written at ``path`` (checked before the work starts,
+    so a long run does not end on an unwritable output)."""
+    path = Path(path)
+    if path.is_dir():
+        raise BadInput(f"{flag} {path} is a directory; pass a file path")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise BadInput(f"{flag} {path}: cannot write in {parent}; pass a path you can write to")
 
 
 def versions() -> dict[str, str]:

@@ -211,14 +211,48 @@ class CollectSpec(EnvSpec):
 SpecT = TypeVar("SpecT", bound=Spec)
 
 
+#: limits of a spec file: a spec is a few hundred lines; YAML aliases can make a few hundred
+#: bytes expand to gigabytes, so aliases and nodes are counted while the file is read
+MAX_SPEC_BYTES = 1_000_000
+MAX_YAML_NODES = 20_000
+MAX_YAML_ALIASES = 20
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses documents with too many nodes or aliases."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            self.aliases = getattr(self, "aliases", 0) + 1
+            if self.aliases > MAX_YAML_ALIASES:
+                raise yaml.YAMLError(f"more than {MAX_YAML_ALIASES} aliases")
+        self.nodes = getattr(self, "nodes", 0) + 1
+        if self.nodes > MAX_YAML_NODES:
+            raise yaml.YAMLError(f"more than {MAX_YAML_NODES} nodes")
+        return super().compose_node(parent, index)
+
+
+def _load_yaml(text: str) -> Any:
+    loader = _BoundedLoader(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
 def load_spec_file(path: Path) -> dict[str, Any]:
     """Read a YAML or JSON spec file with safe loaders; BadInput on any problem."""
     path = Path(path)
     if not path.is_file():
         raise BadInput(f"spec file {path} does not exist; pass an existing .yaml/.json file")
+    if path.stat().st_size > MAX_SPEC_BYTES:
+        raise BadInput(
+            f"spec file {path} is {path.stat().st_size} bytes, more than a spec needs "
+            f"({MAX_SPEC_BYTES}); pass the run spec file, not data"
+        )
     try:
         text = path.read_text()
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+        data = json.loads(text) if path.suffix == ".json" else _load_yaml(text)
     except (OSError, ValueError, yaml.YAMLError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise BadInput(

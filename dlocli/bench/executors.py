@@ -21,6 +21,7 @@ from typing import Any
 
 from dlocli.bench.jobs import Job, run_job
 from dlocli.errors import BadInput
+from dlocli.processes import exit_with_parent
 
 Outcome = tuple[Job, "dict[str, Any] | BaseException"]
 #: Ray's connection window in seconds when joining a cluster (Ray's default: about 20 tries)
@@ -59,7 +60,9 @@ class LocalExecutor:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
         # spawn: forking a process whose torch already started OpenMP threads can hang
-        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+        pool = ProcessPoolExecutor(
+            workers, mp_context=mp.get_context("spawn"), initializer=exit_with_parent
+        )
         try:
             futures = {
                 pool.submit(run_job, spec_json, job.agent, job.seed, job.scratch): job

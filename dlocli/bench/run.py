@@ -19,6 +19,7 @@ Run directory (every file written atomically)::
     spec.json                   resolved BenchSpec
     jobs/AGENT-sSEED.json       one finished job: its evaluation rows (resume skips it)
     work/FINGERPRINT/AGENT-sSEED/   a job's own files (mpc's online run), local executor only
+    work/locks/AGENT-sSEED/     held by the process running the job (several may resume)
     results.csv                 agent, seed, eval, transitions, train_task, train_goals,
                                 eval_task, eval_goals, cumulative_reward(_std), final_error_mm,
                                 wall_seconds (learning time so far), eval_seconds, initial_error_mm,
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +56,7 @@ from dlocli.bench.spec import (
 from dlocli.errors import BadInput, DloError
 from dlocli.io import prepare_run_dir, write_json_atomic
 from dlocli.resume import resumed_run_spec
+from dlocli.rundir import owned
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -143,9 +146,24 @@ class BenchRun:
     def run(self, executor: Any) -> dict[str, Any]:
         """Run the missing jobs on ``executor`` (:mod:`dlocli.bench.executors`), saving each
         as it finishes; then write the results."""
-        todo, failed = self.jobs(), []
+        todo = self.jobs()
         total = len(self.spec.agents) * self.spec.seeds
-        self.progress("start", {"total": total, "todo": len(todo)})
+        with ExitStack() as locks:
+            for job in todo:  # processes resuming one bench must run disjoint jobs
+                locks.enter_context(owned(self.out / "work" / "locks" / job.name))
+            self.progress("start", {"total": total, "todo": len(todo)})
+            failed = self._run_jobs(executor, todo)
+        summary = self.write_results()
+        if failed:
+            raise DloError(
+                f"{len(failed)} job(s) failed (finished ones are saved; rerun with "
+                f"--resume {self.out}): {failed[0]}"
+            )
+        return summary
+
+    def _run_jobs(self, executor: Any, todo: list[Job]) -> list[str]:
+        """Run ``todo``, saving each job as it finishes; the failures, one line each."""
+        failed: list[str] = []
         if todo:
             for job, result in executor.run(self.spec.model_dump_json(), todo):
                 if isinstance(result, BaseException):
@@ -154,13 +172,7 @@ class BenchRun:
                     continue
                 write_json_atomic(self.job_file(job.agent, job.seed), result)
                 self.progress("job", {"job": job.name, "seconds": result["seconds"]})
-        summary = self.write_results()
-        if failed:
-            raise DloError(
-                f"{len(failed)} job(s) failed (finished ones are saved; rerun with "
-                f"--resume {self.out}): {failed[0]}"
-            )
-        return summary
+        return failed
 
     def write_results_csv_from_jobs(self) -> None:
         """results.csv from every job file of this spec in jobs/, whatever the agents."""
@@ -213,11 +225,13 @@ def start_bench(
 
     check_spec(spec)
     if (Path(spec.out) / "spec.json").is_file() and not overwrite:
-        raise BadInput(
-            f"--out {spec.out} holds a bench run; continue it with --resume "
-            f"{spec.out}, or pass --overwrite or another --out"
-        )
-    with open_executor(spec) as executor:  # a Ray address that fails is refused before writing
+        if (Path(spec.out) / "jobs").is_dir():
+            raise BadInput(
+                f"--out {spec.out} holds a bench run; continue it with --resume "
+                f"{spec.out}, or pass --overwrite or another --out"
+            )
+        raise BadInput(f"--out {spec.out} holds another command's run; pass another --out")
+    with open_executor(spec) as executor, owned(spec.out):  # a bad Ray address: nothing written
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         return BenchRun(spec, progress).run(executor)
@@ -237,7 +251,7 @@ def resume_bench(
 
     spec = load_bench_spec(run_dir, overrides)
     check_spec(spec)
-    with open_executor(spec) as executor:
+    with open_executor(spec) as executor, owned(run_dir, shared=True):
         write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
         return BenchRun(spec, progress).run(executor)
 

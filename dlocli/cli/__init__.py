@@ -61,4 +61,24 @@ _register()
 
 
 def main() -> None:
-    app()
+    """The `dlo` entry point: SIGTERM handled like Ctrl-C, usage errors as one line."""
+    import sys
+
+    from dlocli.cli.common import print_error
+    from dlocli.processes import handle_sigterm
+
+    # Typer vendors Click; its UsageError is public only as BadParameter's base
+    usage_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+    handle_sigterm()
+    try:
+        code = app(standalone_mode=False)
+    except usage_error as exc:
+        if exc.ctx is not None and type(exc).__name__ == "NoArgsIsHelpError":
+            typer.echo(exc.ctx.get_help())
+            sys.exit(0)
+        command = exc.ctx.command_path if exc.ctx is not None else "dlo"
+        print_error(f"{exc.format_message().rstrip('.')}; see `{command} --help`")
+        code = 2
+    except typer.Abort:  # Ctrl-C outside a command's own handling
+        code = 130
+    sys.exit(code if isinstance(code, int) else 0)

@@ -7,7 +7,13 @@ from typing import Annotated, Any
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import emit_summary, handle_errors, progress_bars
+from dlocli.cli.common import (
+    AcceptChangesFlag,
+    ResumeFlag,
+    emit_summary,
+    handle_errors,
+    progress_bars,
+)
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.specs import CollectSpec
 
@@ -27,12 +33,17 @@ def collect(
             help="Uniform random actions (the only policy here; use `dlo online` for MPC data).",
         ),
     ] = True,
+    resume: ResumeFlag = None,
+    accept_changes: AcceptChangesFlag = False,
 ) -> None:
-    """Collect random-action episodes into OUT/dataset.h5 (format: `dlocli.data`)."""
-    from dlocli.registry import backends, tasks
-    from dlocli.runs.collect import collect_random
+    """Collect random-action episodes into OUT/dataset.h5 (format: `dlocli.data`).
 
-    spec = run.spec()
+    Each finished episode is saved at once; `--resume OUT` collects only the missing ones.
+    """
+    from dlocli.registry import backends, tasks
+    from dlocli.runs.collect import collect_random, resumed_spec
+
+    spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     columns = (
@@ -42,9 +53,12 @@ def collect(
     with progress_bars(*columns, quiet=run.json) as progress:
         bar = progress.add_task("collect", total=spec.episodes)
 
-        def show(index: int, episode: Any) -> None:
-            progress.start()
-            progress.advance(bar)
+        def show(done: int, episode: Any) -> None:
+            if episode is not None:  # not before the first episode: bad input stays one line
+                progress.start()
+            progress.update(bar, completed=done)
 
-        summary = collect_random(spec, run.overwrite, show)
+        summary = collect_random(
+            spec, run.overwrite, show, resume=resume is not None, accept_changes=accept_changes
+        )
     emit_summary(summary, run.json, "dlo collect")

@@ -16,6 +16,7 @@ from rich.progress import Progress
 from rich.table import Table
 
 from dlocli.errors import DloError
+from dlocli.processes import Terminated
 
 F = TypeVar("F", bound=Callable[..., Any])
 console = Console(stderr=True)
@@ -33,6 +34,14 @@ ResumeFlag = Annotated[
         "contradict it are refused, finished work is kept.",
     ),
 ]
+AcceptChangesFlag = Annotated[
+    bool,
+    typer.Option(
+        "--accept-changes",
+        help="With --resume: continue although spec.json or an input file changed since the "
+        "run started (the run directory then no longer describes one run exactly).",
+    ),
+]
 OverwriteFlag = Annotated[
     bool, typer.Option("--overwrite", help="Allow writing into an existing non-empty --out.")
 ]
@@ -48,9 +57,11 @@ def handle_errors(fn: F) -> F:
         except DloError as exc:
             print_error(str(exc))
             raise typer.Exit(exc.exit_code) from None
-        except KeyboardInterrupt:
-            console.print("[yellow]interrupted[/yellow]: finished work was saved")
-            raise typer.Exit(130) from None
+        except KeyboardInterrupt as exc:
+            terminated = isinstance(exc, Terminated)
+            what = "terminated (SIGTERM)" if terminated else "interrupted"
+            console.print(f"[yellow]{what}[/yellow]: finished work was saved; --resume continues")
+            raise typer.Exit(143 if terminated else 130) from None
         except OSError as exc:
             print_error(os_error_line(exc))
             raise typer.Exit(2 if isinstance(exc, PATH_ERRORS) else 1) from None
@@ -83,7 +94,8 @@ def progress_bars(*columns: Any, quiet: bool) -> Iterator[Progress]:
     try:
         yield progress
     finally:
-        progress.stop()
+        if progress.live.is_started:  # stopping a bar never shown would print a blank line
+            progress.stop()
 
 
 def emit_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:

@@ -13,7 +13,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
+from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.runs.online import OnlineSpec as S
 
@@ -29,6 +29,7 @@ from dlocli.runs.online import OnlineSpec as S
 def online(
     run: RunFlags,
     resume: ResumeFlag = None,
+    accept_changes: AcceptChangesFlag = False,
 ) -> None:
     """Learn the dynamics model online with MPC (paper Algorithm 1); plot the learning curve.
 
@@ -39,7 +40,7 @@ def online(
 
     with _progress(run.json) as callback:
         if resume is not None:
-            summary = resume_online(resume, run.overrides, callback)
+            summary = resume_online(resume, run.overrides, callback, accept_changes)
         else:
             spec = run.spec()
             summary = start_online(spec, run.overwrite, callback)

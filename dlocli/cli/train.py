@@ -6,7 +6,13 @@ from typing import Any
 
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
-from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors, progress_bars
+from dlocli.cli.common import (
+    AcceptChangesFlag,
+    ResumeFlag,
+    emit_summary,
+    handle_errors,
+    progress_bars,
+)
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.models.spec import TrainSpec as S
 
@@ -20,6 +26,7 @@ from dlocli.models.spec import TrainSpec as S
 def train(
     run: RunFlags,
     resume: ResumeFlag = None,
+    accept_changes: AcceptChangesFlag = False,
 ) -> None:
     """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json."""
     from dlocli.models.training import resumed_spec, run_training
@@ -44,5 +51,7 @@ def train(
             progress.update(bar, epoch=event["epoch"], total=event["batches"],
                             completed=event["batch"], loss=event["loss"])  # fmt: skip
 
-        summary = run_training(spec, run.overwrite, show, resume=resume is not None)
+        summary = run_training(
+            spec, run.overwrite, show, resume=resume is not None, accept_changes=accept_changes
+        )
     emit_summary(summary, run.json, "dlo train")

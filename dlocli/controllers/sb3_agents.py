@@ -83,7 +83,7 @@ class SB3Spec(Spec):
     gradient_steps: int = Field(
         1, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
     )
-    net_arch: list[int] = Field(
+    net_arch: list[Annotated[int, Field(gt=0, le=65536)]] = Field(
         default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
     )
     device: str = Field("auto", description="Torch device: 'auto', 'cpu' or 'cuda'.")

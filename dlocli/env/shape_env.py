@@ -52,9 +52,9 @@ def load_goal(path: Path, n_segments: int) -> np.ndarray:
         raise BadInput(f"goal {path} does not exist; {expected} (make one with `dlo goal`)")
     try:
         goal = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
         raise BadInput(f"goal {path} could not be read as .npy ({exc}); {expected}") from exc
-    if not np.issubdtype(goal.dtype, np.number) or goal.shape != (n_segments, 3):
+    if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused
         raise BadInput(f"goal {path} has dtype {goal.dtype} and shape {goal.shape}; {expected}")
     if not np.all(np.isfinite(goal)):
         raise BadInput(f"goal {path} contains NaN or inf; {expected}")

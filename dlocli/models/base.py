@@ -324,6 +324,9 @@ def load_model(
             f"checkpoint {path} holds model {spec.model_dump()} but {expect.model_dump()} "
             "was requested; pass the matching --model or another checkpoint"
         )
+    weights = payload["state_dict"].values()
+    if not all(torch.is_tensor(w) and bool(torch.isfinite(w).all()) for w in weights):
+        raise BadInput(f"checkpoint {path} holds NaN or inf weights (training diverged); retrain")
     model = build_model(spec, payload["n_segments"])
     try:
         model.load_state_dict(payload["state_dict"])

@@ -133,13 +133,15 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
     ``spec.out``, the spec and the summary are written there."""
     from dlocli.data import load_dataset
     from dlocli.errors import BadInput
-    from dlocli.io import prepare_run_dir, write_json_atomic
+    from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
     from dlocli.models.base import load_model
 
     if spec.checkpoint is None or spec.data is None:
         raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
     if spec.plot is not None and spec.plot.suffix != ".png":
         raise BadInput(f"--plot {spec.plot} must end in .png")
+    if spec.plot is not None:
+        check_writable(spec.plot, "--plot")
     net = load_model(spec.checkpoint, spec.device)
     dataset = load_dataset(spec.data)
     if dataset.n_segments != net.n_segments:

@@ -28,12 +28,22 @@ class ModelSpec(Spec):
         "positions enter only as neighbour differences: the model is then exactly "
         "translation-invariant, as a rod without contacts is.",
     )
-    hidden: int = Field(150, gt=0, description="Width of every hidden layer and of the LSTM.")
-    edge_layers: int = Field(4, gt=0, description="Layers of the relation-centric network f_e.")
-    node_layers: int = Field(4, gt=0, description="Layers of the object-centric network f_v.")
-    lstm_layers: int = Field(2, gt=0, description="Layers of the bidirectional LSTM along the rod.")
-    mlp_layers: int = Field(4, gt=0, description="Hidden layers of the `mlp` baseline.")
-    mlp_hidden: int = Field(512, gt=0, description="Width of the `mlp` baseline's hidden layers.")
+    hidden: int = Field(
+        150, gt=0, le=8192, description="Width of every hidden layer and of the LSTM."
+    )
+    edge_layers: int = Field(
+        4, gt=0, le=64, description="Layers of the relation-centric network f_e."
+    )
+    node_layers: int = Field(
+        4, gt=0, le=64, description="Layers of the object-centric network f_v."
+    )
+    lstm_layers: int = Field(
+        2, gt=0, le=64, description="Layers of the bidirectional LSTM along the rod."
+    )
+    mlp_layers: int = Field(4, gt=0, le=64, description="Hidden layers of the `mlp` baseline.")
+    mlp_hidden: int = Field(
+        512, gt=0, le=65536, description="Width of the `mlp` baseline's hidden layers."
+    )
 
 
 class FitSpec(Spec):

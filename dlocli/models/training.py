@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from dlocli.data import Dataset, load_dataset
-from dlocli.errors import BadInput
+from dlocli.errors import BadInput, DloError
 from dlocli.models.base import (
     DynamicsModel,
     build_model,
@@ -139,6 +139,11 @@ def train_model(
         t0 = time.perf_counter()
         model.train()
         train_loss = _train_epoch(model, optimizer, train, fit, gen, epoch, progress)
+        if not math.isfinite(train_loss):  # the model is lost; never save it as a result
+            raise DloError(
+                f"training diverged: the loss became {train_loss} in epoch {epoch} at lr "
+                f"{fit.lr:g}; start again with a lower --lr (the last finite epoch is saved)"
+            )
         record = {
             "epoch": epoch,
             "train_loss": train_loss,
@@ -247,20 +252,41 @@ def load_training_data(spec: TrainSpec) -> Dataset:
 
 # ---------------------------------------------------------------------- the command
 def run_training(
-    spec: TrainSpec, overwrite: bool = False, progress: Progress | None = None, resume: bool = False
+    spec: TrainSpec,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    resume: bool = False,
+    accept_changes: bool = False,
 ) -> dict[str, Any]:
     """`dlo train`: train, then write OUT/{spec.json, metrics.csv, summary.json,
     checkpoints/{final,best,last}.pt, plots/{loss,rollout}.png}; return the summary.
 
-    ``resume``: continue the run in ``spec.out`` (its saved spec) from ``checkpoints/last.pt``.
+    ``resume``: continue the run in ``spec.out`` (its saved spec) from ``checkpoints/last.pt``;
+    a changed spec.json or dataset is refused unless ``accept_changes``.
     """
+    from dlocli.rundir import owned
+
+    dataset = load_training_data(spec)
+    with owned(spec.out):
+        return _train_in(spec, dataset, overwrite, progress, resume, accept_changes)
+
+
+def _train_in(
+    spec: TrainSpec,
+    dataset: Dataset,
+    overwrite: bool,
+    progress: Progress | None,
+    resume: bool,
+    accept_changes: bool,
+) -> dict[str, Any]:
     from dlocli.io import prepare_run_dir, write_json_atomic
     from dlocli.models.evaluation import evaluate_model, plot_rollout
     from dlocli.plots import plot_losses
+    from dlocli.rundir import check_fingerprints, record_fingerprints
 
-    dataset = load_training_data(spec)
     if resume:
         out = Path(spec.out)
+        check_fingerprints(out, spec, accept_changes)
         model, opt_state, done = _resume_point(out / LAST_CHECKPOINT, spec, dataset)
     else:
         model, opt_state = prepare_model(spec, dataset)
@@ -268,6 +294,7 @@ def run_training(
         out = prepare_run_dir(spec.out, overwrite)
         (out / LAST_CHECKPOINT).unlink(missing_ok=True)  # an overwritten run's: not ours to resume
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        record_fingerprints(out, spec)
         done = {"epoch": 0, "generator": None, "history": [], "best_val_loss": math.inf}
     ckpt_dir = out / "checkpoints"
     best = {"val_loss": done["best_val_loss"]}

@@ -34,8 +34,9 @@ from dlocli.env.metrics import episode_result, shape_error_mm
 from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
-from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
+from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
 from dlocli.plots import plot_errors
+from dlocli.rundir import owned
 from dlocli.specs import EnvSpec
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -80,6 +81,7 @@ def check_video_path(path: Path | None) -> None:
         raise BadInput(
             f"--video {path}: writing .mp4 needs `pip install imageio-ffmpeg`; or use a .gif"
         )
+    check_writable(path, "--video")
 
 
 def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
@@ -146,6 +148,17 @@ def run_control(
     reward, latency_ms and the controller's stats).
     """
     env, controller, spec = prepare(spec)
+    with owned(spec.out):
+        return _run_closed_loop(env, controller, spec, progress, overwrite)
+
+
+def _run_closed_loop(
+    env: DLOShapeEnv,
+    controller: Controller,
+    spec: ControlSpec,
+    progress: Progress | None,
+    overwrite: bool,
+) -> dict[str, Any]:
     try:
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))

@@ -40,7 +40,9 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.spec import FitSpec, ModelSpec
+from dlocli.processes import exit_with_parent
 from dlocli.resume import resumed_run_spec
+from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import EnvSpec
 
 Progress = Callable[[str, dict[str, Any]], None]
@@ -280,7 +282,9 @@ class OnlineRun:
             import multiprocessing as mp
 
             # spawn: forking a process whose torch already started OpenMP threads can hang
-            self._pool = ProcessPoolExecutor(self.spec.workers, mp_context=mp.get_context("spawn"))
+            self._pool = ProcessPoolExecutor(
+                self.spec.workers, mp_context=mp.get_context("spawn"), initializer=exit_with_parent
+            )
         return self._pool
 
     def offline_comparison(self, k: int, n_transitions: int) -> None:
@@ -462,16 +466,24 @@ def start_online(
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     models.check(spec.model.name)
-    out = prepare_run_dir(spec.out, overwrite)
-    for state in RunLayout(out).state_dirs():
-        shutil.rmtree(state, ignore_errors=True)
-    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-    return OnlineRun(spec, progress).run()
+    with owned(spec.out):
+        out = prepare_run_dir(spec.out, overwrite)
+        for state in RunLayout(out).state_dirs():
+            shutil.rmtree(state, ignore_errors=True)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        record_fingerprints(out, spec)
+        return OnlineRun(spec, progress).run()
 
 
 def resume_online(
-    run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
+    run_dir: Path,
+    overrides: dict[str, Any],
+    progress: Progress | None = None,
+    accept_changes: bool = False,
 ) -> dict[str, Any]:
-    """Continue the run in ``run_dir``; flags that contradict its spec are refused."""
+    """Continue the run in ``run_dir``; flags that contradict its spec are refused, and so is
+    a changed spec.json or input file unless ``accept_changes``."""
     spec = resumed_run_spec(OnlineSpec, run_dir, overrides, "an online", "dlo online")
-    return OnlineRun(spec, progress).run()
+    with owned(run_dir):
+        check_fingerprints(run_dir, spec, accept_changes)
+        return OnlineRun(spec, progress).run()

@@ -1,0 +1,366 @@
+"""A corpus of bad inputs and faults across every command (issue 18): each ends with the
+documented exit code, one line on stderr, no traceback, and every file that existed before
+is unchanged. Run in-process through `dlocli.cli.main` (the `dlo` entry point itself), on
+real data, a real trained model and real simulators."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from dlocli.cli import main
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory, small_dataset_dir: Path) -> dict[str, Path]:
+    """Real inputs (dataset, trained model, goal, finished runs) and crafted bad files."""
+    root = tmp_path_factory.mktemp("corpus")
+    paths = {"data": small_dataset_dir, "root": root}
+    _dlo("train", "--data", str(small_dataset_dir), "--epochs", "1", "--hidden", "8",
+         "--out", str(root / "train"), "--json")  # fmt: skip
+    _dlo("goal", "--out", str(root / "goal.npy"), "--shapes", "near-rest", "--json")
+    _dlo("collect", "--episodes", "2", "--steps", "3", "--shapes", "near-rest",
+         "--out", str(root / "collect"), "--json")  # fmt: skip
+    paths.update(train=root / "train", goal=root / "goal.npy", collect=root / "collect")
+    bad = root / "bad"
+    bad.mkdir()
+    _write_bad_specs(bad)
+    _write_bad_goals(bad)
+    _write_bad_datasets(bad, small_dataset_dir)
+    _write_bad_checkpoints(bad, root / "train" / "checkpoints" / "final.pt")
+    (root / "a_file").write_text("not a directory\n")
+    (root / "edited").mkdir()
+    return paths
+
+
+def _dlo(*args: str) -> None:
+    code = _run_main(list(args))
+    assert code == 0, args
+
+
+def _run_main(argv: list[str]) -> int:
+    old = sys.argv
+    sys.argv = ["dlo", *argv]
+    try:
+        main()
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 0
+    finally:
+        sys.argv = old
+    return 0
+
+
+def _write_bad_specs(bad: Path) -> None:
+    levels = ["a: &a [x, x, x, x, x, x, x, x, x]"]
+    for i, name in enumerate("bcdefgh"):
+        prev = "abcdefg"[i]
+        levels.append(f"{name}: &{name} [" + ", ".join([f"*{prev}"] * 9) + "]")
+    (bad / "bomb.yaml").write_text("\n".join(levels) + "\nseed: [" + ", ".join(["*h"] * 9) + "]\n")
+    (bad / "inf_length.yaml").write_text("backend:\n  rod:\n    length: .inf\n")
+    (bad / "nan_lr.yaml").write_text("fit:\n  lr: .nan\n")
+    (bad / "inf_lr.json").write_text('{"lr": Infinity}')
+    (bad / "list.yaml").write_text("- 1\n- 2\n")
+    (bad / "broken.yaml").write_text("seed: [1, 2\n")
+    (bad / "unknown_field.yaml").write_text("seeds: 3\n")
+    (bad / "python_tag.yaml").write_text("seed: !!python/object/apply:os.system ['true']\n")
+    (bad / "huge.yaml").write_text("# " + "x" * 1_100_000 + "\n")
+    (bad / "bad_net_arch.yaml").write_text("options:\n  sac:\n    net_arch: [64, -1]\n")
+    (bad / "bench_inf_lr.yaml").write_text("fit:\n  lr: .inf\n")
+
+
+def _write_bad_goals(bad: Path) -> None:
+    (bad / "empty.npy").write_bytes(b"")
+    (bad / "text.npy").write_text("0.1 0.2 0.3\n")
+    np.save(bad / "complex.npy", np.zeros((20, 3), dtype=complex))
+    np.save(bad / "shape.npy", np.zeros((5, 3)))
+    nan = np.zeros((20, 3))
+    nan[3, 1] = np.nan
+    np.save(bad / "nan.npy", nan)
+    np.save(bad / "strings.npy", np.full((20, 3), "a"))
+    np.save(bad / "objects.npy", np.array([{"a": 1}] * 3, dtype=object), allow_pickle=True)
+    np.save(bad / "far.npy", np.linspace([0, 0, 0], [40, 0, 0], 20))
+    (bad / "goal.txt").write_text("0 0 0\n")
+
+
+def _write_bad_datasets(bad: Path, good: Path) -> None:
+    (bad / "text.h5").write_text("not hdf5\n")
+    with h5py.File(bad / "noformat.h5", "w") as f:
+        f["positions"] = np.zeros((3, 20, 3))
+    for name, change in [
+        ("nan_positions.h5", lambda f: f["positions"].__setitem__((0, 0, 0), np.nan)),
+        ("string_positions.h5", _positions_as_strings),
+        ("missing_actions.h5", lambda f: f.__delitem__("actions")),
+        ("bad_shapes.h5", _truncate_goals),
+    ]:
+        target = bad / name
+        target.write_bytes((good / "dataset.h5").read_bytes())
+        with h5py.File(target, "r+") as f:
+            change(f)
+
+
+def _positions_as_strings(f: h5py.File) -> None:
+    shape = f["positions"].shape
+    del f["positions"]
+    f["positions"] = np.full(shape, b"x", dtype="S1")
+
+
+def _truncate_goals(f: h5py.File) -> None:
+    goals = f["goals"][()]
+    del f["goals"]
+    f["goals"] = goals[:1]
+
+
+def _write_bad_checkpoints(bad: Path, good: Path) -> None:
+    (bad / "text.pt").write_text("not a checkpoint\n")
+    payload = torch.load(good, weights_only=True)
+    huge = dict(payload, model_spec={**payload["model_spec"], "hidden": 10_000_000})
+    torch.save(huge, bad / "huge_hidden.pt")
+    nan = dict(payload)
+    nan["state_dict"] = {k: v * float("nan") for k, v in payload["state_dict"].items()}
+    torch.save(nan, bad / "nan_weights.pt")
+    (bad / "evil.pt").write_bytes(pickle.dumps(_Evil()))
+    torch.save({"format": "something else"}, bad / "other.pt")
+
+
+class _Evil:
+    def __reduce__(self):  # runs `touch` if anything unpickles it unsafely
+        return (os.system, ("touch /tmp/dlocli_corpus_pwned",))
+
+
+# ----------------------------------------------------------------------------- the corpus
+# (id, argv with {placeholders}, exit code); {out} is a fresh path per case
+CORPUS: list[tuple[str, str, int]] = [
+    # usage errors (Click's own)
+    ("no-such-command", "frobnicate", 2),
+    ("no-such-flag", "train --frobnicate 1", 2),
+    ("flag-not-int", "train --epochs many", 2),
+    ("flag-not-float", "train --lr fast", 2),
+    ("flag-missing-value", "collect --episodes", 2),
+    # numbers out of range, infinite or NaN
+    ("lr-inf", "train --data {data} --lr inf --out {out}", 2),
+    ("lr-nan", "train --data {data} --lr nan --out {out}", 2),
+    ("lr-negative", "train --data {data} --lr -1 --out {out}", 2),
+    ("epochs-negative", "train --data {data} --epochs -1 --out {out}", 2),
+    ("hidden-zero", "train --data {data} --hidden 0 --out {out}", 2),
+    ("hidden-huge", "train --data {data} --hidden 10000000 --out {out}", 2),
+    ("episodes-zero", "collect --episodes 0 --out {out}", 2),
+    ("steps-zero", "collect --steps 0 --out {out}", 2),
+    ("online-lr-inf", "online --lr inf --out {out}", 2),
+    ("online-iters-zero", "online --iters 0 --out {out}", 2),
+    ("bench-budget-tiny", "bench --budget 10 --out {out}", 2),
+    # unknown names
+    ("unknown-backend", "collect --backend gazebo --out {out}", 2),
+    ("unknown-task", "collect --task juggle --out {out}", 2),
+    ("unknown-shapes", "collect --shapes spiral --out {out}", 2),
+    ("unknown-model", "train --data {data} --model transformer --out {out}", 2),
+    ("unknown-controller", "control --goal {goal} --controller ppo --out {out}", 2),
+    ("unknown-agent", "bench --agents sac,ppo --out {out}", 2),
+    ("empty-agents", "bench --agents , --out {out}", 2),
+    ("duplicate-agent", "bench --agents sac,sac --out {out}", 2),
+    ("bad-control-option", "control --goal {goal} -o horizon=-3 --out {out}", 2),
+    ("bad-bench-option", "bench -o sac.net_arch=[64,-1] --out {out}", 2),
+    ("option-not-key-value", "bench -o sac --out {out}", 2),
+    # spec files
+    ("spec-missing", "train --spec {root}/nope.yaml --out {out}", 2),
+    ("spec-alias-bomb", "train --spec {bad}/bomb.yaml --out {out}", 2),
+    ("spec-inf-length", "collect --spec {bad}/inf_length.yaml --out {out}", 2),
+    ("spec-nan-lr", "online --spec {bad}/nan_lr.yaml --out {out}", 2),
+    ("spec-json-infinity", "train --spec {bad}/inf_lr.json --data {data} --out {out}", 2),
+    ("spec-not-mapping", "collect --spec {bad}/list.yaml --out {out}", 2),
+    ("spec-broken-yaml", "collect --spec {bad}/broken.yaml --out {out}", 2),
+    ("spec-unknown-field", "collect --spec {bad}/unknown_field.yaml --out {out}", 2),
+    ("spec-python-tag", "collect --spec {bad}/python_tag.yaml --out {out}", 2),
+    ("spec-huge-file", "collect --spec {bad}/huge.yaml --out {out}", 2),
+    ("bench-spec-net-arch", "bench --spec {bad}/bad_net_arch.yaml --out {out}", 2),
+    ("bench-spec-inf-lr", "bench --spec {bad}/bench_inf_lr.yaml --out {out}", 2),
+    # goal files
+    ("goal-missing", "control --goal {root}/nope.npy --out {out}", 2),
+    ("goal-empty-file", "control --goal {bad}/empty.npy --out {out}", 2),
+    ("goal-text-as-npy", "control --goal {bad}/text.npy --out {out}", 2),
+    ("goal-complex", "control --goal {bad}/complex.npy --out {out}", 2),
+    ("goal-wrong-shape", "control --goal {bad}/shape.npy --out {out}", 2),
+    ("goal-nan", "control --goal {bad}/nan.npy --out {out}", 2),
+    ("goal-strings", "control --goal {bad}/strings.npy --out {out}", 2),
+    ("goal-pickled-objects", "control --goal {bad}/objects.npy --out {out}", 2),
+    ("goal-unreachable", "control --goal {bad}/far.npy --out {out}", 2),
+    ("goal-not-npy", "control --goal {bad}/goal.txt --out {out}", 2),
+    ("no-goal", "control --out {out}", 2),
+    # datasets
+    ("data-missing", "train --data {root}/nope.h5 --out {out}", 2),
+    ("data-none", "train --out {out}", 2),
+    ("data-text-file", "train --data {bad}/text.h5 --out {out}", 2),
+    ("data-no-format", "train --data {bad}/noformat.h5 --out {out}", 2),
+    ("data-nan-positions", "train --data {bad}/nan_positions.h5 --out {out}", 2),
+    ("data-string-positions", "train --data {bad}/string_positions.h5 --out {out}", 2),
+    ("data-missing-array", "train --data {bad}/missing_actions.h5 --out {out}", 2),
+    ("data-bad-shapes", "train --data {bad}/bad_shapes.h5 --out {out}", 2),
+    ("eval-bad-data", "eval --checkpoint {train} --data {bad}/text.h5", 2),
+    # checkpoints
+    ("ckpt-missing", "control --goal {goal} --checkpoint {root}/nope.pt --out {out}", 2),
+    ("ckpt-text", "control --goal {goal} --checkpoint {bad}/text.pt --out {out}", 2),
+    (
+        "ckpt-huge-hidden",
+        "control --goal {goal} --checkpoint {bad}/huge_hidden.pt --out {out}",
+        2,
+    ),
+    (
+        "ckpt-nan-weights",
+        "control --goal {goal} --checkpoint {bad}/nan_weights.pt --out {out}",
+        2,
+    ),
+    ("ckpt-pickle", "control --goal {goal} --checkpoint {bad}/evil.pt --out {out}", 2),
+    ("ckpt-other-format", "eval --checkpoint {bad}/other.pt --data {data}", 2),
+    ("ckpt-run-dir-without-model", "eval --checkpoint {collect} --data {data}", 2),
+    ("init-from-text", "train --data {data} --init-from {bad}/text.pt --out {out}", 2),
+    # output paths
+    ("out-is-file", "collect --out {root}/a_file", 2),
+    ("out-not-empty", "collect --out {train}", 2),
+    ("out-unwritable", "collect --out /proc/dlocli-corpus/run", 2),
+    ("goal-out-is-dir", "goal --out {root}/edited", 2),
+    ("goal-out-not-npy", "goal --out {out}.txt", 2),
+    ("goal-out-exists", "goal --out {goal}", 2),
+    ("video-bad-suffix", "control --goal {goal} --video {out}.avi --out {out}", 2),
+    ("video-unwritable", "control --goal {goal} --video /proc/dlocli/v.gif --out {out}", 2),
+    ("plot-bad-suffix", "eval --checkpoint {train} --data {data} --plot {out}.jpg", 2),
+    ("plot-unwritable", "eval --checkpoint {train} --data {data} --plot /proc/x/p.png", 2),
+    ("bench-out-is-collect-run", "bench --out {collect}", 2),
+    # resume
+    ("resume-missing-dir", "train --resume {root}/nope", 2),
+    ("resume-not-a-run", "online --resume {root}/edited", 2),
+    ("resume-wrong-kind", "train --resume {collect}", 2),
+    ("resume-conflicting-flag", "train --resume {train} --lr 0.5", 2),
+    ("resume-collect-conflict", "collect --resume {collect} --seed 5", 2),
+    ("resume-bench-not-bench", "bench --resume {train}", 2),
+]
+
+
+def _format(argv: str, world: dict[str, Path], out: Path) -> list[str]:
+    values = {k: str(v) for k, v in world.items()} | {
+        "out": str(out),
+        "bad": f"{world['root']}/bad",
+    }
+    return [part.format(**values) for part in argv.split()]
+
+
+def _snapshot(*roots: Path) -> dict[str, str]:
+    """sha256 of every file under ``roots`` (lock files excepted: taking a lock is fine)."""
+    found = {}
+    for root in roots:
+        for path in sorted(Path(root).rglob("*")):
+            if path.is_file() and path.name != ".dlo.lock":
+                found[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return found
+
+
+def test_corpus_is_large_enough():
+    assert len(CORPUS) >= 60
+    assert len({case[0] for case in CORPUS}) == len(CORPUS)
+
+
+@pytest.mark.parametrize(("case", "argv", "code"), CORPUS, ids=[c[0] for c in CORPUS])
+def test_bad_input(case, argv, code, world, tmp_path, capsys):
+    before = _snapshot(world["root"], world["data"])
+    exit_code = _run_main(_format(argv, world, tmp_path / "out"))
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert exit_code == code, captured.err
+    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
+    assert len(lines[0]) < 600, lines[0][:200]
+    assert "Traceback" not in captured.err + captured.out
+    assert _snapshot(world["root"], world["data"]) == before
+    assert not Path("/tmp/dlocli_corpus_pwned").exists()
+
+
+# ----------------------------------------------------------------------------- faults
+def test_resume_refuses_an_edited_spec_unless_accepted(world, tmp_path, capsys):
+    run = tmp_path / "run"
+    _dlo("train", "--data", str(world["data"]), "--epochs", "1", "--hidden", "8",
+         "--out", str(run), "--json")  # fmt: skip
+    spec = json.loads((run / "spec.json").read_text())
+    spec["lr"] = 0.5
+    (run / "spec.json").write_text(json.dumps(spec))
+    capsys.readouterr()
+    assert _run_main(["train", "--resume", str(run)]) == 2
+    assert "spec.json changed" in capsys.readouterr().err
+    assert _run_main(["train", "--resume", str(run), "--accept-changes", "--json"]) == 0
+
+
+def test_resume_refuses_a_replaced_dataset(world, tmp_path, capsys):
+    data = tmp_path / "data.h5"
+    data.write_bytes((world["data"] / "dataset.h5").read_bytes())
+    run = tmp_path / "run"
+    _dlo("train", "--data", str(data), "--epochs", "1", "--hidden", "8", "--out", str(run),
+         "--json")  # fmt: skip
+    with h5py.File(data, "r+") as f:
+        f["rewards"][0] = 0.0 if f["rewards"][0] != 0 else -1.0
+    capsys.readouterr()
+    assert _run_main(["train", "--resume", str(run)]) == 2
+    assert "data changed" in capsys.readouterr().err
+
+
+def test_locked_run_directory_is_refused_naming_the_holder(world, tmp_path, capsys):
+    run = tmp_path / "busy"
+    _dlo("collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
+         "--out", str(run), "--json")  # fmt: skip
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLD_LOCK, str(run / ".dlo.lock")], stdout=subprocess.PIPE
+    )
+    try:
+        assert holder.stdout.readline().strip() == b"locked"
+        before = _snapshot(run)
+        capsys.readouterr()
+        for argv in (
+            ["collect", "--episodes", "1", "--steps", "2", "--out", str(run), "--overwrite"],
+            ["collect", "--resume", str(run)],
+        ):
+            assert _run_main(argv) == 2
+            err = capsys.readouterr().err
+            assert f"PID {holder.pid}" in err and len(err.strip().splitlines()) == 1
+        assert _snapshot(run) == before
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder died: its stale lock is taken over
+    assert _run_main(["collect", "--resume", str(run), "--json"]) == 0
+
+
+_HOLD_LOCK = """
+import fcntl, os, sys, time
+fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
+fcntl.flock(fd, fcntl.LOCK_EX)
+os.ftruncate(fd, 0); os.write(fd, str(os.getpid()).encode())
+print("locked", flush=True)
+time.sleep(600)
+"""
+
+
+def test_sigterm_saves_finished_work_and_exits_143(world, tmp_path):
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "dlocli", "train", "--data", str(world["data"]), "--hidden",
+           "8", "--epochs", "500", "--out", str(run), "--json"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while not (run / "checkpoints" / "last.pt").is_file() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err.decode()
+    lines = [line for line in err.decode().splitlines() if line.strip()]
+    assert "Traceback" not in err.decode() and lines[-1].startswith("terminated")
+    rows = (run / "metrics.csv").read_text().strip().splitlines()
+    assert len(rows) >= 2  # a header and at least the finished epoch
+    assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["epoch"] >= 1
