@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 import time
+from typing import Any
 
 #: the PID of the `dlo` process; forked workers inherit the handler but not this role
 _main_pid: int | None = None
@@ -32,10 +34,14 @@ def handle_sigterm() -> None:
     signal.signal(signal.SIGTERM, _on_sigterm)
 
 
-def exit_with_parent(poll_seconds: float = 1.0) -> None:
-    """Call in a worker process: it exits as soon as its parent is gone (then the worker is
-    re-parented, so its parent PID changes). A daemon thread polls; the work is untouched."""
-    parent = os.getppid()
+def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
+    """Call in a worker process (a pool's ``initializer``, ``initargs=(os.getpid(),)``): it
+    exits as soon as the process ``parent`` is gone. On Linux the kernel sends SIGKILL
+    (``PR_SET_PDEATHSIG``); elsewhere, and as a second line, a daemon thread notices the
+    worker was re-parented."""
+    _ask_kernel_for_sigkill_on_parent_death()
+    if os.getppid() != parent:  # the parent died before we asked
+        os._exit(1)
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -43,3 +49,20 @@ def exit_with_parent(poll_seconds: float = 1.0) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def pool_initializer() -> dict[str, Any]:
+    """``initializer`` and ``initargs`` for a process pool whose workers end with this one."""
+    return {"initializer": exit_with_parent, "initargs": (os.getpid(),)}
+
+
+def _ask_kernel_for_sigkill_on_parent_death() -> None:
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass

@@ -364,3 +364,45 @@ def test_sigterm_saves_finished_work_and_exits_143(world, tmp_path):
     rows = (run / "metrics.csv").read_text().strip().splitlines()
     assert len(rows) >= 2  # a header and at least the finished epoch
     assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["epoch"] >= 1
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_workers_end_when_their_parent_is_killed(tmp_path):
+    # the online loop's trial workers (spawned, as issue 18's reproducer); 300-step trials
+    cmd = [sys.executable, "-m", "dlocli", "online", "--iters", "1", "--trials", "2",
+           "--workers", "2", "--initial-episodes", "2", "--steps", "300", "--epochs", "1",
+           "--hidden", "8", "--shapes", "near-rest", "--out", str(tmp_path / "r")]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    children: list[int] = []
+    while len(children) < 3 and time.monotonic() < deadline:  # 2 workers, 1 resource tracker
+        time.sleep(0.2)
+        children = _children(proc.pid)
+    assert len(children) >= 3, "the pool never started"
+    time.sleep(5.0)  # the workers are running trials
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 20
+    while any(_alive(pid) for pid in children) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(pid) for pid in children)
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for status in Path("/proc").glob("[0-9]*/status"):
+        try:
+            text = status.read_text()
+        except OSError:
+            continue
+        if f"\nPPid:\t{pid}\n" in text:
+            found.append(int(status.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/status").read_text().split("State:\t")[1][0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"

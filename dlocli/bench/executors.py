@@ -21,7 +21,7 @@ from typing import Any
 
 from dlocli.bench.jobs import Job, run_job
 from dlocli.errors import BadInput
-from dlocli.processes import exit_with_parent
+from dlocli.processes import pool_initializer
 
 Outcome = tuple[Job, "dict[str, Any] | BaseException"]
 #: Ray's connection window in seconds when joining a cluster (Ray's default: about 20 tries)
@@ -61,7 +61,7 @@ class LocalExecutor:
 
         # spawn: forking a process whose torch already started OpenMP threads can hang
         pool = ProcessPoolExecutor(
-            workers, mp_context=mp.get_context("spawn"), initializer=exit_with_parent
+            workers, mp_context=mp.get_context("spawn"), **pool_initializer()
         )
         try:
             futures = {

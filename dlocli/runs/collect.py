@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
 import re
 import shutil
 import time
@@ -43,6 +44,7 @@ from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
+from dlocli.processes import exit_with_parent
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import CollectSpec, EnvSpec
 
@@ -62,8 +64,10 @@ _worker_env: DLOShapeEnv | None = None
 _worker_spec: CollectSpec | None = None
 
 
-def _init_worker(spec_json: str) -> None:
+def _init_worker(spec_json: str, parent: int | None = None) -> None:
     global _worker_env, _worker_spec
+    if parent is not None:  # a pool worker: end with the collecting process
+        exit_with_parent(parent)
     _worker_spec = CollectSpec.model_validate_json(spec_json)
     _worker_env = make_env_from_spec(_worker_spec)
 
@@ -85,7 +89,9 @@ def _episodes(spec: CollectSpec, indices: list[int]) -> Iterator[tuple[int, Epis
         return
     method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
     ctx = mp.get_context(method)
-    with ctx.Pool(min(spec.workers, len(indices)), _init_worker, (spec.model_dump_json(),)) as pool:
+    with ctx.Pool(
+        min(spec.workers, len(indices)), _init_worker, (spec.model_dump_json(), os.getpid())
+    ) as pool:
         yield from zip(indices, pool.imap(_collect_one, indices, chunksize=1), strict=True)
 
 

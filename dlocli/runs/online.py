@@ -40,7 +40,7 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.spec import FitSpec, ModelSpec
-from dlocli.processes import exit_with_parent
+from dlocli.processes import pool_initializer
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import EnvSpec
@@ -283,7 +283,7 @@ class OnlineRun:
 
             # spawn: forking a process whose torch already started OpenMP threads can hang
             self._pool = ProcessPoolExecutor(
-                self.spec.workers, mp_context=mp.get_context("spawn"), initializer=exit_with_parent
+                self.spec.workers, mp_context=mp.get_context("spawn"), **pool_initializer()
             )
         return self._pool
 
