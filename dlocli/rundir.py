@@ -81,8 +81,11 @@ def _acquire(run_dir: Path, shared: bool) -> int:
 
 # ----------------------------------------------------------------------------- fingerprints
 def file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
     with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def input_files(spec: Any) -> dict[str, Path]:
