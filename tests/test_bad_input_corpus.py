@@ -226,6 +226,18 @@ CORPUS: list[tuple[str, str, int]] = [
     ("ckpt-other-format", "eval --checkpoint {bad}/other.pt --data {data}", 2),
     ("ckpt-run-dir-without-model", "eval --checkpoint {collect} --data {data}", 2),
     ("init-from-text", "train --data {data} --init-from {bad}/text.pt --out {out}", 2),
+    ("control-untrained-sac", "control --goal {goal} --controller sac --out {out}", 2),
+    ("control-policy-for-mpc", "control --goal {goal} --policy {root} --out {out}", 2),
+    (
+        "control-unused-model",
+        "control --goal {goal} --controller zero --checkpoint {train} --out {out}",
+        2,
+    ),
+    (
+        "control-not-a-policy",
+        "control --goal {goal} --controller td3 --policy {root}/edited --out {out}",
+        2,
+    ),
     # output paths
     ("out-is-file", "collect --out {root}/a_file", 2),
     ("out-not-empty", "collect --out {train}", 2),

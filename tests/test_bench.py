@@ -114,6 +114,18 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
     assert "Transitions until half the initial error is closed" in table
     assert (run / "plots" / "fig4_training_trials.png").is_file()
 
+    # the sac job saved its final policy; `dlo control` runs it, and refuses sac untrained
+    policy = Path(json.loads((run / "jobs" / "sac-s0.json").read_text())["policy"])
+    assert (policy / "model.zip").is_file() and (policy / "agent.json").is_file()
+    goal = tmp_path / "goal.npy"
+    assert runner.invoke(app, ["goal", "--out", str(goal), "--shapes", "near-rest"]).exit_code == 0
+    control = ["control", "--goal", str(goal), "--controller", "sac", "--steps", "5", "--json"]
+    ran = runner.invoke(app, [*control, "--policy", str(policy), "--out", str(tmp_path / "c1")])
+    assert ran.exit_code == 0, ran.output
+    assert json.loads(ran.stdout)["steps"] == 5
+    untrained = runner.invoke(app, [*control, "--out", str(tmp_path / "c2")])
+    assert untrained.exit_code == 2 and "--policy" in untrained.output
+
     # resume: a lost job is rerun (same result), a new agent added; kept jobs are not rerun
     (run / "jobs" / "random-s0.json").unlink()
     kept = {p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir()}

@@ -152,6 +152,10 @@ class BenchLearner(ABC):
         agent's exploration: the paper's Fig. 4 protocol); none for agents that do not learn."""
         return []
 
+    def save_policy(self, directory: Path) -> bool:
+        """Save the final policy for `dlo control --policy`; False if it has none to save."""
+        return False
+
     def close(self) -> None:  # noqa: B027 (optional hook)
         """Release the training env, if any."""
 
@@ -190,6 +194,9 @@ class AgentLearner(BenchLearner):
 
     def training_returns(self) -> list[float]:
         return list(self.env.episode_returns)
+
+    def save_policy(self, directory: Path) -> bool:
+        return self.agent.save_policy(directory)
 
     def close(self) -> None:
         self.env.close()

@@ -94,7 +94,9 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
     start = time.perf_counter()
     try:
         with _workdir(scratch) as work:
-            rows = _learn_and_evaluate(spec, agent, seed, work)
+            # a scratch directory is the job's own directory in the run: its policy stays
+            policy = work / "policy" if scratch is not None else None
+            rows, saved = _learn_and_evaluate(spec, agent, seed, work, policy)
     finally:
         torch.set_num_threads(threads)
     return {
@@ -103,12 +105,16 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
         "fingerprint": fingerprint(spec, agent),
         "options": resolved_options(spec, agent),
         "rows": rows,
+        "policy": str(policy) if saved else None,
         "seconds": round(time.perf_counter() - start, 1),
         "versions": versions(),
     }
 
 
-def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> list[dict]:
+def _learn_and_evaluate(
+    spec: BenchSpec, agent: str, seed: int, work: Path, policy: Path | None
+) -> tuple[list[dict], bool]:
+    """The job's evaluation rows, and whether its final policy was saved in ``policy``."""
     learner = learner_class(agent)(agent, spec, seed, work)
     envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
     rows, wall, trained = [], 0.0, 0
@@ -138,11 +144,12 @@ def _learn_and_evaluate(spec: BenchSpec, agent: str, seed: int, work: Path) -> l
                 rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
             finally:
                 env.close()
+        saved = policy is not None and learner.save_policy(policy)
     finally:
         for env in envs.values():
             env.close()
         learner.close()
-    return rows
+    return rows, saved
 
 
 def _evaluation_rows(

@@ -19,6 +19,7 @@ Run directory (every file written atomically)::
     spec.json                   resolved BenchSpec
     jobs/AGENT-sSEED.json       one finished job: its evaluation rows (resume skips it)
     work/FINGERPRINT/AGENT-sSEED/   a job's own files (mpc's online run), local executor only
+    work/FINGERPRINT/AGENT-sSEED/policy/   sac's and td3's final policy (`dlo control --policy`)
     work/locks/AGENT-sSEED/     held by the process running the job (several may resume)
     results.csv                 agent, seed, eval, transitions, train_task, train_goals,
                                 eval_task, eval_goals, cumulative_reward(_std), final_error_mm,

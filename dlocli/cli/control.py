@@ -21,7 +21,7 @@ OPTION_HELP = (
 @handle_errors
 @spec_flags(
     ControlSpec,
-    ["task.goal_file", "checkpoint", "controller", "out", "backend.name", "task.name",
+    ["task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name", "task.name",
      "task.shapes", "task.episode_steps", "seed", "device", "threads", "video", "video_every"],
 )  # fmt: skip
 def control(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -98,6 +99,17 @@ class LearningAgent(Controller):
     @abstractmethod
     def learn(self, transitions: int) -> None:
         """Use ``transitions`` more env steps of ``self.env`` to improve the agent."""
+
+    def save_policy(self, directory: Path) -> bool:
+        """Write what :meth:`load_policy` needs to act as now into ``directory``; False if
+        this agent cannot (the default)."""
+        return False
+
+    def load_policy(self, directory: Path) -> None:
+        """Act with the policy :meth:`save_policy` wrote (BadInput if this agent cannot)."""
+        raise BadInput(
+            f"controller '{self.name}' cannot load a saved policy; it runs inside `dlo bench` only"
+        )
 
 
 def controller_spec(name: str, options: dict[str, Any] | None = None) -> Spec | None:

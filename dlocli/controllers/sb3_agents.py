@@ -231,30 +231,74 @@ class SB3Agent(LearningAgent):
         return action
 
     # ------------------------------------------------------------------ checkpoints
-    def save(self, directory: Path) -> None:
-        """Write ``model.zip``, ``replay_buffer.pkl`` and ``agent.json`` into ``directory``."""
+    def save_policy(self, directory: Path) -> bool:
+        """Write ``model.zip`` (SB3's own format: networks and optimizer, no replay buffer)
+        and ``agent.json`` (algorithm, transitions, seed, spaces) into ``directory``."""
+        from dlocli.io import atomic_path, write_json_atomic
+
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        self.model.save(directory / "model.zip")
-        self.model.save_replay_buffer(directory / "replay_buffer.pkl")
-        meta = {"algorithm": self.algorithm, "transitions": self.transitions, "seed": self.seed}
-        (directory / "agent.json").write_text(json.dumps(meta))
+        with atomic_path(directory / "model.zip") as tmp, open(tmp, "wb") as file:
+            self.model.save(file)
+        meta = {
+            "algorithm": self.algorithm,
+            "transitions": self.transitions,
+            "seed": self.seed,
+            "observation_shape": list(self.env.observation_space.shape),
+            "action_shape": list(self.env.action_space.shape),
+        }
+        write_json_atomic(directory / "agent.json", meta)
+        return True
 
-    def load(self, directory: Path) -> None:
-        """Resume from :meth:`save` output (SB3 formats: load only your own run directories)."""
+    def load_policy(self, directory: Path) -> None:
+        """Act with a policy :meth:`save_policy` wrote (SB3's zip holds pickled parts: load
+        only policies you trust, such as your own bench's)."""
         directory = Path(directory)
-        meta_path = directory / "agent.json"
-        if not meta_path.is_file():
-            raise BadInput(f"{directory} holds no agent.json; pass a directory written by save()")
-        meta = json.loads(meta_path.read_text())
-        if meta.get("algorithm") != self.algorithm:
-            found = meta.get("algorithm")
-            raise BadInput(f"{directory} holds a {found} agent, not {self.algorithm}")
+        meta = self._saved_meta(directory)
+        for key, space in (("observation_shape", self.env.observation_space),
+                           ("action_shape", self.env.action_space)):  # fmt: skip
+            if meta.get(key) != list(space.shape):
+                raise BadInput(
+                    f"--policy {directory} was trained with {key.split('_')[0]}s of shape "
+                    f"{meta.get(key)}, this task has {list(space.shape)}; pass the same --task "
+                    "and observation settings as its bench"
+                )
         self.model = self._algorithm_class().load(
             directory / "model.zip", env=self.model.get_env(), device=self.spec.device
         )
-        self.model.load_replay_buffer(directory / "replay_buffer.pkl")
         self.transitions = int(meta["transitions"])
+
+    def _saved_meta(self, directory: Path) -> dict[str, Any]:
+        meta_path = directory / "agent.json"
+        if not meta_path.is_file() or not (directory / "model.zip").is_file():
+            raise BadInput(
+                f"--policy {directory} holds no agent.json and model.zip; pass the policy "
+                f"directory of a {self.name} job of `dlo bench` (OUT/work/.../{self.name}-sSEED/"
+                "policy)"
+            )
+        try:
+            meta = json.loads(meta_path.read_text())
+        except ValueError as exc:
+            raise BadInput(
+                f"--policy {directory}: agent.json is not JSON; re-run the bench"
+            ) from exc
+        if not isinstance(meta, dict) or meta.get("algorithm") != self.algorithm:
+            found = meta.get("algorithm") if isinstance(meta, dict) else None
+            raise BadInput(
+                f"--policy {directory} holds a {found} policy, not {self.algorithm}; pass "
+                f"--controller {str(found).lower()} or another --policy"
+            )
+        return meta
+
+    def save(self, directory: Path) -> None:
+        """:meth:`save_policy` plus ``replay_buffer.pkl``: everything to continue learning."""
+        self.save_policy(directory)
+        self.model.save_replay_buffer(Path(directory) / "replay_buffer.pkl")
+
+    def load(self, directory: Path) -> None:
+        """Resume from :meth:`save` output (SB3 formats: load only your own run directories)."""
+        self.load_policy(directory)
+        self.model.load_replay_buffer(Path(directory) / "replay_buffer.pkl")
 
 
 class SACAgent(SB3Agent):

@@ -29,7 +29,12 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field
 
-from dlocli.controllers.base import Controller, controller_spec, make_controller
+from dlocli.controllers.base import (
+    Controller,
+    LearningAgent,
+    controller_spec,
+    make_controller,
+)
 from dlocli.env.metrics import episode_result, shape_error_mm
 from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
@@ -51,6 +56,11 @@ class ControlSpec(EnvSpec):
 
     checkpoint: Path | None = Field(
         None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."
+    )
+    policy: Path | None = Field(
+        None,
+        description="A trained sac or td3 policy: the `policy` directory of a `dlo bench` job "
+        "(OUT/work/.../sac-s0/policy). SB3's format holds pickled parts: load only your own.",
     )
     device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
     threads: int = Field(
@@ -84,6 +94,27 @@ def check_video_path(path: Path | None) -> None:
     check_writable(path, "--video")
 
 
+def check_inputs_used(spec: ControlSpec) -> None:
+    """BadInput if the controller would ignore a given model or policy, or needs a policy
+    it was not given (a learning agent never runs untrained here)."""
+    from dlocli.registry import controllers
+
+    cls = controllers.get(spec.controller)
+    learns = issubclass(cls, LearningAgent)
+    if learns and spec.policy is None:
+        raise BadInput(
+            f"controller '{spec.controller}' learns by interacting and is untrained here; pass "
+            f"--policy DIR (saved by `dlo bench` in OUT/work/.../{spec.controller}-sSEED/policy)"
+        )
+    if spec.policy is not None and not learns:
+        raise BadInput(f"--policy is for sac and td3, not '{spec.controller}'; drop it")
+    if spec.checkpoint is not None and "model" not in cls.needs:
+        raise BadInput(
+            f"controller '{spec.controller}' uses no dynamics model; drop --checkpoint "
+            "(or pass --controller mpc)"
+        )
+
+
 def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
     if spec.checkpoint is None:
@@ -110,12 +141,15 @@ def prepare(spec: ControlSpec) -> tuple[DLOShapeEnv, Controller, ControlSpec]:
     check_video_path(spec.video)
     options = controller_spec(spec.controller, spec.controller_options)
     goal = load_goal(spec.task.goal_file, spec.backend.rod.n_segments)
+    check_inputs_used(spec)
     env = make_env(spec.backend, spec.task, goal=goal, seed=spec.seed)
     try:
         model = load_control_model(spec, env.n_segments)
         controller = make_controller(
             spec.controller, env, options=options, seed=spec.seed, model=model
         )
+        if spec.policy is not None:
+            controller.load_policy(spec.policy)
     except BaseException:
         env.close()
         raise
