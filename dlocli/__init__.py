@@ -5,6 +5,9 @@ Library entry points (the CLI `dlo` is a thin layer over these)::
     import dlocli
     env = dlocli.make_env(backend="mujoco", task="single", seed=0)
     data = dlocli.load_dataset("runs/collect")
+
+Importing dlocli registers the Gymnasium ids ``dlocli/<Backend><Task>-v0``;
+``gym.make("dlocli:dlocli/MujocoSingle-v0")`` imports it on the way.
 """
 
 from __future__ import annotations
@@ -32,18 +35,10 @@ def __getattr__(name: str) -> Any:
 
 
 def _register_gym_ids() -> None:
-    import gymnasium as gym
+    # Gymnasium ids for every registered backend x task (dlocli/env/registration.py)
+    from dlocli.env.registration import register_gym_envs
 
-    for backend in ("mujoco", "pybullet"):
-        for task in ("single", "bimanual"):
-            env_id = f"dlocli/{backend.capitalize()}{task.capitalize()}-v0"
-            if env_id not in gym.registry:
-                gym.register(
-                    env_id,
-                    entry_point="dlocli.env.shape_env:make_env",
-                    kwargs={"backend": backend, "task": task},
-                    max_episode_steps=None,
-                )
+    register_gym_envs()
 
 
 _register_gym_ids()

@@ -257,6 +257,9 @@ CORPUS: list[tuple[str, str, int]] = [
     ("resume-conflicting-flag", "train --resume {train} --lr 0.5", 2),
     ("resume-collect-conflict", "collect --resume {collect} --seed 5", 2),
     ("resume-bench-not-bench", "bench --resume {train}", 2),
+    ("resume-with-spec", "train --resume {train} --spec {bad}/nan_lr.yaml", 2),
+    ("resume-with-overwrite", "collect --resume {collect} --overwrite", 2),
+    ("online-resume-with-spec", "online --resume {train} --spec {bad}/nan_lr.yaml", 2),
 ]
 
 

@@ -107,6 +107,30 @@ def test_reduced_run_writes_everything(uninterrupted):
     assert saved["iters"] == 2 and saved["model"]["hidden"] == 16
 
 
+def test_tensorboard_events_hold_loss_and_error(uninterrupted):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, summary = uninterrupted
+    events = EventAccumulator(str(out / "tensorboard"))
+    events.Reload()
+    assert {"loss/train", "loss/val", "trials/final_error_mm", "trials/score"} <= set(
+        events.Tags()["scalars"]
+    )
+    assert [e.step for e in events.Scalars("loss/train")] == [1, 2]  # 1 epoch per iteration
+    errors = events.Scalars("trials/final_error_mm")
+    assert [e.step for e in errors] == [c[0] for c in summary["curve"]]  # at transitions
+    assert errors[-1].value == pytest.approx(summary["final_error_mm"], rel=1e-5)
+
+
+def test_resumed_finished_run_keeps_its_time(uninterrupted, tmp_path):
+    first, summary = uninterrupted
+    out = tmp_path / "run"
+    shutil.copytree(first, out)
+    res = runner.invoke(app, ["online", "--resume", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout.strip().splitlines()[-1])["seconds"] >= summary["seconds"]
+
+
 def test_resume_after_sigkill_matches_uninterrupted(uninterrupted, tmp_path):
     reference, summary = uninterrupted
     out = tmp_path / "killed"

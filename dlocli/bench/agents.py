@@ -30,6 +30,7 @@ import numpy as np
 from dlocli.bench.spec import eval_points, mpc_points, mpc_schedule
 from dlocli.env.rollout import episode_scores, stream_seed
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
+from dlocli.tensorboard import TENSORBOARD_DIR
 
 if TYPE_CHECKING:
     from dlocli.bench.spec import BenchSpec
@@ -182,6 +183,7 @@ class AgentLearner(BenchLearner):
         self.env = train_env(spec, seed)
         options = spec.options.get(name)
         self.agent: LearningAgent = make_controller(name, self.env, options=options, seed=seed)
+        self.agent.log_to(self.work / TENSORBOARD_DIR)
 
     def learn_to(self, transitions: int) -> None:
         self.agent.learn(transitions - self.agent.transitions)

@@ -17,6 +17,7 @@ from dlocli.bench.agents import learner_class, make_bench_env
 from dlocli.bench.spec import BenchSpec, fingerprint, resolved_options
 from dlocli.env.rollout import episode_scores, rollout, stream_seed
 from dlocli.io import versions
+from dlocli.tensorboard import Scalars
 
 EVAL = 5  # seed stream of evaluation starts
 
@@ -118,6 +119,7 @@ def _learn_and_evaluate(
     learner = learner_class(agent)(agent, spec, seed, work)
     envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
     rows, wall, trained = [], 0.0, 0
+    scalars = Scalars(work)
     try:
         for index, point in enumerate(learner.points()):
             start = time.perf_counter()
@@ -138,6 +140,7 @@ def _learn_and_evaluate(
             trained = len(returns)
             for setting, env in envs.items():
                 rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
+            _log_point(scalars, rows, learner.transitions)
         for setting in final_settings(spec):
             env = make_bench_env(spec, *setting, seed)
             try:
@@ -149,7 +152,21 @@ def _learn_and_evaluate(
         for env in envs.values():
             env.close()
         learner.close()
+        scalars.close()
     return rows, saved
+
+
+def _log_point(scalars: Scalars, rows: list[dict[str, Any]], transitions: int) -> None:
+    """The evaluations at ``transitions`` as TensorBoard scalars, one group per setting."""
+    for row in rows:
+        if row["transitions"] == transitions:
+            scalars.add(
+                transitions,
+                f"eval/{row['eval_task']}-{row['eval_goals']}",
+                final_error_mm=row["final_error_mm"],
+                score=row["score"],
+                cumulative_reward=row["cumulative_reward"],
+            )
 
 
 def _evaluation_rows(

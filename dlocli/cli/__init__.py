@@ -32,6 +32,7 @@ COMMANDS = [
     ("online", "dlocli.cli.online:online"),
     ("bench", "dlocli.cli.bench:bench"),
     ("benchmark", "dlocli.cli.bench:bench"),
+    ("export", "dlocli.cli.export:export"),
 ]
 
 

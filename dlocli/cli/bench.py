@@ -47,6 +47,7 @@ def bench(
     """
     from dlocli.bench.run import report_bench, resume_bench, start_bench
 
+    run.refuse_with_resume(resume)
     if report:
         summary = report_bench(report)
     else:

@@ -43,6 +43,7 @@ def collect(
     from dlocli.registry import backends, tasks
     from dlocli.runs.collect import collect_random, resumed_spec
 
+    run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)

@@ -101,6 +101,18 @@ class RunFlags:
         """The run's spec: defaults, then the spec file, then the flags given."""
         return resolve_spec(self.spec_cls, self.spec_file, self.overrides)
 
+    def refuse_with_resume(self, resume: Path | None) -> None:
+        """BadInput if flags that only make sense for a new run come with ``--resume``."""
+        if resume is None:
+            return
+        if self.spec_file is not None:
+            raise BadInput(
+                f"--spec with --resume {resume}: a resumed run follows its own spec.json; "
+                "drop --spec"
+            )
+        if self.overwrite:
+            raise BadInput(f"--overwrite with --resume {resume}: they contradict; drop one")
+
 
 COMMON: dict[str, Any] = {"spec_file": SpecFile, "overwrite": OverwriteFlag, "json_out": JsonFlag}
 COMMON_DEFAULTS = {"spec_file": None, "overwrite": False, "json_out": False}

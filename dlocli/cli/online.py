@@ -38,6 +38,7 @@ def online(
     """
     from dlocli.runs.online import resume_online, start_online
 
+    run.refuse_with_resume(resume)
     with _progress(run.json) as callback:
         if resume is not None:
             summary = resume_online(resume, run.overrides, callback, accept_changes)
@@ -78,26 +79,29 @@ class _progress:
         return self.tasks[name]
 
     def update(self, event: str, info: dict[str, Any]) -> None:
-        if event == "iteration":
+        if event == "iteration":  # iteration k starts: k - 1 are done
             self.bars.update(
                 self._bar("iteration", info["total"]),
                 completed=info["iteration"] - 1,
-                info=f"iteration {info['iteration']}",
+                info=f"running {info['iteration']}",
             )
             for name in ("trial", "epoch"):
                 if name in self.tasks:
                     self.bars.reset(self.tasks[name])
         elif event == "initial":
             self.bars.update(self._bar("random", info["total"]), completed=info["episode"])
+        elif event == "iteration done":
+            self.bars.update(self._bar("iteration", info["total"]), completed=info["iteration"],
+                             info="")  # fmt: skip
         elif event == "epoch" and "batch" not in info:
             self.bars.update(
-                self._bar("epoch", None),
+                self._bar("epoch", info.get("epochs")),
                 completed=info["epoch"],
                 info=f"val loss {info.get('val_loss', float('nan')):.4f}",
             )
         elif event == "trial":
             self.bars.update(
-                self._bar("trial", None),
+                self._bar("trial", info.get("total")),
                 completed=info["trial"],
                 info=f"final error {info['final_error_mm']:.1f} mm",
             )

@@ -32,6 +32,7 @@ def train(
     from dlocli.models.training import resumed_spec, run_training
     from dlocli.registry import models
 
+    run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     models.check(spec.model.name)
     columns = (

@@ -100,6 +100,9 @@ class LearningAgent(Controller):
     def learn(self, transitions: int) -> None:
         """Use ``transitions`` more env steps of ``self.env`` to improve the agent."""
 
+    def log_to(self, directory: Path) -> None:  # noqa: B027 (optional hook)
+        """Write the learner's own TensorBoard curves into ``directory`` (if it has any)."""
+
     def save_policy(self, directory: Path) -> bool:
         """Write what :meth:`load_policy` needs to act as now into ``directory``; False if
         this agent cannot (the default)."""

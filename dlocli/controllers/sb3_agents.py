@@ -230,6 +230,14 @@ class SB3Agent(LearningAgent):
         action, _ = self.model.predict(np.asarray(obs, dtype=np.float32), deterministic=True)
         return action
 
+    def log_to(self, directory: Path) -> None:
+        """SB3's own logger writes its training curves (losses, entropy, episode reward)
+        there as TensorBoard events, when TensorBoard is installed."""
+        from dlocli.tensorboard import available
+
+        if available():
+            self.model.tensorboard_log = str(directory)
+
     # ------------------------------------------------------------------ checkpoints
     def save_policy(self, directory: Path) -> bool:
         """Write ``model.zip`` (SB3's own format: networks and optimizer, no replay buffer)

@@ -4,7 +4,8 @@ Observation (flat float32 Box): segment positions (N*3), segment quaternions (N*
 poses (2*7), goal positions (N*3) and, with ``task.observe_velocity`` (default), segment
 velocities (N*7: the change of each segment's position and quaternion over the last control
 step, divided by the step; zero right after a reset, when the rod has settled). Use
-:meth:`DLOShapeEnv.split_observation` to get the parts back.
+:meth:`DLOShapeEnv.split_observation` to get the parts back; ``env.observation_slices`` and
+``env.observation_shapes`` give each part's place and shape (README, "Gymnasium").
 Action: Box(-1, 1, (6,)) for ``single`` or (12,) for ``bimanual``, scaled to the task's
 maximum gripper velocities. Reward: paper eq. 12. Starts and goals: :mod:`dlocli.env.shapes`.
 
@@ -17,6 +18,7 @@ steps. Loops that stop at divergence count the steps they skip at -1.5
 
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,7 @@ from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path
 from dlocli.registry import backends as backend_registry
+from dlocli.registry import tasks as task_registry
 from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec, format_validation_error
 
 
@@ -85,20 +88,106 @@ POSITION_BOUND = 10.0
 VELOCITY_BOUND = 100.0
 
 
+def observation_layout(n: int, velocity: bool = False) -> dict[str, tuple[int, ...]]:
+    """The parts of the flat observation, in order, with their shapes (N = ``n`` segments)."""
+    layout = {"positions": (n, 3), "quaternions": (n, 4), "grippers": (2, 7), "goal": (n, 3)}
+    if velocity:
+        layout["velocities"] = (n, 7)
+    return layout
+
+
+#: bound of each column of every part of the observation (rows repeat it)
+_ROW_BOUNDS = {
+    "positions": [POSITION_BOUND] * 3,
+    "quaternions": [1.0] * 4,
+    "grippers": [POSITION_BOUND] * 3 + [1.0] * 4,
+    "goal": [POSITION_BOUND] * 3,
+    "velocities": [VELOCITY_BOUND] * 7,
+}
+
+
 def observation_space(n: int, velocity: bool = False) -> gym.spaces.Box:
     """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1], velocity
     components (if observed) within +-VELOCITY_BOUND."""
-    pos = np.full(n * 3, POSITION_BOUND)
-    grip = np.tile([POSITION_BOUND] * 3 + [1.0] * 4, 2)
-    parts = [pos, np.ones(n * 4), grip, pos] + (
-        [np.full(n * 7, VELOCITY_BOUND)] if velocity else []
-    )
-    high = np.concatenate(parts).astype(np.float32)
-    return gym.spaces.Box(-high, high, dtype=np.float32)
+    layout = observation_layout(n, velocity)
+    high = np.concatenate([np.tile(_ROW_BOUNDS[k], shape[0]) for k, shape in layout.items()])
+    return gym.spaces.Box(-high.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+
+
+def observation_slices(layout: dict[str, tuple[int, ...]]) -> dict[str, slice]:
+    """Where each part of ``layout`` lies in the flat observation."""
+    slices, start = {}, 0
+    for name, shape in layout.items():
+        size = int(np.prod(shape))
+        slices[name] = slice(start, start + size)
+        start += size
+    return slices
+
+
+#: keyword arguments of DLOShapeEnv (and gym.make) besides the TaskSpec fields
+ENV_KEYWORDS = ("backend", "task", "goal", "seed", "render_mode")
+
+
+def env_keywords() -> list[str]:
+    """Every keyword DLOShapeEnv, ``make_env`` and ``gym.make`` of a dlocli id accept."""
+    return [*ENV_KEYWORDS, *(f for f in TaskSpec.model_fields if f not in ("name", "goal"))]
+
+
+class UnknownOption(BadInput, TypeError):
+    """An unknown keyword argument of the env; the message lists the valid ones."""
+
+
+class BadOption(BadInput, ValueError):
+    """A keyword argument of the env with a bad value; the message says what is expected."""
+
+
+def resolve_env_options(
+    backend: BackendSpec | str,
+    task: TaskSpec | str,
+    goal: np.ndarray | Path | str | None,
+    task_options: dict[str, Any],
+) -> tuple[BackendSpec, TaskSpec, np.ndarray | Path | str | None]:
+    """Validated specs from the env's keyword arguments: ``task_options`` set TaskSpec fields,
+    ``goal`` "fixed" or "random" sets the goal mode. UnknownOption, BadOption, UnknownName."""
+    valid = env_keywords()
+    for key in task_options:
+        if key not in valid:
+            close = difflib.get_close_matches(key, valid, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise UnknownOption(
+                f"DLOShapeEnv: unknown field '{key}'{hint}; valid fields: {', '.join(valid)}"
+            )
+    if isinstance(goal, str) and goal in ("fixed", "random"):
+        task_options, goal = {**task_options, "goal": goal}, None
+    try:  # validated as a whole: a bad value is refused, not silently dropped
+        backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
+        backend_spec = BackendSpec.model_validate(backend_spec)
+        task_spec = TaskSpec(name=task) if isinstance(task, str) else task
+        task_spec = TaskSpec.model_validate(
+            {**TaskSpec.model_validate(task_spec).model_dump(), **task_options}
+            if task_options
+            else task_spec
+        )
+    except ValidationError as exc:
+        raise BadOption(format_validation_error(exc, "DLOShapeEnv")) from exc
+    backend_registry.check(backend_spec.name)
+    task_registry.check(task_spec.name)
+    return backend_spec, task_spec, goal
 
 
 class DLOShapeEnv(gym.Env):
-    """Drive a rod held by grippers to a goal shape. See the module docstring."""
+    """Drive a rod held by grippers to a goal shape. See the module docstring.
+
+    Args:
+        backend: backend name or BackendSpec.
+        task: task name or TaskSpec.
+        goal: a goal shape ((N, 3) array or .npy path), or the goal mode "fixed" / "random".
+        seed: seed of the goal and of the episodes until ``reset(seed=...)`` is given one.
+        render_mode: None (``render()`` returns None) or "rgb_array".
+        **task_options: TaskSpec fields (``episode_steps=50``, ``shapes="near-rest"``, ...);
+            an unknown name raises UnknownOption (a TypeError) listing the valid ones, a bad
+            value BadOption (a ValueError).
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
@@ -108,19 +197,30 @@ class DLOShapeEnv(gym.Env):
         task: TaskSpec | str = "single",
         goal: np.ndarray | Path | str | None = None,
         seed: int = 0,
-        render_mode: str | None = "rgb_array",
+        render_mode: str | None = None,
+        **task_options: Any,
     ) -> None:
-        self.backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
-        self.task_spec = TaskSpec(name=task) if isinstance(task, str) else task
+        self.backend_spec, self.task_spec, goal = resolve_env_options(
+            backend, task, goal, task_options
+        )
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise BadOption(f"DLOShapeEnv: seed must be an integer >= 0, got {seed!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            modes = ", ".join(["None", *self.metadata["render_modes"]])
+            raise BadOption(f"DLOShapeEnv: render_mode must be one of {modes}, got {render_mode!r}")
         self.task: Task = make_task(self.task_spec.name)
         self.backend = make_backend(self.backend_spec, self.task_spec.control_dt)
         self._apply_limits()
         self.n_segments = self.backend.n_segments
         self.render_mode = render_mode
-        self.seed_value = seed
+        self.seed_value = int(seed)
         n = self.n_segments
         self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
         self.observation_space = observation_space(n, self.task_spec.observe_velocity)
+        #: shape of each part of the flat observation, in order (README, "Gymnasium")
+        self.observation_shapes = observation_layout(n, self.task_spec.observe_velocity)
+        #: where each part lies in the flat observation: ``obs[slices["goal"]]``
+        self.observation_slices = observation_slices(self.observation_shapes)
         self._goal_rng = np.random.default_rng([seed, 1])
         self._goal_given = goal is not None or self.task_spec.goal_file is not None
         #: (2,7) gripper poses that made the goal, when the env made it (None: a given goal)
@@ -231,39 +331,36 @@ class DLOShapeEnv(gym.Env):
         if self.backend.diverged and self._last_observation is not None:
             return self._last_observation  # frozen at the last finite state
         state = self.segment_state()
-        parts = [
-            state[:, :3].ravel(),
-            state[:, 3:].ravel(),
-            self.backend.gripper_poses().ravel(),
-            np.asarray(self.goal).ravel(),
-        ]
+        parts = {
+            "positions": state[:, :3],
+            "quaternions": state[:, 3:],
+            "grippers": self.backend.gripper_poses(),
+            "goal": np.asarray(self.goal),
+        }
         if self.task_spec.observe_velocity:
             change = 0.0 * state if self._previous is None else state_change(self._previous, state)
-            parts.append((change / self.task_spec.control_dt).ravel())
-        obs = np.nan_to_num(np.concatenate(parts), posinf=np.inf, neginf=-np.inf)
+            parts["velocities"] = change / self.task_spec.control_dt
+        flat = np.concatenate([parts[name].ravel() for name in self.observation_shapes])
+        obs = np.nan_to_num(flat, posinf=np.inf, neginf=-np.inf)
         obs = np.clip(obs, self.observation_space.low, self.observation_space.high)
         self._last_observation = obs.astype(np.float32)
         return self._last_observation
 
     def split_observation(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         """Inverse of the flat observation: positions, quaternions, grippers, goal and, if
-        observed, velocities (N, 7)."""
-        n = self.n_segments
+        observed, velocities (N, 7); leading batch axes are kept."""
         obs = np.asarray(obs)
-        cuts = np.cumsum([n * 3, n * 4, 14, n * 3])
-        pos, quat, grip, goal, velocity = np.split(obs, cuts, axis=-1)
         lead = obs.shape[:-1]
-        parts = {
-            "positions": pos.reshape(*lead, n, 3),
-            "quaternions": quat.reshape(*lead, n, 4),
-            "grippers": grip.reshape(*lead, 2, 7),
-            "goal": goal.reshape(*lead, n, 3),
+        return {
+            name: obs[..., self.observation_slices[name]].reshape(*lead, *shape)
+            for name, shape in self.observation_shapes.items()
         }
-        if self.task_spec.observe_velocity:
-            parts["velocities"] = velocity.reshape(*lead, n, 7)
-        return parts
 
-    def render(self) -> np.ndarray:
+    def render(self) -> np.ndarray | None:
+        """An RGB frame (H, W, 3) of the rod and the goal with ``render_mode="rgb_array"``;
+        None without a render mode (Gymnasium's convention)."""
+        if self.render_mode is None:
+            return None
         return self.backend.render(goal=self.goal)
 
     def close(self) -> None:
@@ -283,24 +380,13 @@ def make_env(
     task: str | TaskSpec = "single",
     goal: np.ndarray | Path | str | None = None,
     seed: int = 0,
+    render_mode: str | None = "rgb_array",
     **task_overrides: Any,
 ) -> DLOShapeEnv:
     """Build a shape-control environment; ``task_overrides`` set TaskSpec fields. ``goal`` is
-    a goal shape (array or .npy path) or the goal mode, "fixed" or "random"."""
-    if isinstance(goal, str) and goal in ("fixed", "random"):
-        task_overrides["goal"], goal = goal, None
-    backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
-    backend_registry.check(backend_spec.name)
-    task_spec = TaskSpec(name=task) if isinstance(task, str) else task
-    if task_overrides:
-        try:  # validated as a whole: a misspelt field is refused, not silently dropped
-            task_spec = TaskSpec.model_validate({**task_spec.model_dump(), **task_overrides})
-        except ValidationError as exc:
-            raise BadInput(format_validation_error(exc, "make_env")) from exc
-    from dlocli.registry import tasks as task_registry
-
-    task_registry.check(task_spec.name)
-    return DLOShapeEnv(backend_spec, task_spec, goal=goal, seed=seed)
+    a goal shape (array or .npy path) or the goal mode, "fixed" or "random". Unlike
+    DLOShapeEnv and ``gym.make``, it renders frames by default (``dlo control --video``)."""
+    return DLOShapeEnv(backend, task, goal, seed, render_mode, **task_overrides)
 
 
 def make_env_from_spec(spec: EnvSpec, goal: np.ndarray | Path | str | None = None) -> DLOShapeEnv:

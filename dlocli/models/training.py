@@ -152,7 +152,7 @@ def train_model(
         }
         result.history.append(record)
         if progress is not None:
-            progress({"epoch": epoch, "val_loss": record["val_loss"]})
+            progress({"epoch": epoch, "epochs": fit.epochs, "val_loss": record["val_loss"]})
         if on_epoch is not None:
             on_epoch(record, optimizer, gen)
     model.eval()
@@ -283,6 +283,7 @@ def _train_in(
     from dlocli.models.evaluation import evaluate_model, plot_rollout
     from dlocli.plots import plot_losses
     from dlocli.rundir import check_fingerprints, record_fingerprints
+    from dlocli.tensorboard import Scalars
 
     if resume:
         out = Path(spec.out)
@@ -299,11 +300,13 @@ def _train_in(
     ckpt_dir = out / "checkpoints"
     best = {"val_loss": done["best_val_loss"]}
     history: list[dict[str, float]] = list(done["history"])
+    scalars = Scalars(out)
 
     def on_epoch(
         record: dict[str, float], optimizer: torch.optim.Optimizer, gen: torch.Generator
     ) -> None:
         history.append(record)
+        scalars.add(record["epoch"], "loss", train=record["train_loss"], val=record["val_loss"])
         _write_metrics(out / "metrics.csv", history)
         if not record["val_loss"] >= best["val_loss"]:  # also true for the first NaN
             best["val_loss"] = record["val_loss"]
@@ -313,9 +316,12 @@ def _train_in(
                  "optimizer": optimizer.state_dict()}  # fmt: skip
         save_checkpoint(model, out / LAST_CHECKPOINT, point)
 
-    result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
-                         on_epoch=on_epoch, start_epoch=done["epoch"],
-                         generator_state=done["generator"])  # fmt: skip
+    try:
+        result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
+                             on_epoch=on_epoch, start_epoch=done["epoch"],
+                             generator_state=done["generator"])  # fmt: skip
+    finally:
+        scalars.close()
     save_checkpoint(model, ckpt_dir / "final.pt",
                     {"epoch": spec.epochs, "optimizer": result.optimizer_state})  # fmt: skip
     eval_eps = result.val_episodes if len(result.val_episodes) else result.train_episodes

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import shutil
 import time
 from collections.abc import Callable
@@ -44,6 +45,7 @@ from dlocli.processes import pool_initializer
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import EnvSpec
+from dlocli.tensorboard import Scalars
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -166,6 +168,7 @@ class OnlineRun:
         self.paths = RunLayout(spec.out)
         self.progress = progress or (lambda event, info: None)
         self._pool: ProcessPoolExecutor | None = None
+        self.scalars = Scalars(None)
 
     # ------------------------------------------------------------------ data
     def initial_dataset(self) -> Dataset:
@@ -224,12 +227,18 @@ class OnlineRun:
             update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
         )
         start = time.perf_counter()
+
+        def log_epoch(record: dict[str, float], *_: Any) -> None:
+            step = (k - 1) * fit.epochs + record["epoch"]  # epochs over the whole run
+            self.scalars.add(step, "loss", train=record["train_loss"], val=record["val_loss"])
+
         result = train_model(
             model,
             data,
             fit,
             optimizer_state=opt_state,
             progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
+            on_epoch=log_epoch,
         )
         save_checkpoint(
             model,
@@ -257,7 +266,9 @@ class OnlineRun:
                     spec_json, str(checkpoint), k, j, str(self.paths.trial(k, j, offline)), None
                 )
                 done += 1
-                self.progress("trial", {"iteration": k, "trial": done, **attrs})
+                self.progress(
+                    "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
+                )
             return
         pool = self._get_pool()
         futures = [
@@ -275,7 +286,9 @@ class OnlineRun:
         for future in futures:
             attrs = future.result()
             done += 1
-            self.progress("trial", {"iteration": k, "trial": done, **attrs})
+            self.progress(
+                "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
+            )
 
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
@@ -337,7 +350,9 @@ class OnlineRun:
 
     # ------------------------------------------------------------------ driver
     def run(self) -> dict[str, Any]:
-        start = time.perf_counter()
+        """Run (or resume) to the end; ``seconds`` in the summary counts every part's time."""
+        start = time.perf_counter() - self.earlier_seconds()
+        self.scalars = Scalars(self.spec.out)
         data = self.initial_dataset()
         try:
             for k in range(1, self.spec.iters + 1):
@@ -347,11 +362,32 @@ class OnlineRun:
                 data = self.dataset_until(k)
                 if self.spec.offline:
                     self.offline_comparison(k, data.n_transitions)
-                self.write_results(time.perf_counter() - start)
+                summary = self.write_results(time.perf_counter() - start)
+                self.log_iteration(summary["curve"][k - 1])
+                self.progress("iteration done", {"iteration": k, "total": self.spec.iters})
+            return self.write_results(time.perf_counter() - start, final=True)
         finally:
+            self.scalars.close()
             if self._pool is not None:
                 self._pool.shutdown(cancel_futures=True)
-        return self.write_results(time.perf_counter() - start, final=True)
+
+    def earlier_seconds(self) -> float:
+        """The time earlier parts of this run took (0 for a new run)."""
+        path = self.spec.out / "summary.json"
+        try:
+            return float(json.loads(path.read_text()).get("seconds") or 0.0)
+        except (OSError, ValueError, AttributeError):
+            return 0.0
+
+    def log_iteration(self, point: dict[str, Any]) -> None:
+        self.scalars.add(
+            point["transitions"],
+            "trials",
+            final_error_mm=point["final_error_mm_mean"],
+            initial_error_mm=point["initial_error_mm_mean"],
+            score=point["score_mean"],
+            cumulative_reward=point["cumulative_reward_mean"],
+        )
 
     # ------------------------------------------------------------------ results
     def rows(self, offline: bool = False) -> list[dict[str, Any]]:
@@ -470,6 +506,7 @@ def start_online(
         out = prepare_run_dir(spec.out, overwrite)
         for state in RunLayout(out).state_dirs():
             shutil.rmtree(state, ignore_errors=True)
+        (out / "summary.json").unlink(missing_ok=True)  # its seconds would count as this run's
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         record_fingerprints(out, spec)
         return OnlineRun(spec, progress).run()

@@ -1,0 +1,90 @@
+"""`dlo export --format minari`: a dataset as a Minari dataset for offline-RL libraries."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from dlocli.cli.common import JsonFlag, emit_summary, handle_errors
+
+
+class ExportFormat(str, Enum):
+    minari = "minari"
+
+
+@handle_errors
+def export(
+    run_or_dataset: Annotated[
+        Path,
+        typer.Argument(
+            metavar="RUN_OR_DATASET",
+            help="A `dlo collect` run directory or its dataset.h5.",
+            show_default=False,
+        ),
+    ],
+    fmt: Annotated[
+        ExportFormat, typer.Option("--format", help="Output format (Minari: offline RL).")
+    ] = ExportFormat.minari,
+    name: Annotated[
+        str | None,
+        typer.Option(
+            "--name",
+            help="Minari dataset id, namespace/name-vN (default: "
+            "dlocli/<backend>-<task>-random-v0 from the dataset's spec).",
+        ),
+    ] = None,
+    root: Annotated[
+        Path | None,
+        typer.Option(
+            "--root",
+            envvar="MINARI_DATASETS_PATH",
+            help="Minari datasets root (default: $MINARI_DATASETS_PATH, else "
+            "~/.minari/datasets); load with MINARI_DATASETS_PATH set to it.",
+            show_envvar=False,
+        ),
+    ] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace an existing Minari dataset of this id.")
+    ] = False,
+    skip_diverged: Annotated[
+        bool,
+        typer.Option(
+            "--skip-diverged",
+            help="Leave out episodes whose simulation diverged (default: their finite steps "
+            "are exported, truncated after the last).",
+        ),
+    ] = False,
+    author: Annotated[
+        str | None, typer.Option("--author", help="Author recorded in the Minari metadata.")
+    ] = None,
+    author_email: Annotated[
+        str | None, typer.Option("--author-email", help="Author's contact e-mail.")
+    ] = None,
+    code_permalink: Annotated[
+        str | None,
+        typer.Option("--code-permalink", help="Link to the code version that made the data."),
+    ] = None,
+    json_out: JsonFlag = False,
+) -> None:
+    """Write a dataset as a Minari dataset (`minari.load_dataset(ID)`).
+
+    Observations are the env's flat observations of the recorded states, actions the task's
+    (6 or 12), rewards as stored; the env spec is recorded, so `recover_environment()` works
+    after `import dlocli`.
+    """
+    from dlocli.runs.export import export_minari
+
+    summary = export_minari(
+        run_or_dataset,
+        dataset_id=name,
+        root=root,
+        overwrite=overwrite,
+        skip_diverged=skip_diverged,
+        author=author,
+        author_email=author_email,
+        code_permalink=code_permalink,
+    )
+    emit_summary(summary, json_out, f"dlo export --format {fmt.value}")

@@ -1,0 +1,187 @@
+"""`dlo export --format minari`: a real MuJoCo dataset read back with Minari, its observations
+equal to the env's own, its env recovered; bad input and existing ids refused."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import dlocli  # noqa: F401  (registers the dlocli/... Gymnasium ids recover_environment needs)
+from dlocli.cli import app
+from dlocli.data import Dataset, Episode, load_dataset
+
+minari = pytest.importorskip("minari")
+
+runner = CliRunner()
+DEFAULT_ID = "dlocli/mujoco-single-random-v0"
+
+
+def run(*args: str):
+    return runner.invoke(app, list(args))
+
+
+@pytest.fixture(scope="module")
+def collected(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """3 random episodes of 5 steps, single gripper, near-rest shapes (seed 0)."""
+    from dlocli.runs.collect import collect_random
+    from dlocli.specs import CollectSpec
+
+    out = tmp_path_factory.mktemp("collect")
+    spec = CollectSpec(
+        episodes=3, seed=0, out=out, task={"episode_steps": 5, "shapes": "near-rest"}
+    )
+    collect_random(spec, overwrite=True)
+    return out
+
+
+@pytest.fixture
+def minari_root(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    root = tmp_path / "minari"
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    return root
+
+
+def _one_error_line(res) -> str:
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in res.output, res.output
+    return lines[0]
+
+
+def test_export_loads_iterates_and_matches_the_env(collected, minari_root):
+    from dlocli.env.rollout import stream_seed
+
+    res = run("export", "--format", "minari", str(collected), "--json")
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary["dataset_id"] == DEFAULT_ID and summary["episodes"] == 3
+    assert summary["steps"] == 15 and summary["env_id"] == "dlocli/MujocoSingle-v0"
+
+    data = load_dataset(collected)
+    dataset = minari.load_dataset(DEFAULT_ID)
+    assert dataset.total_episodes == 3 and dataset.total_steps == 15
+    n = data.n_segments
+    episodes = list(dataset.iterate_episodes())
+    assert [len(ep) for ep in episodes] == [5, 5, 5]
+    for e, ep in enumerate(episodes):
+        stored = data.episode(e)
+        assert ep.observations.shape == (6, n * 3 + n * 4 + 14 + n * 3 + n * 7)
+        np.testing.assert_array_equal(ep.observations[:, : n * 3], stored.positions.reshape(6, -1))
+        goal = ep.observations[:, n * 7 + 14 : n * 10 + 14]
+        np.testing.assert_array_equal(goal, np.tile(stored.goal.reshape(1, -1), (6, 1)))
+        np.testing.assert_array_equal(ep.actions, stored.actions[:, 1, :])  # the right gripper
+        np.testing.assert_array_equal(ep.rewards, stored.rewards)
+        assert not ep.terminations.any() and ep.truncations.tolist() == [False] * 4 + [True]
+    meta = dataset.storage.metadata["dlocli"]
+    assert meta["episodes"] == [0, 1, 2] and meta["diverged_episodes"] == []
+
+    env = dataset.recover_environment()
+    try:
+        assert env.observation_space == dataset.observation_space
+        assert env.action_space == dataset.action_space
+        # the recovered env replays episode 0 (collect's reset seed, the exported actions)
+        obs, _ = env.reset(seed=stream_seed(0, 0))
+        replayed = [obs] + [env.step(a)[0] for a in episodes[0].actions]
+    finally:
+        env.close()
+    replayed = np.array(replayed)
+    state = n * 10 + 14  # positions, quaternions, grippers, goal: exactly equal
+    np.testing.assert_array_equal(replayed[:, :state], episodes[0].observations[:, :state])
+    # velocities: recomputed from the float32 states the dataset keeps
+    np.testing.assert_allclose(replayed[:, state:], episodes[0].observations[:, state:], atol=1e-4)
+
+
+def test_existing_id_is_refused_unless_overwrite(collected, minari_root):
+    name = "dlocli/tiny-v1"
+    assert run("export", str(collected), "--name", name, "--json").exit_code == 0
+    metadata = minari_root / name / "data" / "metadata.json"
+    before = metadata.read_bytes()
+    res = run("export", str(collected), "--name", name)
+    assert res.exit_code == 2 and "--overwrite" in _one_error_line(res)
+    assert metadata.read_bytes() == before
+    res = run("export", str(collected), "--name", name, "--overwrite", "--json")
+    assert res.exit_code == 0, res.output
+    assert minari.load_dataset(name).total_steps == 15
+    assert [p.name for p in minari_root.iterdir()] == ["dlocli"], "no staging left behind"
+
+
+def test_bad_input_exits_2_with_one_line(tmp_path, collected, minari_root):
+    not_data = tmp_path / "notes.txt"
+    not_data.write_text("not a dataset\n")
+    res = run("export", "--format", "minari", str(not_data))
+    assert res.exit_code == 2 and "re-collect" in _one_error_line(res)
+    res = run("export", str(tmp_path / "missing"))
+    assert res.exit_code == 2 and "dlo collect" in _one_error_line(res)
+    for name in ("bad id!", "no-version"):
+        res = run("export", str(collected), "--name", name)
+        assert res.exit_code == 2 and "--name" in _one_error_line(res)
+    res = run("export", str(collected), "--format", "parquet")
+    assert res.exit_code == 2
+    assert not minari_root.exists() or not any(minari_root.iterdir())
+
+
+def test_diverged_and_empty_episodes(tmp_path, collected, minari_root):
+    from dlocli.runs.export import export_minari
+
+    data = load_dataset(collected)
+    cut = data.episode(1)
+    cut = Episode(**{**cut.__dict__, "diverged": True})
+    empty = data.episode(2)
+    empty = Episode(
+        positions=empty.positions[:1],
+        quaternions=empty.quaternions[:1],
+        grippers=empty.grippers[:1],
+        actions=empty.actions[:0],
+        rewards=empty.rewards[:0],
+        goal=empty.goal,
+        diverged=True,
+    )
+    path = Dataset.from_episodes([data.episode(0), cut, empty], data.attrs).save(tmp_path / "d.h5")
+
+    kept = export_minari(path, "dlocli/diverged-v0")
+    assert kept["episodes"] == 2 and kept["skipped_episodes"] == 1
+    assert kept["diverged_episodes"] == 1
+    meta = minari.load_dataset("dlocli/diverged-v0").storage.metadata["dlocli"]
+    assert meta["episodes"] == [0, 1] and meta["diverged_episodes"] == [1]
+    skipped = export_minari(path, "dlocli/diverged-v1", skip_diverged=True)
+    assert skipped["episodes"] == 1 and skipped["steps"] == 5
+
+
+def test_bimanual_with_a_non_default_rod_is_recovered(tmp_path, minari_root):
+    """12-D actions (left then right); a rod the backend's name alone does not give."""
+    from minari.dataset.minari_dataset import MinariDataset
+
+    from dlocli.runs.collect import collect_random
+    from dlocli.specs import CollectSpec
+
+    spec = CollectSpec(
+        episodes=1,
+        out=tmp_path / "c",
+        backend={"rod": {"n_segments": 6}},
+        task={"name": "bimanual", "episode_steps": 3, "shapes": "near-rest",
+              "observe_velocity": False},
+    )  # fmt: skip
+    collect_random(spec)
+    res = run("export", str(tmp_path / "c"), "--root", str(tmp_path / "elsewhere"), "--json")
+    assert res.exit_code == 0, res.output
+    assert not minari_root.exists(), "--root, not $MINARI_DATASETS_PATH"
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary["observation_dim"] == 6 * 10 + 14 and summary["action_dim"] == 12
+    assert summary["env_id"] == "dlocli/MujocoBimanual-v0"
+
+    path = tmp_path / "elsewhere" / "dlocli/mujoco-bimanual-random-v0" / "data"
+    dataset = MinariDataset(path)
+    stored = load_dataset(tmp_path / "c")
+    (episode,) = dataset.iterate_episodes()
+    np.testing.assert_array_equal(episode.actions, stored.actions.reshape(3, 12))
+    assert dataset.spec.env_spec.entry_point == "dlocli.runs.export:make_recorded_env"
+    env = dataset.recover_environment()
+    try:
+        assert env.unwrapped.n_segments == 6
+        assert env.observation_space == dataset.observation_space
+        assert env.action_space == dataset.action_space
+    finally:
+        env.close()
