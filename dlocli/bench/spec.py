@@ -11,7 +11,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from dlocli.controllers.mpc import MPCSpec
-from dlocli.models.spec import LEGACY_VALUES, FitSpec, ModelSpec
+from dlocli.models.spec import FIT_LEGACY_VALUES, LEGACY_VALUES, FitSpec, ModelSpec
 from dlocli.specs import TASK_LEGACY_VALUES, EnvSpec
 
 #: fields that may change between runs of one directory: they do not change any result
@@ -108,7 +108,9 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     legacy_model = {k for k, v in LEGACY_VALUES.items() if getattr(spec.model, k) == v}
     legacy_task = {k for k, v in TASK_LEGACY_VALUES.items() if getattr(spec.task, k) == v}
     legacy_task |= spec.task.inert_fields()
-    exclude = {**dict.fromkeys(FREE_FIELDS, True), "model": legacy_model, "task": legacy_task}
+    legacy_fit = {k for k, v in FIT_LEGACY_VALUES.items() if getattr(spec.fit, k) == v}
+    legacy = {"model": legacy_model, "task": legacy_task, "fit": legacy_fit}
+    exclude = {**dict.fromkeys(FREE_FIELDS, True), **legacy}
     if agent is None:
         text = spec.model_dump_json(exclude=exclude)
     else:

@@ -41,6 +41,7 @@ ALIASES: dict[str, str] = {
     "fit.epochs": "epochs",
     "fit.lr": "lr",
     "fit.device": "device",
+    "fit.mirror": "mirror",
     "mpc.horizon": "horizon",
 }
 

@@ -24,7 +24,7 @@ from dlocli.runs.online import OnlineSpec as S
     ["iters", "trials", "task.episode_steps", "fit.epochs", "initial_episodes", "mpc.horizon",
      "fit.lr", "model.name", "model.hidden", "model.velocity_input", "task.goal", "task.name",
      "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
-     "offline", "seed", "out"],
+     "fit.mirror", "offline", "seed", "out"],
 )  # fmt: skip
 def online(
     run: RunFlags,

@@ -21,7 +21,7 @@ from dlocli.models.spec import TrainSpec as S
 @spec_flags(
     S,
     ["data", "model.name", "model.hidden", "model.velocity_input", "epochs", "lr", "batch_size",
-     "input_noise", "val_fraction", "device", "seed", "init_from", "out"],
+     "input_noise", "val_fraction", "mirror", "device", "seed", "init_from", "out"],
 )  # fmt: skip
 def train(
     run: RunFlags,

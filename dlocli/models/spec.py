@@ -63,6 +63,13 @@ class FitSpec(Spec):
     )
     device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
     seed: int = Field(0, ge=0, description="Seed of initialisation, shuffling and noise.")
+    mirror: bool = Field(
+        False,
+        description="Also train on every training transition's mirrored twin: the same motion "
+        "with the other end of the rod acting (a half turn about the vertical axis, ends "
+        "swapped; see dlocli/models/mirror.py). Teaches a model learned with one gripper what "
+        "the other one does; validation stays on the recorded data.",
+    )
 
 
 class TrainSpec(FitSpec):
@@ -104,6 +111,9 @@ class EvalSpec(Spec):
 #: ModelSpec fields added after models and runs were first saved, with the value that
 #: rebuilds what was saved before the field existed
 LEGACY_VALUES: dict[str, Any] = {"velocity_input": False, "absolute_position": True}
+#: FitSpec fields added after runs were first saved, with the value that rebuilds what a saved
+#: run did before the field existed
+FIT_LEGACY_VALUES: dict[str, Any] = {"mirror": False}
 
 
 def with_legacy_fields(saved: Any) -> Any:

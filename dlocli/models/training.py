@@ -31,6 +31,7 @@ from dlocli.models.base import (
     resolve_device,
     save_checkpoint,
 )
+from dlocli.models.mirror import with_mirrored
 from dlocli.models.spec import FitSpec, TrainSpec
 
 GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e + 1) * GOLDEN) < fraction
@@ -75,11 +76,14 @@ def split_episodes(n_episodes: int, val_fraction: float) -> tuple[np.ndarray, ..
 
 
 def transition_tensors(
-    dataset: Dataset, episodes: np.ndarray, device: torch.device
+    dataset: Dataset, episodes: np.ndarray, device: torch.device, mirror: bool = False
 ) -> dict[str, torch.Tensor]:
     """``previous_state``, ``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7)
-    float32 on ``device``, for the transitions whose previous state is recorded (t >= 1)."""
+    float32 on ``device``, for the transitions whose previous state is recorded (t >= 1);
+    with ``mirror``, followed by their mirrored twins (2M rows, :mod:`dlocli.models.mirror`)."""
     arrays = dataset.transitions(episodes, skip_first=True)
+    if mirror:
+        arrays = with_mirrored(arrays)
     return {
         k: torch.as_tensor(arrays[k], dtype=torch.float32, device=device)
         for k in ("previous_state", "state", "action", "next_state")
@@ -98,10 +102,12 @@ def train_model(
     start_epoch: int = 0,
     generator_state: torch.Tensor | None = None,
 ) -> TrainResult:
-    """Train ``model`` in place for ``fit.epochs`` epochs on ``dataset``'s training split.
+    """Train ``model`` in place for ``fit.epochs`` epochs on ``dataset``'s training split
+    (with ``fit.mirror``, also on its transitions' mirrored twins; validation stays on the
+    recorded data).
 
     The model moves to ``fit.device`` and comes back in eval mode. Its normalisation is
-    fitted on the training split if it was never fitted (a continued model keeps its own).
+    fitted on the training data if it was never fitted (a continued model keeps its own).
     ``optimizer_state`` resumes Adam's moments (from a previous :class:`TrainResult` or
     checkpoint). ``progress`` gets ``{"epoch", "batch", "batches", "loss"}`` every few steps
     and ``{"epoch", "val_loss"}`` after each epoch; ``on_epoch`` gets each epoch's record
@@ -117,13 +123,14 @@ def train_model(
     device = resolve_device(fit.device)
     model.to(device)
     train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction)
-    train = transition_tensors(dataset, train_eps, device)
-    val = transition_tensors(dataset, val_eps, device)
+    train = transition_tensors(dataset, train_eps, device, mirror=fit.mirror)
+    val = transition_tensors(dataset, val_eps, device)  # the recorded data only
     n_train = len(train["state"])
     if n_train == 0:
         raise BadInput("the training split has no transitions; collect more episodes")
     if not bool(model.fitted):
-        model.fit_normalization(dataset.transitions(train_eps))
+        arrays = dataset.transitions(train_eps)
+        model.fit_normalization(with_mirrored(arrays) if fit.mirror else arrays)
     model.requires_grad_(True)  # a loaded model comes frozen for planning
     optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
     if optimizer_state:
