@@ -105,6 +105,11 @@ def test_reduced_run_writes_everything(uninterrupted):
     assert summary["transitions"] == 2 * 15 + 4 * 15
     saved = json.loads((out / "spec.json").read_text())
     assert saved["iters"] == 2 and saved["model"]["hidden"] == 16
+    # where the time went: model updates, planning, the rest of the trials (simulation)
+    assert summary["train_seconds"] > 0 and summary["mpc_seconds"] > 0
+    assert summary["simulation_seconds"] > 0
+    trials = sum(float(r["trial_seconds"]) for r in rows)
+    assert summary["mpc_seconds"] + summary["simulation_seconds"] == pytest.approx(trials, abs=0.2)
 
 
 def test_tensorboard_events_hold_loss_and_error(uninterrupted):

@@ -117,10 +117,29 @@ class RunLayout:
 
 
 # ----------------------------------------------------------------------------- trials
+class _TimedController:
+    """A controller whose ``act`` time is added up (the MPC's share of a trial)."""
+
+    def __init__(self, controller: Any) -> None:
+        self.controller = controller
+        self.seconds = 0.0
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.controller, name)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        start = time.perf_counter()
+        try:
+            return self.controller.act(obs)
+        finally:
+            self.seconds += time.perf_counter() - start
+
+
 def _trial_episode(
     spec: OnlineSpec, checkpoint: Path, k: int, j: int, threads: int | None = None
-) -> Episode:
-    """One MPC trial through the model in ``checkpoint``: seeds from (seed, k, j)."""
+) -> tuple[Episode, float]:
+    """One MPC trial through the model in ``checkpoint`` (seeds from (seed, k, j)), and the
+    seconds the MPC took in it."""
     import torch
 
     from dlocli.controllers.mpc import GradientMPC
@@ -133,9 +152,10 @@ def _trial_episode(
     try:
         model = load_model(checkpoint, spec.fit.device)
         mpc = GradientMPC(env, model, spec.mpc, seed=stream_seed(spec.seed, TRIAL, k, j))
+        timed = _TimedController(mpc)
         noise_rng = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
-        policy = NoisyPolicy(mpc, noise_rng, spec.noise_probability, spec.noise_std)
-        return rollout(env, policy, stream_seed(spec.seed, TRIAL, k, j))
+        policy = NoisyPolicy(timed, noise_rng, spec.noise_probability, spec.noise_std)
+        return rollout(env, policy, stream_seed(spec.seed, TRIAL, k, j)), timed.seconds
     finally:
         env.close()
 
@@ -150,10 +170,11 @@ def _run_trial_to_file(
     """Run one trial and write its dataset file atomically (a worker-process entry point)."""
     spec = OnlineSpec.model_validate_json(spec_json)
     start = time.perf_counter()
-    episode = _trial_episode(spec, Path(checkpoint), k, j, threads)
+    episode, mpc_seconds = _trial_episode(spec, Path(checkpoint), k, j, threads)
     attrs = {
         **episode_scores(episode, spec.task.episode_steps),
         "trial_seconds": round(time.perf_counter() - start, 3),
+        "mpc_seconds": round(mpc_seconds, 3),
     }
     Dataset.from_episodes([episode], {**attrs, "iteration": k, "trial": j}).save(Path(path))
     return attrs
@@ -408,9 +429,29 @@ class OnlineRun:
                         # from the recorded episode: trial files of older runs lack the score
                         **episode_scores(data.episode(0), self.spec.task.episode_steps),
                         "trial_seconds": data.attrs["trial_seconds"],
+                        "mpc_seconds": data.attrs.get("mpc_seconds"),  # older runs: none
                     }
                 )
         return rows
+
+    def time_shares(self, rows: list[dict[str, Any]]) -> dict[str, float | None]:
+        """Seconds spent training the model, planning (MPC) and simulating (the rest of the
+        trials: physics, resets), over every part of the run."""
+        from dlocli.models.base import read_checkpoint
+
+        train = sum(
+            float(read_checkpoint(path).get("train_seconds", 0.0))
+            for k in range(1, self.spec.iters + 1)
+            if (path := self.paths.checkpoint(k)).is_file()
+        )
+        timed = [r for r in rows if r["mpc_seconds"] is not None]
+        mpc = sum(r["mpc_seconds"] for r in timed)
+        simulation = sum(r["trial_seconds"] for r in timed) - mpc
+        return {
+            "train_seconds": round(train, 1),
+            "mpc_seconds": round(mpc, 1) if timed else None,
+            "simulation_seconds": round(simulation, 1) if timed else None,
+        }
 
     def write_results(self, wall: float, final: bool = False) -> dict[str, Any]:
         from dlocli.plots import plot_learning_curve
@@ -430,6 +471,7 @@ class OnlineRun:
             "score": curve[-1]["score_mean"] if curve else None,
             "cumulative_reward": curve[-1]["cumulative_reward_mean"] if curve else None,
             "seconds": round(wall, 1),
+            **self.time_shares(rows),
             "out": str(self.spec.out),
         }
         if offline_rows:
