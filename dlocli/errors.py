@@ -19,5 +19,14 @@ class UnknownName(BadInput):
     """A registry lookup failed; the message lists the valid names and the closest match."""
 
 
+class UnknownOption(BadInput, TypeError):
+    """An unknown keyword argument (of the env, through ``gym.make``); the message lists the
+    valid ones. Also a TypeError, as Python raises for unknown keywords."""
+
+
+class BadOption(BadInput, ValueError):
+    """A keyword argument with a bad value; the message says what is expected."""
+
+
 class SimulationDiverged(DloError):
     """The physics produced NaN or exploded; episodes end with a flag instead of raising."""

@@ -13,8 +13,7 @@ import pytest
 
 import dlocli  # noqa: F401  (registers the ids)
 from dlocli.env.registration import DEFAULT_EPISODE_STEPS, gym_ids
-from dlocli.env.shape_env import BadOption, UnknownOption
-from dlocli.errors import UnknownName
+from dlocli.errors import BadOption, UnknownName, UnknownOption
 from dlocli.specs import TaskSpec
 
 FAST = {"shapes": "near-rest", "reset_motion_steps": 5, "reset_settle_steps": 5}

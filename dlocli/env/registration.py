@@ -77,7 +77,7 @@ def episode_time_limit(env: gym.Env[Any, Any]) -> gym.Env[Any, Any]:
     """
     from gymnasium.wrappers import TimeLimit
 
-    from dlocli.env.shape_env import BadOption
+    from dlocli.errors import BadOption
 
     if not isinstance(env, TimeLimit):
         return env

@@ -32,7 +32,7 @@ from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shapes import make_shape, max_twist
 from dlocli.env.tasks import Task, make_task
-from dlocli.errors import BadInput
+from dlocli.errors import BadInput, BadOption, UnknownOption
 from dlocli.io import atomic_path
 from dlocli.registry import backends as backend_registry
 from dlocli.registry import tasks as task_registry
@@ -131,14 +131,6 @@ ENV_KEYWORDS = ("backend", "task", "goal", "seed", "render_mode")
 def env_keywords() -> list[str]:
     """Every keyword DLOShapeEnv, ``make_env`` and ``gym.make`` of a dlocli id accept."""
     return [*ENV_KEYWORDS, *(f for f in TaskSpec.model_fields if f not in ("name", "goal"))]
-
-
-class UnknownOption(BadInput, TypeError):
-    """An unknown keyword argument of the env; the message lists the valid ones."""
-
-
-class BadOption(BadInput, ValueError):
-    """A keyword argument of the env with a bad value; the message says what is expected."""
 
 
 def resolve_env_options(
