@@ -21,7 +21,8 @@ from dlocli.runs.online import OnlineSpec as S
 @handle_errors
 @spec_flags(
     S,
-    ["iters", "trials", "task.episode_steps", "fit.epochs", "initial_episodes", "mpc.horizon",
+    ["iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
+     "initial_episodes", "mpc.horizon",
      "fit.lr", "model.name", "model.hidden", "model.velocity_input", "task.goal", "task.name",
      "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
      "fit.mirror", "offline", "seed", "out"],

@@ -4,7 +4,7 @@ without importing torch)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field
 
@@ -49,7 +49,40 @@ class ModelSpec(Spec):
 class FitSpec(Spec):
     """How to fit a model (also used by the online loop to continue training)."""
 
-    epochs: int = Field(50, ge=0, description="Passes over the training transitions.")
+    schedule: Literal["epochs", "steps"] = Field(
+        "epochs",
+        description='How a model update trains. "epochs" (the paper\'s): `epochs` passes over '
+        'all the data, so in the online loop each update costs more than the last. "steps": '
+        "`update_steps` gradient steps on mini-batches drawn from all the data, "
+        "`recent_fraction` of each from the episodes added since the previous update, "
+        "continuing from the previous weights and Adam state, stopped early on the validation "
+        "split (the best weights are kept): a fixed cost per update, whatever the data's size. "
+        "`dlo train` trains by epochs.",
+    )
+    epochs: int = Field(
+        50, ge=0, description='Passes over the training transitions (schedule "epochs").'
+    )
+    update_steps: int = Field(
+        2000, gt=0, description='Schedule "steps": most gradient steps per model update.'
+    )
+    recent_fraction: float = Field(
+        0.5, ge=0, le=1,
+        description="Schedule \"steps\": share of each mini-batch drawn from the transitions "
+        "added since the previous update (when there are any; the rest is drawn from all).",
+    )  # fmt: skip
+    eval_every: int = Field(
+        100, gt=0, description='Schedule "steps": gradient steps between validations.'
+    )
+    patience: int = Field(
+        5, ge=0,
+        description="Schedule \"steps\": stop after this many validations without a lower "
+        "validation loss, and keep the best weights (0: never stop early).",
+    )  # fmt: skip
+    val_transitions: int = Field(
+        4096, gt=0,
+        description="Schedule \"steps\": most validation transitions per validation (a fixed "
+        "random subset per update), so validating costs the same as the data grows.",
+    )  # fmt: skip
     lr: float = Field(1e-4, gt=0, description="Adam learning rate.")
     batch_size: int = Field(64, gt=0, description="Transitions per gradient step.")
     input_noise: float = Field(
@@ -113,7 +146,15 @@ class EvalSpec(Spec):
 LEGACY_VALUES: dict[str, Any] = {"velocity_input": False, "absolute_position": True}
 #: FitSpec fields added after runs were first saved, with the value that rebuilds what a saved
 #: run did before the field existed
-FIT_LEGACY_VALUES: dict[str, Any] = {"mirror": False}
+FIT_LEGACY_VALUES: dict[str, Any] = {
+    "mirror": False,
+    "schedule": "epochs",
+    "update_steps": 2000,
+    "recent_fraction": 0.5,
+    "eval_every": 100,
+    "patience": 5,
+    "val_transitions": 4096,
+}
 
 
 def with_legacy_fields(saved: Any) -> Any:

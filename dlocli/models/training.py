@@ -4,8 +4,11 @@
 transitions with Adam on the mean squared error of the normalised state change, Gaussian
 noise on the input state (paper Sec. IV-C), and a train/validation split by trajectory that
 stays the same as the dataset grows (so continued training in the online loop never
-validates on what it trained on). :func:`run_training` is the whole command: data, model,
-training, checkpoints, metrics, evaluation and plots in a run directory.
+validates on what it trained on). :func:`train_steps` is the online loop's fixed-cost
+update (``FitSpec.schedule == "steps"``): a set number of gradient steps on mini-batches drawn
+from all the data with the newest episodes weighted in, stopped early on the validation split.
+Both share the set-up, the gradient step and the validation. :func:`run_training` is the whole
+command: data, model, training, checkpoints, metrics, evaluation and plots in a run directory.
 """
 
 from __future__ import annotations
@@ -43,16 +46,26 @@ OnEpoch = Callable[[dict[str, float], torch.optim.Optimizer, torch.Generator], N
 
 @dataclass
 class TrainResult:
-    """What :func:`train_model` returns: the per-epoch history and the optimiser's state."""
+    """What :func:`train_model` and :func:`train_steps` return: the history (a record per
+    epoch, or per validation of the steps schedule) and the optimiser's state; for the steps
+    schedule also the gradient steps taken, the step whose weights were kept (0: the weights
+    it started from) and the share of sampled training rows from the recent episodes."""
 
     history: list[dict[str, float]] = field(default_factory=list)
     optimizer_state: dict[str, Any] = field(default_factory=dict)
     train_episodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     val_episodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     transitions_per_s: float = 0.0
+    steps: int = 0
+    best_step: int | None = None
+    best_val_loss: float = math.nan
+    recent_share: float = math.nan
 
     @property
     def val_loss(self) -> float:
+        """The validation loss of the weights the model ends with."""
+        if self.best_step is not None:
+            return self.best_val_loss
         return self.history[-1]["val_loss"] if self.history else math.nan
 
 
@@ -90,6 +103,57 @@ def transition_tensors(
     }
 
 
+@dataclass
+class _Setup:
+    """What both schedules train with: the split, its tensors and the optimizer."""
+
+    train_episodes: np.ndarray
+    val_episodes: np.ndarray
+    train: dict[str, torch.Tensor]
+    val: dict[str, torch.Tensor]
+    optimizer: torch.optim.Optimizer
+
+
+def _set_up(
+    model: DynamicsModel,
+    dataset: Dataset,
+    fit: FitSpec,
+    optimizer_state: dict[str, Any] | None,
+) -> _Setup:
+    """Move ``model`` to ``fit.device``, split ``dataset``, fit the normalisation of a model
+    that never had one, and make Adam (resuming ``optimizer_state``, at ``fit.lr``)."""
+    if dataset.n_segments != model.n_segments:
+        raise BadInput(
+            f"dataset has {dataset.n_segments} segments but the model {model.n_segments}; "
+            "train a new model or use a matching dataset"
+        )
+    device = resolve_device(fit.device)
+    model.to(device)
+    train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction)
+    train = transition_tensors(dataset, train_eps, device, mirror=fit.mirror)
+    val = transition_tensors(dataset, val_eps, device)  # the recorded data only
+    if len(train["state"]) == 0:
+        raise BadInput("the training split has no transitions; collect more episodes")
+    if not bool(model.fitted):
+        arrays = dataset.transitions(train_eps)
+        model.fit_normalization(with_mirrored(arrays) if fit.mirror else arrays)
+    model.requires_grad_(True)  # a loaded model comes frozen for planning
+    optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
+    if optimizer_state:
+        optimizer.load_state_dict(copy.deepcopy(optimizer_state))  # the caller's stays as is
+        for group in optimizer.param_groups:
+            group["lr"] = fit.lr
+    return _Setup(train_eps, val_eps, train, val, optimizer)
+
+
+def _check_finite(loss: float, where: str, fit: FitSpec, kept: str) -> None:
+    if not math.isfinite(loss):  # the model is lost; never save it as a result
+        raise DloError(
+            f"training diverged: the loss became {loss} in {where} at lr {fit.lr:g}; start "
+            f"again with a lower --lr ({kept})"
+        )
+
+
 # ---------------------------------------------------------------------- the loop
 def train_model(
     model: DynamicsModel,
@@ -114,43 +178,21 @@ def train_model(
     ``{"epoch", "train_loss", "val_loss", "seconds"}``, the optimizer and the random generator
     (for checkpoints). ``start_epoch`` epochs are taken as done: given the generator state
     saved after them, the remaining epochs are those an uninterrupted run would train.
+    ``fit.schedule`` is not read here: the online loop picks :func:`train_steps` for "steps".
     """
-    if dataset.n_segments != model.n_segments:
-        raise BadInput(
-            f"dataset has {dataset.n_segments} segments but the model {model.n_segments}; "
-            "train a new model or use a matching dataset"
-        )
-    device = resolve_device(fit.device)
-    model.to(device)
-    train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction)
-    train = transition_tensors(dataset, train_eps, device, mirror=fit.mirror)
-    val = transition_tensors(dataset, val_eps, device)  # the recorded data only
+    setup = _set_up(model, dataset, fit, optimizer_state)
+    train, val, optimizer = setup.train, setup.val, setup.optimizer
     n_train = len(train["state"])
-    if n_train == 0:
-        raise BadInput("the training split has no transitions; collect more episodes")
-    if not bool(model.fitted):
-        arrays = dataset.transitions(train_eps)
-        model.fit_normalization(with_mirrored(arrays) if fit.mirror else arrays)
-    model.requires_grad_(True)  # a loaded model comes frozen for planning
-    optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
-    if optimizer_state:
-        optimizer.load_state_dict(copy.deepcopy(optimizer_state))  # the caller's stays as is
-        for group in optimizer.param_groups:
-            group["lr"] = fit.lr
     gen = torch.Generator(device="cpu").manual_seed(fit.seed)
     if generator_state is not None:
         gen.set_state(generator_state)
-    result = TrainResult(train_episodes=train_eps, val_episodes=val_eps)
+    result = TrainResult(train_episodes=setup.train_episodes, val_episodes=setup.val_episodes)
     start = time.perf_counter()
     for epoch in range(start_epoch + 1, fit.epochs + 1):
         t0 = time.perf_counter()
         model.train()
         train_loss = _train_epoch(model, optimizer, train, fit, gen, epoch, progress)
-        if not math.isfinite(train_loss):  # the model is lost; never save it as a result
-            raise DloError(
-                f"training diverged: the loss became {train_loss} in epoch {epoch} at lr "
-                f"{fit.lr:g}; start again with a lower --lr (the last finite epoch is saved)"
-            )
+        _check_finite(train_loss, f"epoch {epoch}", fit, "the last finite epoch is saved")
         record = {
             "epoch": epoch,
             "train_loss": train_loss,
@@ -186,21 +228,166 @@ def _train_epoch(
     total = torch.zeros((), device=data["state"].device)
     for b in range(batches):
         idx = order[b * fit.batch_size : (b + 1) * fit.batch_size]
-        state = data["state"][idx]
-        noise = None
-        if fit.input_noise > 0:  # in units of the one-step change, expressed in state units
-            scale = fit.input_noise * model.delta_std / model.state_std
-            noise = torch.randn(state.shape, generator=gen).to(state.device) * scale
-        loss = model.loss(
-            state, data["action"][idx], data["next_state"][idx], noise, data["previous_state"][idx]
-        )
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        total += loss.detach() * len(idx)
+        loss = _gradient_step(model, optimizer, data, idx, fit, gen)
+        total += loss * len(idx)
         if progress is not None and (b % 10 == 0 or b == batches - 1):
             progress({"epoch": epoch, "batch": b + 1, "batches": batches, "loss": loss.item()})
     return float(total) / n
+
+
+def _gradient_step(
+    model: DynamicsModel,
+    optimizer: torch.optim.Optimizer,
+    data: dict[str, torch.Tensor],
+    idx: torch.Tensor,
+    fit: FitSpec,
+    gen: torch.Generator,
+) -> torch.Tensor:
+    """One Adam step on the rows ``idx`` of ``data``, with input noise from ``gen``; the
+    batch's loss (detached)."""
+    state = data["state"][idx]
+    noise = None
+    if fit.input_noise > 0:  # in units of the one-step change, expressed in state units
+        scale = fit.input_noise * model.delta_std / model.state_std
+        noise = torch.randn(state.shape, generator=gen).to(state.device) * scale
+    loss = model.loss(
+        state, data["action"][idx], data["next_state"][idx], noise, data["previous_state"][idx]
+    )
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return loss.detach()
+
+
+# ---------------------------------------------------------------------- the steps schedule
+def train_steps(
+    model: DynamicsModel,
+    dataset: Dataset,
+    fit: FitSpec,
+    *,
+    recent_episodes: np.ndarray | None = None,
+    optimizer_state: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+    on_eval: OnEpoch | None = None,
+) -> TrainResult:
+    """Train ``model`` in place for at most ``fit.update_steps`` Adam steps (schedule
+    "steps"): a cost per call that does not grow with ``dataset``.
+
+    Each mini-batch of ``fit.batch_size`` training transitions is drawn with replacement from
+    the whole training split, ``fit.recent_fraction`` of it from the transitions of
+    ``recent_episodes`` (the data added since the previous update; when they are none or all
+    of the training split, nothing is weighted). Every ``fit.eval_every`` steps (and after the
+    last) the loss on a fixed random subset of at most ``fit.val_transitions`` validation
+    transitions is measured; after ``fit.patience`` validations in a row without a lower loss
+    than the best so far (the starting weights' included), training stops. The best weights
+    and their Adam state are restored. Without a validation split every step runs and the
+    last weights are kept.
+
+    Set-up as :func:`train_model`. Every random draw comes from one generator seeded with
+    ``fit.seed``, so the result is a function of the seed, the data and the starting weights
+    and optimizer state. ``progress`` gets ``{"epoch": step, "epochs": fit.update_steps,
+    "val_loss", "unit": "step"}`` after each validation (epoch-like events: the online
+    command's bar counts steps); ``on_eval`` gets each validation's record ``{"step",
+    "train_loss", "val_loss", "seconds"}``, the optimizer and the generator.
+    """
+    setup = _set_up(model, dataset, fit, optimizer_state)
+    train, optimizer = setup.train, setup.optimizer
+    n_train = len(train["state"])
+    gen = torch.Generator(device="cpu").manual_seed(fit.seed)
+    val = _val_subset(setup.val, fit.val_transitions, gen)
+    has_val = len(val["state"]) > 0
+    recent = recent_rows(dataset, setup.train_episodes, recent_episodes, fit.mirror)
+    is_recent = torch.zeros(n_train, dtype=torch.bool)
+    is_recent[recent] = True
+    result = TrainResult(train_episodes=setup.train_episodes, val_episodes=setup.val_episodes)
+    best = {"step": 0, "val_loss": validation_loss(model, val)}
+    if has_val:
+        best.update(_snapshot(model, optimizer))
+    device = train["state"].device
+    start = t0 = time.perf_counter()
+    total, hits, since, stale, step = torch.zeros((), device=device), 0, 0, 0, 0
+    model.train()
+    while step < fit.update_steps:
+        step += 1
+        idx = sample_batch(n_train, recent, fit, gen)
+        hits += int(is_recent[idx].sum())
+        total += _gradient_step(model, optimizer, train, idx.to(device), fit, gen)
+        since += 1
+        if step % fit.eval_every and step < fit.update_steps:
+            continue
+        train_loss = float(total) / since
+        _check_finite(train_loss, f"step {step}", fit, "the model it started from is kept")
+        record = {"step": step, "train_loss": train_loss, "val_loss": validation_loss(model, val),
+                  "seconds": time.perf_counter() - t0}  # fmt: skip
+        result.history.append(record)
+        if progress is not None:
+            progress({"epoch": step, "epochs": fit.update_steps, "val_loss": record["val_loss"],
+                      "unit": "step"})  # fmt: skip
+        if on_eval is not None:
+            on_eval(record, optimizer, gen)
+        total, since, t0 = torch.zeros((), device=device), 0, time.perf_counter()
+        if record["val_loss"] < best["val_loss"]:
+            best, stale = {"step": step, "val_loss": record["val_loss"]}, 0
+            best.update(_snapshot(model, optimizer))
+        elif has_val:
+            stale += 1
+            if fit.patience and stale >= fit.patience:
+                break
+    if has_val and best["step"] != step:
+        model.load_state_dict(best["model"])
+        optimizer.load_state_dict(best["optimizer"])
+    model.eval()
+    elapsed = time.perf_counter() - start
+    result.optimizer_state = copy.deepcopy(optimizer.state_dict())
+    result.steps = step
+    if has_val:
+        result.best_step, result.best_val_loss = int(best["step"]), float(best["val_loss"])
+    result.recent_share = hits / (step * fit.batch_size) if step else math.nan
+    result.transitions_per_s = step * fit.batch_size / elapsed if elapsed > 0 else 0.0
+    return result
+
+
+def sample_batch(n: int, recent: torch.Tensor, fit: FitSpec, gen: torch.Generator) -> torch.Tensor:
+    """Row indices (CPU) of one mini-batch of ``fit.batch_size`` drawn with replacement:
+    ``round(fit.recent_fraction * batch_size)`` of them from ``recent``, when it holds some but
+    not all of the ``n`` rows, the rest from all ``n``."""
+    k = round(fit.recent_fraction * fit.batch_size) if 0 < len(recent) < n else 0
+    rows = torch.randint(n, (fit.batch_size - k,), generator=gen)
+    if k == 0:
+        return rows
+    return torch.cat([recent[torch.randint(len(recent), (k,), generator=gen)], rows])
+
+
+def recent_rows(
+    dataset: Dataset, train_episodes: np.ndarray, recent: np.ndarray | None, mirror: bool
+) -> torch.Tensor:
+    """The rows of :func:`transition_tensors` ``(dataset, train_episodes, mirror=mirror)``
+    that come from an episode in ``recent`` (with ``mirror``, their twins too)."""
+    if recent is None:
+        return torch.zeros(0, dtype=torch.long)
+    per_episode = np.maximum(dataset.episode_lengths[train_episodes].astype(np.int64) - 1, 0)
+    mask = np.repeat(np.isin(train_episodes, recent), per_episode)
+    if mirror:
+        mask = np.concatenate([mask, mask])
+    return torch.as_tensor(np.flatnonzero(mask), dtype=torch.long)
+
+
+def _val_subset(
+    val: dict[str, torch.Tensor], most: int, gen: torch.Generator
+) -> dict[str, torch.Tensor]:
+    """At most ``most`` rows of ``val``, drawn once (in their order)."""
+    n = len(val["state"])
+    if n <= most:
+        return val
+    keep = torch.randperm(n, generator=gen)[:most].sort().values.to(val["state"].device)
+    return {k: v[keep] for k, v in val.items()}
+
+
+def _snapshot(model: DynamicsModel, optimizer: torch.optim.Optimizer) -> dict[str, Any]:
+    return {
+        "model": copy.deepcopy(model.state_dict()),
+        "optimizer": copy.deepcopy(optimizer.state_dict()),
+    }
 
 
 @torch.no_grad()
@@ -273,6 +460,11 @@ def run_training(
     """
     from dlocli.rundir import owned
 
+    if spec.schedule != "epochs":
+        raise BadInput(
+            'dlo train trains by epochs; the "steps" schedule is the online loop\'s model '
+            "update (dlo online --schedule steps): drop it from the spec"
+        )
     dataset = load_training_data(spec)
     with owned(spec.out):
         return _train_in(spec, dataset, overwrite, progress, resume, accept_changes)

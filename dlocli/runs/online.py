@@ -222,7 +222,10 @@ class OnlineRun:
 
     # ------------------------------------------------------------------ steps of Alg. 1
     def update_model(self, k: int, data: Dataset) -> None:
-        """Train for E epochs from iteration k-1's weights; checkpoint as iteration k."""
+        """Update the model on D (= D_{k-1}) from iteration k-1's weights and Adam state;
+        checkpoint it as iteration k. Schedule "epochs": E passes over D (the paper's);
+        "steps": a fixed number of steps, weighted to iteration k-1's trials (the last N
+        episodes of D; for k = 1 all of D is new), seeded per iteration like the epochs."""
         import torch
 
         from dlocli.models.base import (
@@ -232,7 +235,7 @@ class OnlineRun:
             resolve_device,
             save_checkpoint,
         )
-        from dlocli.models.training import train_model
+        from dlocli.models.training import train_model, train_steps
 
         if self.paths.checkpoint(k).is_file():
             return
@@ -247,20 +250,34 @@ class OnlineRun:
         fit = self.spec.fit.model_copy(
             update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
         )
+        steps = fit.schedule == "steps"
+        per_update = fit.update_steps if steps else fit.epochs
         start = time.perf_counter()
 
-        def log_epoch(record: dict[str, float], *_: Any) -> None:
-            step = (k - 1) * fit.epochs + record["epoch"]  # epochs over the whole run
-            self.scalars.add(step, "loss", train=record["train_loss"], val=record["val_loss"])
+        def log(record: dict[str, float], *_: Any) -> None:
+            at = (k - 1) * per_update + record["step" if steps else "epoch"]  # over the run
+            self.scalars.add(at, "loss", train=record["train_loss"], val=record["val_loss"])
 
-        result = train_model(
-            model,
-            data,
-            fit,
-            optimizer_state=opt_state,
-            progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
-            on_epoch=log_epoch,
-        )
+        def progress(info: dict[str, Any]) -> None:
+            self.progress("epoch", {"iteration": k, **info})
+
+        if steps:
+            first_new = 0 if k == 1 else max(data.n_episodes - self.spec.trials, 0)
+            result = train_steps(
+                model,
+                data,
+                fit,
+                recent_episodes=np.arange(first_new, data.n_episodes),
+                optimizer_state=opt_state,
+                progress=progress,
+                on_eval=log,
+            )
+            extra = {"steps": result.steps, "best_step": result.best_step}
+        else:
+            result = train_model(
+                model, data, fit, optimizer_state=opt_state, progress=progress, on_epoch=log
+            )
+            extra = {}
         save_checkpoint(
             model,
             self.paths.checkpoint(k),
@@ -269,6 +286,7 @@ class OnlineRun:
                 "iteration": k,
                 "val_loss": result.val_loss,
                 "train_seconds": time.perf_counter() - start,
+                **extra,
             },
         )
 

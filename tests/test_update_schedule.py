@@ -1,0 +1,213 @@
+"""The online loop's fixed-cost model update (``FitSpec.schedule == "steps"``), on real data
+with a real model: its step budget, its early stopping, a cost that does not grow with the
+data, determinism, the weighting of the newest episodes, and exact resume in `dlo online`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dlocli.cli import app
+from dlocli.data import load_dataset
+from dlocli.errors import BadInput
+from dlocli.models.base import ModelSpec, build_model, read_checkpoint
+from dlocli.models.spec import FIT_LEGACY_VALUES, TrainSpec
+from dlocli.models.training import (
+    FitSpec,
+    recent_rows,
+    run_training,
+    sample_batch,
+    split_episodes,
+    train_steps,
+    transition_tensors,
+    validation_loss,
+)
+
+runner = CliRunner()
+STEPS = {"schedule": "steps", "lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu"}
+
+
+def fresh(data, seed: int = 0):
+    torch.manual_seed(seed)
+    return build_model(ModelSpec(hidden=16), data.n_segments)
+
+
+def weights(model) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in model.parameters()]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """These tests compare runs within this module only: one thread is fastest on a busy
+    machine (small models, and two threads fight over the cores)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def data(small_dataset_dir):
+    return load_dataset(small_dataset_dir)
+
+
+def test_defaults_leave_the_papers_schedule_and_old_fingerprints():
+    fit = FitSpec()
+    assert fit.schedule == "epochs"
+    assert all(getattr(fit, k) == v for k, v in FIT_LEGACY_VALUES.items())
+    help_text = runner.invoke(app, ["online", "--help"], env={"COLUMNS": "250"}).output
+    assert "--schedule" in help_text and "--update-steps" in help_text
+    assert '"epochs" (the paper\'s)' in " ".join(help_text.split())
+
+
+def test_takes_exactly_update_steps_without_early_stopping(data):
+    fit = FitSpec(**STEPS, update_steps=30, eval_every=10, patience=0)
+    result = train_steps(fresh(data), data, fit)
+    assert result.steps == 30
+    assert [r["step"] for r in result.history] == [10, 20, 30]
+    assert result.best_step in (0, 10, 20, 30)
+    # Adam's step count is that of the weights kept (the best validation)
+    assert result.optimizer_state["state"][0]["step"] == result.best_step
+
+
+def test_early_stopping_stops_and_restores_the_best_weights(data):
+    """At a learning rate too small to change a float32 weight, no validation improves on
+    the starting weights: training stops after `patience` validations and keeps them."""
+    model = fresh(data)
+    before = weights(model)
+    fit = FitSpec(**{**STEPS, "lr": 1e-12}, update_steps=50, eval_every=2, patience=3)
+    result = train_steps(model, data, fit)
+    assert result.steps == 6 < fit.update_steps
+    assert [r["step"] for r in result.history] == [2, 4, 6]
+    assert result.best_step == 0
+    for a, b in zip(before, weights(model), strict=True):
+        assert torch.equal(a, b)
+    # a learning rate that moves the weights: stopped or not, the kept weights are the best
+    fit = FitSpec(**STEPS, update_steps=40, eval_every=2, patience=2)
+    result = train_steps(model, data, fit)
+    assert result.steps <= 40 and result.history[-1]["step"] == result.steps
+    val = transition_tensors(data, result.val_episodes, torch.device("cpu"))
+    assert result.best_val_loss == min(r["val_loss"] for r in result.history)
+    assert validation_loss(model, val) == pytest.approx(result.best_val_loss, rel=1e-6)
+
+
+def counting(model) -> dict[str, int]:
+    """Count the rows ``model.loss`` sees, for training (with gradients) and validation."""
+    seen = {"train_calls": 0, "train_rows": 0, "val_rows": 0}
+    loss = model.loss
+
+    def counted(state, *args, **kwargs):
+        kind = "train" if torch.is_grad_enabled() else "val"
+        seen[f"{kind}_rows"] += len(state)
+        seen["train_calls"] += kind == "train"
+        return loss(state, *args, **kwargs)
+
+    model.loss = counted
+    return seen
+
+
+def test_cost_does_not_grow_with_the_data(data):
+    """The same batches and validation rows on 4 episodes as on 24 (counted, not timed)."""
+    fit = FitSpec(**STEPS, update_steps=12, eval_every=4, patience=0, val_transitions=40)
+    counts = []
+    for dataset in (data.subset(np.arange(4)), data.concat(data).concat(data).concat(data)):
+        model = fresh(dataset)
+        counts.append(counting(model))
+        train_steps(model, dataset, fit)
+    assert counts[0] == counts[1]
+    assert counts[0]["train_calls"] == 12 and counts[0]["train_rows"] == 12 * 16
+    assert counts[0]["val_rows"] == (1 + 3) * 40  # the starting weights, then 3 validations
+
+
+def test_same_seed_same_weights(data):
+    fit = FitSpec(**STEPS, update_steps=15, eval_every=5, seed=7)
+    runs = []
+    for seed in (7, 7, 8):
+        model = fresh(data)
+        train_steps(model, data, fit.model_copy(update={"seed": seed}), recent_episodes=[5])
+        runs.append(weights(model))
+    assert all(torch.equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(runs[0], runs[2], strict=True))
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_recent_rows_are_those_of_the_recent_episodes(data, mirror):
+    train_eps, _ = split_episodes(data.n_episodes, 0.2)
+    recent = train_eps[-2:]
+    rows = recent_rows(data, train_eps, np.array([*recent, 99]), mirror)
+    cpu = torch.device("cpu")
+    every = transition_tensors(data, train_eps, cpu, mirror=mirror)
+    only = transition_tensors(data, recent, cpu, mirror=mirror)
+    assert torch.equal(every["state"][rows], only["state"])
+    assert torch.equal(every["next_state"][rows], only["next_state"])
+
+
+def test_batches_weight_in_the_newest_episodes(data):
+    fit = FitSpec(**STEPS, recent_fraction=0.5)
+    gen = torch.Generator().manual_seed(0)
+    recent = torch.arange(90, 100)
+    batch = sample_batch(100, recent, fit, gen)
+    assert len(batch) == 16 and bool(torch.isin(batch[:8], recent).all())
+    assert len(sample_batch(10, recent - 90, fit, gen)) == 16  # all rows recent: unweighted
+    # in training: the share of sampled rows from the recent episodes
+    train_eps, _ = split_episodes(data.n_episodes, fit.val_fraction)
+    recent_eps = train_eps[-1:]  # one training episode of five: a fifth of the rows
+    uniform = len(recent_rows(data, train_eps, recent_eps, False)) / sum(
+        int(data.episode_lengths[e]) - 1 for e in train_eps
+    )
+    shares = {}
+    for fraction in (0.0, 0.5):
+        fit_k = fit.model_copy(update={"recent_fraction": fraction, "update_steps": 40})
+        shares[fraction] = train_steps(fresh(data), data, fit_k, recent_episodes=recent_eps)
+    assert shares[0.0].recent_share == pytest.approx(uniform, abs=0.06)
+    assert shares[0.5].recent_share == pytest.approx(0.5 + 0.5 * uniform, abs=0.06)
+
+
+def test_dlo_train_refuses_the_steps_schedule(small_dataset_dir, tmp_path):
+    spec = TrainSpec(data=small_dataset_dir, schedule="steps", out=tmp_path / "run")
+    with pytest.raises(BadInput, match="trains by epochs"):
+        run_training(spec)
+    assert not (tmp_path / "run").exists()
+
+
+def test_online_steps_schedule_resumes_exactly(tmp_path):
+    """Iteration 2's update redone from iteration 1's checkpoint (as after a kill) gives the
+    same model and the same trials."""
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text("fit: {eval_every: 5, patience: 2}\n")
+    out = tmp_path / "run"
+    args = ["online", "--spec", str(spec_file), "--shapes", "near-rest", "--steps", "15",
+            "--trials", "2", "--iters", "2", "--initial-episodes", "2", "--hidden", "16",
+            "--schedule", "steps", "--update-steps", "20", "--horizon", "2", "--seed", "3",
+            "--device", "cpu", "--out", str(out), "--json"]  # fmt: skip
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary["iterations_done"] == 2 and summary["train_seconds"] > 0
+    saved = json.loads((out / "spec.json").read_text())["fit"]
+    assert (saved["schedule"], saved["update_steps"], saved["eval_every"]) == ("steps", 20, 5)
+    reference = read_checkpoint(out / "checkpoints" / "iter_02.pt")
+    assert 0 < reference["steps"] <= 20
+    metrics = (out / "metrics.csv").read_text()
+
+    (out / "checkpoints" / "iter_02.pt").unlink()  # killed during iteration 2's update
+    (out / "checkpoints" / "final.pt").unlink()
+    for trial in (out / "data" / "iter_02").glob("*.h5"):
+        trial.unlink()
+    res = runner.invoke(app, ["online", "--resume", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    again = read_checkpoint(out / "checkpoints" / "iter_02.pt")
+    assert again["steps"] == reference["steps"]
+    for name, tensor in reference["state_dict"].items():
+        assert torch.equal(tensor, again["state_dict"][name]), name
+
+    def results(text: str) -> list[list[str]]:  # the timing columns aside
+        rows = [line.split(",") for line in text.splitlines()]
+        keep = [i for i, name in enumerate(rows[0]) if not name.endswith("seconds")]
+        return [[row[i] for i in keep] for row in rows]
+
+    assert results((out / "metrics.csv").read_text()) == results(metrics)
