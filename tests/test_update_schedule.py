@@ -15,17 +15,14 @@ from dlocli.cli import app
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
 from dlocli.models.base import ModelSpec, build_model, read_checkpoint
-from dlocli.models.spec import FIT_LEGACY_VALUES, TrainSpec
+from dlocli.models.spec import FIT_LEGACY_VALUES, FitSpec, TrainSpec
 from dlocli.models.training import (
-    FitSpec,
-    recent_rows,
     run_training,
-    sample_batch,
     split_episodes,
-    train_steps,
     transition_tensors,
     validation_loss,
 )
+from dlocli.models.update_steps import recent_rows, sample_batch, train_steps
 
 runner = CliRunner()
 STEPS = {"schedule": "steps", "lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu"}

@@ -235,7 +235,8 @@ class OnlineRun:
             resolve_device,
             save_checkpoint,
         )
-        from dlocli.models.training import train_model, train_steps
+        from dlocli.models.training import train_model
+        from dlocli.models.update_steps import train_steps
 
         if self.paths.checkpoint(k).is_file():
             return
