@@ -68,7 +68,9 @@ class OnlineSpec(EnvSpec):
     )
     model: ModelSpec = Field(default_factory=ModelSpec, description="Dynamics model.")
     fit: FitSpec = Field(
-        default_factory=FitSpec, description="Model update per iteration (E = fit.epochs)."
+        default_factory=FitSpec,
+        description="Model update per iteration: E = fit.epochs over all the data (the "
+        "paper), or fit.update_steps gradient steps (fit.schedule=steps).",
     )
     mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC that explores.")
     workers: int = Field(1, gt=0, description="Processes running an iteration's trials.")
