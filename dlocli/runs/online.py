@@ -192,6 +192,7 @@ class OnlineRun:
         self.progress = progress or (lambda event, info: None)
         self._pool: ProcessPoolExecutor | None = None
         self.scalars = Scalars(None)
+        self._train_seconds: dict[int, float] = {}
 
     # ------------------------------------------------------------------ data
     def initial_dataset(self) -> Dataset:
@@ -455,16 +456,22 @@ class OnlineRun:
                 )
         return rows
 
+    def train_seconds(self, k: int) -> float:
+        """The time iteration k's model update took (0 before it is done); read once from
+        its checkpoint, which never changes after it is written."""
+        from dlocli.models.base import read_checkpoint
+
+        if k not in self._train_seconds:
+            path = self.paths.checkpoint(k)
+            if not path.is_file():
+                return 0.0
+            self._train_seconds[k] = float(read_checkpoint(path).get("train_seconds", 0.0))
+        return self._train_seconds[k]
+
     def time_shares(self, rows: list[dict[str, Any]]) -> dict[str, float | None]:
         """Seconds spent training the model, planning (MPC) and simulating (the rest of the
         trials: physics, resets), over every part of the run."""
-        from dlocli.models.base import read_checkpoint
-
-        train = sum(
-            float(read_checkpoint(path).get("train_seconds", 0.0))
-            for k in range(1, self.spec.iters + 1)
-            if (path := self.paths.checkpoint(k)).is_file()
-        )
+        train = sum(self.train_seconds(k) for k in range(1, self.spec.iters + 1))
         timed = [r for r in rows if r["mpc_seconds"] is not None]
         mpc = sum(r["mpc_seconds"] for r in timed)
         simulation = sum(r["trial_seconds"] for r in timed) - mpc
