@@ -60,7 +60,7 @@ def handle_errors(fn: F) -> F:
         except KeyboardInterrupt as exc:
             terminated = isinstance(exc, Terminated)
             what = "terminated (SIGTERM)" if terminated else "interrupted"
-            console.print(f"[yellow]{what}[/yellow]: finished work was saved; --resume continues")
+            console.print(f"[yellow]{what}[/yellow]: finished work was saved")
             raise typer.Exit(143 if terminated else 130) from None
         except OSError as exc:
             print_error(os_error_line(exc))
