@@ -96,14 +96,16 @@ class Dataset:
             attrs=dict(attrs or {}),
         )
 
-    def concat(self, other: Dataset) -> Dataset:
-        """A new dataset with ``other``'s episodes appended (attrs of ``self`` kept)."""
-        if other.n_segments != self.n_segments:
-            raise BadInput(
-                f"cannot join datasets of {self.n_segments} and {other.n_segments} segments"
-            )
+    def concat(self, *others: Dataset) -> Dataset:
+        """A new dataset with ``others``' episodes appended, in one copy (attrs of ``self``
+        kept)."""
+        for other in others:
+            if other.n_segments != self.n_segments:
+                raise BadInput(
+                    f"cannot join datasets of {self.n_segments} and {other.n_segments} segments"
+                )
         arrays = {
-            name: np.concatenate([getattr(self, name), getattr(other, name)])
+            name: np.concatenate([getattr(d, name) for d in (self, *others)])
             for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
         }
         return Dataset(**arrays, attrs=dict(self.attrs))

@@ -37,8 +37,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from dlocli.data import DATASET_FILE, Dataset, Episode, load_dataset
 from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
@@ -213,10 +211,9 @@ def _assemble(out: Path, attrs: dict[str, Any]) -> Dataset:
     loaded = [load_dataset(part_path(out, e)) for e in _part_indices(out / PARTS_DIR)]
     if not loaded:
         raise BadInput(f"{out / PARTS_DIR} holds no episodes to assemble")
-    names = ("episode_lengths", "positions", "quaternions", "grippers", "actions", "rewards",
-             "goals", "diverged")  # fmt: skip
-    arrays = {n: np.concatenate([getattr(d, n) for d in loaded]) for n in names}
-    return Dataset(**arrays, attrs=attrs)
+    data = loaded[0].concat(*loaded[1:])
+    data.attrs = attrs
+    return data
 
 
 def _progress_seconds(parts: Path) -> float:

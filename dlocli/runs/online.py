@@ -217,11 +217,12 @@ class OnlineRun:
 
     def dataset_until(self, k: int) -> Dataset:
         """D after iteration k's trials (k = 0: the initial data)."""
-        data = load_dataset(self.paths.initial())
-        for it in range(1, k + 1):
-            for j in range(1, self.spec.trials + 1):
-                data = data.concat(load_dataset(self.paths.trial(it, j)))
-        return data
+        trials = [
+            load_dataset(self.paths.trial(it, j))
+            for it in range(1, k + 1)
+            for j in range(1, self.spec.trials + 1)
+        ]
+        return load_dataset(self.paths.initial()).concat(*trials)  # one copy, not K·N
 
     # ------------------------------------------------------------------ steps of Alg. 1
     def update_model(self, k: int, data: Dataset) -> None:
