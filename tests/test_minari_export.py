@@ -177,7 +177,9 @@ def test_bimanual_with_a_non_default_rod_is_recovered(tmp_path, minari_root):
     stored = load_dataset(tmp_path / "c")
     (episode,) = dataset.iterate_episodes()
     np.testing.assert_array_equal(episode.actions, stored.actions.reshape(3, 12))
-    assert dataset.spec.env_spec.entry_point == "dlocli.runs.export:make_recorded_env"
+    # the registered entry point, the whole backend (its 6-segment rod) in the kwargs
+    assert dataset.spec.env_spec.entry_point == "dlocli.env.shape_env:DLOShapeEnv"
+    assert dataset.spec.env_spec.kwargs["backend"]["rod"]["n_segments"] == 6
     env = dataset.recover_environment()
     try:
         assert env.unwrapped.n_segments == 6

@@ -44,7 +44,7 @@ from pydantic import ValidationError
 
 from dlocli.backends.rotations import state_change
 from dlocli.data import Dataset, Episode, load_dataset
-from dlocli.env.shape_env import DLOShapeEnv, make_env, observation_space
+from dlocli.env.shape_env import DLOShapeEnv, observation_space
 from dlocli.env.tasks import make_task
 from dlocli.errors import BadInput
 from dlocli.specs import TASK_LEGACY_VALUES, BackendSpec, EnvSpec, TaskSpec, format_validation_error
@@ -56,7 +56,6 @@ DATA_FORMAT = "hdf5"
 #: environment variable that sets Minari's datasets root
 ROOT_ENV = "MINARI_DATASETS_PATH"
 #: entry point recorded when the backend spec is not the named backend's default
-RECORDED_ENTRY_POINT = "dlocli.runs.export:make_recorded_env"
 
 
 # ----------------------------------------------------------------------------- data -> steps
@@ -133,17 +132,6 @@ def dataset_env_spec(data: Dataset, source: Path) -> EnvSpec:
     return spec
 
 
-def make_recorded_env(backend: str | dict[str, Any], **kwargs: Any) -> DLOShapeEnv:
-    """:func:`dlocli.make_env` for an env spec read back from JSON: ``backend`` is a backend
-    name or a whole BackendSpec as a dict (the entry point of exported non-default backends)."""
-    if isinstance(backend, dict):
-        try:
-            backend = BackendSpec.model_validate(backend)
-        except ValidationError as exc:
-            raise BadInput(format_validation_error(exc, "make_recorded_env backend")) from exc
-    return make_env(backend, **kwargs)
-
-
 def gym_env_spec(spec: EnvSpec) -> Any:
     """The ``gymnasium.envs.registration.EnvSpec`` that rebuilds ``spec``'s env: the id
     registered for its backend and task, with the task fields, seed and backend as kwargs."""
@@ -165,13 +153,10 @@ def gym_env_spec(spec: EnvSpec) -> Any:
         )
     task_fields = spec.task.model_dump(mode="json", exclude={"name"})
     kwargs: dict[str, Any] = {"backend": backend, "task": task, "seed": spec.seed, **task_fields}
-    entry_point = registered[0].entry_point
     if spec.backend != BackendSpec(name=backend):  # a rod or physics the name alone does not give
-        kwargs["backend"] = spec.backend.model_dump(mode="json")
-        entry_point = RECORDED_ENTRY_POINT
+        kwargs["backend"] = spec.backend.model_dump(mode="json")  # DLOShapeEnv validates it
     return dataclasses.replace(
         registered[0],
-        entry_point=entry_point,
         kwargs=kwargs,
         max_episode_steps=spec.task.episode_steps,
     )
