@@ -1,5 +1,11 @@
-"""Process hygiene: SIGTERM ends a command like SIGINT (finished work saved), and worker
-processes end when the process that started them dies, however it dies."""
+"""Process hygiene: SIGTERM ends a command like SIGINT (finished work saved), a stop is never
+lost, and worker processes end when the process that started them dies, however it dies.
+
+A signal handler's exception is raised wherever the main thread happens to be; when that is a
+destructor or a weakref callback, Python prints "Exception ignored" and carries on, and the
+stop is lost (a collect then ran on for its 100,000 episodes). So the handlers also record the
+stop, and the long loops call :func:`raise_if_stopped` at their safe points (each simulator
+step, each episode) to raise it again."""
 
 from __future__ import annotations
 
@@ -19,19 +25,52 @@ class Terminated(KeyboardInterrupt):
     with exit code 143."""
 
 
+#: the stop that arrived and may have been swallowed; raised again by `raise_if_stopped`
+_pending: type[KeyboardInterrupt] | None = None
+
+
 def _on_sigterm(signum: int, frame: object) -> None:
     if os.getpid() != _main_pid:  # a forked worker: die as SIGTERM means
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         os.kill(os.getpid(), signal.SIGTERM)
         return
-    raise Terminated
+    _stop(Terminated)
 
 
-def handle_sigterm() -> None:
-    """Make SIGTERM raise :class:`Terminated` in this (the main) process."""
+def _on_sigint(signum: int, frame: object) -> None:
+    if os.getpid() != _main_pid:  # a forked worker: Python's own behaviour
+        raise KeyboardInterrupt
+    _stop(KeyboardInterrupt)
+
+
+def _stop(kind: type[KeyboardInterrupt]) -> None:
+    global _pending
+    _pending = kind
+    raise kind
+
+
+def raise_if_stopped() -> None:
+    """Raise the stop (Ctrl-C, SIGTERM) that arrived but was swallowed where it landed; a
+    no-op otherwise. Cheap: call it once per step of any long loop."""
+    global _pending
+    if _pending is not None and os.getpid() == _main_pid:
+        kind, _pending = _pending, None
+        raise kind
+
+
+def stop_handled() -> None:
+    """The stop reached the command's handler: forget it (finishing work may still step)."""
+    global _pending
+    _pending = None
+
+
+def handle_stop_signals() -> None:
+    """In this (the main) process: SIGTERM raises :class:`Terminated`, SIGINT raises
+    KeyboardInterrupt, and both are remembered for :func:`raise_if_stopped`."""
     global _main_pid
     _main_pid = os.getpid()
     signal.signal(signal.SIGTERM, _on_sigterm)
+    signal.signal(signal.SIGINT, _on_sigint)
 
 
 def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:

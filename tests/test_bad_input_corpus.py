@@ -421,3 +421,34 @@ def _alive(pid: int) -> bool:
     except (OSError, IndexError):
         return False
     return state != "Z"
+
+
+SWALLOWED_STOP = """
+import os, signal
+import dlocli
+from dlocli.processes import handle_stop_signals
+handle_stop_signals()
+env = dlocli.make_env(backend="mujoco", task="single", seed=0)
+env.reset()
+class Destructor:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(100000):  # the handler runs in here: Python ignores what it raises
+            pass
+d = Destructor()
+del d
+print("swallowed", flush=True)
+try:
+    env.step(env.action_space.sample())
+except KeyboardInterrupt:
+    print("stopped at the next step", flush=True)
+"""
+
+
+def test_a_stop_swallowed_by_a_destructor_stops_at_the_next_step():
+    # CI once sent Ctrl-C while a weakref callback ran: the collect went on for 100,000 episodes
+    proc = subprocess.run(
+        [sys.executable, "-c", SWALLOWED_STOP], capture_output=True, text=True, timeout=120
+    )
+    assert proc.stdout.split("\n")[:2] == ["swallowed", "stopped at the next step"], proc.stderr
+    assert "Exception ignored" in proc.stderr  # the stop really was swallowed first

@@ -66,11 +66,11 @@ def main() -> None:
     import sys
 
     from dlocli.cli.common import print_error
-    from dlocli.processes import handle_sigterm
+    from dlocli.processes import handle_stop_signals
 
     # Typer vendors Click; its UsageError is public only as BadParameter's base
     usage_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
-    handle_sigterm()
+    handle_stop_signals()
     try:
         code = app(standalone_mode=False)
     except usage_error as exc:

@@ -16,7 +16,7 @@ from rich.progress import Progress
 from rich.table import Table
 
 from dlocli.errors import DloError
-from dlocli.processes import Terminated
+from dlocli.processes import Terminated, stop_handled
 
 F = TypeVar("F", bound=Callable[..., Any])
 console = Console(stderr=True)
@@ -58,6 +58,7 @@ def handle_errors(fn: F) -> F:
             print_error(str(exc))
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt as exc:
+            stop_handled()
             terminated = isinstance(exc, Terminated)
             what = "terminated (SIGTERM)" if terminated else "interrupted"
             console.print(f"[yellow]{what}[/yellow]: finished work was saved")

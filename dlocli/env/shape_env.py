@@ -34,6 +34,7 @@ from dlocli.env.shapes import make_shape, max_twist
 from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput, BadOption, UnknownOption
 from dlocli.io import atomic_path
+from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
 from dlocli.registry import tasks as task_registry
 from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec, format_validation_error
@@ -292,6 +293,7 @@ class DLOShapeEnv(gym.Env):
         return self._observation(), self._info(diverged=False)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        raise_if_stopped()  # a Ctrl-C swallowed by a destructor still stops the run
         commands = self.task.to_grippers(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
         self._previous = self.segment_state()
         ok = self.backend.step(commands * self._scale)

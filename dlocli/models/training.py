@@ -35,6 +35,7 @@ from dlocli.models.base import (
 )
 from dlocli.models.mirror import with_mirrored
 from dlocli.models.spec import FitSpec, TrainSpec
+from dlocli.processes import raise_if_stopped
 
 GOLDEN = 0.6180339887498949  # episode e is validation iff frac((e + 1) * GOLDEN) < fraction
 EVAL_BATCH = 1024
@@ -244,6 +245,7 @@ def _gradient_step(
 ) -> torch.Tensor:
     """One Adam step on the rows ``idx`` of ``data``, with input noise from ``gen``; the
     batch's loss (detached)."""
+    raise_if_stopped()
     state = data["state"][idx]
     noise = None
     if fit.input_noise > 0:  # in units of the one-step change, expressed in state units

@@ -42,7 +42,7 @@ from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
-from dlocli.processes import exit_with_parent
+from dlocli.processes import exit_with_parent, raise_if_stopped
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import CollectSpec, EnvSpec
 
@@ -169,6 +169,7 @@ def _collect(
         on_episode(n_done, None)
     try:
         for e, episode in _episodes(spec, missing):
+            raise_if_stopped()
             Dataset.from_episodes([episode], attrs).save(part_path(out, e))
             n_done += 1
             seconds = earlier + time.perf_counter() - start
