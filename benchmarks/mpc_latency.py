@@ -10,6 +10,13 @@ itself: the median time of ``iterations`` bare rollouts (+ gradient for ``mpc``)
 setting's batch size, divided by the step's median latency; the rest is the planner's own
 work (tensors from the observation, optimiser updates, bookkeeping).
 
+The last line is the floor: the bare matrix products of one H-step rollout at batch 1 (the
+in-bilstm's f_e and f_v layers, its LSTM input projections and the 2 x N recurrent products
+per layer, back to back on preallocated tensors, nothing else), timed in the same run. A
+control step cannot cost less than one rollout; at batch 1 the recurrent products are
+matrix-vector products that read all of W_hh per step, so this floor is bound by memory
+bandwidth, not by the FLOP rate.
+
 Without ``--model`` an untrained in-bilstm of ``--hidden`` width is used: latency does not
 depend on the weights. The row marked ``paper-like`` is the slow reference setting (50
 cold-start Adam iterations per step, no warm start).
@@ -86,6 +93,49 @@ def model_ms(
     return 1000.0 * float(np.median(times))
 
 
+def floor_ms(model: Any, horizon: int, repeats: int = 30) -> float | None:
+    """Median ms of the bare matrix products of one ``horizon``-step in-bilstm rollout at
+    batch 1 (None for other models). See the module docstring."""
+    if not hasattr(model, "edge_net"):
+        return None
+    n = model.n_segments
+    linears = [(m, 2 * (n - 1)) for m in model.edge_net if isinstance(m, torch.nn.Linear)]
+    linears += [(m, n) for m in model.node_net if isinstance(m, torch.nn.Linear)]
+    layers = [
+        (torch.cat([w_ih_f, w_ih_b]).t().contiguous(), torch.stack([w_hh_f.t(), w_hh_b.t()]))
+        for w_ih_f, w_hh_f, w_ih_b, w_hh_b in (
+            [
+                getattr(model.lstm, f"weight_{k}_l{layer}{d}")
+                for d in ("", "_reverse")
+                for k in ("ih", "hh")
+            ]  # fmt: skip
+            for layer in range(model.lstm.num_layers)
+        )
+    ]
+    hidden = model.lstm.hidden_size
+    inputs = [torch.zeros(rows, m.in_features) for m, rows in linears]
+    xs = [torch.zeros(n, w_ih_t.shape[0]) for w_ih_t, _ in layers]
+    h = torch.zeros(2, 1, hidden)
+
+    def rollout() -> None:
+        for _ in range(horizon):
+            for (m, _), x in zip(linears, inputs, strict=True):
+                torch.addmm(m.bias, x, m.weight.t())
+            for (w_ih_t, w_hh_t), x in zip(layers, xs, strict=True):
+                torch.mm(x, w_ih_t)
+                for _ in range(n):
+                    torch.bmm(h, w_hh_t)
+
+    times = []
+    with torch.inference_mode():
+        rollout()
+        for _ in range(repeats):
+            start = time.perf_counter()
+            rollout()
+            times.append(time.perf_counter() - start)
+    return 1000.0 * float(np.median(times))
+
+
 def time_setting(
     env: Any, model: Any, name: str, options: dict[str, Any], steps: int
 ) -> dict[str, Any]:
@@ -142,9 +192,10 @@ def main() -> None:
     rows = [
         time_setting(env, model, n, o, args.steps) for n, o in (QUICK if args.quick else SETTINGS)
     ]
+    floor = floor_ms(model, rows[0]["resolved"]["horizon"])
     env.close()
     if args.json:
-        print(json.dumps(rows, indent=1))
+        print(json.dumps({"settings": rows, "floor_ms": floor}, indent=1))
         return
     header = (f"{'controller':10} {'options':46} {'median ms':>9} {'p95 ms':>7} {'mean ms':>7} "
               f"{'cpu ms':>7}")  # fmt: skip
@@ -156,6 +207,10 @@ def main() -> None:
               f"{row['latency_ms_p95']:7.1f} {row['latency_ms_mean']:7.1f} "
               f"{row['cpu_ms_median']:7.1f} {row['hz']:6.1f} "
               f"{100 * row['model_share']:6.0f}%")  # fmt: skip
+    if floor is not None:
+        default = rows[0]["latency_ms_median"]
+        print(f"floor: the matrix products of one rollout at batch 1 take {floor:.1f} ms; "
+              f"the default's median is {default / floor:.1f}x that")  # fmt: skip
 
 
 if __name__ == "__main__":
