@@ -28,14 +28,14 @@ Model (SI units throughout)
   = 5/s, acceleration ``-d (1 + |v|) v`` on every link, like a strong air drag) lets the
   rod settle: after random gripper motion stops, segments slow below 1 mm/s within ~1.2 s.
   At the largest gripper speed (0.1 m/s) the drag is ~6% of the rod's weight.
-- Left gripper: the multibody's floating base is segment 0, made very heavy and driven
-  kinematically: its pose and twist are set at each control step, and an external wrench
-  cancels gravity and damping on it every physics step, so it keeps the gripper's twist
-  exactly (drift ~1e-6 m per period) and the chain sees a moving clamp with correct
-  inertial effects.
-- Right gripper: a ``JOINT_FIXED`` constraint between the end of the last link and a world
-  frame moved every physics step (``changeConstraint``, global ERP 1: no lag).
-  ``held_ends == "left"`` omits it (a free cantilever end).
+- Grippers: each held end is a ``JOINT_FIXED`` constraint between the end of its segment
+  and a world frame moved every physics step (``changeConstraint``, global ERP 1: no lag).
+  Both ends are held the same way, so the rod stays symmetric end to end (the mirror test);
+  the multibody's floating base, segment 0, is an ordinary segment. (Driving the base
+  kinematically instead, by resetting its twist, carried the whole chain along at every
+  change of command, since the joint velocities are relative to the base: a mirrored motion
+  differed by up to 44 mm.) ``held_ends == "left"`` omits the right one (a free cantilever
+  end).
 - Limits: PyBullet reports at most 128 joint coordinates, i.e. 31 spherical joints: the
   chain has at most ``MAX_SEGMENTS`` = 32 segments.
 """
@@ -52,7 +52,7 @@ import numpy as np
 import pybullet as p
 
 from dlocli.backends.base import REST_HEIGHT, Backend
-from dlocli.backends.rotations import quat_normalize
+from dlocli.backends.rotations import quat_normalize, quat_rotate
 from dlocli.errors import BadInput, SimulationDiverged
 from dlocli.specs import BackendSpec, RodSpec
 
@@ -61,7 +61,6 @@ DAMPING_STEPS = 2.0  # joint damping time beta, in physics steps (damps the fast
 AIR_DAMPING = 5.0  # 1/s, PyBullet linear/angular velocity damping of every link
 SETTLE_DAMPING = 20.0  # 1/s, air damping while the rest shape settles in reset()
 SETTLE_TIME = 3.0  # s of simulated settling for the rest shape
-BASE_MASS_RATIO = 1e4  # base (left clamp) mass / rod mass: a kinematic clamp to the chain
 HOLD_FORCE = 1e4  # N, maximum force of the right gripper's fixed constraint
 HOLD_ERP = 1.0  # fraction of the right gripper's pose error removed per physics step
 SOLVER_ITERATIONS = 10  # PGS sweeps; one 6-row constraint converges in a few
@@ -100,11 +99,8 @@ def _spin(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
 class _Targets(NamedTuple):
     """Gripper drive for one control period (PyBullet lists, x y z w quaternions)."""
 
-    base_pose: tuple[list[float], ...]  # base centre, orientation, velocity, omega
-    base_com: list[list[float]]  # (n,3) base centre at each physics step's start
-    base_wrench: tuple[list[float], list[float]]  # cancels gravity and damping on the base
-    hold_pos: list[list[float]]  # (n,3) right gripper position at each physics step's end
-    hold_orn: list[list[float]]  # (n,4) right gripper orientation at each physics step's end
+    hold_pos: list[list[list[float]]]  # (2, n, 3) gripper positions at each physics step's end
+    hold_orn: list[list[list[float]]]  # (2, n, 4) their orientations (x y z w)
 
 
 @dataclass(frozen=True)
@@ -162,10 +158,8 @@ class PybulletChain(Backend):
         if self._client < 0:
             raise RuntimeError("could not start a PyBullet DIRECT physics server")
         self._body = -1
-        self._hold = -1  # right gripper constraint id, -1 when the right end is free
+        self._holds: list[int] = []  # gripper constraint ids: left, then right if held
         self._joints = list(range(self.n_segments - 1))
-        self._base_mass = BASE_MASS_RATIO * self.rod.mass
-        self._base_inertia = self._base_mass * self.rod.length**2
         k, d = self.model.stiffness, self.model.damping  # (twist, bend, bend)
         self._gains = (float(k[0]), float(k[1]), float(d[0]), float(d[1]))
         self._frames: tuple[np.ndarray, np.ndarray] | None = None  # cached link frames
@@ -176,6 +170,7 @@ class PybulletChain(Backend):
     # ----------------------------------------------------------------- construction
     def _build(self) -> None:
         c = self._client
+        self._holds = []
         p.resetSimulation(physicsClientId=c)
         p.setGravity(0, 0, -GRAVITY, physicsClientId=c)
         p.setTimeStep(self._dt, physicsClientId=c)
@@ -198,7 +193,7 @@ class PybulletChain(Backend):
             physicsClientId=c,
         )
         self._body = p.createMultiBody(
-            baseMass=self._base_mass,
+            baseMass=self.model.seg_mass,
             baseCollisionShapeIndex=-1,
             baseVisualShapeIndex=vis,
             basePosition=[0, 0, REST_HEIGHT],
@@ -225,27 +220,25 @@ class PybulletChain(Backend):
             forces=[[0, 0, 0]] * n,
             physicsClientId=c,
         )
-        if self.spec.held_ends == "both":
-            self._hold = p.createConstraint(
-                self._body,
-                n - 1,
-                -1,
-                -1,
-                p.JOINT_FIXED,
-                [0, 0, 0],
-                [seg / 2, 0, 0],
-                [0, 0, REST_HEIGHT],
-                physicsClientId=c,
-            )
-            p.changeConstraint(self._hold, maxForce=HOLD_FORCE, physicsClientId=c)
+        # (link, its end in its centre-of-mass frame): the start of segment 0 (the base),
+        # the end of segment N-1
+        ends = [(-1, -seg / 2), (n - 1, seg / 2)]
+        for link, end in ends[: 2 if self.spec.held_ends == "both" else 1]:
+            hold = p.createConstraint(
+                self._body, link, -1, -1, p.JOINT_FIXED, [0, 0, 0], [end, 0, 0],
+                [0, 0, REST_HEIGHT], physicsClientId=c,
+            )  # fmt: skip
+            p.changeConstraint(hold, maxForce=HOLD_FORCE, physicsClientId=c)
+            self._holds.append(hold)
 
     def _set_dynamics(self, air_damping: float) -> None:
         """Sets the (armature) inertias and the multibody-wide velocity damping (1/s)."""
         c, b = self._client, self._body
         for link in [-1, *self._joints]:
-            inertia = [self._base_inertia] * 3 if link < 0 else self.model.inertia.tolist()
             # separate calls: PyBullet drops the inertia when damping is in the same call
-            p.changeDynamics(b, link, localInertiaDiagonal=inertia, physicsClientId=c)
+            p.changeDynamics(
+                b, link, localInertiaDiagonal=self.model.inertia.tolist(), physicsClientId=c
+            )
             p.changeDynamics(
                 b, link, linearDamping=air_damping, angularDamping=air_damping, physicsClientId=c
             )
@@ -279,7 +272,7 @@ class PybulletChain(Backend):
         """Lay the rod out (arc or straight), let it settle with heavy damping, snapshot."""
         c, b, n = self._client, self._body, self.n_segments - 1
         straight = np.tile([0.0, 0, 0, 1], (n, 1))
-        quats = self._arc_joint_state() if self._hold >= 0 else straight
+        quats = self._arc_joint_state() if len(self._holds) == 2 else straight
         p.resetJointStatesMultiDof(
             b,
             self._joints,
@@ -287,8 +280,13 @@ class PybulletChain(Backend):
             targetVelocities=[[0, 0, 0]] * n,
             physicsClientId=c,
         )
-        self._set_dynamics(SETTLE_DAMPING)
         rest = self._gripper_poses
+        # segment 0 starts at the left gripper (resetBase places the centre of mass)
+        centre = rest[0, :3] + quat_rotate(rest[0, 3:], np.array([self.model.seg_length / 2, 0, 0]))
+        p.resetBasePositionAndOrientation(
+            b, centre.tolist(), _xyzw(rest[0, 3:]).tolist(), physicsClientId=c
+        )
+        self._set_dynamics(SETTLE_DAMPING)
         for _ in range(round(SETTLE_TIME / self.control_dt)):
             if not self._advance(rest, rest):
                 raise SimulationDiverged(f"pybullet: the rest shape of {self.rod} diverged")
@@ -304,51 +302,22 @@ class PybulletChain(Backend):
         self._set_physics_state(self._rest_state)
 
     def _substep_targets(self, start: np.ndarray, end: np.ndarray) -> _Targets:
-        """Gripper motion over one control period, sampled at the physics steps.
+        """Gripper poses at the end of every physics step of one control period.
 
         Positions move linearly and orientations spin at the constant world angular velocity
         that :func:`integrate_gripper_poses` applied (``end = exp(w T) start``).
         """
-        n, T = self._n_sub, self.control_dt
-        frac = np.arange(1, n + 1)[:, None] / n  # ends of the physics steps
-        # left gripper = base: pose and twist at the start of the period
-        omega = _spin(start[0, 3:], end[0, 3:]) / T  # rad/s, world frame
-        w, x, y, z = start[0, 3:]
-        lever = (
-            0.5
-            * self.model.seg_length
-            * np.array(  # half a segment along its x axis
-                [1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)]
-            )
-        )
-        com_vel = (end[0, :3] - start[0, :3]) / T + np.cross(omega, lever)
-        com = start[0, :3] + lever + (frac - 1.0 / n) * T * com_vel  # at each step's start
-        # cancel gravity and PyBullet's velocity damping on the heavy base, so that it keeps
-        # the gripper's twist (the chain's reaction on it is ~1e-4 of its weight)
-        d = self._air_damping
-        speed, spin_rate = float(np.linalg.norm(com_vel)), float(np.linalg.norm(omega))
-        force = self._base_mass * (np.array([0.0, 0.0, GRAVITY]) + d * (1 + speed) * com_vel)
-        torque = self._base_inertia * d * (1 + spin_rate) * omega
-        # right gripper: target pose at the end of every physics step
-        rotvec = _spin(start[1, 3:], end[1, 3:])
-        angle = float(np.linalg.norm(rotvec))
-        axis = rotvec / angle if angle > 1e-15 else np.zeros(3)
-        half = 0.5 * angle * frac
-        spins = np.hstack([np.cos(half), np.sin(half) * axis])  # (n,4) w x y z
-        hold_quats = spins @ _right_product(start[1, 3:]).T
-        hold_pos = start[1, :3] + frac * (end[1, :3] - start[1, :3])
-        return _Targets(
-            base_pose=(
-                com[0].tolist(),
-                _xyzw(start[0, 3:]).tolist(),
-                com_vel.tolist(),
-                omega.tolist(),
-            ),
-            base_com=com.tolist(),
-            base_wrench=(force.tolist(), torque.tolist()),
-            hold_pos=hold_pos.tolist(),
-            hold_orn=_xyzw(hold_quats).tolist(),
-        )
+        frac = np.arange(1, self._n_sub + 1)[:, None] / self._n_sub  # ends of the physics steps
+        positions, orientations = [], []
+        for g in range(len(self._holds)):
+            rotvec = _spin(start[g, 3:], end[g, 3:])
+            angle = float(np.linalg.norm(rotvec))
+            axis = rotvec / angle if angle > 1e-15 else np.zeros(3)
+            half = 0.5 * angle * frac
+            spins = np.hstack([np.cos(half), np.sin(half) * axis])  # (n,4) w x y z
+            orientations.append(_xyzw(spins @ _right_product(start[g, 3:]).T).tolist())
+            positions.append((start[g, :3] + frac * (end[g, :3] - start[g, :3])).tolist())
+        return _Targets(hold_pos=positions, hold_orn=orientations)
 
     def _spring_torques(self, states: list) -> list[tuple[float, float, float]] | None:
         """Joint torques (N m, child frame) from PyBullet's multi-DoF joint states.
@@ -370,14 +339,8 @@ class PybulletChain(Backend):
         return torques
 
     def _advance(self, start: np.ndarray, end: np.ndarray) -> bool:
-        c, b, joints, hold = self._client, self._body, self._joints, self._hold
+        c, b, joints = self._client, self._body, self._joints
         targets = self._substep_targets(start, end)
-        force, torque = targets.base_wrench
-        # the heavy, compensated base keeps this twist through the period (drift ~1e-6 m),
-        # so it is set once per control step instead of every physics step
-        com, orn, vel, omega = targets.base_pose
-        p.resetBasePositionAndOrientation(b, com, orn, physicsClientId=c)
-        p.resetBaseVelocity(b, vel, omega, physicsClientId=c)
         self._frames = None
         for i in range(self._n_sub):
             tau = self._spring_torques(p.getJointStatesMultiDof(b, joints, physicsClientId=c))
@@ -386,15 +349,11 @@ class PybulletChain(Backend):
             p.setJointMotorControlMultiDofArray(
                 b, joints, p.TORQUE_CONTROL, forces=tau, physicsClientId=c
             )
-            p.applyExternalForce(
-                b, -1, force, targets.base_com[i], p.WORLD_FRAME, physicsClientId=c
-            )
-            p.applyExternalTorque(b, -1, torque, p.WORLD_FRAME, physicsClientId=c)
-            if hold >= 0:
+            for g, hold in enumerate(self._holds):
                 p.changeConstraint(
                     hold,
-                    targets.hold_pos[i],
-                    jointChildFrameOrientation=targets.hold_orn[i],
+                    targets.hold_pos[g][i],
+                    jointChildFrameOrientation=targets.hold_orn[g][i],
                     maxForce=HOLD_FORCE,
                     physicsClientId=c,
                 )
@@ -412,15 +371,16 @@ class PybulletChain(Backend):
     # ----------------------------------------------------------------- state
     def _get_physics_state(self) -> np.ndarray:
         """[base pos 3, base quat xyzw 4, base lin vel 3, ang vel 3, joint quats 4n,
-        joint vels 3n, right-gripper constraint target (pos 3, quat xyzw 4)]."""
+        joint vels 3n, gripper constraint targets (pos 3, quat xyzw 4) left then right (zeros
+        for a free right end)]."""
         c, b = self._client, self._body
         pos, orn = p.getBasePositionAndOrientation(b, physicsClientId=c)
         lin, ang = p.getBaseVelocity(b, physicsClientId=c)
         states = p.getJointStatesMultiDof(b, self._joints, physicsClientId=c)
-        target = np.zeros(7)
-        if self._hold >= 0:
-            info = p.getConstraintInfo(self._hold, physicsClientId=c)
-            target = np.concatenate([info[7], info[9]])
+        targets = np.zeros((2, 7))
+        for g, hold in enumerate(self._holds):
+            info = p.getConstraintInfo(hold, physicsClientId=c)
+            targets[g] = np.concatenate([info[7], info[9]])
         return np.concatenate(
             [
                 pos,
@@ -429,7 +389,7 @@ class PybulletChain(Backend):
                 ang,
                 np.ravel([s[0] for s in states]),
                 np.ravel([s[1] for s in states]),
-                target,
+                targets.ravel(),
             ]
         ).astype(np.float64)
 
@@ -450,10 +410,10 @@ class PybulletChain(Backend):
             targetVelocities=vels.tolist(),
             physicsClientId=c,
         )
-        if self._hold >= 0:
-            target = state[13 + 7 * n : 20 + 7 * n]
+        for g, hold in enumerate(self._holds):
+            target = state[13 + 7 * n + 7 * g : 20 + 7 * n + 7 * g]
             p.changeConstraint(
-                self._hold,
+                hold,
                 target[:3].tolist(),
                 jointChildFrameOrientation=target[3:].tolist(),
                 maxForce=HOLD_FORCE,
