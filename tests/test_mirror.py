@@ -152,15 +152,37 @@ def test_mirror_is_an_involution_and_keeps_rewards_on_real_data(small_dataset_di
         np.testing.assert_array_equal(mapped[key], value, err_msg=key)
 
 
-def test_mirror_is_off_by_default_and_a_mirrored_fit_is_another_bench_job():
-    """(Off, it leaves the bench's fingerprints as they were before the field existed:
-    tests/test_bench.py::test_committed_paper_bench_jobs_resume_without_rerunning.)"""
+def test_mirror_is_on_by_default_and_runs_saved_before_it_resume_without_it(tmp_path):
+    """(Saved runs keep their fingerprints: tests/test_bench.py::
+    test_committed_paper_bench_jobs_resume_without_rerunning.)"""
+    import json
+
     from dlocli.bench.spec import BenchSpec, fingerprint
+    from dlocli.resume import saved_spec
 
     spec = BenchSpec()
-    assert spec.fit.mirror is False
-    mirrored = spec.model_copy(update={"fit": spec.fit.model_copy(update={"mirror": True})})
-    assert fingerprint(mirrored) != fingerprint(spec), "a mirrored fit is another job"
+    assert spec.fit.mirror is True
+    plain = spec.model_copy(update={"fit": spec.fit.model_copy(update={"mirror": False})})
+    assert fingerprint(plain) != fingerprint(spec), "a mirrored fit is another job"
+    old = spec.model_dump(mode="json")
+    del old["fit"]["mirror"]  # a bench saved before the field existed
+    old_train = {**spec.fit.model_dump(mode="json"), "data": "d"}
+    del old_train["mirror"]  # a train run: the fit fields at the top level
+    for name, data in (("bench.json", old), ("train.json", old_train)):
+        (tmp_path / name).write_text(json.dumps(data))
+    assert BenchSpec.model_validate(saved_spec(tmp_path / "bench.json")).fit.mirror is False
+    assert saved_spec(tmp_path / "train.json")["mirror"] is False
+
+
+def test_data_with_a_free_right_end_are_not_mirrored(small_dataset_dir):
+    """A cantilever's twin would have a free left end: no backend simulates that rod."""
+    from dlocli.models.training import mirror_applies
+
+    data = load_dataset(small_dataset_dir)
+    assert mirror_applies(data)
+    spec = {**data.attrs["spec"], "backend": {**data.attrs["spec"]["backend"], "held_ends": "left"}}
+    data.attrs = {**data.attrs, "spec": spec}
+    assert not mirror_applies(data)
 
 
 FIT = {"lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu", "epochs": 4}

@@ -97,11 +97,14 @@ class FitSpec(Spec):
     device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
     seed: int = Field(0, ge=0, description="Seed of initialisation, shuffling and noise.")
     mirror: bool = Field(
-        False,
+        True,
         description="Also train on every training transition's mirrored twin: the same motion "
         "with the other end of the rod acting (a half turn about the vertical axis, ends "
         "swapped; see dlocli/models/mirror.py). Teaches a model learned with one gripper what "
-        "the other one does; validation stays on the recorded data.",
+        "the other one does (it then controls two: examples/bimanual_transfer); validation "
+        "stays on the recorded data. Doubles an epoch's rows (the steps schedule: same cost). "
+        "Not applied to data whose right end is free (held_ends=left): its twin would be "
+        "another rod.",
     )
 
 

@@ -112,6 +112,7 @@ class _Setup:
     train: dict[str, torch.Tensor]
     val: dict[str, torch.Tensor]
     optimizer: torch.optim.Optimizer
+    mirror: bool  # whether the training rows include the mirrored twins
 
 
 def _set_up(
@@ -130,20 +131,29 @@ def _set_up(
     device = resolve_device(fit.device)
     model.to(device)
     train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction)
-    train = transition_tensors(dataset, train_eps, device, mirror=fit.mirror)
+    mirror = fit.mirror and mirror_applies(dataset)
+    train = transition_tensors(dataset, train_eps, device, mirror=mirror)
     val = transition_tensors(dataset, val_eps, device)  # the recorded data only
     if len(train["state"]) == 0:
         raise BadInput("the training split has no transitions; collect more episodes")
     if not bool(model.fitted):
         arrays = dataset.transitions(train_eps)
-        model.fit_normalization(with_mirrored(arrays) if fit.mirror else arrays)
+        model.fit_normalization(with_mirrored(arrays) if mirror else arrays)
     model.requires_grad_(True)  # a loaded model comes frozen for planning
     optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
     if optimizer_state:
         optimizer.load_state_dict(copy.deepcopy(optimizer_state))  # the caller's stays as is
         for group in optimizer.param_groups:
             group["lr"] = fit.lr
-    return _Setup(train_eps, val_eps, train, val, optimizer)
+    return _Setup(train_eps, val_eps, train, val, optimizer, mirror)
+
+
+def mirror_applies(dataset: Dataset) -> bool:
+    """Whether ``dataset``'s transitions have valid mirrored twins: both rod ends held (a free
+    right end's twin would be a rod with a free left end, which no backend simulates)."""
+    spec = dataset.attrs.get("spec")
+    backend = spec.get("backend") if isinstance(spec, dict) else None
+    return not (isinstance(backend, dict) and backend.get("held_ends") == "left")
 
 
 def _check_finite(loss: float, where: str, fit: FitSpec, kept: str) -> None:

@@ -66,7 +66,7 @@ def train_steps(
     gen = torch.Generator(device="cpu").manual_seed(fit.seed)
     val = _val_subset(setup.val, fit.val_transitions, gen)
     has_val = len(val["state"]) > 0
-    recent = recent_rows(dataset, setup.train_episodes, recent_episodes, fit.mirror)
+    recent = recent_rows(dataset, setup.train_episodes, recent_episodes, setup.mirror)
     is_recent = torch.zeros(n_train, dtype=torch.bool)
     is_recent[recent] = True
     result = TrainResult(train_episodes=setup.train_episodes, val_episodes=setup.val_episodes)
