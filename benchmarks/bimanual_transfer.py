@@ -1,7 +1,8 @@
 """Does a model learned with one gripper control two? (the paper's Fig. 5, issue 14)
 
     python benchmarks/bimanual_transfer.py --bench examples/bench_paper \
-        --online RUN/work/FP/mpc-s2/online --seed 2 [--epochs 10] [--json out.json]
+        --online RUN/work/FP/mpc-s2/online --seed 2 [--epochs 10] [--model mlp]
+        [--json out.json]
 
 Takes the data an ``mpc`` bench job collected online on the single-gripper task (its
 ``online/`` directory: the initial random data and every trial) and trains, on exactly that
@@ -11,7 +12,9 @@ other end acting; :mod:`dlocli.models.mirror`). Each, and the model the job itse
 online, then controls the rod with the bench's MPC on the bench's bimanual task (the seed's
 fixed goal, its evaluation starts: the same episodes as the job's ``bimanual`` row) and on
 the single-gripper task it learned on. Doing nothing and random actions on the same episodes
-are the references. Fresh models, not fine-tuned ones: a model's normalisation is fitted on
+are the references. ``--model mlp`` trains the structure-free baseline instead of the bench's
+model (the paper's argument for the Interaction Network is this kind of reuse; the online
+model is then left out). Fresh models, not fine-tuned ones: a model's normalisation is fitted on
 its first data, and single-gripper data give the left gripper's commands no spread.
 """
 
@@ -34,6 +37,7 @@ from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
 from dlocli.models.base import build_model, load_model
 from dlocli.models.training import train_model
+from dlocli.resume import saved_spec
 from dlocli.runs.online import TRAIN
 
 SETTINGS = [("bimanual", "fixed"), ("single", "fixed")]
@@ -93,23 +97,28 @@ def main() -> None:
     parser.add_argument("--online", type=Path, required=True, help="an mpc job's online/ dir")
     parser.add_argument("--seed", type=int, required=True, help="that job's seed")
     parser.add_argument("--epochs", type=int, default=None, help="default: the bench's fit")
+    parser.add_argument("--model", default=None, help="model name (default: the bench's)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    spec = BenchSpec.model_validate_json((args.bench / "spec.json").read_text())
+    spec = BenchSpec.model_validate(saved_spec(args.bench / "spec.json"))
+    if args.model is not None:
+        spec = spec.model_copy(update={"model": spec.model.model_copy(update={"name": args.model})})
     epochs = args.epochs or spec.fit.epochs
     data = online_data(args.online)
     print(f"{data.n_transitions} transitions ({data.n_episodes} episodes); {epochs} epochs")
     last = sorted((args.online / "checkpoints").glob("iter_*.pt"))[-1]
-    models = {
-        f"online ({last.stem})": load_model(last, torch.device("cpu")),
-        "fresh": trained(spec, data, args.seed, epochs, mirror=False),
-        "fresh + mirror": trained(spec, data, args.seed, epochs, mirror=True),
-    }
+    models = {}
+    if args.model is None:
+        models[f"online ({last.stem})"] = load_model(last, torch.device("cpu"))
+    name = spec.model.name
+    models[f"{name}, fresh"] = trained(spec, data, args.seed, epochs, mirror=False)
+    models[f"{name}, fresh + mirror"] = trained(spec, data, args.seed, epochs, mirror=True)
     rows = evaluate_all(spec, args.seed, models)
     if args.json is not None:
         args.json.write_text(json.dumps({"epochs": epochs, "transitions": data.n_transitions,
+                                         "model": spec.model.model_dump(mode="json"),
                                          "rows": rows}, indent=1))  # fmt: skip
 
 

@@ -240,3 +240,24 @@ def test_committed_paper_bench_jobs_resume_without_rerunning(tmp_path: Path):
     for path in jobs:
         agent, _, seed = path.stem.rpartition("-s")
         assert run.finished(agent, int(seed)) is not None, f"{path.name} would run again"
+
+
+def test_report_merges_runs_into_a_new_directory_labelling_shared_agents(tmp_path: Path):
+    """Fig. 5 from several runs: the same agent learned alike in two runs (e.g. mpc with and
+    without the mirror option) is two agents, each named after its run."""
+    committed = Path(__file__).parent.parent / "examples" / "bench_paper"
+    plain, mirrored, merged = tmp_path / "plain", tmp_path / "mirrored", tmp_path / "fig5"
+    for run in (plain, mirrored):
+        (run / "jobs").mkdir(parents=True)
+        shutil.copy(committed / "spec.json", run / "spec.json")
+    for job in committed.glob("jobs/*.json"):
+        if job.name.startswith(("zero", "mpc")):
+            shutil.copy(job, plain / "jobs")
+        if job.name.startswith("mpc"):
+            shutil.copy(job, mirrored / "jobs")
+    merged.mkdir()
+    bench("--report", str(merged), "--report", str(plain), "--report", str(mirrored))
+    agents = {row["agent"] for row in json.loads((merged / "summary.json").read_text())["table"]}
+    assert agents == {"zero", "mpc [plain]", "mpc [mirrored]"}
+    assert (merged / "plots" / "fig5_bimanual.png").is_file()
+    assert not (merged / "results.csv").exists()  # the sources keep theirs

@@ -311,7 +311,10 @@ def draw_figures(rows: list[Row], plots: Path) -> list[Path]:
             )
         )
     final = final_rows(rows)
-    bimanual = [r for r in final if r["eval_task"] == "bimanual"]
+    # the goal mode each agent learned (random goals after a fixed one are Fig. 6's)
+    bimanual = [
+        r for r in final if r["eval_task"] == "bimanual" and r["eval_goals"] == r["train_goals"]
+    ]
     if bimanual:
         mixed = len({r["eval_goals"] for r in bimanual}) > 1
 

@@ -260,7 +260,12 @@ def resume_bench(
 def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
     """Redraw figures and table of one run (or several, merged into the first): a run's
     results.csv is first rewritten from its finished job files, so a run still in progress
-    (or one whose jobs ran in several processes) reports everything finished so far."""
+    (or one whose jobs ran in several processes) reports everything finished so far.
+
+    The first directory may be a new, empty one that only receives the merged report (e.g.
+    Fig. 5 from a single-gripper run and a bimanual one). Where two runs hold the same agent
+    learned on the same task and goals (say ``mpc`` with and without ``fit.mirror``), each
+    is labelled with its run directory's name: ``mpc [bench_paper_mirror]``."""
     from dlocli.bench.report import draw_figures, read_results_csv, summary_table, write_summary
 
     if not run_dirs:
@@ -268,8 +273,31 @@ def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
     for run in run_dirs:
         if (Path(run) / "spec.json").is_file() and (Path(run) / "jobs").is_dir():
             BenchRun(load_bench_spec(Path(run))).write_results_csv_from_jobs()
-    rows = [row for run in run_dirs for row in read_results_csv(Path(run) / "results.csv")]
     out = Path(run_dirs[0])
+    sources = run_dirs[:1] if (out / "results.csv").is_file() or len(run_dirs) == 1 else []
+    sources += run_dirs[1:]
+    if not out.is_dir():
+        raise BadInput(f"--report {out}: not a directory; create it or pass a run directory")
+    rows = _label_shared_agents({Path(r): read_results_csv(Path(r) / "results.csv")
+                                 for r in sources})  # fmt: skip
     table = summary_table(rows)
     figures = draw_figures(rows, out / "plots")
-    return write_summary(out, table, figures, {"runs": [str(r) for r in run_dirs]})
+    return write_summary(out, table, figures, {"runs": [str(r) for r in sources]})
+
+
+def _label_shared_agents(rows_by_run: dict[Path, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """All rows, an agent's name suffixed with its run's where several runs hold it learned
+    on the same task and goals (they are different agents: different specs)."""
+
+    def key(row: dict[str, Any]) -> tuple:
+        return row["agent"], row["train_task"], row["train_goals"]
+
+    runs_of: dict[tuple, set[Path]] = {}
+    for run, rows in rows_by_run.items():
+        for row in rows:
+            runs_of.setdefault(key(row), set()).add(run)
+    return [
+        {**row, "agent": f"{row['agent']} [{run.name}]"} if len(runs_of[key(row)]) > 1 else row
+        for run, rows in rows_by_run.items()
+        for row in rows
+    ]
