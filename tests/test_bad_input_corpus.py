@@ -338,9 +338,11 @@ def test_locked_run_directory_is_refused_naming_the_holder(world, tmp_path, caps
         assert holder.stdout.readline().strip() == b"locked"
         before = _snapshot(run)
         capsys.readouterr()
+        model = str(world["train"] / "checkpoints" / "final.pt")
         for argv in (
             ["collect", "--episodes", "1", "--steps", "2", "--out", str(run), "--overwrite"],
             ["collect", "--resume", str(run)],
+            ["eval", "--checkpoint", model, "--data", str(run), "--out", str(run), "--overwrite"],
         ):
             assert _run_main(argv) == 2
             err = capsys.readouterr().err

@@ -135,6 +135,7 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
     from dlocli.errors import BadInput
     from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
     from dlocli.models.base import load_model
+    from dlocli.rundir import owned
 
     if spec.checkpoint is None or spec.data is None:
         raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
@@ -149,13 +150,20 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
             f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "
             f"{dataset.n_segments}; evaluate on matching data"
         )
-    out = prepare_run_dir(spec.out, overwrite) if spec.out is not None else None
+    if spec.out is None:
+        return _evaluation_summary(spec, net, dataset)
+    with owned(spec.out):  # one writer per run directory
+        out = prepare_run_dir(spec.out, overwrite)
+        summary = _evaluation_summary(spec, net, dataset)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+def _evaluation_summary(spec: Any, net: Any, dataset: Any) -> dict[str, Any]:
     summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
     summary.update(evaluate_model(net, dataset, max_starts=spec.max_starts))
     if spec.plot is not None:
         plot_rollout(net, dataset, 0, spec.plot)
         summary["plot"] = str(spec.plot)
-    if out is not None:
-        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-        write_json_atomic(out / "summary.json", summary)
     return summary
