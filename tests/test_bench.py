@@ -229,11 +229,12 @@ def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
         check_spec(mismatched)
 
 
-def test_committed_paper_bench_jobs_resume_without_rerunning(tmp_path: Path):
-    """examples/bench_paper's job files hold under today's code: a resume keeps them."""
+@pytest.mark.parametrize("example", ["bench_paper", "bench_bimanual"])
+def test_committed_paper_bench_jobs_resume_without_rerunning(example: str):
+    """The committed bench runs' job files hold under today's code: a resume keeps them."""
     from dlocli.bench.run import BenchRun, load_bench_spec
 
-    source = Path(__file__).parent.parent / "examples" / "bench_paper"
+    source = Path(__file__).parent.parent / "examples" / example
     run = BenchRun(load_bench_spec(source))
     jobs = sorted((source / "jobs").glob("*.json"))
     assert jobs
