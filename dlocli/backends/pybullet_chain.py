@@ -170,7 +170,6 @@ class PybulletChain(Backend):
     # ----------------------------------------------------------------- construction
     def _build(self) -> None:
         c = self._client
-        self._holds = []
         p.resetSimulation(physicsClientId=c)
         p.setGravity(0, 0, -GRAVITY, physicsClientId=c)
         p.setTimeStep(self._dt, physicsClientId=c)
@@ -242,7 +241,6 @@ class PybulletChain(Backend):
             p.changeDynamics(
                 b, link, linearDamping=air_damping, angularDamping=air_damping, physicsClientId=c
             )
-        self._air_damping = air_damping
 
     def _arc_joint_state(self) -> np.ndarray:
         """Joint quaternions (x,y,z,w) of a slack vertical-plane arc with level end segments.
