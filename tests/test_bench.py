@@ -229,7 +229,7 @@ def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
         check_spec(mismatched)
 
 
-@pytest.mark.parametrize("example", ["bench_paper", "bench_bimanual"])
+@pytest.mark.parametrize("example", ["bench_paper", "bench_bimanual", "bench_paper_mirror"])
 def test_committed_paper_bench_jobs_resume_without_rerunning(example: str):
     """The committed bench runs' job files hold under today's code: a resume keeps them."""
     from dlocli.bench.run import BenchRun, load_bench_spec
