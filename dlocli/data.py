@@ -28,6 +28,7 @@ Read it with :func:`load_dataset`; the state of a segment used by the models is
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from dlocli.errors import BadInput
-from dlocli.io import atomic_path
+from dlocli.io import write_bytes_atomic
 
 FORMAT = "dlocli-dataset"
 FORMAT_VERSION = 1
@@ -188,8 +189,8 @@ class Dataset:
         """Write atomically (temp file, then rename): a crash leaves the old file or none."""
         import h5py
 
-        path = Path(path)
-        with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        image = io.BytesIO()  # HDF5 writes into memory; the disk sees one Python write
+        with h5py.File(image, "w") as f:
             f.attrs["format"] = FORMAT
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["n_segments"] = self.n_segments
@@ -197,6 +198,8 @@ class Dataset:
                 f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
             for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged"):
                 f.create_dataset(name, data=getattr(self, name))
+        path = Path(path)
+        write_bytes_atomic(path, image.getvalue())
         return path
 
 

@@ -40,6 +40,23 @@ def _umask() -> int:
     return mask
 
 
+def write_bytes_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` atomically with plain Python I/O.
+
+    Libraries that write files themselves (HDF5, torch's zip writer) serialise into memory
+    first and land here, so a full disk is one clean ``OSError`` (ENOSPC) rather than a
+    native library failing mid-file (HDF5's close then segfaults)."""
+    try:
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())  # ENOSPC on delayed allocation surfaces here, not after rename
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file we wrote
+
+
 def write_text_atomic(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

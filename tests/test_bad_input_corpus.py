@@ -454,3 +454,46 @@ def test_a_stop_swallowed_by_a_destructor_stops_at_the_next_step():
     )
     assert proc.stdout.split("\n")[:2] == ["swallowed", "stopped at the next step"], proc.stderr
     assert "Exception ignored" in proc.stderr  # the stop really was swallowed first
+
+
+def _refuse_big_files(limit: int) -> None:
+    """A subprocess's file-size limit: any write past ``limit`` bytes fails with EFBIG, as a
+    full disk fails with ENOSPC (SIGXFSZ ignored, so the write returns the error). Unlike a
+    small tmpfs it needs no root, so the test runs everywhere."""
+    resource = pytest.importorskip("resource")
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGXFSZ"), reason="POSIX file-size limits")
+@pytest.mark.parametrize(
+    "command",
+    [
+        # each episode file (~17 kB) fits, the assembled dataset does not
+        ["collect", "--episodes", "4", "--steps", "20", "--shapes", "near-rest"],
+        # the metrics fit, the checkpoint does not
+        ["train", "--epochs", "1", "--hidden", "8", "--data", "{data}"],
+    ],
+    ids=["collect", "train"],
+)
+def test_a_full_disk_ends_in_one_line_and_resumes(world, tmp_path, command):
+    # HDF5 and torch once wrote straight to the failing disk: tracebacks, then a segfault
+    run = tmp_path / "run"
+    argv = [a.format(data=world["data"]) for a in command]
+    cmd = [sys.executable, "-m", "dlocli", *argv, "--out", str(run), "--json"]
+    proc = subprocess.run(
+        cmd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=lambda: _refuse_big_files(24_000),
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: File too large"), lines
+    assert not list(run.rglob("*.tmp")), "a partial file was left behind"
+    assert not (run / "dataset.h5").exists() and not (run / "checkpoints" / "final.pt").exists()
+    if command[0] == "collect":  # the finished episodes are kept; resume assembles the dataset
+        assert _run_main(["collect", "--resume", str(run), "--json"]) == 0
+        assert (run / "dataset.h5").is_file()

@@ -21,6 +21,7 @@ quaternions. Build one with :func:`build_model`, load a trained one with :func:`
 
 from __future__ import annotations
 
+import io
 import pickle
 import zipfile
 from abc import ABC, abstractmethod
@@ -34,7 +35,7 @@ from torch import Tensor
 
 from dlocli.backends.rotations import state_change
 from dlocli.errors import BadInput
-from dlocli.io import atomic_path, versions
+from dlocli.io import versions, write_bytes_atomic
 from dlocli.models.spec import ModelSpec, with_legacy_fields
 from dlocli.specs import format_validation_error
 
@@ -266,9 +267,10 @@ def save_checkpoint(model: DynamicsModel, path: Path, extra: dict[str, Any] | No
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "versions": versions(),
     }
+    image = io.BytesIO()  # serialise in memory: a full disk is then one clean OSError
+    torch.save(payload, image)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    write_bytes_atomic(path, image.getvalue())
     return path
 
 
