@@ -16,7 +16,7 @@ from rich.progress import Progress
 from rich.table import Table
 
 from dlocli.errors import DloError
-from dlocli.processes import Terminated, stop_handled
+from dlocli.processes import Terminated, raise_if_stopped, stop_handled
 
 F = TypeVar("F", bound=Callable[..., Any])
 console = Console(stderr=True)
@@ -53,7 +53,9 @@ def handle_errors(fn: F) -> F:
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            return fn(*args, **kwargs)
+            result = fn(*args, **kwargs)
+            raise_if_stopped()  # a Ctrl-C a library swallowed still ends in exit 130
+            return result
         except DloError as exc:
             print_error(str(exc))
             raise typer.Exit(exc.exit_code) from None

@@ -47,6 +47,7 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.shape_env import DLOShapeEnv, observation_space
 from dlocli.env.tasks import make_task
 from dlocli.errors import BadInput
+from dlocli.processes import raise_if_stopped
 from dlocli.specs import TASK_LEGACY_VALUES, BackendSpec, EnvSpec, TaskSpec, format_validation_error
 
 #: how to install the optional Minari dependency
@@ -257,6 +258,7 @@ def _buffers(
 
     buffers, kept = [], []
     for e in range(data.n_episodes):
+        raise_if_stopped()
         episode = data.episode(e)
         if len(episode) == 0 or (skip_diverged and episode.diverged):
             continue
