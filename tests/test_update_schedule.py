@@ -78,8 +78,11 @@ def test_early_stopping_stops_and_restores_the_best_weights(data):
     model = fresh(data)
     before = weights(model)
     fit = FitSpec(**{**STEPS, "lr": 1e-12}, update_steps=50, eval_every=2, patience=3)
-    result = train_steps(model, data, fit)
+    events: list[dict] = []
+    result = train_steps(model, data, fit, progress=events.append)
     assert result.steps == 6 < fit.update_steps
+    # the progress bar ends full, at the steps taken, saying why
+    assert events[-1]["epoch"] == events[-1]["epochs"] == 6 and events[-1]["stopped_early"]
     assert [r["step"] for r in result.history] == [2, 4, 6]
     assert result.best_step == 0
     for a, b in zip(before, weights(model), strict=True):

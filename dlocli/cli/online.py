@@ -95,10 +95,12 @@ class _progress:
             self.bars.update(self._bar("iteration", info["total"]), completed=info["iteration"],
                              info="")  # fmt: skip
         elif event == "epoch" and "batch" not in info:
+            early = "stopped early, best " if info.get("stopped_early") else ""
             self.bars.update(
                 self._bar("epoch", info.get("epochs")),
+                total=info.get("epochs"),
                 completed=info["epoch"],
-                info=f"val loss {info.get('val_loss', float('nan')):.4f}",
+                info=f"{early}val loss {info.get('val_loss', float('nan')):.4f}",
             )
         elif event == "trial":
             self.bars.update(

@@ -102,6 +102,9 @@ def train_steps(
         elif has_val:
             stale += 1
             if fit.patience and stale >= fit.patience:
+                if progress is not None:  # the bar ends full, at the steps taken
+                    progress({"epoch": step, "epochs": step, "val_loss": best["val_loss"],
+                              "unit": "step", "stopped_early": True})  # fmt: skip
                 break
     if has_val and best["step"] != step:
         model.load_state_dict(best["model"])
