@@ -254,11 +254,15 @@ def test_report_merges_runs_into_a_new_directory_labelling_shared_agents(tmp_pat
     for job in committed.glob("jobs/*.json"):
         if job.name.startswith(("zero", "mpc")):
             shutil.copy(job, plain / "jobs")
-        if job.name.startswith("mpc"):
+        if job.name.startswith(("zero-s0", "mpc")):
             shutil.copy(job, mirrored / "jobs")
     merged.mkdir()
     bench("--report", str(merged), "--report", str(plain), "--report", str(mirrored))
-    agents = {row["agent"] for row in json.loads((merged / "summary.json").read_text())["table"]}
+    table = json.loads((merged / "summary.json").read_text())["table"]
+    agents = {row["agent"] for row in table}
+    # the do-nothing reference is one agent, its seed 0 (in both runs) counted once
     assert agents == {"zero", "mpc [plain]", "mpc [mirrored]"}
+    zero = [row for row in table if row["agent"] == "zero"]
+    assert zero and all(row["seeds"] == 3 for row in zero)  # 4 if seed 0 counted twice
     assert (merged / "plots" / "fig5_bimanual.png").is_file()
     assert not (merged / "results.csv").exists()  # the sources keep theirs

@@ -29,6 +29,7 @@ import numpy as np
 
 from dlocli.bench.spec import eval_points, mpc_points, mpc_schedule
 from dlocli.env.rollout import episode_scores, stream_seed
+from dlocli.errors import UnknownName
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
 from dlocli.tensorboard import TENSORBOARD_DIR
 
@@ -100,6 +101,15 @@ def learner_class(name: str) -> type[BenchLearner]:
     return OnlineMPCLearner if name == ONLINE_PLANNER else FixedLearner
 
 
+def is_reference(name: str) -> bool:
+    """Whether the agent ``name`` learns nothing (zero, random): a reference whose results
+    do not depend on the run's learning settings. False for names no longer registered."""
+    try:
+        return learner_class(name) is FixedLearner
+    except UnknownName:
+        return False
+
+
 def agent_names() -> list[str]:
     """Every registered controller the bench can run, and ``mpc-offline``."""
     from dlocli.controllers.base import LearningAgent
@@ -116,8 +126,6 @@ def agent_names() -> list[str]:
 def check_agent(name: str) -> None:
     """UnknownName listing the bench's agents if ``name`` is not one of them."""
     import difflib
-
-    from dlocli.errors import UnknownName
 
     names = agent_names()
     if name not in names:

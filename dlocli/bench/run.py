@@ -43,7 +43,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from dlocli.bench.agents import agent_names, check_agent
+from dlocli.bench.agents import agent_names, check_agent, is_reference
 from dlocli.bench.jobs import Job
 from dlocli.bench.spec import (
     FREE_FIELDS,
@@ -265,7 +265,8 @@ def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
     The first directory may be a new, empty one that only receives the merged report (e.g.
     Fig. 5 from a single-gripper run and a bimanual one). Where two runs hold the same agent
     learned on the same task and goals (say ``mpc`` with and without ``fit.mirror``), each
-    is labelled with its run directory's name: ``mpc [bench_paper_mirror]``."""
+    is labelled with its run directory's name: ``mpc [bench_paper_mirror]``; the references
+    (``zero``, ``random``) keep their names, a seed's evaluation counted once."""
     from dlocli.bench.report import draw_figures, read_results_csv, summary_table, write_summary
 
     if not run_dirs:
@@ -287,7 +288,9 @@ def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
 
 def _label_shared_agents(rows_by_run: dict[Path, list[dict[str, Any]]]) -> list[dict[str, Any]]:
     """All rows, an agent's name suffixed with its run's where several runs hold it learned
-    on the same task and goals (they are different agents: different specs)."""
+    on the same task and goals (they are different agents: different specs). A reference
+    that learns nothing is the same measurement in every run: it keeps its name, and an
+    evaluation two runs share (same seed, setting and point) is counted once."""
 
     def key(row: dict[str, Any]) -> tuple:
         return row["agent"], row["train_task"], row["train_goals"]
@@ -296,8 +299,19 @@ def _label_shared_agents(rows_by_run: dict[Path, list[dict[str, Any]]]) -> list[
     for run, rows in rows_by_run.items():
         for row in rows:
             runs_of.setdefault(key(row), set()).add(run)
-    return [
-        {**row, "agent": f"{row['agent']} [{run.name}]"} if len(runs_of[key(row)]) > 1 else row
-        for run, rows in rows_by_run.items()
-        for row in rows
-    ]
+    merged, seen = [], set()
+    for run, rows in rows_by_run.items():
+        for row in rows:
+            if len(runs_of[key(row)]) == 1:
+                merged.append(row)
+            elif not is_reference(row["agent"]):
+                merged.append({**row, "agent": f"{row['agent']} [{run.name}]"})
+            elif (evaluation := _evaluation_key(row)) not in seen:
+                seen.add(evaluation)
+                merged.append(row)
+    return merged
+
+
+def _evaluation_key(row: dict[str, Any]) -> tuple:
+    return tuple(row[k] for k in ("agent", "seed", "train_task", "train_goals", "eval_task",
+                                  "eval_goals", "transitions"))  # fmt: skip
