@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.bench.agents import is_reference
 from dlocli.errors import BadInput
 from dlocli.io import write_json_atomic, write_text_atomic
 from dlocli.plots import figure, save_figure, shaded_curve
@@ -258,22 +259,26 @@ def plot_curves(
 
 
 def plot_bars(bars: dict[str, dict[str, list[float]]], path: Path, title: str) -> Path:
-    """Grouped bars: ``bars[agent][series]`` = per-seed rewards; mean with std error bars."""
-    fig, ax = figure()
+    """Grouped bars: ``bars[agent][series]`` = per-seed rewards; mean with std error bars.
+    Each agent's group holds only its own series, centred on its tick."""
+    fig, ax = figure(figsize=(max(6.4, 1.9 * len(bars)), 4.0))
     series = sorted({s for by_series in bars.values() for s in by_series})
-    width = 0.8 / len(series)
-    for i, name in enumerate(series):
-        xs = [a for a, agent in enumerate(bars) if name in bars[agent]]
-        values = [bars[agent][name] for agent in bars if name in bars[agent]]
-        ax.bar(
-            np.array(xs) + (i - (len(series) - 1) / 2) * width,
-            [np.mean(v) for v in values],
-            width,
-            yerr=[np.std(v) for v in values],
-            capsize=3,
-            label=name,
-        )
-    ax.set_xticks(range(len(bars)), list(bars))
+    colours = {name: f"C{i}" for i, name in enumerate(series)}
+    width = 0.8 / max(len(by_series) for by_series in bars.values())
+    for a, by_series in enumerate(bars.values()):
+        for i, name in enumerate(sorted(by_series)):
+            values = by_series[name]
+            ax.bar(
+                a + (i - (len(by_series) - 1) / 2) * width,
+                np.mean(values),
+                width,
+                yerr=np.std(values),
+                capsize=3,
+                color=colours[name],
+            )
+    for name in series:  # one legend entry per series
+        ax.bar(0, 0, 0, color=colours[name], label=name)
+    ax.set_xticks(range(len(bars)), [a.replace(" [", "\n[") for a in bars], fontsize="small")
     ax.set_ylabel("final cumulative reward per episode")
     ax.set_title(title)
     ax.grid(alpha=0.3, axis="y")
@@ -281,9 +286,22 @@ def plot_bars(bars: dict[str, dict[str, list[float]]], path: Path, title: str) -
     return save_figure(fig, path)
 
 
-def _bars(rows: list[Row], series_of: Any) -> dict[str, dict[str, list[float]]]:
-    bars: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+def _references_once(rows: list[Row]) -> list[Row]:
+    """``rows`` with each reference's (zero, random) evaluation of a seed once: a run
+    learning on either task evaluates them alike on the bimanual one."""
+    seen, kept = set(), []
     for row in rows:
+        key = (row["agent"], row["seed"], row["eval_goals"])
+        if not is_reference(row["agent"]) or key not in seen:
+            seen.add(key)
+            kept.append(row)
+    return kept
+
+
+def _bars(rows: list[Row], series_of: Any) -> dict[str, dict[str, list[float]]]:
+    """``bars[agent][series]``, the agents in the tables' order (references first)."""
+    bars: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for row in sorted(rows, key=_rank):
         bars[row["agent"]][series_of(row)].append(row["cumulative_reward"])
     return {agent: dict(by_series) for agent, by_series in bars.items()}
 
@@ -320,11 +338,16 @@ def draw_figures(rows: list[Row], plots: Path) -> list[Path]:
 
         def learned_on(r: Row) -> str:
             goals = f", evaluated on {GOALS[r['eval_goals']]}" if mixed else ""
-            return f"learned on {r['train_task']}{goals}"
+            learned = (
+                "does not learn" if is_reference(r["agent"]) else f"learned on {r['train_task']}"
+            )
+            return learned + goals
 
         figures.append(
             plot_bars(
-                _bars(bimanual, learned_on), Path(plots) / "fig5_bimanual.png", "Bimanual task"
+                _bars(_references_once(bimanual), learned_on),
+                Path(plots) / "fig5_bimanual.png",
+                "Bimanual task",
             )
         )
     transfer = [
