@@ -2,7 +2,7 @@
 
     python benchmarks/bimanual_transfer.py --bench examples/bench_paper \
         --online RUN/work/FP/mpc-s2/online --seed 2 [--epochs 10] [--model mlp]
-        [--json out.json]
+        [--online-only] [--tasks bimanual,single] [--goals fixed,random] [--json out.json]
 
 Takes the data an ``mpc`` bench job collected online on the single-gripper task (its
 ``online/`` directory: the initial random data and every trial) and trains, on exactly that
@@ -16,6 +16,10 @@ are the references. ``--model mlp`` trains the structure-free baseline instead o
 model (the paper's argument for the Interaction Network is this kind of reuse; the online
 model is then left out). Fresh models, not fine-tuned ones: a model's normalisation is fitted on
 its first data, and single-gripper data give the left gripper's commands no spread.
+
+``--online-only`` evaluates just the job's own final model (no training: minutes, not
+hours); ``--goals fixed,random`` adds the seed's random-goal evaluation episodes, where no
+agent has trained around the goal (the bench's bimanual row has the fixed goal only).
 """
 
 from __future__ import annotations
@@ -40,8 +44,6 @@ from dlocli.models.training import train_model
 from dlocli.resume import saved_spec
 from dlocli.runs.online import TRAIN
 
-SETTINGS = [("bimanual", "fixed"), ("single", "fixed")]
-
 
 def online_data(online: Path) -> Dataset:
     """The initial data then every trial of an online run directory, in order."""
@@ -64,11 +66,13 @@ def trained(spec: BenchSpec, data: Dataset, seed: int, epochs: int, mirror: bool
     return model
 
 
-def evaluate_all(spec: BenchSpec, seed: int, models: dict[str, Any]) -> list[dict[str, Any]]:
-    """Every model (through the bench's MPC) and the references, on every setting."""
+def evaluate_all(
+    spec: BenchSpec, seed: int, models: dict[str, Any], settings: list[tuple[str, str]]
+) -> list[dict[str, Any]]:
+    """Every model (through the bench's MPC) and the references, on every (task, goals)."""
     rows = []
     controller_seed = stream_seed(seed, EVAL_CONTROLLER)
-    for task, goals in SETTINGS:
+    for task, goals in settings:
         env = make_bench_env(spec, task, goals, seed)
         try:
             controllers = {
@@ -78,10 +82,10 @@ def evaluate_all(spec: BenchSpec, seed: int, models: dict[str, Any]) -> list[dic
             for reference in ("zero", "random"):
                 controllers[reference] = make_controller(reference, env, seed=controller_seed)
             for name, controller in controllers.items():
-                row = {"model": name, "eval_task": task, "seed": seed}
+                row = {"model": name, "eval_task": task, "eval_goals": goals, "seed": seed}
                 row.update(evaluate(controller, env, spec, seed))
                 rows.append(row)
-                print(f"  {task:8} {name:22} {row['initial_error_mm']:6.1f} -> "
+                print(f"  {task:8} {goals:6} {name:22} {row['initial_error_mm']:6.1f} -> "
                       f"{row['final_error_mm']:6.1f} mm  score {row['score']:+.2f} "
                       f"(std {row['score_std']:.2f})", flush=True)  # fmt: skip
         finally:
@@ -98,6 +102,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, required=True, help="that job's seed")
     parser.add_argument("--epochs", type=int, default=None, help="default: the bench's fit")
     parser.add_argument("--model", default=None, help="model name (default: the bench's)")
+    parser.add_argument("--online-only", action="store_true", help="no fresh models")
+    parser.add_argument("--tasks", default="bimanual,single", help="evaluation tasks")
+    parser.add_argument("--goals", default="fixed", help="fixed and/or random")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
     args = parser.parse_args()
@@ -112,14 +119,20 @@ def main() -> None:
     models = {}
     if args.model is None:
         models[f"online ({last.stem})"] = load_model(last, torch.device("cpu"))
-    name = spec.model.name
-    models[f"{name}, fresh"] = trained(spec, data, args.seed, epochs, mirror=False)
-    models[f"{name}, fresh + mirror"] = trained(spec, data, args.seed, epochs, mirror=True)
-    rows = evaluate_all(spec, args.seed, models)
+    if not args.online_only:
+        name = spec.model.name
+        models[f"{name}, fresh"] = trained(spec, data, args.seed, epochs, mirror=False)
+        models[f"{name}, fresh + mirror"] = trained(spec, data, args.seed, epochs, mirror=True)
+    settings = [(t, g) for t in split(args.tasks) for g in split(args.goals)]
+    rows = evaluate_all(spec, args.seed, models, settings)
     if args.json is not None:
         args.json.write_text(json.dumps({"epochs": epochs, "transitions": data.n_transitions,
                                          "model": spec.model.model_dump(mode="json"),
                                          "rows": rows}, indent=1))  # fmt: skip
+
+
+def split(names: str) -> list[str]:
+    return [n.strip() for n in names.split(",") if n.strip()]
 
 
 if __name__ == "__main__":
