@@ -497,3 +497,33 @@ def test_a_full_disk_ends_in_one_line_and_resumes(world, tmp_path, command):
     if command[0] == "collect":  # the finished episodes are kept; resume assembles the dataset
         assert _run_main(["collect", "--resume", str(run), "--json"]) == 0
         assert (run / "dataset.h5").is_file()
+
+
+SWALLOWED_AT_THE_END = """
+import os, signal, typer
+from dlocli.cli.common import handle_errors
+from dlocli.processes import handle_stop_signals
+handle_stop_signals()
+class Destructor:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(100000):
+            pass
+@handle_errors
+def command():
+    d = Destructor()
+    del d  # the stop lands here and is swallowed; the command then returns normally
+    return "finished"
+try:
+    print(command(), flush=True)
+except typer.Exit as exc:
+    print("exit", exc.exit_code, flush=True)
+"""
+
+
+def test_a_stop_swallowed_in_a_command_that_then_returns_exits_130():
+    proc = subprocess.run(
+        [sys.executable, "-c", SWALLOWED_AT_THE_END], capture_output=True, text=True, timeout=120
+    )
+    assert "Exception ignored" in proc.stderr  # the stop really was swallowed
+    assert proc.stdout.strip() == "exit 130", proc.stdout + proc.stderr
