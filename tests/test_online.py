@@ -172,3 +172,23 @@ def test_resume_bad_input(tmp_path, uninterrupted):
     assert sorted(p.name for p in out.rglob("*")) == before
     res = runner.invoke(app, ["online", "--resume", str(tmp_path)])
     assert res.exit_code == 2 and "not an online run" in res.output
+
+
+@pytest.mark.parametrize("schedule", ["epochs", "steps"])
+def test_offline_comparison_runs_beside_the_online_loop(tmp_path, schedule):
+    """Paper Fig. 7 (`--offline`): after each iteration a fresh model on as many random
+    transitions, trained as long as the online one, runs the same trials."""
+    out = tmp_path / "run"
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(f"fit: {{schedule: {schedule}, update_steps: 4, eval_every: 2}}\n")
+    res = runner.invoke(app, ["online", *TINY, "--offline", "--spec", str(spec), "--out",
+                              str(out), "--json"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "summary.json").read_text())
+    online, offline = summary["curve"], summary["offline_curve"]
+    assert [c["transitions"] for c in offline] == [c["transitions"] for c in online]
+    for k in (1, 2):
+        assert (out / "checkpoints" / f"offline_{k:02d}.pt").is_file()
+        random = load_dataset(out / "offline" / f"random_{k:02d}.h5")
+        assert random.n_transitions >= online[k - 1]["transitions"] - 2 * 15  # as much data
+    assert (out / "plots" / "learning_curve.png").is_file()

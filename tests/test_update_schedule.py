@@ -22,7 +22,7 @@ from dlocli.models.training import (
     transition_tensors,
     validation_loss,
 )
-from dlocli.models.update_steps import recent_rows, sample_batch, train_steps
+from dlocli.models.update_steps import recent_rows, sample_batch, train_like_online, train_steps
 
 runner = CliRunner()
 STEPS = {"schedule": "steps", "lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu"}
@@ -212,3 +212,16 @@ def test_online_steps_schedule_resumes_exactly(tmp_path):
         return [[row[i] for i in keep] for row in rows]
 
     assert results((out / "metrics.csv").read_text()) == results(metrics)
+
+
+@pytest.mark.parametrize("schedule", ["epochs", "steps"])
+def test_offline_model_trains_as_long_as_the_online_one(data, schedule):
+    """Fig. 7's offline model after k updates: E·k epochs, or update_steps·k steps (the
+    steps schedule keeps the offline comparison's cost bounded too)."""
+    fit = FitSpec(**{**STEPS, "schedule": schedule}, epochs=2, update_steps=6, eval_every=3,
+                  patience=0)  # fmt: skip
+    result = train_like_online(fresh(data), data, fit, updates=3)
+    if schedule == "steps":
+        assert result.steps == 18 and [r["step"] for r in result.history][-1] == 18
+    else:
+        assert [r["epoch"] for r in result.history] == [1, 2, 3, 4, 5, 6]

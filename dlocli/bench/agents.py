@@ -15,7 +15,8 @@ each of them (:meth:`BenchLearner.learn_to`) and hands out a controller for an e
   dataset, then iterations of noisy MPC trials, each followed by a model update; it is
   evaluated with the model trained on all data so far (noise-free MPC).
 - ``mpc-offline``: at each of ``mpc``'s points, a model trained from scratch on as many random
-  transitions, as many epochs as the online model had (paper Fig. 7).
+  transitions, trained as long as the online model had (its epochs, or its gradient steps
+  under the steps schedule; paper Fig. 7).
 """
 
 from __future__ import annotations
@@ -274,20 +275,15 @@ class OfflineMPCLearner(MPCLearner):
         import torch
 
         from dlocli.models.base import build_model, resolve_device
-        from dlocli.models.training import train_model
+        from dlocli.models.update_steps import train_like_online
 
         k = self.points().index(transitions)
         data = self._random_data(transitions)
         torch.manual_seed(stream_seed(self.seed, TRAIN, 0))  # as the online model's first update
         device = resolve_device(self.spec.fit.device)
         model = build_model(self.spec.model, data.n_segments).to(device)
-        fit = self.spec.fit.model_copy(
-            update={
-                "epochs": self.spec.fit.epochs * (k + 1),  # the online model's passes so far
-                "seed": stream_seed(self.seed, TRAIN, 1) % 2**31,
-            }
-        )
-        train_model(model, data, fit)
+        fit = self.spec.fit.model_copy(update={"seed": stream_seed(self.seed, TRAIN, 1) % 2**31})
+        train_like_online(model, data, fit, k + 1)  # the online model's updates so far
         self._model = model
         self.transitions = data.n_transitions
 

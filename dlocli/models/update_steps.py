@@ -26,6 +26,7 @@ from dlocli.models.training import (
     _check_finite,
     _gradient_step,
     _set_up,
+    train_model,
     validation_loss,
 )
 
@@ -161,3 +162,21 @@ def _snapshot(model: DynamicsModel, optimizer: torch.optim.Optimizer) -> dict[st
         "model": copy.deepcopy(model.state_dict()),
         "optimizer": copy.deepcopy(optimizer.state_dict()),
     }
+
+
+def train_like_online(
+    model: DynamicsModel,
+    dataset: Dataset,
+    fit: FitSpec,
+    updates: int,
+    progress: Progress | None = None,
+) -> TrainResult:
+    """Train a fresh ``model`` on all of ``dataset`` as long as the online loop's model had
+    trained after ``updates`` updates under ``fit.schedule`` (paper Fig. 7's offline model):
+    E·updates epochs ("epochs"), or update_steps·updates steps with nothing weighted ("steps",
+    so the offline comparison stays affordable where the paper's schedule is not)."""
+    if fit.schedule == "steps":
+        fit = fit.model_copy(update={"update_steps": fit.update_steps * updates})
+        return train_steps(model, dataset, fit, progress=progress)
+    fit = fit.model_copy(update={"epochs": fit.epochs * updates})
+    return train_model(model, dataset, fit, progress=progress)

@@ -77,7 +77,9 @@ class OnlineSpec(EnvSpec):
     offline: bool = Field(
         False,
         description="Also train a model offline on as many random transitions as D holds "
-        "after each iteration and evaluate it with the same trials (paper Fig. 7).",
+        "after each iteration, from scratch and as long as the online model had trained "
+        "(epochs or steps, per fit.schedule), and evaluate it with the same trials "
+        "(paper Fig. 7).",
     )
     out: Path = Field(Path("runs/online"), description="Run directory.")
 
@@ -349,7 +351,7 @@ class OnlineRun:
         import torch
 
         from dlocli.models.base import build_model, resolve_device, save_checkpoint
-        from dlocli.models.training import train_model
+        from dlocli.models.update_steps import train_like_online
 
         ckpt = self.paths.checkpoint(k, offline=True)
         if not ckpt.is_file():
@@ -358,14 +360,14 @@ class OnlineRun:
             model = build_model(self.spec.model, data.n_segments).to(
                 resolve_device(self.spec.fit.device)
             )
-            epochs = self.spec.fit.epochs * k  # as many passes as the online model had
             fit = self.spec.fit.model_copy(
-                update={"epochs": epochs, "seed": stream_seed(self.spec.seed, OFFLINE, k) % 2**31}
+                update={"seed": stream_seed(self.spec.seed, OFFLINE, k) % 2**31}
             )
-            train_model(
+            train_like_online(  # as long as the online model had trained by iteration k
                 model,
                 data,
                 fit,
+                k,
                 progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
             )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1})
