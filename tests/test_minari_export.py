@@ -187,3 +187,21 @@ def test_bimanual_with_a_non_default_rod_is_recovered(tmp_path, minari_root):
         assert env.action_space == dataset.action_space
     finally:
         env.close()
+
+
+def test_a_disk_too_small_is_refused_before_writing(collected, minari_root, monkeypatch):
+    """HDF5 (Minari's writer) crashes the process on a full disk (a segfault after a dozen
+    tracebacks, measured), so the export checks the free space first. The file system is
+    shrunk by reporting it so: a real full disk needs root to make."""
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    real = shutil.disk_usage
+    minari_root.mkdir(parents=True)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(*real(p)[:2], 100_000))
+    res = run("export", str(collected))
+    assert res.exit_code == 1
+    line = _one_error_line(res)
+    assert "No space left on device" in line and "MB are free" in line, line
+    assert not any(minari_root.iterdir())  # no dataset, no staging directory left

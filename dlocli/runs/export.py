@@ -30,6 +30,7 @@ one, and a failed export leaves nothing behind.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
 import shutil
 import tempfile
@@ -320,6 +321,7 @@ def export_minari(
                 f"dataset {source} has no episode to export (all diverged or empty); "
                 "re-collect it" + ("" if not skip_diverged else " or drop --skip-diverged")
             )
+        _check_free_space(root, buffers)
         from dlocli import __version__
 
         metadata = {
@@ -363,6 +365,22 @@ def export_minari(
         "action_dim": int(env.action_space.shape[0]),
         "source": str(source),
     }
+
+
+def _check_free_space(root: Path, buffers: list[Any]) -> None:
+    """OSError (ENOSPC) before any writing when ``root``'s file system cannot hold the
+    export: Minari writes through HDF5, which crashes the process on a full disk."""
+    fields = ("observations", "actions", "rewards", "terminations", "truncations")
+    arrays = sum(np.asarray(getattr(b, f)).nbytes for b in buffers for f in fields)
+    need = int(arrays * 1.25) + 2**20  # HDF5's own structures, Minari's metadata
+    free = shutil.disk_usage(root).free
+    if free < need:
+        raise OSError(
+            errno.ENOSPC,
+            f"No space left on device (the export needs about {need / 1e6:.0f} MB, "
+            f"{free / 1e6:.0f} MB are free)",
+            str(root),
+        )
 
 
 def _description(spec: EnvSpec, source: Path) -> str:
