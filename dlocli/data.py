@@ -199,7 +199,7 @@ class Dataset:
             for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged"):
                 f.create_dataset(name, data=getattr(self, name))
         path = Path(path)
-        write_bytes_atomic(path, image.getvalue())
+        write_bytes_atomic(path, image.getbuffer())  # a view: no second copy
         return path
 
 

@@ -40,7 +40,7 @@ def _umask() -> int:
     return mask
 
 
-def write_bytes_atomic(path: Path, data: bytes) -> None:
+def write_bytes_atomic(path: Path, data: bytes | memoryview) -> None:
     """Write ``data`` atomically with plain Python I/O.
 
     Libraries that write files themselves (HDF5, torch's zip writer) serialise into memory

@@ -270,7 +270,7 @@ def save_checkpoint(model: DynamicsModel, path: Path, extra: dict[str, Any] | No
     image = io.BytesIO()  # serialise in memory: a full disk is then one clean OSError
     torch.save(payload, image)
     path = Path(path)
-    write_bytes_atomic(path, image.getvalue())
+    write_bytes_atomic(path, image.getbuffer())  # a view: no second copy
     return path
 
 
