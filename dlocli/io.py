@@ -58,8 +58,7 @@ def write_bytes_atomic(path: Path, data: bytes | memoryview) -> None:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
+    write_bytes_atomic(path, text.encode("utf-8"))  # durable, a full disk names the file
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
