@@ -65,6 +65,11 @@ def write_json_atomic(path: Path, data: Any) -> None:
     write_text_atomic(path, json.dumps(data, indent=2, default=str) + "\n")
 
 
+def read_json(path: Path) -> Any:
+    """The JSON value in ``path`` (one that :func:`write_json_atomic` wrote)."""
+    return json.loads(Path(path).read_text())
+
+
 def prepare_run_dir(out: Path, overwrite: bool) -> Path:
     """Create the run directory; refuse an existing non-empty one unless ``overwrite``.
 

@@ -31,6 +31,7 @@ import numpy as np
 from dlocli.bench.spec import eval_points, mpc_points, mpc_schedule
 from dlocli.env.rollout import episode_scores, stream_seed
 from dlocli.errors import UnknownName
+from dlocli.io import read_json, write_json_atomic
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
 from dlocli.tensorboard import TENSORBOARD_DIR
 
@@ -166,6 +167,16 @@ class BenchLearner(ABC):
         """Save the final policy for `dlo control --policy`; False if it has none to save."""
         return False
 
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        """Write what :meth:`load_state` needs to continue learning exactly from here into
+        ``slot`` (and, growing, into ``shared``: :mod:`dlocli.bench.checkpoint`); False if
+        it cannot now (the default: the job then restarts if stopped)."""
+        return False
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        """Continue from :meth:`save_state`'s files (on a freshly built learner)."""
+        raise NotImplementedError(f"{self.name} cannot resume mid-job")
+
     def close(self) -> None:  # noqa: B027 (optional hook)
         """Release the training env, if any."""
 
@@ -175,6 +186,13 @@ class FixedLearner(BenchLearner):
 
     def learn_to(self, transitions: int) -> None:
         self.transitions = transitions  # learns nothing: a flat line at the schedule's points
+
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        write_json_atomic(slot / "learner.json", {"transitions": self.transitions})
+        return True
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        self.transitions = read_json(slot / "learner.json")["transitions"]
 
     def controller(self, env: DLOShapeEnv) -> Controller:
         from dlocli.controllers.base import make_controller
@@ -208,6 +226,13 @@ class AgentLearner(BenchLearner):
 
     def save_policy(self, directory: Path) -> bool:
         return self.agent.save_policy(directory)
+
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        return self.agent.save_state(slot, shared)
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        self.agent.load_state(slot, shared)
+        self.transitions = self.agent.transitions
 
     def close(self) -> None:
         self.env.close()
@@ -251,6 +276,16 @@ class OnlineMPCLearner(MPCLearner):
             self.updates += 1
         self.transitions = self.run.dataset_until(self.updates - 1).n_transitions
 
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        # the online run keeps its own record in work/online; this says how far it counts
+        state = {"updates": self.updates, "transitions": self.transitions}
+        write_json_atomic(slot / "learner.json", state)
+        return True
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        state = read_json(slot / "learner.json")
+        self.updates, self.transitions = state["updates"], state["transitions"]
+
     def model(self) -> DynamicsModel:
         from dlocli.models.base import load_model
 
@@ -286,6 +321,15 @@ class OfflineMPCLearner(MPCLearner):
         train_like_online(model, data, fit, k + 1)  # the online model's updates so far
         self._model = model
         self.transitions = data.n_transitions
+
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        # each point trains a fresh model, and its random episodes are seeded one by one:
+        # continuing needs only the count (the data is made again on the next point)
+        write_json_atomic(slot / "learner.json", {"transitions": self.transitions})
+        return True
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        self.transitions = read_json(slot / "learner.json")["transitions"]
 
     def _random_data(self, transitions: int) -> Dataset:
         """Random episodes (those of ``mpc``'s initial dataset first) up to ``transitions``."""

@@ -14,12 +14,15 @@ from typing import Any
 import numpy as np
 
 from dlocli.bench.agents import learner_class, make_bench_env
+from dlocli.bench.checkpoint import JobCheckpoint, Progress
 from dlocli.bench.spec import BenchSpec, fingerprint, resolved_options
 from dlocli.env.rollout import episode_scores, rollout, stream_seed
 from dlocli.io import versions
 from dlocli.tensorboard import Scalars
 
 EVAL = 5  # seed stream of evaluation starts
+#: the directory of a job's mid-job checkpoints, in its work directory
+RESUME_DIR = "resume"
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -95,9 +98,15 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
     start = time.perf_counter()
     try:
         with _workdir(scratch) as work:
-            # a scratch directory is the job's own directory in the run: its policy stays
+            # a scratch directory is the job's own directory in the run: its policy stays,
+            # and a stopped job continues there from its last evaluation point
             policy = work / "policy" if scratch is not None else None
-            rows, saved = _learn_and_evaluate(spec, agent, seed, work, policy)
+            checkpoint = None
+            if scratch is not None:
+                checkpoint = JobCheckpoint(work / RESUME_DIR, fingerprint(spec, agent))
+            progress, saved = _learn_and_evaluate(spec, agent, seed, work, policy, checkpoint)
+            if checkpoint is not None:
+                checkpoint.remove()
     finally:
         torch.set_num_threads(threads)
     return {
@@ -105,7 +114,8 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
         "seed": seed,
         "fingerprint": fingerprint(spec, agent),
         "options": resolved_options(spec, agent),
-        "rows": rows,
+        "rows": progress.rows,
+        "resumed_at": progress.resumed_at,
         "policy": str(policy) if saved else None,
         "seconds": round(time.perf_counter() - start, 1),
         "versions": versions(),
@@ -113,34 +123,39 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
 
 
 def _learn_and_evaluate(
-    spec: BenchSpec, agent: str, seed: int, work: Path, policy: Path | None
-) -> tuple[list[dict], bool]:
-    """The job's evaluation rows, and whether its final policy was saved in ``policy``."""
+    spec: BenchSpec,
+    agent: str,
+    seed: int,
+    work: Path,
+    policy: Path | None,
+    checkpoint: JobCheckpoint | None = None,
+) -> tuple[Progress, bool]:
+    """The job's evaluation rows (in its final Progress), and whether its final policy was
+    saved in ``policy``; with ``checkpoint``, continued from the last one and checkpointed
+    after every point."""
     learner = learner_class(agent)(agent, spec, seed, work)
     envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
-    rows, wall, trained = [], 0.0, 0
+    progress = Progress(-1, [], 0.0, 0)
+    if checkpoint is not None:
+        progress = _continue(checkpoint, learner) or progress
+    rows, wall, trained = progress.rows, progress.wall, progress.trained
     scalars = Scalars(work)
     try:
-        for index, point in enumerate(learner.points()):
+        points = learner.points()
+        for index, point in enumerate(points):
+            if index <= progress.index:
+                continue
             start = time.perf_counter()
             learner.learn_to(point)
             wall += time.perf_counter() - start
-            returns = learner.training_returns()
-            point_row = {
-                "agent": agent,
-                "seed": seed,
-                "train_task": spec.task.name,
-                "train_goals": spec.task.goal,
-                "eval": index,
-                "transitions": learner.transitions,
-                "wall_seconds": round(wall, 3),
-                "train_reward": float(np.mean(returns[trained:])) if returns[trained:] else None,
-                "train_episodes": len(returns) - trained,
-            }
-            trained = len(returns)
+            point_row = _point_row(spec, learner, index, wall, trained)
+            trained += point_row["train_episodes"]
             for setting, env in envs.items():
                 rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
             _log_point(scalars, rows, learner.transitions)
+            progress = Progress(index, rows, wall, trained, progress.resumed_at)
+            if checkpoint is not None and index < len(points) - 1:
+                checkpoint.save(learner, progress)
         for setting in final_settings(spec):
             env = make_bench_env(spec, *setting, seed)
             try:
@@ -153,7 +168,35 @@ def _learn_and_evaluate(
             env.close()
         learner.close()
         scalars.close()
-    return rows, saved
+    return Progress(progress.index, rows, wall, trained, progress.resumed_at), saved
+
+
+def _point_row(
+    spec: BenchSpec, learner: Any, index: int, wall: float, trained: int
+) -> dict[str, Any]:
+    """The columns shared by the evaluations of point ``index``: what the agent learned from
+    (its training episodes after the first ``trained``) and how long it took."""
+    returns = learner.training_returns()[trained:]
+    return {
+        "agent": learner.name,
+        "seed": learner.seed,
+        "train_task": spec.task.name,
+        "train_goals": spec.task.goal,
+        "eval": index,
+        "transitions": learner.transitions,
+        "wall_seconds": round(wall, 3),
+        "train_reward": float(np.mean(returns)) if returns else None,
+        "train_episodes": len(returns),
+    }
+
+
+def _continue(checkpoint: JobCheckpoint, learner: Any) -> Progress | None:
+    """``learner`` and the generators at the job's last checkpoint; None (and no stale
+    checkpoint files left) where the job starts from the beginning."""
+    progress = checkpoint.restore(learner)
+    if progress is None:
+        checkpoint.remove()  # another fingerprint's or versions' files: not this job's
+    return progress
 
 
 def _log_point(scalars: Scalars, rows: list[dict[str, Any]], transitions: int) -> None:

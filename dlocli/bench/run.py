@@ -44,7 +44,8 @@ from pathlib import Path
 from typing import Any
 
 from dlocli.bench.agents import agent_names, check_agent, is_reference
-from dlocli.bench.jobs import Job
+from dlocli.bench.checkpoint import JobCheckpoint
+from dlocli.bench.jobs import RESUME_DIR, Job
 from dlocli.bench.spec import (
     FREE_FIELDS,
     BenchSpec,
@@ -144,6 +145,16 @@ class BenchRun:
             if self.finished(agent, seed) is None
         ]
 
+    def checkpointed(self, job: Job) -> int | None:
+        """The transitions a stopped job continues from (:mod:`dlocli.bench.checkpoint`)."""
+        if job.scratch is None:
+            return None
+        checkpoint = JobCheckpoint(
+            Path(job.scratch) / RESUME_DIR, fingerprint(self.spec, job.agent)
+        )
+        found = checkpoint.latest()
+        return found[1].rows[-1]["transitions"] if found and found[1].rows else None
+
     def run(self, executor: Any) -> dict[str, Any]:
         """Run the missing jobs on ``executor`` (:mod:`dlocli.bench.executors`), saving each
         as it finishes; then write the results."""
@@ -152,7 +163,8 @@ class BenchRun:
         with ExitStack() as locks:
             for job in todo:  # processes resuming one bench must run disjoint jobs
                 locks.enter_context(owned(self.out / "work" / "locks" / job.name))
-            self.progress("start", {"total": total, "todo": len(todo)})
+            continuing = {job.name: at for job in todo if (at := self.checkpointed(job))}
+            self.progress("start", {"total": total, "todo": len(todo), "continuing": continuing})
             failed = self._run_jobs(executor, todo)
         summary = self.write_results()
         if failed:

@@ -114,6 +114,16 @@ class LearningAgent(Controller):
             f"controller '{self.name}' cannot load a saved policy; it runs inside `dlo bench` only"
         )
 
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        """Write everything needed to continue learning exactly as if never stopped into
+        ``slot`` (growing parts into ``shared``, see :mod:`dlocli.bench.checkpoint`), between
+        episodes; False if this agent cannot (the default) or is inside an episode."""
+        return False
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        """Continue from :meth:`save_state`'s files, on an agent built like the saved one."""
+        raise NotImplementedError(f"controller '{self.name}' cannot resume learning")
+
 
 def controller_spec(name: str, options: dict[str, Any] | None = None) -> Spec | None:
     """Validate ``options`` against the registered controller's ``spec_cls`` (BadInput if wrong)."""

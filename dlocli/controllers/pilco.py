@@ -30,8 +30,10 @@ library, so that it carries no extra dependency and is tested against Monte Carl
 
 from __future__ import annotations
 
+import io
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,6 +48,7 @@ from dlocli.controllers.pilco_math import (
     expected_return_cost,
 )
 from dlocli.controllers.sb3_agents import resolve_agent_spec
+from dlocli.io import write_bytes_atomic
 from dlocli.specs import Spec
 
 
@@ -192,6 +195,32 @@ class PilcoAgent(LearningAgent):
         self._inputs.append(np.concatenate([state, action]))
         self._targets.append(next_state - state)
         self._stale = True
+
+    # ------------------------------------------------------------------ checkpoints
+    #: what learning has gathered and decided so far; the rest is per episode or per act()
+    LEARNED = ("transitions", "rng", "policy", "history", "_inputs", "_targets", "_starts",
+               "_episodes", "_stale")  # fmt: skip
+
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        """Between episodes: the data, the policy and every generator (the env's too)."""
+        if self._obs is not None:
+            return False
+        state = {name: getattr(self, name) for name in self.LEARNED}
+        state["generator"] = self.generator.get_state()
+        state["env_generator"] = self.env.generator_state()
+        state["episode_returns"] = list(self.env.episode_returns)
+        image = io.BytesIO()
+        torch.save(state, image)
+        write_bytes_atomic(Path(slot) / "learner.pt", image.getbuffer())
+        return True
+
+    def load_state(self, slot: Path, shared: Path) -> None:
+        """Continue from :meth:`save_state` (a pickle: load only your own runs)."""
+        state = torch.load(Path(slot) / "learner.pt", weights_only=False)
+        for name in self.LEARNED:
+            setattr(self, name, state[name])
+        self.generator.set_state(state["generator"])
+        self.env.restore_generator(state["env_generator"], state["episode_returns"])
 
     # ------------------------------------------------------------------ PILCO update
     def update(self, goal: np.ndarray) -> PilcoUpdate:

@@ -32,7 +32,9 @@ count is the caller's choice; on a busy 2-core CPU one thread learns several tim
 
 from __future__ import annotations
 
+import io
 import json
+import pickle
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
@@ -41,6 +43,7 @@ from pydantic import BeforeValidator, Field, ValidationError
 
 from dlocli.controllers.base import LearningAgent
 from dlocli.errors import BadInput
+from dlocli.io import write_bytes_atomic
 from dlocli.specs import Spec, format_validation_error
 
 SpecT = TypeVar("SpecT", bound=Spec)
@@ -258,9 +261,10 @@ class SB3Agent(LearningAgent):
         write_json_atomic(directory / "agent.json", meta)
         return True
 
-    def load_policy(self, directory: Path) -> None:
+    def load_policy(self, directory: Path, force_reset: bool = True) -> None:
         """Act with a policy :meth:`save_policy` wrote (SB3's zip holds pickled parts: load
-        only policies you trust, such as your own bench's)."""
+        only policies you trust, such as your own bench's); ``force_reset=False`` keeps the
+        saved next observation, to continue learning in the saved episode."""
         directory = Path(directory)
         meta = self._saved_meta(directory)
         for key, space in (("observation_shape", self.env.observation_space),
@@ -272,7 +276,10 @@ class SB3Agent(LearningAgent):
                     "and observation settings as its bench"
                 )
         self.model = self._algorithm_class().load(
-            directory / "model.zip", env=self.model.get_env(), device=self.spec.device
+            directory / "model.zip",
+            env=self.model.get_env(),
+            device=self.spec.device,
+            force_reset=force_reset,
         )
         self.transitions = int(meta["transitions"])
 
@@ -298,15 +305,85 @@ class SB3Agent(LearningAgent):
             )
         return meta
 
-    def save(self, directory: Path) -> None:
-        """:meth:`save_policy` plus ``replay_buffer.pkl``: everything to continue learning."""
-        self.save_policy(directory)
-        self.model.save_replay_buffer(Path(directory) / "replay_buffer.pkl")
+    def save_state(self, slot: Path, shared: Path) -> bool:
+        """Between episodes: the policy (SB3's zip holds networks, optimizers, counters and the
+        first observation of the next episode), the replay buffer's new rows as a chunk in
+        ``shared``, and the generators of the action space and of the env's next episodes."""
+        buffer = self.model.replay_buffer
+        episode_starts = getattr(self.model, "_last_episode_starts", None)
+        if buffer is None or buffer.full or episode_starts is None or not episode_starts.all():
+            return False  # inside an episode, or a wrapped buffer: not worth a full copy
+        self.save_policy(slot)
+        save_buffer_rows(buffer, Path(shared) / REPLAY_DIR)
+        state = {
+            "buffer_rows": int(buffer.pos),
+            "action_space": self.model.action_space.np_random.bit_generator.state,
+            # SB3 has already reset the env for the next episode: continue from that reset
+            "env_generator": self.env.reset_generator_state,
+            "episode_returns": list(self.env.episode_returns),
+        }
+        write_bytes_atomic(Path(slot) / "learner.pkl", pickle.dumps(state))
+        return True
 
-    def load(self, directory: Path) -> None:
-        """Resume from :meth:`save` output (SB3 formats: load only your own run directories)."""
-        self.load_policy(directory)
-        self.model.load_replay_buffer(Path(directory) / "replay_buffer.pkl")
+    def load_state(self, slot: Path, shared: Path) -> None:
+        """Continue from :meth:`save_state` (SB3 zips are pickles: your own runs only)."""
+        self.load_policy(slot, force_reset=False)
+        with open(Path(slot) / "learner.pkl", "rb") as f:
+            state = pickle.load(f)
+        load_buffer_rows(self.model.replay_buffer, Path(shared) / REPLAY_DIR, state["buffer_rows"])
+        self.model.action_space.np_random.bit_generator.state = state["action_space"]
+        self.env.restore_generator(state["env_generator"], state["episode_returns"])
+        monitor = self.model.get_env().envs[0]
+        obs, _ = monitor.reset()  # the same reset again: its monitor and env start the episode
+        if not np.array_equal(obs, self.model._last_obs[0]):
+            raise RuntimeError("resumed env does not reproduce the saved episode start")
+
+
+#: where a replay buffer's chunks live in a checkpoint's shared directory
+REPLAY_DIR = "replay"
+#: the rows of an SB3 replay buffer (``next_observations`` is absent when memory is optimised)
+BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+def _chunks(directory: Path) -> list[tuple[int, int, Path]]:
+    """(first row, end row, file) of every chunk in ``directory``, by first row."""
+    found = []
+    for path in directory.glob("rows-*.npz"):
+        first, _, end = path.stem[len("rows-") :].partition("-")
+        if first.isdigit() and end.isdigit():
+            found.append((int(first), int(end), path))
+    return sorted(found)
+
+
+def save_buffer_rows(buffer: Any, directory: Path) -> None:
+    """Write the rows of ``buffer`` that no chunk in ``directory`` holds yet as one chunk."""
+    directory.mkdir(parents=True, exist_ok=True)
+    written = max((end for first, end, _ in _chunks(directory) if end <= buffer.pos), default=0)
+    if written >= buffer.pos:
+        return
+    rows = slice(written, buffer.pos)
+    arrays = {name: getattr(buffer, name)[rows] for name in BUFFER_FIELDS if hasattr(buffer, name)}
+    image = io.BytesIO()
+    np.savez(image, **arrays)
+    write_bytes_atomic(directory / f"rows-{written}-{buffer.pos}.npz", image.getbuffer())
+
+
+def load_buffer_rows(buffer: Any, directory: Path, rows: int) -> None:
+    """Fill a fresh ``buffer`` with its first ``rows`` rows from the chunks in ``directory``."""
+    filled = 0
+    for first, end, path in _chunks(directory):
+        if first != filled or end > rows:
+            continue  # a chunk of a later, unfinished checkpoint
+        with np.load(path) as chunk:
+            for name in chunk.files:
+                getattr(buffer, name)[first:end] = chunk[name]
+        filled = end
+    if filled != rows:
+        raise RuntimeError(f"replay buffer chunks in {directory} hold {filled} of {rows} rows")
+    for _, end, path in _chunks(directory):
+        if end > rows:
+            path.unlink()  # written again from here on
+    buffer.pos, buffer.full = rows, False
 
 
 class SACAgent(SB3Agent):

@@ -224,6 +224,9 @@ class DLOShapeEnv(gym.Env):
         self.episode_returns: list[float] = []
         self._return = 0.0
         self._seeded = False
+        #: the episode generator's state as the last reset began: with ``restore_generator``
+        #: that reset can be made again (a learner resumed at an episode boundary)
+        self.reset_generator_state: dict[str, Any] | None = None
         self.goal = self._initial_goal(goal)
         self._scale = max_twist(self.task_spec)
         self._t = 0
@@ -283,6 +286,7 @@ class DLOShapeEnv(gym.Env):
             seed = self.seed_value  # make_env(seed=...) alone makes episodes reproducible
         self._seeded = True
         super().reset(seed=seed)
+        self.reset_generator_state = self.np_random.bit_generator.state
         if self.task_spec.goal == "random" and not self._goal_given:
             self.goal = self.sample_goal(self.np_random)
         self._random_shape(self.np_random, self.task_spec.reset_motion_steps)
@@ -306,6 +310,17 @@ class DLOShapeEnv(gym.Env):
         info = self._info(diverged=not ok)
         info["commands"] = commands
         return self._observation(), reward, False, truncated, info
+
+    def generator_state(self) -> dict[str, Any]:
+        """The episode generator's state now: what the next ``reset()`` draws from."""
+        return self.np_random.bit_generator.state
+
+    def restore_generator(self, state: dict[str, Any], episode_returns: list[float]) -> None:
+        """Continue a saved env: the next ``reset()`` (no seed) draws from ``state`` and
+        ``episode_returns`` holds the returns of the episodes run before."""
+        self._seeded = True
+        self.np_random.bit_generator.state = state
+        self.episode_returns = list(episode_returns)
 
     def _positions(self) -> np.ndarray:
         if self.backend.diverged and self._last_observation is not None:
