@@ -123,4 +123,5 @@ def test_bench_resume_says_which_jobs_continue(tmp_path: Path, monkeypatch: pyte
     res = runner.invoke(app, ["bench", "--resume", str(run), "--agents", "zero,sac"])
     assert res.exit_code == 0, res.output
     assert "sac-s0 continues from its checkpoint at 40 transitions" in res.output
+    assert "sac-s0: 60/60 transitions, fixed goal" in res.output  # a line per point
     assert json.loads((run / "jobs" / "sac-s0.json").read_text())["resumed_at"] == [40]

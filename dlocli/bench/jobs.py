@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -140,6 +141,7 @@ def _learn_and_evaluate(
         progress = _continue(checkpoint, learner) or progress
     rows, wall, trained = progress.rows, progress.wall, progress.trained
     scalars = Scalars(work)
+    clock = JobClock(f"{agent}-s{seed}", learner.transitions)
     try:
         points = learner.points()
         for index, point in enumerate(points):
@@ -150,12 +152,15 @@ def _learn_and_evaluate(
             wall += time.perf_counter() - start
             point_row = _point_row(spec, learner, index, wall, trained)
             trained += point_row["train_episodes"]
+            evaluated = []
             for setting, env in envs.items():
-                rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
-            _log_point(scalars, rows, learner.transitions)
+                evaluated += _evaluation_rows(spec, learner, env, setting, seed, point_row)
+            rows += evaluated
+            _log_point(scalars, evaluated, learner.transitions)
             progress = Progress(index, rows, wall, trained, progress.resumed_at)
             if checkpoint is not None and index < len(points) - 1:
                 checkpoint.save(learner, progress)
+            clock.report(learner.transitions, points[-1], evaluated)
         for setting in final_settings(spec):
             env = make_bench_env(spec, *setting, seed)
             try:
@@ -169,6 +174,34 @@ def _learn_and_evaluate(
         learner.close()
         scalars.close()
     return Progress(progress.index, rows, wall, trained, progress.resumed_at), saved
+
+
+class JobClock:
+    """One line on stderr per evaluation point of a job: how far it is, how good it is now,
+    and the time left at this job's pace since it (re)started. Workers share the terminal."""
+
+    def __init__(self, name: str, transitions: int) -> None:
+        self.name = name
+        self.start = time.perf_counter()
+        self.first = transitions
+
+    def report(self, done: int, budget: int, rows: list[dict[str, Any]]) -> None:
+        elapsed = time.perf_counter() - self.start
+        left = elapsed / max(done - self.first, 1) * (budget - done)
+        goals = {"fixed": "fixed goal", "random": "random goals"}
+        errors = "".join(
+            f", {goals[row['eval_goals']]} {row['final_error_mm']:.1f} mm" for row in rows
+        )
+        sys.stderr.write(
+            f"  {self.name}: {done:,}/{budget:,} transitions{errors}; "
+            f"{_clock(elapsed)} elapsed, about {_clock(left)} left\n"
+        )
+        sys.stderr.flush()
+
+
+def _clock(seconds: float) -> str:
+    minutes, secs = divmod(int(seconds), 60)
+    return f"{minutes // 60}:{minutes % 60:02d}:{secs:02d}"
 
 
 def _point_row(
