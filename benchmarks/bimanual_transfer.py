@@ -3,6 +3,7 @@
     python benchmarks/bimanual_transfer.py --bench examples/bench_paper \
         --online RUN/work/FP/mpc-s2/online --seed 2 [--epochs 10] [--model mlp]
         [--online-only] [--tasks bimanual,single] [--goals fixed,random] [--json out.json]
+        [--mpc curvature_every=1]
 
 Takes the data an ``mpc`` bench job collected online on the single-gripper task (its
 ``online/`` directory: the initial random data and every trial) and trains, on exactly that
@@ -20,6 +21,8 @@ its first data, and single-gripper data give the left gripper's commands no spre
 ``--online-only`` evaluates just the job's own final model (no training: minutes, not
 hours); ``--goals fixed,random`` adds the seed's random-goal evaluation episodes, where no
 agent has trained around the goal (the bench's bimanual row has the fixed goal only).
+``--mpc FIELD=VALUE`` (repeatable) evaluates with other MPC settings than the bench's, e.g.
+``curvature_every=1``: the Gauss-Newton Jacobian refreshed at every control step.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from dlocli.bench.agents import EVAL_CONTROLLER, make_bench_env
 from dlocli.bench.jobs import evaluate
 from dlocli.bench.spec import BenchSpec
 from dlocli.controllers.base import make_controller
-from dlocli.controllers.mpc import GradientMPC
+from dlocli.controllers.mpc import GradientMPC, MPCSpec
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
 from dlocli.models.base import build_model, load_model
@@ -107,9 +110,13 @@ def main() -> None:
     parser.add_argument("--goals", default="fixed", help="fixed and/or random")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
+    parser.add_argument("--mpc", action="append", default=[], help="FIELD=VALUE of the MPC")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     spec = BenchSpec.model_validate(saved_spec(args.bench / "spec.json"))
+    if args.mpc:
+        mpc = {**spec.mpc.model_dump(), **dict(field.split("=", 1) for field in args.mpc)}
+        spec = spec.model_copy(update={"mpc": MPCSpec.model_validate(mpc)})
     if args.model is not None:
         spec = spec.model_copy(update={"model": spec.model.model_copy(update={"name": args.model})})
     epochs = args.epochs or spec.fit.epochs
@@ -128,6 +135,7 @@ def main() -> None:
     if args.json is not None:
         args.json.write_text(json.dumps({"epochs": epochs, "transitions": data.n_transitions,
                                          "model": spec.model.model_dump(mode="json"),
+                                         "mpc": spec.mpc.model_dump(mode="json"),
                                          "rows": rows}, indent=1))  # fmt: skip
 
 
