@@ -11,6 +11,7 @@ import pytest
 
 from dlocli.bench import jobs
 from dlocli.bench.spec import BenchSpec
+from dlocli.tensorboard import available
 
 #: three points of one episode each, and tiny learners, so a job takes seconds
 SPEC: dict[str, Any] = {
@@ -69,6 +70,8 @@ def test_a_stopped_job_continues_from_its_last_point_exactly(
     spec = BenchSpec.model_validate(SPEC).model_dump_json()
     whole = jobs.run_job(spec, agent, 0, str(tmp_path / "whole"))
     assert not (tmp_path / "whole" / jobs.RESUME_DIR).exists()  # a finished job keeps none
+    if agent in ("sac", "td3") and available():  # one SB3 event file per job, not per point
+        assert len(list((tmp_path / "whole" / "tensorboard").glob("*_0/events.*"))) == 1
 
     points = len({row["transitions"] for row in whole["rows"]})
     per_point = sum(1 for row in whole["rows"] if row["eval"] == 0)

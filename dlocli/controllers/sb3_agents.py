@@ -187,6 +187,7 @@ class SB3Agent(LearningAgent):
         self.spec: SB3Spec = resolve_agent_spec(self.spec_cls, spec, spec_fields)
         self.episode_steps = int(env.task_spec.episode_steps)
         self.model = self._build_model()
+        self.log_directory: Path | None = None  # TensorBoard events of learning (log_to)
 
     # ------------------------------------------------------------------ construction
     def _algorithm_class(self) -> Any:
@@ -235,11 +236,19 @@ class SB3Agent(LearningAgent):
 
     def log_to(self, directory: Path) -> None:
         """SB3's own logger writes its training curves (losses, entropy, episode reward)
-        there as TensorBoard events, when TensorBoard is installed."""
+        there as TensorBoard events, when TensorBoard is installed: one logger for every
+        ``learn`` call (SB3 would open a new event file per call)."""
         from dlocli.tensorboard import available
 
         if available():
-            self.model.tensorboard_log = str(directory)
+            self.log_directory = Path(directory) / f"{self.algorithm}_0"
+            self._attach_logger()
+
+    def _attach_logger(self) -> None:
+        from stable_baselines3.common.logger import configure
+
+        if self.log_directory is not None:
+            self.model.set_logger(configure(str(self.log_directory), ["tensorboard"]))
 
     # ------------------------------------------------------------------ checkpoints
     def save_policy(self, directory: Path) -> bool:
@@ -281,6 +290,7 @@ class SB3Agent(LearningAgent):
             device=self.spec.device,
             force_reset=force_reset,
         )
+        self._attach_logger()
         self.transitions = int(meta["transitions"])
 
     def _saved_meta(self, directory: Path) -> dict[str, Any]:
