@@ -21,20 +21,9 @@ from dlocli.controllers.pilco_math import (
 from dlocli.errors import BadInput
 from dlocli.registry import controllers
 
+from tiny import TINY_AGENTS
+
 AGENTS = ["sac", "td3", "pilco"]
-#: tiny settings so each agent learns within seconds (the defaults are for real budgets)
-TINY: dict[str, dict[str, Any]] = {
-    "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
-    "td3": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
-    "pilco": {
-        "action_repeat": 2,
-        "horizon": 3,
-        "n_basis": 4,
-        "gp_iterations": 10,
-        "policy_iterations": 2,
-        "max_gp_points": 15,
-    },
-}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -61,7 +50,7 @@ def small_env() -> Any:
 
 def train(name: str, seed: int = 0) -> tuple[LearningAgent, Any]:
     env = small_env()
-    agent = controllers.get(name)(env, seed=seed, **TINY[name])
+    agent = controllers.get(name)(env, seed=seed, **TINY_AGENTS[name])
     agent.learn(25)  # cuts an episode: the next call carries on with it
     agent.learn(35)
     return agent, env
@@ -99,7 +88,7 @@ def test_agent_uses_exact_budget_and_acts_deterministically(name: str, probe_obs
 def test_agent_acts_on_the_bimanual_task(name: str):
     env = dlocli.make_env(backend="mujoco", task="bimanual", seed=0, episode_steps=20)
     obs, _ = env.reset()
-    agent = controllers.get(name)(env, seed=0, **TINY[name])
+    agent = controllers.get(name)(env, seed=0, **TINY_AGENTS[name])
     agent.reset(env.goal)
     action = agent.act(obs)
     assert action.shape == (12,) and np.all(np.abs(action) <= 1.0)
@@ -113,12 +102,14 @@ def test_pilco_updates_its_policy_within_the_budget(probe_obs: np.ndarray):
     assert np.any(agent.policy_action(probe_obs) != 0.0)
 
 
-def test_sb3_agent_save_load_roundtrip(tmp_path, probe_obs: np.ndarray):
+def test_sb3_agent_state_roundtrip(tmp_path, probe_obs: np.ndarray):
     agent, _ = trained("sac")
-    agent.save(tmp_path / "sac")
-    fresh = controllers.get("sac")(small_env(), seed=1, **TINY["sac"])
-    fresh.load(tmp_path / "sac")
-    assert fresh.transitions == 60
+    slot, shared = tmp_path / "slot", tmp_path / "shared"
+    slot.mkdir()
+    assert agent.save_state(slot, shared)
+    fresh = controllers.get("sac")(small_env(), seed=1, **TINY_AGENTS["sac"])
+    fresh.load_state(slot, shared)
+    assert fresh.transitions == 60 and fresh.model.replay_buffer.pos == 60
     np.testing.assert_allclose(fresh.act(probe_obs), agent.act(probe_obs), atol=1e-6)
     fresh.learn(5)
     assert fresh.transitions == 65

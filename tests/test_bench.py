@@ -16,35 +16,15 @@ from typer.testing import CliRunner
 from dlocli.cli import app
 from dlocli.errors import BadInput
 
+from tiny import TINY_BENCH
+
 runner = CliRunner()
-#: tiny sizes so every job takes seconds (the defaults are the paper's)
-TINY: dict[str, Any] = {
-    "task": {"episode_steps": 20, "reset_motion_steps": 10, "reset_settle_steps": 10},
-    "model": {"hidden": 16, "lstm_layers": 1, "edge_layers": 2, "node_layers": 2},
-    "fit": {"epochs": 2, "batch_size": 32, "device": "cpu"},
-    "budget": 60,
-    "evals": 3,
-    "eval_trials": 1,
-    "seeds": 1,
-    "workers": 1,
-    "options": {
-        "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
-        "pilco": {
-            "action_repeat": 2,
-            "horizon": 3,
-            "n_basis": 4,
-            "gp_iterations": 10,
-            "policy_iterations": 2,
-            "max_gp_points": 15,
-        },
-    },
-}
 TIMING = ("wall_seconds", "eval_seconds")
 
 
 def tiny_spec(tmp_path: Path) -> str:
     path = tmp_path / "tiny.json"
-    path.write_text(json.dumps(TINY))
+    path.write_text(json.dumps(TINY_BENCH))
     return str(path)
 
 
@@ -213,7 +193,7 @@ def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
     from dlocli.bench.run import check_spec
     from dlocli.bench.spec import BenchSpec, eval_points, fingerprint
 
-    spec = BenchSpec.model_validate({**TINY, "budgets": {"sac": 100}})
+    spec = BenchSpec.model_validate({**TINY_BENCH, "budgets": {"sac": 100}})
     assert np.abs(fixed_goal(spec, "single", 0) - fixed_goal(spec, "single", 1)).max() > 0.01
     np.testing.assert_array_equal(fixed_goal(spec, "single", 1), fixed_goal(spec, "single", 1))
     assert eval_points(spec, "sac") == [20, 40, 60, 80, 100]

@@ -13,29 +13,10 @@ from dlocli.bench import jobs
 from dlocli.bench.spec import BenchSpec
 from dlocli.tensorboard import available
 
-#: three points of one episode each, and tiny learners, so a job takes seconds
-SPEC: dict[str, Any] = {
-    "task": {"episode_steps": 20, "reset_motion_steps": 10, "reset_settle_steps": 10},
-    "model": {"hidden": 16, "lstm_layers": 1, "edge_layers": 2, "node_layers": 2},
-    "fit": {"epochs": 2, "batch_size": 32, "device": "cpu"},
-    "budget": 60,
-    "evals": 3,
-    "eval_trials": 1,
-    "seeds": 1,
-    "options": {
-        "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 10},
-        "td3": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 10},
-        "pilco": {
-            "action_repeat": 2,
-            "horizon": 3,
-            "n_basis": 4,
-            "gp_iterations": 10,
-            "policy_iterations": 2,
-            "max_gp_points": 15,
-            "initial_random_episodes": 1,
-        },
-    },
-}
+from tiny import TINY_AGENTS, TINY_BENCH
+
+#: three evaluation points of one episode each
+SPEC: dict[str, Any] = {k: v for k, v in TINY_BENCH.items() if k != "workers"}
 TIMING = ("wall_seconds", "eval_seconds")
 
 
@@ -101,7 +82,7 @@ def test_a_checkpoint_of_other_settings_is_not_used(
     assert json.loads(progress.read_text())["index"] == 0
 
     monkeypatch.undo()
-    other = spec.model_copy(update={"options": {"sac": {**SPEC["options"]["sac"], "tau": 0.5}}})
+    other = spec.model_copy(update={"options": {"sac": {**TINY_AGENTS["sac"], "tau": 0.5}}})
     result = jobs.run_job(other.model_dump_json(), "sac", 0, str(tmp_path))
     fresh = jobs.run_job(other.model_dump_json(), "sac", 0, str(tmp_path / "fresh"))
     assert _rows(result) == _rows(fresh)
