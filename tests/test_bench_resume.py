@@ -61,6 +61,7 @@ def test_a_stopped_job_continues_from_its_last_point_exactly(
         jobs.run_job(spec, agent, 0, str(tmp_path / "stopped"))
     slots = list((tmp_path / "stopped" / jobs.RESUME_DIR).glob("point-*"))
     assert [slot.name for slot in slots] == [f"point-{points - 2}"]  # only the newest kept
+    before = json.loads((slots[0] / "progress.json").read_text())["seconds"]
 
     calls[0] = 0
     resumed = jobs.run_job(spec, agent, 0, str(tmp_path / "stopped"))
@@ -69,6 +70,7 @@ def test_a_stopped_job_continues_from_its_last_point_exactly(
     assert _rows(resumed) == _rows(whole)
     continued_at = sorted({row["transitions"] for row in whole["rows"]})[-2]
     assert whole["resumed_at"] == [] and resumed["resumed_at"] == [continued_at]
+    assert resumed["seconds"] > before > 0  # the job's time counts its earlier process
 
 
 def test_a_checkpoint_of_other_settings_is_not_used(

@@ -49,6 +49,8 @@ class Progress:
     trained: int
     #: the transitions at which the job was continued after a stop, in order
     resumed_at: list[int] = field(default_factory=list)
+    #: the job's time so far (learning and evaluating), over all its processes
+    seconds: float = 0.0
 
 
 def _generators() -> dict[str, Any]:
@@ -97,7 +99,7 @@ class JobCheckpoint:
                 continue
             if saved.get("fingerprint") != self.fingerprint or saved.get("versions") != versions():
                 continue
-            fields = ("index", "rows", "wall", "trained", "resumed_at")
+            fields = ("index", "rows", "wall", "trained", "resumed_at", "seconds")
             return slot, Progress(*(saved[name] for name in fields))
         return None
 
@@ -136,6 +138,7 @@ class JobCheckpoint:
                 "wall": progress.wall,
                 "trained": progress.trained,
                 "resumed_at": progress.resumed_at,
+                "seconds": progress.seconds,
             },
         )
         shutil.rmtree(slot, ignore_errors=True)

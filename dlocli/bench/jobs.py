@@ -96,7 +96,6 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
     threads = torch.get_num_threads()
     torch.set_num_threads(spec.threads)
     _seed_globals(seed)
-    start = time.perf_counter()
     try:
         with _workdir(scratch) as work:
             # a scratch directory is the job's own directory in the run: its policy stays,
@@ -118,7 +117,7 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
         "rows": progress.rows,
         "resumed_at": progress.resumed_at,
         "policy": str(policy) if saved else None,
-        "seconds": round(time.perf_counter() - start, 1),
+        "seconds": round(progress.seconds, 1),  # over every process of the job
         "versions": versions(),
     }
 
@@ -140,6 +139,7 @@ def _learn_and_evaluate(
     if checkpoint is not None:
         progress = _continue(checkpoint, learner) or progress
     rows, wall, trained = progress.rows, progress.wall, progress.trained
+    began = time.perf_counter() - progress.seconds  # as if never stopped
     scalars = Scalars(work)
     clock = JobClock(f"{agent}-s{seed}", learner.transitions)
     try:
@@ -157,7 +157,8 @@ def _learn_and_evaluate(
                 evaluated += _evaluation_rows(spec, learner, env, setting, seed, point_row)
             rows += evaluated
             _log_point(scalars, evaluated, learner.transitions)
-            progress = Progress(index, rows, wall, trained, progress.resumed_at)
+            seconds = time.perf_counter() - began
+            progress = Progress(index, rows, wall, trained, progress.resumed_at, seconds)
             if checkpoint is not None and index < len(points) - 1:
                 checkpoint.save(learner, progress)
             clock.report(learner.transitions, points[-1], evaluated)
@@ -173,7 +174,8 @@ def _learn_and_evaluate(
             env.close()
         learner.close()
         scalars.close()
-    return Progress(progress.index, rows, wall, trained, progress.resumed_at), saved
+    seconds = time.perf_counter() - began
+    return Progress(progress.index, rows, wall, trained, progress.resumed_at, seconds), saved
 
 
 class JobClock:
