@@ -111,3 +111,20 @@ def test_bench_resume_says_which_jobs_continue(tmp_path: Path, monkeypatch: pyte
     assert "sac-s0 continues from its checkpoint at 40 transitions" in res.output
     assert "sac-s0: 60/60 transitions, fixed goal" in res.output  # a line per point
     assert json.loads((run / "jobs" / "sac-s0.json").read_text())["resumed_at"] == [40]
+
+
+def test_a_damaged_checkpoint_starts_the_job_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+):
+    spec = BenchSpec.model_validate(SPEC).model_dump_json()
+    _stop_at_evaluation(monkeypatch, stop_at=5)
+    with pytest.raises(Stop):
+        jobs.run_job(spec, "sac", 0, str(tmp_path / "job"))
+    for chunk in (tmp_path / "job" / jobs.RESUME_DIR).glob("shared/replay/*.npz"):
+        chunk.unlink()  # the replay buffer's rows are lost
+
+    monkeypatch.undo()
+    again = jobs.run_job(spec, "sac", 0, str(tmp_path / "job"))
+    assert "checkpoint does not load" in capsys.readouterr().err
+    fresh = jobs.run_job(spec, "sac", 0, str(tmp_path / "fresh"))
+    assert again["resumed_at"] == [] and _rows(again) == _rows(fresh)

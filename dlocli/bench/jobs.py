@@ -133,11 +133,8 @@ def _learn_and_evaluate(
     """The job's evaluation rows (in its final Progress), and whether its final policy was
     saved in ``policy``; with ``checkpoint``, continued from the last one and checkpointed
     after every point."""
-    learner = learner_class(agent)(agent, spec, seed, work)
+    learner, progress = _start(spec, agent, seed, work, checkpoint)
     envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
-    progress = Progress(-1, [], 0.0, 0)
-    if checkpoint is not None:
-        progress = _continue(checkpoint, learner) or progress
     rows, wall, trained = progress.rows, progress.wall, progress.trained
     began = time.perf_counter() - progress.seconds  # as if never stopped
     scalars = Scalars(work)
@@ -225,13 +222,27 @@ def _point_row(
     }
 
 
-def _continue(checkpoint: JobCheckpoint, learner: Any) -> Progress | None:
-    """``learner`` and the generators at the job's last checkpoint; None (and no stale
-    checkpoint files left) where the job starts from the beginning."""
-    progress = checkpoint.restore(learner)
-    if progress is None:
-        checkpoint.remove()  # another fingerprint's or versions' files: not this job's
-    return progress
+def _start(
+    spec: BenchSpec, agent: str, seed: int, work: Path, checkpoint: JobCheckpoint | None
+) -> tuple[Any, Progress]:
+    """The job's learner and progress: at its last checkpoint, or new (and no stale
+    checkpoint files left) where there is none or it does not load."""
+    learner = learner_class(agent)(agent, spec, seed, work)
+    progress = None
+    if checkpoint is not None:
+        try:
+            progress = checkpoint.restore(learner)
+        except Exception as exc:  # a damaged checkpoint costs its work, never the job
+            sys.stderr.write(
+                f"  {agent}-s{seed}: its checkpoint does not load ({type(exc).__name__}: "
+                f"{exc}); starting again\n"
+            )
+            learner.close()
+            _seed_globals(seed)
+            learner = learner_class(agent)(agent, spec, seed, work)
+        if progress is None:
+            checkpoint.remove()  # not this job's (another fingerprint or versions), or damaged
+    return learner, progress or Progress(-1, [], 0.0, 0)
 
 
 def _log_point(scalars: Scalars, rows: list[dict[str, Any]], transitions: int) -> None:
