@@ -128,3 +128,21 @@ def test_a_damaged_checkpoint_starts_the_job_again(
     assert "checkpoint does not load" in capsys.readouterr().err
     fresh = jobs.run_job(spec, "sac", 0, str(tmp_path / "fresh"))
     assert again["resumed_at"] == [] and _rows(again) == _rows(fresh)
+
+
+def test_a_checkpoint_written_before_its_later_fields_existed_still_loads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    spec = BenchSpec.model_validate(SPEC).model_dump_json()
+    _stop_at_evaluation(monkeypatch, stop_at=5)
+    with pytest.raises(Stop):
+        jobs.run_job(spec, "random", 0, str(tmp_path / "job"))
+    (progress,) = (tmp_path / "job" / jobs.RESUME_DIR).glob("point-*/progress.json")
+    saved = json.loads(progress.read_text())
+    del saved["resumed_at"], saved["seconds"]  # as the first version wrote it
+    progress.write_text(json.dumps(saved))
+
+    monkeypatch.undo()
+    resumed = jobs.run_job(spec, "random", 0, str(tmp_path / "job"))
+    assert resumed["resumed_at"] == [40]
+    assert _rows(resumed) == _rows(jobs.run_job(spec, "random", 0, str(tmp_path / "fresh")))

@@ -99,8 +99,10 @@ class JobCheckpoint:
                 continue
             if saved.get("fingerprint") != self.fingerprint or saved.get("versions") != versions():
                 continue
-            fields = ("index", "rows", "wall", "trained", "resumed_at", "seconds")
-            return slot, Progress(*(saved[name] for name in fields))
+            progress = Progress(saved["index"], saved["rows"], saved["wall"], saved["trained"])
+            progress.resumed_at = saved.get("resumed_at", [])  # later fields: older files lack
+            progress.seconds = saved.get("seconds", 0.0)
+            return slot, progress
         return None
 
     def restore(self, learner: BenchLearner) -> Progress | None:
