@@ -170,12 +170,14 @@ class BenchLearner(ABC):
     def save_state(self, slot: Path, shared: Path) -> bool:
         """Write what :meth:`load_state` needs to continue learning exactly from here into
         ``slot`` (and, growing, into ``shared``: :mod:`dlocli.bench.checkpoint`); False if
-        it cannot now (the default: the job then restarts if stopped)."""
-        return False
+        it cannot now. The default keeps the transition count: all that a learner needs
+        whose state is made again from its seeds (zero, random, mpc-offline)."""
+        write_json_atomic(slot / "learner.json", {"transitions": self.transitions})
+        return True
 
     def load_state(self, slot: Path, shared: Path) -> None:
         """Continue from :meth:`save_state`'s files (on a freshly built learner)."""
-        raise NotImplementedError(f"{self.name} cannot resume mid-job")
+        self.transitions = read_json(slot / "learner.json")["transitions"]
 
     def close(self) -> None:  # noqa: B027 (optional hook)
         """Release the training env, if any."""
@@ -186,13 +188,6 @@ class FixedLearner(BenchLearner):
 
     def learn_to(self, transitions: int) -> None:
         self.transitions = transitions  # learns nothing: a flat line at the schedule's points
-
-    def save_state(self, slot: Path, shared: Path) -> bool:
-        write_json_atomic(slot / "learner.json", {"transitions": self.transitions})
-        return True
-
-    def load_state(self, slot: Path, shared: Path) -> None:
-        self.transitions = read_json(slot / "learner.json")["transitions"]
 
     def controller(self, env: DLOShapeEnv) -> Controller:
         from dlocli.controllers.base import make_controller
@@ -299,7 +294,9 @@ class OnlineMPCLearner(MPCLearner):
 
 
 class OfflineMPCLearner(MPCLearner):
-    """At each of ``mpc``'s points: a fresh model trained offline on as much random data."""
+    """At each of ``mpc``'s points: a fresh model trained offline on as much random data.
+    Its checkpoint is the transition count alone (:meth:`BenchLearner.save_state`): every
+    point trains a fresh model, and the random episodes are seeded one by one."""
 
     def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
         super().__init__(name, spec, seed, work)
@@ -321,15 +318,6 @@ class OfflineMPCLearner(MPCLearner):
         train_like_online(model, data, fit, k + 1)  # the online model's updates so far
         self._model = model
         self.transitions = data.n_transitions
-
-    def save_state(self, slot: Path, shared: Path) -> bool:
-        # each point trains a fresh model, and its random episodes are seeded one by one:
-        # continuing needs only the count (the data is made again on the next point)
-        write_json_atomic(slot / "learner.json", {"transitions": self.transitions})
-        return True
-
-    def load_state(self, slot: Path, shared: Path) -> None:
-        self.transitions = read_json(slot / "learner.json")["transitions"]
 
     def _random_data(self, transitions: int) -> Dataset:
         """Random episodes (those of ``mpc``'s initial dataset first) up to ``transitions``."""
