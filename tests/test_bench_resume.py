@@ -71,6 +71,8 @@ def test_a_stopped_job_continues_from_its_last_point_exactly(
     continued_at = sorted({row["transitions"] for row in whole["rows"]})[-2]
     assert whole["resumed_at"] == [] and resumed["resumed_at"] == [continued_at]
     assert resumed["seconds"] > before > 0  # the job's time counts its earlier process
+    if agent in ("sac", "td3") and available():  # one event file per process of the job
+        assert len(list((tmp_path / "stopped" / "tensorboard").glob("*_0/events.*"))) == 2
 
 
 def test_a_checkpoint_of_other_settings_is_not_used(

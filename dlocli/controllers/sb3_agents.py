@@ -188,6 +188,7 @@ class SB3Agent(LearningAgent):
         self.episode_steps = int(env.task_spec.episode_steps)
         self.model = self._build_model()
         self.log_directory: Path | None = None  # TensorBoard events of learning (log_to)
+        self._logging: Any = None  # the model whose logger writes there
 
     # ------------------------------------------------------------------ construction
     def _algorithm_class(self) -> Any:
@@ -208,6 +209,7 @@ class SB3Agent(LearningAgent):
         """Run SB3's learner for exactly ``transitions`` more env steps."""
         if transitions <= 0:
             return
+        self._attach_logger()
         start = self.model.num_timesteps
         full = transitions - transitions % self.spec.steps_per_update(self.episode_steps)
         if full:
@@ -242,13 +244,14 @@ class SB3Agent(LearningAgent):
 
         if available():
             self.log_directory = Path(directory) / f"{self.algorithm}_0"
-            self._attach_logger()
 
     def _attach_logger(self) -> None:
+        """Give the current model (a loaded one is new) the logger, once, as it learns."""
         from stable_baselines3.common.logger import configure
 
-        if self.log_directory is not None:
+        if self.log_directory is not None and self._logging is not self.model:
             self.model.set_logger(configure(str(self.log_directory), ["tensorboard"]))
+            self._logging = self.model
 
     # ------------------------------------------------------------------ checkpoints
     def save_policy(self, directory: Path) -> bool:
@@ -290,7 +293,6 @@ class SB3Agent(LearningAgent):
             device=self.spec.device,
             force_reset=force_reset,
         )
-        self._attach_logger()
         self.transitions = int(meta["transitions"])
 
     def _saved_meta(self, directory: Path) -> dict[str, Any]:
