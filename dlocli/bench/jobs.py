@@ -246,16 +246,15 @@ def _start(
 
 
 def _log_point(scalars: Scalars, rows: list[dict[str, Any]], transitions: int) -> None:
-    """The evaluations at ``transitions`` as TensorBoard scalars, one group per setting."""
+    """One point's evaluations, at ``transitions``, as TensorBoard scalars per setting."""
     for row in rows:
-        if row["transitions"] == transitions:
-            scalars.add(
-                transitions,
-                f"eval/{row['eval_task']}-{row['eval_goals']}",
-                final_error_mm=row["final_error_mm"],
-                score=row["score"],
-                cumulative_reward=row["cumulative_reward"],
-            )
+        scalars.add(
+            transitions,
+            f"eval/{row['eval_task']}-{row['eval_goals']}",
+            final_error_mm=row["final_error_mm"],
+            score=row["score"],
+            cumulative_reward=row["cumulative_reward"],
+        )
 
 
 def _evaluation_rows(
