@@ -10,10 +10,13 @@ import pytest
 import torch
 
 import dlocli
+from dlocli.controllers import pilco_math
 from dlocli.controllers.base import LearningAgent, make_controller
 from dlocli.controllers.pilco_math import (
     DTYPE,
     GaussianProcess,
+    RBFPolicy,
+    expected_return_cost,
     expected_saturating_cost,
     rbf_moments,
     sin_moments,
@@ -192,6 +195,29 @@ def test_expected_saturating_cost_matches_monte_carlo():
     mc = (1.0 - torch.exp(-0.5 * ((diff @ weight) * diff).sum(1))).mean()
     expected = expected_saturating_cost(m, s, target, weight)
     torch.testing.assert_close(expected, mc, atol=3e-3, rtol=0)
+
+
+def test_checkpointed_rollout_gives_the_same_cost_and_gradient(monkeypatch):
+    """Large GPs recompute each step in the backward pass; small ones keep every step. Both
+    must give bitwise the same cost and policy gradient."""
+    gp, m, s = random_problem()  # 4-D inputs: a 3-D state and a 1-D action
+    state_m, state_s = m[:3], s[:3, :3]
+    goal = torch.tensor([0.5, 0.0, -0.2], dtype=DTYPE)
+    centres = torch.randn(5, 3, generator=torch.Generator().manual_seed(4), dtype=DTYPE)
+    policy = RBFPolicy(centres, 1, torch.ones(3, dtype=DTYPE), torch.Generator().manual_seed(5))
+    weight = torch.eye(3, dtype=DTYPE) / 0.5**2
+
+    def cost_and_grads(threshold: int) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        monkeypatch.setattr(pilco_math, "CHECKPOINT_ELEMENTS", threshold)
+        policy.zero_grad()
+        cost = expected_return_cost(state_m, state_s, gp, policy, goal, weight, horizon=6)
+        cost.backward()
+        return cost.detach(), [p.grad.clone() for p in policy.parameters()]
+
+    kept, checkpointed = cost_and_grads(10**12), cost_and_grads(0)
+    assert torch.equal(kept[0], checkpointed[0])
+    assert all(torch.equal(a, b) for a, b in zip(kept[1], checkpointed[1], strict=True))
+    assert any(g.abs().sum() > 0 for g in kept[1])
 
 
 def test_the_defaults_are_the_sweeps_winners():
