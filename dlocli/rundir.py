@@ -39,6 +39,17 @@ OUTPUT_FIELDS = frozenset({"out", "video", "plot"})
 _held: dict[Path, list[int]] = {}
 
 
+class InUse(BadInput):
+    """The run directory's lock is held by another process (``holder``: its PID)."""
+
+    def __init__(self, run_dir: Path, holder: str) -> None:
+        super().__init__(
+            f"{run_dir} is in use by another dlo process (PID {holder}); wait for it to end "
+            "or pass another --out"
+        )
+        self.holder = holder
+
+
 @contextmanager
 def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
     """Hold ``run_dir``'s lock (creating the directory) while the block runs; BadInput naming
@@ -69,10 +80,7 @@ def _acquire(run_dir: Path, shared: bool) -> int:
     except BlockingIOError:
         holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
         os.close(fd)
-        raise BadInput(
-            f"{run_dir} is in use by another dlo process (PID {holder}); wait for it to end "
-            "or pass another --out"
-        ) from None
+        raise InUse(run_dir, holder) from None
     if not shared:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)

@@ -22,6 +22,8 @@ import torch
 
 from dlocli.cli import main
 
+from tiny import lock_held_elsewhere
+
 # ----------------------------------------------------------------------------- fixtures
 
 
@@ -331,11 +333,7 @@ def test_locked_run_directory_is_refused_naming_the_holder(world, tmp_path, caps
     run = tmp_path / "busy"
     _dlo("collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
          "--out", str(run), "--json")  # fmt: skip
-    holder = subprocess.Popen(
-        [sys.executable, "-c", _HOLD_LOCK, str(run / ".dlo.lock")], stdout=subprocess.PIPE
-    )
-    try:
-        assert holder.stdout.readline().strip() == b"locked"
+    with lock_held_elsewhere(run / ".dlo.lock") as holder:
         before = _snapshot(run)
         capsys.readouterr()
         model = str(world["train"] / "checkpoints" / "final.pt")
@@ -348,21 +346,8 @@ def test_locked_run_directory_is_refused_naming_the_holder(world, tmp_path, caps
             err = capsys.readouterr().err
             assert f"PID {holder.pid}" in err and len(err.strip().splitlines()) == 1
         assert _snapshot(run) == before
-    finally:
-        holder.kill()
-        holder.wait()
     # the holder died: its stale lock is taken over
     assert _run_main(["collect", "--resume", str(run), "--json"]) == 0
-
-
-_HOLD_LOCK = """
-import fcntl, os, sys, time
-fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
-fcntl.flock(fd, fcntl.LOCK_EX)
-os.ftruncate(fd, 0); os.write(fd, str(os.getpid()).encode())
-print("locked", flush=True)
-time.sleep(600)
-"""
 
 
 def test_sigterm_saves_finished_work_and_exits_143(world, tmp_path):

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from dlocli.cli import app
 from dlocli.errors import BadInput
 
-from tiny import TINY_BENCH
+from tiny import TINY_BENCH, lock_held_elsewhere
 
 runner = CliRunner()
 TIMING = ("wall_seconds", "eval_seconds")
@@ -152,6 +152,23 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, flags: list[str], mess
     assert not out.exists()
     res = runner.invoke(app, ["bench", "--report", str(tmp_path)])
     assert res.exit_code == 2 and "results.csv" in res.output
+
+
+def test_processes_share_out_a_bench_skipping_the_jobs_another_holds(tmp_path: Path):
+    """A second process on one bench runs the jobs the first does not hold, and says which
+    it leaves; once the holder is gone, a resume runs the rest."""
+    run = tmp_path / "run"
+    bench("--spec", tiny_spec(tmp_path), "--agents", "random", "--out", str(run))
+    with lock_held_elsewhere(run / "work" / "locks" / "zero-s0" / ".dlo.lock") as holder:
+        out = bench("--resume", str(run), "--agents", "zero", "--seeds", "2").output
+        assert f"zero-s0 is running in another process (PID {holder.pid})" in out
+        assert sorted(p.name for p in (run / "jobs").iterdir()) == [
+            "random-s0.json",
+            "zero-s1.json",
+        ]
+    out = bench("--resume", str(run), "--agents", "zero", "--seeds", "2").output
+    assert "1 job(s) to run" in out and "another process" not in out
+    assert (run / "jobs" / "zero-s0.json").is_file()
 
 
 def test_ray_gives_the_same_results_as_local_processes(tmp_path: Path):

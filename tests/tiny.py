@@ -1,8 +1,14 @@
-"""Tiny settings the tests share, so every agent learns and every bench job runs in seconds
-(the defaults are the paper's sizes). Budgets are 60 transitions of 20-step episodes."""
+"""What the tests share: tiny settings, so every agent learns and every bench job runs in
+seconds (the defaults are the paper's sizes; budgets are 60 transitions of 20-step episodes),
+and a lock held by another process."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 #: options of the learning agents: small networks and GP, short horizons
@@ -31,3 +37,27 @@ TINY_BENCH: dict[str, Any] = {
     "workers": 1,
     "options": TINY_AGENTS,
 }
+
+
+_HOLD_LOCK = """
+import fcntl, os, sys, time
+fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
+fcntl.flock(fd, fcntl.LOCK_EX)
+os.ftruncate(fd, 0); os.write(fd, str(os.getpid()).encode())
+print("locked", flush=True)
+time.sleep(600)
+"""
+
+
+@contextmanager
+def lock_held_elsewhere(lock_file: Path) -> Iterator[subprocess.Popen]:
+    """Another process holds ``lock_file`` (a run directory's ``.dlo.lock``) for the block."""
+    lock_file.parent.mkdir(parents=True, exist_ok=True)
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK, str(lock_file)],
+                              stdout=subprocess.PIPE)  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == b"locked"
+        yield holder
+    finally:
+        holder.kill()
+        holder.wait()

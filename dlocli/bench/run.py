@@ -20,7 +20,8 @@ Run directory (every file written atomically)::
     jobs/AGENT-sSEED.json       one finished job: its evaluation rows (resume skips it)
     work/FINGERPRINT/AGENT-sSEED/   a job's own files (mpc's online run), local executor only
     work/FINGERPRINT/AGENT-sSEED/policy/   sac's and td3's final policy (`dlo control --policy`)
-    work/locks/AGENT-sSEED/     held by the process running the job (several may resume)
+    work/locks/AGENT-sSEED/     held by the process running the job: several processes may
+                                resume one bench, each skips the jobs another holds
     results.csv                 agent, seed, eval, transitions, train_task, train_goals,
                                 eval_task, eval_goals, cumulative_reward(_std), final_error_mm,
                                 wall_seconds (learning time so far), eval_seconds, initial_error_mm,
@@ -58,7 +59,7 @@ from dlocli.bench.spec import (
 from dlocli.errors import BadInput, DloError
 from dlocli.io import prepare_run_dir, write_json_atomic
 from dlocli.resume import resumed_run_spec
-from dlocli.rundir import owned
+from dlocli.rundir import InUse, owned
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -161,10 +162,11 @@ class BenchRun:
         todo = self.jobs()
         total = len(self.spec.agents) * self.spec.seeds
         with ExitStack() as locks:
-            for job in todo:  # processes resuming one bench must run disjoint jobs
-                locks.enter_context(owned(self.out / "work" / "locks" / job.name))
+            elsewhere = self._lock_jobs(locks, todo)
+            todo = [job for job in todo if job.name not in elsewhere]
             continuing = {job.name: at for job in todo if (at := self.checkpointed(job))}
-            self.progress("start", {"total": total, "todo": len(todo), "continuing": continuing})
+            self.progress("start", {"total": total, "todo": len(todo), "continuing": continuing,
+                                    "elsewhere": elsewhere})  # fmt: skip
             failed = self._run_jobs(executor, todo)
         summary = self.write_results()
         if failed:
@@ -173,6 +175,17 @@ class BenchRun:
                 f"--resume {self.out}): {failed[0]}"
             )
         return summary
+
+    def _lock_jobs(self, locks: ExitStack, todo: list[Job]) -> dict[str, str]:
+        """Take the lock of every job in ``todo``; the jobs another process holds (name ->
+        its PID) are left to it, so processes resuming one bench share out its jobs."""
+        elsewhere: dict[str, str] = {}
+        for job in todo:
+            try:
+                locks.enter_context(owned(self.out / "work" / "locks" / job.name))
+            except InUse as busy:
+                elsewhere[job.name] = busy.holder
+        return elsewhere
 
     def _run_jobs(self, executor: Any, todo: list[Job]) -> list[str]:
         """Run ``todo``, saving each job as it finishes; the failures, one line each."""

@@ -70,6 +70,8 @@ def _print_progress(event: str, info: dict[str, Any]) -> None:
         console.print(f"bench: {info['todo']} job(s) to run, {kept} finished job(s) kept")
         for job, transitions in info.get("continuing", {}).items():
             console.print(f"  {job} continues from its checkpoint at {transitions:,} transitions")
+        for job, pid in info.get("elsewhere", {}).items():
+            console.print(f"  {job} is running in another process (PID {pid}): left to it")
     elif event == "job":
         console.print(f"  {info['job']} done in {info['seconds']:.0f} s")
     elif event == "failed":
