@@ -249,9 +249,9 @@ def test_report_merges_runs_into_a_new_directory_labelling_shared_agents(tmp_pat
         (run / "jobs").mkdir(parents=True)
         shutil.copy(committed / "spec.json", run / "spec.json")
     for job in committed.glob("jobs/*.json"):
-        if job.name.startswith(("zero", "mpc")):
+        if job.name.startswith(("zero", "mpc-s")):  # not mpc-offline
             shutil.copy(job, plain / "jobs")
-        if job.name.startswith(("zero-s0", "mpc")):
+        if job.name.startswith(("zero-s0", "mpc-s")):
             shutil.copy(job, mirrored / "jobs")
     merged.mkdir()
     bench("--report", str(merged), "--report", str(plain), "--report", str(mirrored))
