@@ -48,7 +48,8 @@ def plot_learning_curve(
     curve: list[dict[str, Any]], offline: list[dict[str, Any]] | None, path: Path
 ) -> Path:
     """Cumulative reward (paper Fig. 4; Fig. 7 with ``offline``) and the final shape error of
-    the trials against transitions, the trials' initial error (doing nothing) dashed."""
+    the trials against transitions, with what doing nothing and random actions got from the
+    same starts (:mod:`dlocli.runs.references`), or else the trials' initial error."""
     fig, (ax, ax_mm) = figure(nrows=2, sharex=True, figsize=(6.4, 6.4))
     runs = [("online (MPC + model learning)", curve)]
     runs += [("offline (random data)", offline)] if offline else []
@@ -58,9 +59,7 @@ def plot_learning_curve(
         shaded_curve(ax, xs, means, [c["cumulative_reward_std"] for c in points], label)
         ax_mm.plot(xs, [c["final_error_mm_mean"] for c in points], marker="o", label=label)
     xs = [c["transitions"] for c in curve]
-    if all("initial_error_mm_mean" in c for c in curve):
-        initial = [c["initial_error_mm_mean"] for c in curve]
-        ax_mm.plot(xs, initial, "k--", lw=1, label="initial error (doing nothing)")
+    _reference_lines(ax, ax_mm, curve, xs)
     ax.set_ylabel("cumulative reward per trial")
     ax.set_title("Online model learning with MPC")
     ax_mm.set_ylabel("mean final shape error (mm)")
@@ -70,6 +69,22 @@ def plot_learning_curve(
         axis.grid(alpha=0.3)
         axis.legend(fontsize="small")
     return save_figure(fig, path)
+
+
+def _reference_lines(ax: Any, ax_mm: Any, curve: list[dict[str, Any]], xs: list[int]) -> None:
+    styles = {"zero": ("k--", "doing nothing"), "random": ("k:", "random actions")}
+    drawn = False
+    for name, (style, what) in styles.items():
+        if all(f"{name}_final_error_mm_mean" in c for c in curve):
+            label = f"{what}, same starts"
+            errors = [c[f"{name}_final_error_mm_mean"] for c in curve]
+            ax_mm.plot(xs, errors, style, lw=1, label=label)
+            rewards = [c[f"{name}_cumulative_reward_mean"] for c in curve]
+            ax.plot(xs, rewards, style, lw=1, label=label)
+            drawn = True
+    if not drawn and all("initial_error_mm_mean" in c for c in curve):  # runs before references
+        initial = [c["initial_error_mm_mean"] for c in curve]
+        ax_mm.plot(xs, initial, "k--", lw=1, label="initial error")
 
 
 def plot_losses(history: list[dict[str, float]], path: Path) -> Path:

@@ -112,6 +112,24 @@ def test_reduced_run_writes_everything(uninterrupted):
     assert summary["mpc_seconds"] + summary["simulation_seconds"] == pytest.approx(trials, abs=0.2)
 
 
+def test_references_run_from_the_trials_starts(uninterrupted):
+    """Doing nothing and random actions from every trial's start and goal: the same initial
+    error as the trial, their means in the curve and the summary."""
+    out, summary = uninterrupted
+    table = json.loads((out / "references.json").read_text())
+    assert sorted(table) == ["random", "zero"]
+    rows = {(int(r["iteration"]), int(r["trial"])): r for r in read_rows(out)}
+    for name in ("zero", "random"):
+        assert sorted(table[name]) == sorted(f"{k}/{j}" for k, j in rows)
+        for (k, j), row in rows.items():
+            ran = table[name][f"{k}/{j}"]
+            assert ran["initial_error_mm"] == pytest.approx(float(row["initial_error_mm"]))
+    zero = [table["zero"][f"2/{j}"]["final_error_mm"] for j in (1, 2)]
+    assert summary["zero_final_error_mm"] == pytest.approx(np.mean(zero))
+    assert summary["random_final_error_mm"] != summary["zero_final_error_mm"]
+    assert summary["reference_seconds"] > 0
+
+
 def test_tensorboard_events_hold_loss_and_error(uninterrupted):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

@@ -13,6 +13,7 @@ Run directory (every file written atomically)::
     data/iter_KK/trial_JJJ.h5      one file per finished trial: the dataset grows atomically
     checkpoints/iter_KK.pt         the model after iteration KK's training (+ Adam state)
     checkpoints/final.pt           the last iteration's model
+    references.json                doing nothing and random actions from every trial's start
     metrics.csv                    iteration, trial, transitions, cumulative_reward, ...
     summary.json, plots/learning_curve.png
 
@@ -44,6 +45,7 @@ from dlocli.models.spec import FitSpec, ModelSpec
 from dlocli.processes import pool_initializer
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
+from dlocli.runs.references import REFERENCES, ReferenceTable, reference_episode_scores
 from dlocli.specs import EnvSpec
 from dlocli.tensorboard import Scalars
 
@@ -85,7 +87,7 @@ class OnlineSpec(EnvSpec):
 
 
 # ----------------------------------------------------------------------------- seeds
-INITIAL, TRAIN, TRIAL, NOISE, OFFLINE = 0, 1, 2, 3, 4
+INITIAL, TRAIN, TRIAL, NOISE, OFFLINE, REFERENCE = 0, 1, 2, 3, 4, 5
 
 
 def random_data_episode(env: Any, seed: int, e: int) -> Episode:
@@ -114,6 +116,9 @@ class RunLayout:
 
     def offline_data(self, k: int) -> Path:
         return self.out / "offline" / f"random_{k:02d}.h5"
+
+    def references(self) -> Path:
+        return self.out / "references.json"
 
     def state_dirs(self) -> list[Path]:
         """The folders whose files a resumed run takes as already done."""
@@ -336,6 +341,26 @@ class OnlineRun:
                 "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
             )
 
+    def run_references(self, k: int) -> None:
+        """Doing nothing and random actions from the starts of iteration k's trials
+        (:mod:`dlocli.runs.references`); those already in the table are kept."""
+        from dlocli.env.shape_env import make_env_from_spec
+
+        table = ReferenceTable(self.paths.references())
+        missing = table.missing(k, self.spec.trials)
+        if not missing:
+            return
+        self.progress("references", {"iteration": k, "total": len(missing)})
+        env = make_env_from_spec(_env_spec(self.spec))
+        try:
+            for name, j in missing:
+                reset_seed = stream_seed(self.spec.seed, TRIAL, k, j)
+                action_seed = stream_seed(self.spec.seed, REFERENCE, k, j)
+                table.add(name, k, j, reference_episode_scores(env, name, reset_seed, action_seed))
+        finally:
+            env.close()
+        table.save()
+
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
             import multiprocessing as mp
@@ -405,6 +430,7 @@ class OnlineRun:
                 self.progress("iteration", {"iteration": k, "total": self.spec.iters})
                 self.update_model(k, data)
                 self.run_trials(k, self.paths.checkpoint(k))
+                self.run_references(k)
                 data = self.dataset_until(k)
                 if self.spec.offline:
                     self.offline_comparison(k, data.n_transitions)
@@ -493,6 +519,11 @@ class OnlineRun:
         if offline_rows:
             _write_csv(self.spec.out / "offline_metrics.csv", offline_rows)
         curve = iteration_curve(rows)
+        references = ReferenceTable(self.paths.references())
+        for point in curve:
+            for name in REFERENCES:
+                point.update(references.iteration(name, point["iteration"], self.spec.trials) or {})
+        last = curve[-1] if curve else {}
         summary: dict[str, Any] = {
             "iterations_done": len(curve),
             "transitions": rows[-1]["transitions"] if rows else 0,
@@ -501,8 +532,12 @@ class OnlineRun:
             "final_error_mm": curve[-1]["final_error_mm_mean"] if curve else None,
             "score": curve[-1]["score_mean"] if curve else None,
             "cumulative_reward": curve[-1]["cumulative_reward_mean"] if curve else None,
+            # the same starts and goals, doing nothing and random actions
+            "zero_final_error_mm": last.get("zero_final_error_mm_mean"),
+            "random_final_error_mm": last.get("random_final_error_mm_mean"),
             "seconds": round(wall, 1),
             **self.time_shares(rows),
+            "reference_seconds": round(references.seconds(), 1),
             "out": str(self.spec.out),
         }
         if offline_rows:
@@ -580,6 +615,7 @@ def start_online(
         for state in RunLayout(out).state_dirs():
             shutil.rmtree(state, ignore_errors=True)
         (out / "summary.json").unlink(missing_ok=True)  # its seconds would count as this run's
+        RunLayout(out).references().unlink(missing_ok=True)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         record_fingerprints(out, spec)
         return OnlineRun(spec, progress).run()
