@@ -105,6 +105,27 @@ def test_pilco_updates_its_policy_within_the_budget(probe_obs: np.ndarray):
     assert np.any(agent.policy_action(probe_obs) != 0.0)
 
 
+def first_pilco_policy(**options: Any) -> Any:
+    """PILCO's policy after one random episode on the bimanual task (its first update)."""
+    env = dlocli.make_env(backend="mujoco", task="bimanual", seed=0, episode_steps=20)
+    agent = make_controller("pilco", env, options={**TINY_AGENTS["pilco"], **options}, seed=0)
+    agent.learn(21)
+    assert len(agent.history) == 1
+    return agent.policy
+
+
+def test_pilco_policy_scale_floor_keeps_far_starts_in_reach():
+    """Bimanual starts lie many times the first random episode's spread from its states: a
+    policy scaled to that spread has vanishing basis functions there, so it outputs zero and
+    so does its gradient (pilco did nothing on the bimanual task). The floor keeps them."""
+    far = torch.full((9,), 0.15, dtype=torch.float64)  # every keypoint 26 cm off the goal
+    default, floored = first_pilco_policy(), first_pilco_policy(policy_scale_floor=0.2)
+    assert torch.all(floored.scale >= 0.2)
+    with torch.no_grad():
+        assert torch.all(default(far).abs() < 1e-6)
+        assert torch.any(floored(far).abs() > 1e-3)
+
+
 def test_sb3_agent_state_roundtrip(tmp_path, probe_obs: np.ndarray):
     agent, _ = trained("sac")
     slot, shared = tmp_path / "slot", tmp_path / "shared"

@@ -116,7 +116,8 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     else:
         text = spec.model_dump_json(exclude={**exclude, "options": True})
         if agent in option_agents():
-            text += f"|options={json.dumps(resolved_options(spec, agent), sort_keys=True)}"
+            options = fingerprinted_options(spec, agent)
+            text += f"|options={json.dumps(options, sort_keys=True)}"
         if budget_of(spec, agent) != spec.budget:
             text += f"|budget={budget_of(spec, agent)}"
     return hashlib.sha256(text.encode()).hexdigest()[:12]
@@ -143,6 +144,16 @@ def resolved_options(spec: BenchSpec, agent: str) -> dict[str, Any] | None:
         return None
     options = controller_spec(agent, spec.options.get(agent))
     return options.model_dump(mode="json") if options else None
+
+
+def fingerprinted_options(spec: BenchSpec, agent: str) -> dict[str, Any]:
+    """``agent``'s resolved options less those at the value they had before they existed
+    (the agent spec's ``legacy_values``): jobs that predate an option keep their fingerprint."""
+    from dlocli.registry import controllers
+
+    options = resolved_options(spec, agent) or {}
+    legacy = getattr(controllers.get(agent).spec_cls, "legacy_values", {})
+    return {k: v for k, v in options.items() if k not in legacy or v != legacy[k]}
 
 
 def seeds_of(spec: BenchSpec) -> list[int]:

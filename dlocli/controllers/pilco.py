@@ -34,7 +34,7 @@ import io
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -55,6 +55,9 @@ from dlocli.specs import Spec
 class PilcoSpec(Spec):
     """PILCO hyperparameters (reduced state, GP data, policy, cost, optimisers)."""
 
+    #: fields added after bench jobs were first saved, at the value that reproduces them
+    legacy_values: ClassVar[dict[str, Any]] = {"policy_scale_floor": 0.01}
+
     n_keypoints: int = Field(3, ge=1, description="Segments whose positions form the GP state.")
     action_repeat: int = Field(10, ge=1, description="Env steps each PILCO action is held for.")
     horizon: int | None = Field(
@@ -68,6 +71,15 @@ class PilcoSpec(Spec):
     )
     gp_iterations: int = Field(50, ge=1, description="L-BFGS iterations of the GP evidence.")
     n_basis: int = Field(20, ge=1, description="RBF policy basis functions.")
+    policy_scale_floor: float = Field(
+        0.01,
+        gt=0,
+        description="Least input scale (m) of the RBF policy, per dimension: its initial "
+        "lengthscale. The scale is the spread of the states seen before the first update; "
+        "where episode starts lie many such spreads away (the bimanual task), the basis "
+        "functions vanish there, the policy outputs zero and its gradient too: raise it "
+        "towards the start-to-goal distance.",
+    )
     policy_iterations: int = Field(30, ge=1, description="Adam steps per policy update.")
     policy_lr: float = Field(0.05, gt=0, description="Adam learning rate of the policy.")
     cost_width: float = Field(
@@ -261,7 +273,7 @@ class PilcoAgent(LearningAgent):
         errors = np.asarray(self._inputs)[:, :n_state] - goal
         few = len(errors) < self.spec.n_basis
         pick = self.rng.choice(len(errors), self.spec.n_basis, replace=few)
-        spread = np.maximum(errors.std(0), 1e-2)
+        spread = np.maximum(errors.std(0), self.spec.policy_scale_floor)
         return RBFPolicy(
             torch.as_tensor(errors[pick]), self.action_dim, torch.as_tensor(spread), self.generator
         )
