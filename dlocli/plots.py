@@ -72,11 +72,13 @@ def plot_learning_curve(
 
 
 def _reference_lines(ax: Any, ax_mm: Any, curve: list[dict[str, Any]], xs: list[int]) -> None:
-    styles = {"zero": ("k--", "doing nothing"), "random": ("k:", "random actions")}
+    from dlocli.runs.references import REFERENCES
+
+    styles = {"zero": "k--", "random": "k:"}
     drawn = False
-    for name, (style, what) in styles.items():
+    for name, style in styles.items():
         if all(f"{name}_final_error_mm_mean" in c for c in curve):
-            label = f"{what}, same starts"
+            label = f"{REFERENCES[name]}, same starts"
             errors = [c[f"{name}_final_error_mm_mean"] for c in curve]
             ax_mm.plot(xs, errors, style, lw=1, label=label)
             rewards = [c[f"{name}_cumulative_reward_mean"] for c in curve]

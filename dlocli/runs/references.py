@@ -5,8 +5,9 @@ A learning curve means little without them: on a task whose start and goal are c
 nothing already ends near the goal. Every trial (k, j) starts from ``env.reset(seed=stream_seed
 (seed, TRIAL, k, j))``; each reference controller runs one episode from the same reset, so its
 initial error is the trial's. The results live in one JSON file in the run directory, written
-atomically after each iteration, so they resume like the trials and cost a few seconds of
-simulation per iteration (no model, no planning).
+atomically after each iteration, so they resume like the trials. They cost simulation only,
+two episodes per trial in the main process: in examples/online_paper 1,540 s in all, where
+the MPC took 5,211 s.
 """
 
 from __future__ import annotations
