@@ -130,6 +130,29 @@ def test_references_run_from_the_trials_starts(uninterrupted):
     assert summary["reference_seconds"] > 0
 
 
+def test_references_shared_among_workers_match_the_serial_ones(uninterrupted, tmp_path):
+    from dlocli.runs.online import OnlineRun
+
+    first, _ = uninterrupted
+    out = tmp_path / "run"
+    shutil.copytree(first, out)
+    (out / "references.json").unlink()
+    spec = OnlineSpec.model_validate_json((out / "spec.json").read_text())
+    run = OnlineRun(spec.model_copy(update={"workers": 2, "out": out}))
+    try:
+        run.run_references(2)
+    finally:
+        run._pool.shutdown()
+    serial = json.loads((first / "references.json").read_text())
+    shared = json.loads((out / "references.json").read_text())
+    for name in ("zero", "random"):
+        for key in ("2/1", "2/2"):
+            a, b = serial[name][key], shared[name][key]
+            assert {k: v for k, v in a.items() if k != "seconds"} == {
+                k: v for k, v in b.items() if k != "seconds"
+            }
+
+
 def test_tensorboard_events_hold_loss_and_error(uninterrupted):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

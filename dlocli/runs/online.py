@@ -189,6 +189,25 @@ def _run_trial_to_file(
     return attrs
 
 
+def _reference_episodes(
+    spec_json: str, k: int, runs: list[tuple[str, int]]
+) -> list[tuple[str, int, dict[str, float]]]:
+    """The reference episodes ``runs`` ((controller, trial) pairs) of iteration k, on one
+    env, from the trials' starts (a worker-process entry point)."""
+    from dlocli.env.shape_env import make_env_from_spec
+
+    spec = OnlineSpec.model_validate_json(spec_json)
+    env = make_env_from_spec(_env_spec(spec))
+    try:
+        return [
+            (name, j, reference_episode_scores(env, name, stream_seed(spec.seed, TRIAL, k, j),
+                                               stream_seed(spec.seed, REFERENCE, k, j)))
+            for name, j in runs
+        ]  # fmt: skip
+    finally:
+        env.close()
+
+
 # ----------------------------------------------------------------------------- the loop
 class OnlineRun:
     """Algorithm 1 over a run directory; :meth:`run` can be called again to resume."""
@@ -343,22 +362,23 @@ class OnlineRun:
 
     def run_references(self, k: int) -> None:
         """Doing nothing and random actions from the starts of iteration k's trials
-        (:mod:`dlocli.runs.references`); those already in the table are kept."""
-        from dlocli.env.shape_env import make_env_from_spec
-
+        (:mod:`dlocli.runs.references`), shared among the trial workers; those already in
+        the table are kept."""
         table = ReferenceTable(self.paths.references())
         missing = table.missing(k, self.spec.trials)
         if not missing:
             return
         self.progress("references", {"iteration": k, "total": len(missing)})
-        env = make_env_from_spec(_env_spec(self.spec))
-        try:
-            for name, j in missing:
-                reset_seed = stream_seed(self.spec.seed, TRIAL, k, j)
-                action_seed = stream_seed(self.spec.seed, REFERENCE, k, j)
-                table.add(name, k, j, reference_episode_scores(env, name, reset_seed, action_seed))
-        finally:
-            env.close()
+        spec_json = self.spec.model_dump_json()
+        if self.spec.workers == 1:
+            done = _reference_episodes(spec_json, k, missing)
+        else:
+            shares = [missing[w :: self.spec.workers] for w in range(self.spec.workers)]
+            pool = self._get_pool()
+            futures = [pool.submit(_reference_episodes, spec_json, k, s) for s in shares if s]
+            done = [episode for future in futures for episode in future.result()]
+        for name, j, scores in done:
+            table.add(name, k, j, scores)
         table.save()
 
     def _get_pool(self) -> ProcessPoolExecutor:
