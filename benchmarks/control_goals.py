@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.cli.control import parse_options
+from dlocli.cli.flags import parse_options
 from dlocli.env.shape_env import make_goal, save_goal
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import GoalSpec, TaskSpec, resolve_spec
@@ -34,7 +34,7 @@ def one_goal(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     overrides = {
         "task.name": args.task, "task.goal_file": goal_path, "model": args.model, "seed": seed,
         "steps": args.steps, "controller": args.controller, "out": out / f"run{seed}",
-        **parse_options(args.option),
+        **parse_options(args.option, "controller_options"),
     }  # fmt: skip
     summary = run_control(resolve_spec(ControlSpec, None, overrides), overwrite=True)
     keys = ("initial_error_mm", "final_error_mm", "best_error_mm", "latency_ms_median",

@@ -10,12 +10,14 @@ itself: the median time of ``iterations`` bare rollouts (+ gradient for ``mpc``)
 setting's batch size, divided by the step's median latency; the rest is the planner's own
 work (tensors from the observation, optimiser updates, bookkeeping).
 
-The last line is the floor: the bare matrix products of one H-step rollout at batch 1 (the
-in-bilstm's f_e and f_v layers, its LSTM input projections and the 2 x N recurrent products
-per layer, back to back on preallocated tensors, nothing else), timed in the same run. A
-control step cannot cost less than one rollout; at batch 1 the recurrent products are
-matrix-vector products that read all of W_hh per step, so this floor is bound by memory
-bandwidth, not by the FLOP rate.
+The last lines compare the default setting, timed in the same run, with two references:
+the same default through the plain PyTorch model (``model.reference = True``: stock
+``nn.LSTM``, the default path before :mod:`dlocli.models.fast_rollout`), and the floor: the
+bare PyTorch matrix products of one H-step rollout at batch 1 (the in-bilstm's f_e and f_v
+layers, its LSTM input projections and the 2 x N recurrent products per layer, back to back
+on preallocated tensors, nothing else). At batch 1 the recurrent products are
+matrix-vector products that read all of W_hh per step, bound by memory bandwidth; the
+compiled path reads the same weights, so it cannot go far below this floor either.
 
 Without ``--model`` an untrained in-bilstm of ``--hidden`` width is used: latency does not
 depend on the weights. The row marked ``paper-like`` is the slow reference setting (50
@@ -169,6 +171,17 @@ def time_setting(
     }
 
 
+def pytorch_path(env: Any, model: Any, steps: int) -> dict[str, Any] | None:
+    """The default setting with ``model.reference`` set (None for models without it)."""
+    if not hasattr(model, "reference"):
+        return None
+    model.reference = True
+    try:
+        return time_setting(env, model, "mpc", {}, steps)
+    finally:
+        model.reference = False
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
@@ -193,9 +206,10 @@ def main() -> None:
         time_setting(env, model, n, o, args.steps) for n, o in (QUICK if args.quick else SETTINGS)
     ]
     floor = floor_ms(model, rows[0]["resolved"]["horizon"])
+    before = pytorch_path(env, model, args.steps)
     env.close()
     if args.json:
-        print(json.dumps({"settings": rows, "floor_ms": floor}, indent=1))
+        print(json.dumps({"settings": rows, "pytorch_path": before, "floor_ms": floor}, indent=1))
         return
     header = (f"{'controller':10} {'options':46} {'median ms':>9} {'p95 ms':>7} {'mean ms':>7} "
               f"{'cpu ms':>7}")  # fmt: skip
@@ -207,10 +221,14 @@ def main() -> None:
               f"{row['latency_ms_p95']:7.1f} {row['latency_ms_mean']:7.1f} "
               f"{row['cpu_ms_median']:7.1f} {row['hz']:6.1f} "
               f"{100 * row['model_share']:6.0f}%")  # fmt: skip
+    default = rows[0]["latency_ms_median"]
+    if before is not None:
+        print(f"the default through plain PyTorch (the path before fast_rollout): median "
+              f"{before['latency_ms_median']:.1f} ms; the default is "
+              f"{before['latency_ms_median'] / default:.2f}x faster")  # fmt: skip
     if floor is not None:
-        default = rows[0]["latency_ms_median"]
         print(f"floor: the matrix products of one rollout at batch 1 take {floor:.1f} ms; "
-              f"the default's median is {default / floor:.1f}x that")  # fmt: skip
+              f"the default's median is {default / floor:.2f}x that")  # fmt: skip
 
 
 if __name__ == "__main__":

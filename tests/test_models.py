@@ -223,6 +223,75 @@ def test_fast_path_matches_reference(real):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize(
+    "sizes",
+    [
+        {"hidden": 150},  # the paper's sizes
+        {"velocity_input": False, "absolute_position": False, "edge_layers": 1, "lstm_layers": 1,
+         "node_layers": 1},
+        {"lstm_layers": 3, "edge_layers": 2},
+    ],
+)  # fmt: skip
+def test_planner_rollout_matches_reference(real, sizes):
+    """Forward-only rollouts at small batches (the planners') take the compiled path of
+    dlocli.models.fast_rollout: the same function as plain PyTorch. Rounding differences
+    grow along a rollout, so each step is held to PyTorch's own float32 error (against
+    float64): the compiled path may differ from float64 by at most twice as much."""
+    import copy
+
+    from dlocli.models import fast_rollout
+
+    model = fitted("in-bilstm", real, **sizes)
+    exact = copy.deepcopy(model).double()
+    exact.reference = True
+    state, actions = batch(real, size=3, horizon=5)
+    previous = real[2]["previous_state"][:3]
+    for size in (1, 3):
+        for prev in (None, previous[:size]):
+            args = (state[:size], actions[:size], prev)
+            with torch.no_grad():
+                assert fast_rollout.usable(model, *args)
+                fast = model.rollout(*args)
+                model.reference = True
+                assert not fast_rollout.usable(model, *args)
+                ref = model.rollout(*args)
+                model.reference = False
+                r64 = exact.rollout(*(None if a is None else a.double() for a in args))
+            assert fast.shape == ref.shape == (size, 5, model.n_segments, 7)
+            assert (fast - state[:size, None]).abs().max() > 1e-4, "the rollout moves the rod"
+            torch.testing.assert_close(fast[:, 0], ref[:, 0], atol=5e-6, rtol=1e-5)
+            error_fast = (fast - r64).abs().amax(dim=(0, 2, 3))
+            error_torch = (ref - r64).abs().amax(dim=(0, 2, 3))
+            assert (error_fast <= 2 * error_torch + 1e-6).all(), (error_fast, error_torch)
+
+
+def test_planner_rollout_routes_and_sees_new_weights(real):
+    """Gradients, large batches and the reference flag take PyTorch; after a training
+    step the compiled path uses the new weights (its repacked weights are not stale)."""
+    from dlocli.models import fast_rollout
+
+    model = fitted("in-bilstm", real)
+    state, actions = batch(real, size=fast_rollout.MAX_BATCH + 1, horizon=2)
+    small = (state[:1], actions[:1], None)
+    assert not fast_rollout.usable(model, state, actions, None), "large batch: oneDNN"
+    assert not fast_rollout.usable(model, *small), "grad enabled, weights require it"
+    plans = actions[:1].clone().requires_grad_(True)
+    model.rollout(state[:1], plans).sum().backward()
+    assert plans.grad is not None and plans.grad.abs().sum() > 0
+    with torch.no_grad():
+        before = model.rollout(*small)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    t = real[2]
+    model.loss(t["state"][:8], t["action"][:8], t["next_state"][:8]).backward()
+    opt.step()
+    with torch.no_grad():
+        after = model.rollout(*small)
+        model.reference = True
+        ref = model.rollout(*small)
+    assert (after - before).abs().max() > 1e-6
+    torch.testing.assert_close(after, ref, atol=5e-6, rtol=1e-5)
+
+
 def test_bilstm_matches_torch_lstm_in_double():
     from dlocli.models.rnn import bilstm
 
