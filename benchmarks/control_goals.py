@@ -1,6 +1,6 @@
 """Closed-loop control on the goals of `dlo goal --seed 0..9`: the acceptance numbers.
 
-    python benchmarks/control_goals.py --model CKPT [--seeds 0-9] [--steps 200]
+    python benchmarks/control_goals.py [--model CKPT] [--seeds 0-9] [--steps 200]
         [--controller mpc] [-o iterations=50 -o warm_start=false] [--task single]
         [--workers 1] --out runs/goals-default
 
@@ -32,9 +32,10 @@ def one_goal(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     goal_path = out / f"goal{seed}.npy"
     save_goal(make_goal(GoalSpec(seed=seed, task=TaskSpec(name=args.task))), goal_path)
     overrides = {
-        "task.name": args.task, "task.goal_file": goal_path, "model": args.model, "seed": seed,
+        "task.name": args.task, "task.goal_file": goal_path, "seed": seed,
         "steps": args.steps, "controller": args.controller, "out": out / f"run{seed}",
         **parse_options(args.option, "controller_options"),
+        **({"model": args.model} if args.model else {}),
     }  # fmt: skip
     summary = run_control(resolve_spec(ControlSpec, None, overrides), overwrite=True)
     keys = ("initial_error_mm", "final_error_mm", "best_error_mm", "latency_ms_median",
@@ -54,7 +55,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
-    parser.add_argument("--model", type=Path, required=True)
+    parser.add_argument("--model", type=Path, help="checkpoint (for the model-based controllers)")
     parser.add_argument("--seeds", default="0-9", help="goal seeds: a range 0-9 or a list 1,4,6")
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--task", default="single")
