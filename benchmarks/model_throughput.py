@@ -2,9 +2,10 @@
 
 Both run the same weights in the same process, measurements interleaved (the machine may be
 shared). For each: training transitions/s (Adam, batch 256 and ``dlo train``'s default
-batch), forward latency at batch 1 and 256, and the MPC-relevant horizon-5 rollout + backward
-at batch 1; next to the machine's measured fp32 matrix-multiply rate, so the distance to the
-hardware limit is visible.
+batch), forward latency at batch 1 and 256, and the MPC-relevant horizon-5 rollouts at batch
+1, forward only (the default MPC's) and with a backward pass (gradient MPC's); next to the
+machine's measured fp32 matrix-multiply rate, so the distance to the hardware limit is
+visible.
 
     python benchmarks/model_throughput.py [--threads 2] [--model in-bilstm] [--json]
 
@@ -97,6 +98,10 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
     def forward256() -> None:
         model(s256, a256[:, 0])
 
+    @torch.no_grad()
+    def rollout5() -> None:  # the default MPC's work per control step
+        model.rollout(s1, a1)
+
     def rollout5_backward() -> None:
         actions = a1.clone().requires_grad_(True)
         model.rollout(s1, actions)[..., :3].square().sum().backward()
@@ -107,6 +112,7 @@ def bench_cases(model: DynamicsModel) -> dict[str, tuple[Callable[[], None], int
         f"train_batch{default_batch}": (train_step(default_batch), default_batch),
         "forward_batch1": (forward1, 1),
         "forward_batch256": (forward256, 256),
+        "rollout5_batch1": (rollout5, 5),
         "rollout5_backward_batch1": (rollout5_backward, 5),
     }
 
@@ -145,7 +151,8 @@ def report(model: DynamicsModel, medians: dict[str, dict[str, float]], peak: flo
     rows = {}
     for name, per in medians.items():
         samples = cases[name][1]
-        work = flops * samples * (1 if name.startswith("forward") else 3)  # backward ~ 2x
+        backward = name.startswith("train") or name.endswith("backward_batch1")
+        work = flops * samples * (3 if backward else 1)  # backward ~ 2x the forward
         row = {}
         for variant, sec in per.items():
             row[f"{variant}_ms"] = 1000 * sec
