@@ -293,7 +293,9 @@ def _weights(model: Any) -> _Weights:
     key = tuple((t.data_ptr(), t._version) for t in _sources(model))
     cached = model.__dict__.get("_dlo_fast_weights")
     if cached is None or cached.key != key:
-        with torch.no_grad():
+        # normal tensors even under inference mode: the buffers are written in place later,
+        # possibly outside it
+        with torch.inference_mode(False), torch.no_grad():
             cached = _build_weights(model, key)
         model.__dict__["_dlo_fast_weights"] = cached
     return cached
@@ -316,11 +318,21 @@ class _Workspace:
 
 
 def _workspace(model: Any, w: _Weights, batch: int) -> _Workspace:
+    """The buffers of ``batch``, made once per weights (not thread-safe: one planner at a
+    time per model, as in every caller)."""
     if batch not in w.workspaces:
-        n, hidden, width = model.n_segments, model.lstm.hidden_size, model.feature_dim
-        own = width - (0 if model.spec.absolute_position else 3)
-        rows, relations = batch * n, batch * 2 * (n - 1)
-        w.workspaces[batch] = _Workspace(
+        w.workspaces[batch] = _new_workspace(model, w, batch)
+    return w.workspaces[batch]
+
+
+@torch.inference_mode(False)
+def _new_workspace(model: Any, w: _Weights, batch: int) -> _Workspace:
+    """Normal tensors (see :func:`_weights`)."""
+    n, hidden, width = model.n_segments, model.lstm.hidden_size, model.feature_dim
+    own = width - (0 if model.spec.absolute_position else 3)
+    rows, relations = batch * n, batch * 2 * (n - 1)
+    with torch.no_grad():
+        return _Workspace(
             features=np.empty((batch, n, width), np.float32),
             edge_in=torch.empty(relations, w.edge[0][1].shape[0] if w.edge else w.folded.shape[0]),
             edge_out=[torch.empty(relations, b.shape[0]) for b, _ in w.edge],
@@ -331,7 +343,6 @@ def _workspace(model: Any, w: _Weights, batch: int) -> _Workspace:
             node_out=[torch.empty(rows, b.shape[0]) for b, _ in w.node],
             folded_bias=w.folded_bias.repeat(batch, 1),
         )
-    return w.workspaces[batch]
 
 
 # ---------------------------------------------------------------------- the rollout
@@ -340,7 +351,11 @@ def usable(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None) 
     tensors = [state, actions] + ([] if previous is None else [previous])
     if any(t.is_cuda or t.dtype != torch.float32 for t in tensors) or model.reference:
         return False
-    if len(state) > MAX_BATCH or model.state_mean.is_cuda:
+    if (
+        len(state) > MAX_BATCH
+        or model.state_mean.is_cuda
+        or model.state_mean.dtype != torch.float32
+    ):
         return False
     wants_grad = torch.is_grad_enabled() and (
         any(t.requires_grad for t in tensors) or any(p.requires_grad for p in model.parameters())
