@@ -205,22 +205,26 @@ def test_paper_architecture_defaults():
     assert (lstm.num_layers, lstm.hidden_size, lstm.bidirectional) == (2, 150, True)
 
 
-def test_fast_path_matches_reference(real):
-    """The optimised IN + bi-LSTM computes the same function and gradients as plain PyTorch."""
-    model = fitted("in-bilstm", real, hidden=24, lstm_layers=2)
+def test_gradient_planner_path_matches_reference(real):
+    """Back-propagation to the actions through frozen weights (the gradient planners') takes
+    dlocli.models.rnn's kernels: the same rollout and action gradients as plain PyTorch."""
+    from dlocli.models import rnn
+
+    model = fitted("in-bilstm", real, hidden=24, lstm_layers=2).requires_grad_(False)
     state, actions = batch(real, size=3, horizon=2)
     outs, grads = [], []
     for reference in (False, True):
         model.reference = reference
         acts = actions.clone().requires_grad_(True)
-        model.zero_grad()
         out = model.rollout(state, acts)
         out[..., :3].sum().backward()
         outs.append(out.detach())
-        grads.append([acts.grad] + [p.grad.clone() for p in model.parameters()])
+        grads.append(acts.grad)
+    assert rnn._frozen_backward(acts, model.lstm)
     torch.testing.assert_close(outs[0], outs[1], atol=1e-6, rtol=1e-5)
-    for a, b in zip(grads[0], grads[1], strict=True):
-        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-5, rtol=1e-4)
+    model.requires_grad_(True)  # training: the stock LSTM
+    assert not rnn._frozen_backward(acts, model.lstm)
 
 
 @pytest.mark.parametrize(
@@ -299,14 +303,15 @@ def test_bilstm_matches_torch_lstm_in_double():
 
     torch.manual_seed(1)
     lstm = torch.nn.LSTM(5, 6, 2, batch_first=True, bidirectional=True).double()
+    lstm.requires_grad_(False)
     x = torch.randn(3, 7, 5, dtype=torch.double, requires_grad=True)
     weights = torch.randn(3, 7, 12, dtype=torch.double)
     mine, ref = bilstm(x, lstm), lstm(x)[0]
+    assert mine.grad_fn is not None and "BiLSTMLayer" in type(mine.grad_fn).__name__
     torch.testing.assert_close(mine, ref, atol=1e-12, rtol=0)
-    g_mine = torch.autograd.grad((mine * weights).sum(), [x, *lstm.parameters()])
-    g_ref = torch.autograd.grad((ref * weights).sum(), [x, *lstm.parameters()])
-    for a, b in zip(g_mine, g_ref, strict=True):
-        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+    (g_mine,) = torch.autograd.grad((mine * weights).sum(), [x])
+    (g_ref,) = torch.autograd.grad((ref * weights).sum(), [x])
+    torch.testing.assert_close(g_mine, g_ref, atol=1e-12, rtol=0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -14,11 +14,12 @@ Neighbouring segments are joined by two directed relations.
   gives segment i's normalised state change.
 
 Implementation: every relation of every sample goes through f_e as one batch, the sum per
-receiver is two shifted adds on the chain, and at small batches on CPU the bi-LSTM is
-:mod:`dlocli.models.rnn` (oneDNN at large batches, cuDNN on CUDA). Rollouts that want no
-gradient at small batches on CPU (the default MPC's) run whole in
-:mod:`dlocli.models.fast_rollout`. ``model.reference = True`` runs stock ``nn.LSTM``
-throughout (the benchmarks' eager reference).
+receiver is two shifted adds on the chain, and the bi-LSTM is the stock ``nn.LSTM`` (oneDNN
+on CPU, cuDNN on CUDA) but in two cases, both on CPU at small batches: rollouts that want no
+gradient (the default MPC's) run whole in :mod:`dlocli.models.fast_rollout`, and
+back-propagation through frozen weights (the gradient planners') takes
+:mod:`dlocli.models.rnn`. ``model.reference = True`` runs stock ``nn.LSTM`` throughout (the
+benchmarks' eager reference).
 """
 
 from __future__ import annotations

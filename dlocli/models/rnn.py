@@ -1,27 +1,26 @@
-"""A bidirectional LSTM layer with a hand-written backward pass, for small batches on CPU.
+"""A bidirectional LSTM layer with a hand-written backward pass, for the gradient planners.
 
 Same mathematics and the same parameters as one layer of ``torch.nn.LSTM(bidirectional=True)``
-(gates i, f, g, o; ``c' = f c + i g``, ``h' = o tanh(c')``). At small batches (the MPC's
-rollouts) the LSTM is bound by per-step overhead (FINDINGS.md: 75-85% of a forward at batch
-1), and oneDNN's backward pass costs about twice its forward and always computes the weight
-gradients, which a planner does not need. Here:
+(gates i, f, g, o; ``c' = f c + i g``, ``h' = o tanh(c')``). A gradient planner (MPC with
+``optimizer=adam`` or ``exact_gradient``) back-propagates through rollouts at small batches
+with frozen weights; oneDNN's backward pass always computes the weight gradients too. Here:
 
 - the input projections of all time steps and both directions are one matrix product;
 - the two directions advance together: one batched matrix product and a handful of
   element-wise operations per step (the backward direction reads its inputs reversed);
 - the backward pass (back-propagation through time) runs the same fused loop with the local
-  derivatives of all steps precomputed in one vectorised pass, and the weight and input
-  gradients as large matrix products after the loop (skipped for frozen weights, as in
-  planning), instead of autograd's dozen small nodes per step;
+  derivatives of all steps precomputed in one vectorised pass, and gives the input gradient
+  only: the weights are frozen;
 - both loops are compiled by TorchScript (measured 1.2-1.5x faster than the same Python);
 - the weights are repacked only when they change (cached on the module).
 
-Measured on the 2-core development VM at batch 1 (see the benchmark): the backward pass with
-frozen weights is ~1.5-2x faster than oneDNN's; the forward pass alone is slower than
-oneDNN's, so forward-only passes (no gradient wanted) go to ``nn.LSTM``.
-
-At large batches the work is matrix products and memory traffic, where oneDNN's fused LSTM
-(``nn.LSTM``) is as fast; :func:`bilstm` switches to it there, and on CUDA (cuDNN).
+Used only where it was measured faster: a backward pass with frozen weights at batches below
+:data:`LARGE_BATCH` on CPU. On the development VM of 2026-12-01 that backward pass was
+~1.5-2x faster than oneDNN's; on the AVX-512 VM of 2026-12-02 a horizon-5 rollout + backward
+at batch 1 took 18.5 ms against oneDNN's 20.3 (but 46 vs 40 ms at batch 4). Training
+(weights that want gradients) takes ``nn.LSTM``: this path was 1.5x slower there at
+``dlo train``'s batch 16 (36.6 vs 24.2 ms per step). Forward-only passes take ``nn.LSTM``
+too, or the whole rollout :mod:`dlocli.models.fast_rollout`.
 
 Shapes: ``x`` (B, T, I) -> (B, T, 2H), forward direction's hidden state then the backward
 direction's, like ``nn.LSTM(batch_first=True, bidirectional=True)``.
@@ -45,10 +44,10 @@ LARGE_BATCH = 32
 # ---------------------------------------------------------------------- the two kernels
 def _forward(
     x: Tensor, w_ih_t: Tensor, bias: Tensor, w_hh_t: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """x (B, T, I), W_ih^T (I, 8H), bias (8H), W_hh^T (2, H, 4H) -> output (B, T, 2H), and for
-    the backward pass: time-major inputs (T*B, I), activated gates (T, 2, B, 4H), cells and
-    hidden states (T, 2, B, H), all in each direction's step order.
+    the backward pass: activated gates (T, 2, B, 4H) and cells (T, 2, B, H), both in each
+    direction's step order.
 
     The weights' g-gate rows come doubled (:func:`_pack`), so one sigmoid activates all four
     gates: tanh(x) = 2 sigma(2x) - 1. The saved g activation is sigma(2x)."""
@@ -61,7 +60,7 @@ def _forward(
     c = x.new_zeros(2, batch, hidden)
     acts: list[Tensor] = []
     cells: list[Tensor] = []
-    hs: list[Tensor] = []
+    hs: list[Tensor] = []  # the output
     for gx_s in gx.unbind(0):
         gates = torch.baddbmm(gx_s, h, w_hh_t)
         act = gates.sigmoid()  # the g rows are doubled: sigma(2x) = (1 + tanh(x)) / 2
@@ -73,7 +72,7 @@ def _forward(
         hs.append(h)
     hs_t = torch.stack(hs)
     out = torch.cat([hs_t[:, 0], hs_t[:, 1].flip(0)], -1).transpose(0, 1)
-    return out, xt, torch.stack(acts), torch.stack(cells), hs_t
+    return out, torch.stack(acts), torch.stack(cells)
 
 
 def _backward(grad_out: Tensor, acts: Tensor, cells: Tensor, w_hh: Tensor) -> Tensor:
@@ -125,40 +124,24 @@ def _kernels() -> tuple[Callable[..., Any], Callable[..., Any]]:
 
 # ---------------------------------------------------------------------- autograd
 class _BiLSTMLayer(torch.autograd.Function):
-    """One bidirectional layer. Inputs: x, the packed weights (not differentiated), then the
-    eight nn.LSTM parameters (which receive the gradients)."""
+    """One bidirectional layer with frozen weights. Inputs: x, then the packed weights."""
 
     @staticmethod
-    def forward(  # type: ignore[override]
-        ctx: FunctionCtx, x: Tensor, packed: tuple[Tensor, ...], *params: Tensor
-    ) -> Tensor:
+    def forward(ctx: FunctionCtx, x: Tensor, packed: tuple[Tensor, ...]) -> Tensor:  # type: ignore[override]
         w_ih_t, bias, w_hh_t = packed[:3]
-        out, xt, acts, cells, hs = _kernels()[0](x, w_ih_t, bias, w_hh_t)
-        ctx.save_for_backward(xt, acts, cells, hs)
+        out, acts, cells = _kernels()[0](x, w_ih_t, bias, w_hh_t)
+        ctx.save_for_backward(acts, cells)
         ctx.packed = packed
-        ctx.x_shape = x.shape
         return out
 
     @staticmethod
     @once_differentiable
-    def backward(ctx: FunctionCtx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        xt, acts, cells, hs = ctx.saved_tensors
+    def backward(ctx: FunctionCtx, grad_out: Tensor) -> tuple[Tensor | None, None]:  # type: ignore[override]
+        acts, cells = ctx.saved_tensors
         w_ih, w_hh = ctx.packed[3:]
-        steps, _, batch, hidden = hs.shape
+        steps, _, batch, _ = cells.shape
         dg = _kernels()[1](grad_out, acts, cells, w_hh)  # (T*B, 8H)
-        grad_x = None
-        if ctx.needs_input_grad[0]:
-            grad_x = (dg @ w_ih).view(steps, batch, -1).transpose(0, 1)
-        if not any(ctx.needs_input_grad[2:]):  # frozen weights (planning): inputs only
-            return (grad_x, None, *[None] * 8)
-        # recurrent weights: sum over steps s >= 1 of dg_s^T h_{s-1}, per direction (step order)
-        dg_steps = torch.stack([dg[:, : 4 * hidden], dg.view(steps, batch, -1)[:, :, 4 * hidden :]
-                                .flip(0).reshape(steps * batch, -1)])  # fmt: skip
-        h_prev = hs[:-1].transpose(0, 1).reshape(2, -1, hidden)
-        d_w_hh = torch.bmm(dg_steps[:, batch:].transpose(1, 2), h_prev)
-        d_w_ih = dg.t() @ xt
-        d_bias = dg.sum(0)
-        return (grad_x, None, *_unpack_grads(d_w_ih, d_w_hh, d_bias))
+        return (dg @ w_ih).view(steps, batch, -1).transpose(0, 1), None
 
 
 def _pack(params: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
@@ -180,13 +163,6 @@ def _pack(params: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
     return w_ih_t, bias * scale.repeat(2), w_hh_t, w_ih, w_hh.contiguous()
 
 
-def _unpack_grads(d_w_ih: Tensor, d_w_hh_t: Tensor, d_bias: Tensor) -> list[Tensor]:
-    """Gradients of the packed layout back to the eight nn.LSTM parameters of one layer."""
-    gi_f, gi_b = d_w_ih.chunk(2)
-    gb_f, gb_b = d_bias.chunk(2)
-    return [gi_f, d_w_hh_t[0], gb_f, gb_f, gi_b, d_w_hh_t[1], gb_b, gb_b]
-
-
 # ---------------------------------------------------------------------- public
 def layer_params(lstm: torch.nn.LSTM, layer: int) -> tuple[Tensor, ...]:
     """The eight parameters of one bidirectional layer of ``lstm``, in _BiLSTMLayer's order."""
@@ -199,23 +175,23 @@ def layer_params(lstm: torch.nn.LSTM, layer: int) -> tuple[Tensor, ...]:
 def bilstm(x: Tensor, lstm: torch.nn.LSTM) -> Tensor:
     """Run ``lstm`` (bidirectional, batch_first, with biases, no dropout/projection) on x.
 
-    x (B, T, I) -> (B, T, 2H); equal to ``lstm(x)[0]`` up to float rounding. Small batches on
-    CPU take the kernels of this module when a backward pass will follow; large ones, CUDA
-    and forward-only passes (the default MPC's rollouts) the stock ones, whose forward is
-    faster (measured at 1 thread: 1.7 vs 2.7 ms at batch 1, 24 vs 30 ms at batch 31).
+    x (B, T, I) -> (B, T, 2H); equal to ``lstm(x)[0]`` up to float rounding. A backward pass
+    with frozen weights at small batches on CPU takes the kernels of this module; everything
+    else the stock ``nn.LSTM`` (see the module docstring).
     """
-    if x.is_cuda or x.shape[0] >= LARGE_BATCH or not _needs_backward(x, lstm):
+    if x.is_cuda or x.shape[0] >= LARGE_BATCH or not _frozen_backward(x, lstm):
         return lstm(x)[0]
     for layer in range(lstm.num_layers):
         params = layer_params(lstm, layer)
-        x = _BiLSTMLayer.apply(x, _packed(lstm, layer, params), *params)
+        x = _BiLSTMLayer.apply(x, _packed(lstm, layer, params))
     return x
 
 
-def _needs_backward(x: Tensor, lstm: torch.nn.LSTM) -> bool:
-    if not torch.is_grad_enabled():
+def _frozen_backward(x: Tensor, lstm: torch.nn.LSTM) -> bool:
+    """A gradient with respect to the input only will follow."""
+    if not torch.is_grad_enabled() or not x.requires_grad:
         return False
-    return x.requires_grad or any(p.requires_grad for p in lstm.parameters())
+    return not any(p.requires_grad for p in lstm.parameters())
 
 
 def _packed(lstm: torch.nn.LSTM, layer: int, params: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
