@@ -34,6 +34,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from dlocli.models.rnn import layer_params
+
 #: batch sizes up to which this path is faster than oneDNN (measured: 1.8x at 1, 1.2x at 4,
 #: 0.9x at 6; its recurrences run per sample, oneDNN batches them into matrix products)
 MAX_BATCH = 4
@@ -242,12 +244,11 @@ def _linears(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
 
 def _lstm_layer(lstm: torch.nn.LSTM, layer: int) -> tuple[Tensor, Tensor, Tensor]:
     """W_ih (8H, I), bias (8H), W_hh (2, 4H, H) of one layer, forward direction first."""
-    get = [
-        [getattr(lstm, f"{name}_l{layer}{suffix}") for suffix in ("", "_reverse")]
-        for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
-    ]
-    w_ih, w_hh, b_ih, b_hh = ([t.detach() for t in pair] for pair in get)
-    return torch.cat(w_ih), torch.cat(b_ih) + torch.cat(b_hh), torch.stack(w_hh)
+    w_ih_f, w_hh_f, b_ih_f, b_hh_f, w_ih_b, w_hh_b, b_ih_b, b_hh_b = (
+        p.detach() for p in layer_params(lstm, layer)
+    )
+    bias = torch.cat([b_ih_f + b_hh_f, b_ih_b + b_hh_b])
+    return torch.cat([w_ih_f, w_ih_b]), bias, torch.stack([w_hh_f, w_hh_b])
 
 
 def _build_weights(model: Any, key: tuple) -> _Weights:
@@ -283,7 +284,7 @@ def _sources(model: Any) -> list[Tensor]:
     linears = _linears(model.edge_net) + _linears(model.node_net)
     return [
         *(t for m in linears for t in (m.weight, m.bias)),
-        *model.lstm._flat_weights,
+        *(p for k in range(model.lstm.num_layers) for p in layer_params(model.lstm, k)),
         *model._buffers.values(),
     ]
 
