@@ -119,10 +119,11 @@ def test_pilco_policy_scale_floor_keeps_far_starts_in_reach():
     policy scaled to that spread has vanishing basis functions there, so it outputs zero and
     so does its gradient (pilco did nothing on the bimanual task). The floor keeps them."""
     far = torch.full((9,), 0.15, dtype=torch.float64)  # every keypoint 26 cm off the goal
-    default, floored = first_pilco_policy(), first_pilco_policy(policy_scale_floor=0.2)
+    narrow = first_pilco_policy(policy_scale_floor=0.01)  # the default before 2026-12-02
+    floored = first_pilco_policy(policy_scale_floor=0.2)
     assert torch.all(floored.scale >= 0.2)
     with torch.no_grad():
-        assert torch.all(default(far).abs() < 1e-6)
+        assert torch.all(narrow(far).abs() < 1e-6)
         assert torch.any(floored(far).abs() > 1e-3)
 
 

@@ -72,13 +72,14 @@ class PilcoSpec(Spec):
     gp_iterations: int = Field(50, ge=1, description="L-BFGS iterations of the GP evidence.")
     n_basis: int = Field(20, ge=1, description="RBF policy basis functions.")
     policy_scale_floor: float = Field(
-        0.01,
+        0.1,
         gt=0,
         description="Least input scale (m) of the RBF policy, per dimension: its initial "
         "lengthscale. The scale is the spread of the states seen before the first update; "
-        "where episode starts lie many such spreads away (the bimanual task), the basis "
-        "functions vanish there, the policy outputs zero and its gradient too: raise it "
-        "towards the start-to-goal distance.",
+        "where episode starts lie many such spreads away, the basis functions vanish there, "
+        "the policy outputs zero and its gradient too. The default is the cost width (0.01 "
+        "before 2026-12-02: pilco then did nothing on the bimanual task, and ended 1.4-1.8x "
+        "further from the single task's goals).",
     )
     policy_iterations: int = Field(30, ge=1, description="Adam steps per policy update.")
     policy_lr: float = Field(0.05, gt=0, description="Adam learning rate of the policy.")
