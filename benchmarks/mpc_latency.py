@@ -164,6 +164,7 @@ def time_setting(
         "paper_like": name == "mpc" and all(resolved[k] == v for k, v in PAPER_LIKE.items()),
         "latency_ms_median": round(median, 2),
         "latency_ms_p95": round(float(np.percentile(measured, 95)), 2),
+        "latency_ms_max": round(float(np.max(measured)), 2),
         "latency_ms_mean": round(float(np.mean(measured)), 2),
         "cpu_ms_median": round(float(np.median(cpu[2:])), 2),
         "hz": round(1000.0 / median, 1),
@@ -211,15 +212,15 @@ def main() -> None:
     if args.json:
         print(json.dumps({"settings": rows, "pytorch_path": before, "floor_ms": floor}, indent=1))
         return
-    header = (f"{'controller':10} {'options':46} {'median ms':>9} {'p95 ms':>7} {'mean ms':>7} "
-              f"{'cpu ms':>7}")  # fmt: skip
+    header = (f"{'controller':10} {'options':46} {'median ms':>9} {'p95 ms':>7} {'max ms':>7} "
+              f"{'mean ms':>7} {'cpu ms':>7}")  # fmt: skip
     print(f"{header} {'Hz':>6} {'model %':>7}")
     for row in rows:
         label = ", ".join(f"{k}={v}" for k, v in row["options"].items()) or "(defaults)"
         label += "  <- paper-like" if row["paper_like"] else ""
         print(f"{row['controller']:10} {label:46} {row['latency_ms_median']:9.1f} "
-              f"{row['latency_ms_p95']:7.1f} {row['latency_ms_mean']:7.1f} "
-              f"{row['cpu_ms_median']:7.1f} {row['hz']:6.1f} "
+              f"{row['latency_ms_p95']:7.1f} {row['latency_ms_max']:7.1f} "
+              f"{row['latency_ms_mean']:7.1f} {row['cpu_ms_median']:7.1f} {row['hz']:6.1f} "
               f"{100 * row['model_share']:6.0f}%")  # fmt: skip
     default = rows[0]["latency_ms_median"]
     if before is not None:
