@@ -60,7 +60,7 @@ def _forward(
     c = x.new_zeros(2, batch, hidden)
     acts: list[Tensor] = []
     cells: list[Tensor] = []
-    hs: list[Tensor] = []  # the output
+    hs: list[Tensor] = []
     for gx_s in gx.unbind(0):
         gates = torch.baddbmm(gx_s, h, w_hh_t)
         act = gates.sigmoid()  # the g rows are doubled: sigma(2x) = (1 + tanh(x)) / 2
@@ -127,7 +127,9 @@ class _BiLSTMLayer(torch.autograd.Function):
     """One bidirectional layer with frozen weights. Inputs: x, then the packed weights."""
 
     @staticmethod
-    def forward(ctx: FunctionCtx, x: Tensor, packed: tuple[Tensor, ...]) -> Tensor:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx: FunctionCtx, x: Tensor, packed: tuple[Tensor, ...]
+    ) -> Tensor:
         w_ih_t, bias, w_hh_t = packed[:3]
         out, acts, cells = _kernels()[0](x, w_ih_t, bias, w_hh_t)
         ctx.save_for_backward(acts, cells)
@@ -136,7 +138,9 @@ class _BiLSTMLayer(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx: FunctionCtx, grad_out: Tensor) -> tuple[Tensor | None, None]:  # type: ignore[override]
+    def backward(  # type: ignore[override]
+        ctx: FunctionCtx, grad_out: Tensor
+    ) -> tuple[Tensor, None]:
         acts, cells = ctx.saved_tensors
         w_ih, w_hh = ctx.packed[3:]
         steps, _, batch, _ = cells.shape
@@ -165,7 +169,8 @@ def _pack(params: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
 
 # ---------------------------------------------------------------------- public
 def layer_params(lstm: torch.nn.LSTM, layer: int) -> tuple[Tensor, ...]:
-    """The eight parameters of one bidirectional layer of ``lstm``, in _BiLSTMLayer's order."""
+    """The eight parameters of one bidirectional layer of ``lstm``: weight_ih, weight_hh,
+    bias_ih, bias_hh of the forward direction, then of the reverse one."""
     names = ("weight_ih_l{}{}", "weight_hh_l{}{}", "bias_ih_l{}{}", "bias_hh_l{}{}")
     return tuple(
         getattr(lstm, name.format(layer, suffix)) for suffix in ("", "_reverse") for name in names
