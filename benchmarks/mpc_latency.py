@@ -46,6 +46,7 @@ SETTINGS: list[tuple[str, dict[str, Any]]] = [
     ("mpc", {}),  # defaults: gauss-newton, lagged Jacobian, 1 iteration
     ("mpc", {"exact_gradient": True}),
     ("mpc", {"curvature_every": 5}),
+    ("mpc", {"refresh": "background"}),  # the Jacobian refresh on a second core
     ("mpc", {"iterations": 3}),
     ("mpc", {"optimizer": "adam"}),
     ("mpc", {"optimizer": "adam", "iterations": 3}),

@@ -149,6 +149,37 @@ def test_gauss_newton_gradient_matches_backprop(envs, tiny_model):
         assert mpc.predict_cost(state, stepped)[0] < cost[0]
 
 
+def jacobian_updates(env, model, refresh: str, steps: int = 11) -> tuple[dict, list]:
+    """Closed-loop MPC with the Jacobian refreshed every 3 re-plans: {re-plan: the J^T
+    installed there}, and the actions."""
+    obs, _ = env.reset(seed=4)
+    mpc = GradientMPC(env, model, MPCSpec(curvature_every=3, refresh=refresh))
+    mpc.reset(env.goal)
+    installed, actions, last = {}, [], None
+    for replan in range(1, steps + 1):
+        actions.append(mpc.act(obs))
+        if mpc.rule.jacobian_t is not last:
+            installed[replan] = last = mpc.rule.jacobian_t
+        obs = env.step(actions[-1])[0]
+    return installed, actions
+
+
+def test_background_jacobian_refresh_is_deterministic_and_lagged(envs, tiny_model):
+    """refresh="background": the Jacobian due at re-plan k (from k's state and plan) is
+    computed in a second thread and installed at k + curvature_every - 1, whatever the
+    thread's timing: two runs act alike. Inline, it is installed at k itself."""
+    env = envs["single"]
+    inline, _ = jacobian_updates(env, tiny_model, "inline")
+    background, first = jacobian_updates(env, tiny_model, "background")
+    again, second = jacobian_updates(env, tiny_model, "background")
+    assert list(inline) == [1, 4, 7, 10]
+    assert list(background) == list(again) == [1, 6, 9], "launched at 4, 7, 10; installed 2 later"
+    # both runs are alike up to re-plan 4's refresh: the same state and plan went in
+    torch.testing.assert_close(background[6], inline[4], atol=0, rtol=0)
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_planner_feeds_the_model_the_previous_observation(envs, tiny_model):
     """The velocity input: at the second step the planner rolls out from (s_1, s_0); a state
     it did not observe (and the first step of an episode) counts as at rest."""
@@ -158,11 +189,11 @@ def test_planner_feeds_the_model_the_previous_observation(envs, tiny_model):
     mpc = GradientMPC(env, tiny_model, MPCSpec())
     mpc.reset(env.goal)
     mpc.act(obs0)
-    assert mpc._previous_of(mpc._observed) is None, "first step: no previous state"
+    assert mpc.previous_of(mpc._observed) is None, "first step: no previous state"
     obs1 = env.step(np.ones(6, np.float32))[0]
     mpc.act(obs1)
     observed = mpc._observed
-    assert torch.equal(mpc._previous_of(observed), mpc.state_tensor(obs0))
+    assert torch.equal(mpc.previous_of(observed), mpc.state_tensor(obs0))
     plan = torch.zeros(1, 5, 6)
     with torch.no_grad():
         moving = mpc.predict_cost(observed, plan)

@@ -109,7 +109,8 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     legacy_task = {k for k, v in TASK_LEGACY_VALUES.items() if getattr(spec.task, k) == v}
     legacy_task |= spec.task.inert_fields()
     legacy_fit = {k for k, v in FIT_LEGACY_VALUES.items() if getattr(spec.fit, k) == v}
-    legacy = {"model": legacy_model, "task": legacy_task, "fit": legacy_fit}
+    legacy_mpc = {k for k, v in spec.mpc.legacy_values.items() if getattr(spec.mpc, k) == v}
+    legacy = {"model": legacy_model, "task": legacy_task, "fit": legacy_fit, "mpc": legacy_mpc}
     exclude = {**dict.fromkeys(FREE_FIELDS, True), **legacy}
     if agent is None:
         text = spec.model_dump_json(exclude=exclude)

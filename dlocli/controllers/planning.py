@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from abc import abstractmethod
+from types import EllipsisType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -138,12 +139,19 @@ class ModelPlanner(Controller):
         plus ``action_cost * sum ||a||^2`` (see :mod:`dlocli.controllers.mpc`)."""
         return self.residuals(state, plans).square().sum(dim=1)
 
-    def residuals(self, state: torch.Tensor, plans: torch.Tensor) -> torch.Tensor:
+    def residuals(
+        self,
+        state: torch.Tensor,
+        plans: torch.Tensor,
+        previous: torch.Tensor | None | EllipsisType = ...,
+    ) -> torch.Tensor:
         """(B, H*N*3 + H*A): the terms whose squares sum to :meth:`predict_cost`, the predicted
-        position errors (m) then sqrt(action_cost) x the actions."""
+        position errors (m) then sqrt(action_cost) x the actions. ``previous`` is the state one
+        step before ``state`` (None: at rest); by default :meth:`previous_of` finds it."""
         commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
         batch = plans.shape[0]
-        previous = self._previous_of(state)
+        if previous is ...:
+            previous = self.previous_of(state)
         if previous is not None:
             previous = previous.expand(batch, -1, -1)
         predicted = self.model.rollout(state.expand(batch, -1, -1), commands, previous)
@@ -152,7 +160,7 @@ class ModelPlanner(Controller):
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
         return torch.cat([errors, effort], dim=1)
 
-    def _previous_of(self, state: torch.Tensor) -> torch.Tensor | None:
+    def previous_of(self, state: torch.Tensor) -> torch.Tensor | None:
         """The observed state one step before ``state`` if ``state`` is the latest observation
         (the model's velocity input); None (at rest) at an episode's first step or for any
         other state. An identity test: no device sync in the planning loop."""
