@@ -372,6 +372,9 @@ def rollout(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None)
     ws = _workspace(model, w, batch)
     edge_in, summed, node_in = ws.edge_in.numpy(), ws.summed.numpy(), ws.node_in.numpy()
     gates = ws.gates.numpy()
+    # where each LSTM layer writes: its own buffer, the last one f_v's input after `own`
+    outputs = [h.numpy() for h in ws.hs] + [node_in]
+    columns = [0] * len(ws.hs) + [own]
     predicted = np.empty((horizon, batch, n, 7), np.float32)  # time-major: contiguous steps
     state_np = state.detach().contiguous().numpy()
     prev_np = state_np if previous is None else previous.detach().contiguous().numpy()
@@ -386,8 +389,6 @@ def rollout(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None)
             x = torch.addmm(bias, x, weight, out=out).relu_()
         sum_per_receiver(x.numpy(), n, summed)
         torch.addmm(ws.folded_bias, ws.summed, w.folded, out=ws.gates)
-        outputs = [h.numpy() for h in ws.hs] + [node_in]
-        columns = [0] * len(ws.hs) + [own]
         recurrence(gates, w.w_hh_t[0], n, outputs[0], columns[0])
         for k, (bias, weight) in enumerate(w.lstm_in):
             torch.addmm(bias, ws.hs[k], weight, out=ws.gates)
