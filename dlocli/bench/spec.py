@@ -105,12 +105,12 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     its own budget and its own options, resolved (so a new default reruns its jobs only)."""
     # fields at the value they had before they existed are left out, so the jobs of runs
     # made before a field was added keep their fingerprint; so are fields without effect
-    legacy_model = {k for k, v in LEGACY_VALUES.items() if getattr(spec.model, k) == v}
-    legacy_task = {k for k, v in TASK_LEGACY_VALUES.items() if getattr(spec.task, k) == v}
-    legacy_task |= spec.task.inert_fields()
-    legacy_fit = {k for k, v in FIT_LEGACY_VALUES.items() if getattr(spec.fit, k) == v}
-    legacy_mpc = {k for k, v in spec.mpc.legacy_values.items() if getattr(spec.mpc, k) == v}
-    legacy = {"model": legacy_model, "task": legacy_task, "fit": legacy_fit, "mpc": legacy_mpc}
+    legacy = {
+        "model": at_values(spec.model, LEGACY_VALUES),
+        "task": at_values(spec.task, TASK_LEGACY_VALUES) | spec.task.inert_fields(),
+        "fit": at_values(spec.fit, FIT_LEGACY_VALUES),
+        "mpc": at_values(spec.mpc, spec.mpc.legacy_values),
+    }
     exclude = {**dict.fromkeys(FREE_FIELDS, True), **legacy}
     if agent is None:
         text = spec.model_dump_json(exclude=exclude)
@@ -122,6 +122,11 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
         if budget_of(spec, agent) != spec.budget:
             text += f"|budget={budget_of(spec, agent)}"
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def at_values(spec: Any, values: dict[str, Any]) -> set[str]:
+    """The fields of ``spec`` that hold the value ``values`` gives them."""
+    return {k for k, v in values.items() if getattr(spec, k) == v}
 
 
 def option_agents() -> list[str]:
