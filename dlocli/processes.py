@@ -77,7 +77,14 @@ def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
     """Call in a worker process (a pool's ``initializer``, ``initargs=(os.getpid(),)``): it
     exits as soon as the process ``parent`` is gone. On Linux the kernel sends SIGKILL
     (``PR_SET_PDEATHSIG``); elsewhere, and as a second line, a daemon thread notices the
-    worker was re-parented."""
+    worker was re-parented.
+
+    A forked worker inherits :func:`_on_sigterm`, which runs only in the main thread, and only
+    once that thread gets back to Python. When the kernel hands SIGTERM to another thread (the
+    watcher below) while the main thread waits in C on a pool's queue lock, nothing handles it:
+    ``Pool.terminate`` then joined such a worker forever (a CI run hung in ``dlo collect``). The
+    worker therefore takes the kernel's default action, whichever thread receives it."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     _ask_kernel_for_sigkill_on_parent_death()
     if os.getppid() != parent:  # the parent died before we asked
         os._exit(1)

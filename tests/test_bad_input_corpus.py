@@ -512,3 +512,32 @@ def test_a_stop_swallowed_in_a_command_that_then_returns_exits_130():
     )
     assert "Exception ignored" in proc.stderr  # the stop really was swallowed
     assert proc.stdout.strip() == "exit 130", proc.stdout + proc.stderr
+
+
+SIGTERM_TO_THE_WATCHER = """
+import os, signal, threading, time, multiprocessing as mp
+from dlocli.processes import exit_with_parent, handle_stop_signals
+handle_stop_signals()  # the dlo process; the worker below is forked from it
+def worker(parent):
+    exit_with_parent(parent)
+    watcher = next(t for t in threading.enumerate() if t.name == "exit-with-parent")
+    lock = mp.get_context("fork").Lock()
+    lock.acquire()
+    threading.Timer(0.5, signal.pthread_kill, (watcher.ident, signal.SIGTERM)).start()
+    lock.acquire()  # the main thread waits in C, as on a pool's queue lock
+proc = mp.get_context("fork").Process(target=worker, args=(os.getpid(),))
+proc.start()
+proc.join(30)
+print("alive" if proc.is_alive() else proc.exitcode, flush=True)
+proc.kill()
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_kill"), reason="POSIX threads")
+def test_a_pool_worker_ends_on_sigterm_whichever_thread_receives_it():
+    # Pool.terminate once waited forever for a collect worker: SIGTERM reached its watcher
+    # thread while the main thread waited on the queue's lock, and the Python handler never ran
+    proc = subprocess.run(
+        [sys.executable, "-c", SIGTERM_TO_THE_WATCHER], capture_output=True, text=True, timeout=120
+    )
+    assert proc.stdout.strip() == str(-signal.SIGTERM), proc.stdout + proc.stderr
