@@ -38,9 +38,11 @@ import numpy as np
 
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
+from dlocli.markers.dataset import FORM as MARKER_FORM
+from dlocli.markers.dataset import MarkerDataset, read_marker_arrays
 
 FORMAT = "dlocli-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the ``form`` attribute ("rod", or "markers": dlocli.markers.dataset)
 DATASET_FILE = "dataset.h5"
 STATE_ARRAYS = ("positions", "quaternions", "grippers")
 EPISODE_ARRAYS = ("actions", "rewards")
@@ -193,6 +195,7 @@ class Dataset:
         with h5py.File(image, "w") as f:
             f.attrs["format"] = FORMAT
             f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["form"] = "rod"
             f.attrs["n_segments"] = self.n_segments
             for key, value in self.attrs.items():
                 f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
@@ -203,8 +206,10 @@ class Dataset:
         return path
 
 
-def load_dataset(path: Path) -> Dataset:
-    """Load a dataset file (or a run directory holding ``dataset.h5``); BadInput if not one."""
+def load_dataset(path: Path) -> Dataset | MarkerDataset:
+    """Load a dataset file (or a run directory holding ``dataset.h5``); BadInput if not one.
+    A rod dataset is a :class:`Dataset`; a marker dataset (recorded marker positions, e.g.
+    from `dlo import`) a :class:`~dlocli.markers.dataset.MarkerDataset`."""
     import h5py
 
     path = Path(path)
@@ -218,6 +223,15 @@ def load_dataset(path: Path) -> Dataset:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != FORMAT:
                 raise BadInput(f"{path} is not a dlocli dataset (no format={FORMAT} attribute)")
+            version = f.attrs.get("format_version")
+            if version not in (1, FORMAT_VERSION):
+                raise BadInput(
+                    f"dataset {path} has format version {version}; this dlocli reads 1 and "
+                    f"{FORMAT_VERSION}: upgrade dlocli or re-collect it"
+                )
+            if _decode_attr(f.attrs.get("form", "rod")) == MARKER_FORM:
+                attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
+                return read_marker_arrays(f, path, attrs)
             names = ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
             missing = [n for n in names if n not in f]
             if missing:

@@ -26,6 +26,7 @@ COMMANDS = [
     ("list", "dlocli.cli.listing:list_plugins"),
     ("goal", "dlocli.cli.goal:goal"),
     ("collect", "dlocli.cli.collect:collect"),
+    ("import", "dlocli.cli.importing:import_recordings"),
     ("train", "dlocli.cli.train:train"),
     ("eval", "dlocli.cli.eval:evaluate"),
     ("control", "dlocli.cli.control:control"),

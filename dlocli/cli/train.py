@@ -21,14 +21,19 @@ from dlocli.models.spec import TrainSpec as S
 @spec_flags(
     S,
     ["data", "model.name", "model.hidden", "model.velocity_input", "epochs", "lr", "batch_size",
-     "input_noise", "val_fraction", "mirror", "device", "seed", "init_from", "out"],
+     "input_noise", "val_fraction", "mirror", "device", "seed", "init_from", "out",
+     "update_steps", "rollout_steps", "rollout_start", "eval_every"],
 )  # fmt: skip
 def train(
     run: RunFlags,
     resume: ResumeFlag = None,
     accept_changes: AcceptChangesFlag = False,
 ) -> None:
-    """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json."""
+    """Train a dynamics model on --data; write OUT/checkpoints/final.pt and OUT/summary.json.
+
+    A rod dataset (`dlo collect`) trains one step for --epochs. A marker dataset (`dlo
+    import`, recorded cables) trains --update-steps gradient steps through open-loop
+    rollouts of up to --rollout-steps steps, on its train split only."""
     from dlocli.models.training import resumed_spec, run_training
     from dlocli.registry import models
 

@@ -316,6 +316,11 @@ def load_model(
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
     payload = read_checkpoint(path)
+    if payload.get("form") == "markers":
+        raise BadInput(
+            f"{path} is a marker-form model (trained on recorded markers); use it with "
+            "`dlo eval` on a marker dataset"
+        )
     spec_dict = with_legacy_fields(payload.get("model_spec"))  # older checkpoints' models
     try:
         spec = ModelSpec.model_validate(spec_dict)

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from dlocli.data import Dataset
+from dlocli.markers.dataset import MarkerDataset
 from dlocli.models.base import DynamicsModel
 
 HORIZONS = (5, 50)
@@ -143,8 +144,13 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
         raise BadInput(f"--plot {spec.plot} must end in .png")
     if spec.plot is not None:
         check_writable(spec.plot, "--plot")
-    net = load_model(spec.checkpoint, spec.device)
     dataset = load_dataset(spec.data)
+    if isinstance(dataset, MarkerDataset):
+        from dlocli.models.markers import load_marker_model
+
+        net = load_marker_model(spec.checkpoint, spec.device)
+    else:
+        net = load_model(spec.checkpoint, spec.device)
     if dataset.n_segments != net.n_segments:
         raise BadInput(
             f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "
@@ -161,7 +167,20 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
 
 
 def _evaluation_summary(spec: Any, net: Any, dataset: Any) -> dict[str, Any]:
+    from dlocli.io import write_json_atomic
+
     summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
+    if isinstance(dataset, MarkerDataset):
+        from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
+
+        scores, curves = evaluate_markers(net, dataset)
+        summary.update(scores)
+        if spec.plot is not None:
+            plot_error_by_horizon(scores, curves, dataset.rate_hz, spec.plot)
+            summary["plot"] = str(spec.plot)
+        if spec.out is not None:
+            write_json_atomic(Path(spec.out) / "error_by_frame.json", curves)
+        return summary
     summary.update(evaluate_model(net, dataset, max_starts=spec.max_starts))
     if spec.plot is not None:
         plot_rollout(net, dataset, 0, spec.plot)

@@ -106,6 +106,21 @@ class FitSpec(Spec):
         "Not applied to data whose right end is free (held_ends=left): its twin would be "
         "another rod.",
     )
+    rollout_steps: int = Field(
+        1, ge=1, le=1000,
+        description="Train through k-step open-loop rollouts (k = this; 1: one-step, the "
+        "paper's). Marker datasets (recorded cables) only: a model that must predict seconds "
+        "open loop learns to keep its own errors small. Marker training counts gradient "
+        "steps (`update_steps`), validating every `eval_every`.",
+    )  # fmt: skip
+    rollout_start: int = Field(
+        4, ge=1, le=1000, description="k of the first gradient step; it grows geometrically."
+    )
+    rollout_ramp: float = Field(
+        0.5, ge=0, le=1,
+        description="Share of the gradient steps over which k grows from rollout_start to "
+        "rollout_steps.",
+    )  # fmt: skip
 
 
 class TrainSpec(FitSpec):
@@ -157,6 +172,9 @@ FIT_LEGACY_VALUES: dict[str, Any] = {
     "eval_every": 100,
     "patience": 5,
     "val_transitions": 4096,
+    "rollout_steps": 1,
+    "rollout_start": 4,
+    "rollout_ramp": 0.5,
 }
 
 

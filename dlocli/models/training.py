@@ -25,6 +25,7 @@ import torch
 
 from dlocli.data import Dataset, load_dataset
 from dlocli.errors import BadInput, DloError
+from dlocli.markers.dataset import MarkerDataset
 from dlocli.models.base import (
     DynamicsModel,
     build_model,
@@ -340,12 +341,24 @@ def run_training(
     """
     from dlocli.rundir import owned
 
+    dataset = load_training_data(spec)
+    if isinstance(dataset, MarkerDataset):
+        from dlocli.models.marker_training import run_marker_training
+
+        if resume:
+            raise BadInput("--resume is not supported for marker datasets yet; train again")
+        with owned(spec.out):
+            return run_marker_training(spec, dataset, overwrite, progress)
+    if spec.rollout_steps > 1:
+        raise BadInput(
+            "--rollout-steps > 1 trains marker datasets (`dlo import`); rod datasets train "
+            "one step: drop it"
+        )
     if spec.schedule != "epochs":
         raise BadInput(
             'dlo train trains by epochs; the "steps" schedule is the online loop\'s model '
             "update (dlo online --schedule steps): drop it from the spec"
         )
-    dataset = load_training_data(spec)
     with owned(spec.out):
         return _train_in(spec, dataset, overwrite, progress, resume, accept_changes)
 

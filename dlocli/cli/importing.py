@@ -1,0 +1,20 @@
+"""`dlo import`: recorded cable trajectories (DEFORM layout) into a marker dataset."""
+
+from __future__ import annotations
+
+from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.markers.spec import ImportSpec
+
+
+@handle_errors
+@spec_flags(ImportSpec, ["source", "rate_hz", "out"])
+def import_recordings(
+    run: RunFlags,
+) -> None:
+    """Import --source (train/*.pkl, eval/*.pkl: pickled (frames, 3, markers) lists, read
+    without running code) into OUT/dataset.h5 for `dlo train` and `dlo eval`; prints the
+    freeze and straight-line references' scores."""
+    from dlocli.markers.importing import run_import
+
+    emit_summary(run_import(run.spec(), run.overwrite), run.json, "dlo import")

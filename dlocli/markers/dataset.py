@@ -1,0 +1,143 @@
+"""Marker datasets: recorded marker positions, some markers held (the input), the rest free.
+
+Stored in the dataset file format (``dataset.h5``, ``format = dlocli-dataset``) version 2,
+``form = "markers"`` (rod datasets are ``form = "rod"``; version 1 files are rod datasets).
+E episodes, episode e has T_e transitions and T_e + 1 frames; S = sum(T_e + 1); V markers:
+
+=================  ==============  ==================================================
+dataset            shape, dtype    meaning
+=================  ==============  ==================================================
+episode_lengths    (E,) int64      T_e, transitions per episode
+positions          (S, V, 3) f32   marker positions, metres, world frame, z up
+held               (V,) bool       markers a gripper holds: their recorded motion is
+                                   the input at every step
+split              (E,) uint8      0 train, 1 eval (the source's own split)
+names              (E,) str        the source file of each episode
+=================  ==============  ==================================================
+
+Attributes: ``rate_hz`` (frames per second), ``source`` (where it was imported from).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dlocli.errors import BadInput
+from dlocli.io import write_bytes_atomic
+
+FORM = "markers"
+SPLIT_CODES = {"train": 0, "eval": 1}
+DATASET_FILE = "dataset.h5"
+ARRAYS = ("episode_lengths", "positions", "held", "split", "names")
+
+
+@dataclass
+class MarkerDataset:
+    episode_lengths: np.ndarray
+    positions: np.ndarray
+    held: np.ndarray
+    split: np.ndarray
+    names: np.ndarray
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_trajectories(
+        cls,
+        trajectories: dict[str, list[tuple[str, np.ndarray]]],
+        held: np.ndarray,
+        attrs: dict[str, Any] | None = None,
+    ) -> MarkerDataset:
+        """From ``{split: [(name, (frames, V, 3)), ...]}`` (see :func:`deform.read_folder`)."""
+        rows = [(s, n, a) for s, items in trajectories.items() for n, a in items]
+        if not rows:
+            raise BadInput("no trajectories to store")
+        return cls(
+            episode_lengths=np.array([len(a) - 1 for _, _, a in rows], dtype=np.int64),
+            positions=np.concatenate([a for _, _, a in rows]).astype(np.float32),
+            held=np.asarray(held, dtype=bool),
+            split=np.array([SPLIT_CODES[s] for s, _, _ in rows], dtype=np.uint8),
+            names=np.array([n for _, n, _ in rows], dtype=object),
+            attrs=dict(attrs or {}),
+        )
+
+    @property
+    def n_markers(self) -> int:
+        return int(self.positions.shape[1])
+
+    n_segments = n_markers  # the name the rod datasets' readers use
+
+    @property
+    def n_episodes(self) -> int:
+        return len(self.episode_lengths)
+
+    @property
+    def n_transitions(self) -> int:
+        return int(self.episode_lengths.sum())
+
+    @property
+    def rate_hz(self) -> float:
+        return float(self.attrs.get("rate_hz", 100.0))
+
+    def episodes(self, split: str | None = None) -> list[np.ndarray]:
+        """Each episode's frames (T_e + 1, V, 3), of one split (None: all)."""
+        ends = np.cumsum(self.episode_lengths + 1)
+        starts = ends - (self.episode_lengths + 1)
+        keep = np.ones(self.n_episodes, bool) if split is None else self.split == SPLIT_CODES[split]
+        return [self.positions[a:b] for a, b, k in zip(starts, ends, keep) if k]
+
+    def episode_names(self, split: str | None = None) -> list[str]:
+        keep = np.ones(self.n_episodes, bool) if split is None else self.split == SPLIT_CODES[split]
+        return [str(n) for n, k in zip(self.names, keep) if k]
+
+    def save(self, path: Path) -> Path:
+        """Write atomically (temp file, then rename)."""
+        import h5py
+
+        from dlocli.data import FORMAT
+
+        image = io.BytesIO()
+        with h5py.File(image, "w") as f:
+            f.attrs["format"] = FORMAT
+            f.attrs["format_version"] = 2
+            f.attrs["form"] = FORM
+            f.attrs["n_segments"] = self.n_markers
+            for key, value in self.attrs.items():
+                f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
+            for name in ARRAYS[:-1]:
+                f.create_dataset(name, data=getattr(self, name))
+            f.create_dataset("names", data=self.names.astype(object), dtype=h5py.string_dtype())
+        write_bytes_atomic(Path(path), image.getbuffer())
+        return Path(path)
+
+
+def read_marker_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> MarkerDataset:
+    """A marker dataset from an open HDF5 file (called by :func:`dlocli.data.load_dataset`)."""
+    missing = [n for n in ARRAYS if n not in f]
+    if missing:
+        raise BadInput(f"marker dataset {path} lacks {', '.join(missing)}; re-import it")
+    arrays = {n: f[n][()] for n in ARRAYS}
+    arrays["names"] = np.array([n.decode() if isinstance(n, bytes) else str(n) for n in arrays["names"]], dtype=object)
+    data = MarkerDataset(**arrays, attrs=attrs)
+    _check(data, path)
+    return data
+
+
+def _check(data: MarkerDataset, path: Path) -> None:
+    """BadInput unless shapes agree and positions are finite."""
+    lengths, pos = data.episode_lengths, data.positions
+    ok = (
+        lengths.ndim == 1 and len(lengths) > 0 and bool((lengths >= 2).all())
+        and pos.ndim == 3 and pos.shape[2] == 3 and pos.shape[0] == int((lengths + 1).sum())
+        and data.held.shape == (pos.shape[1],) and data.held.any() and not data.held.all()
+        and data.split.shape == lengths.shape and data.names.shape == lengths.shape
+    )  # fmt: skip
+    if not ok:
+        raise BadInput(f"marker dataset {path} has inconsistent array shapes; re-import it")
+    if not np.isfinite(pos).all():
+        raise BadInput(f"marker dataset {path} contains NaN or inf positions; re-import it")

@@ -1,0 +1,21 @@
+"""Specs of the marker-form commands (torch-free: the CLI builds its --help without torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+
+from dlocli.specs import Spec
+
+
+class ImportSpec(Spec):
+    """`dlo import`: recorded marker trajectories -> a marker dataset run directory."""
+
+    source: Path | None = Field(
+        None,
+        description="Folder of one cable's recordings in the DEFORM layout: train/*.pkl and "
+        "eval/*.pkl, each a pickled (frames, 3, markers) list of metres.",
+    )
+    rate_hz: float = Field(100.0, gt=0, le=100000, description="Frames per second of the recording.")
+    out: Path = Field(Path("runs/import"), description="Run directory for the dataset.")

@@ -1,0 +1,178 @@
+"""The marker form of the dynamics models: positions only, held markers as the input.
+
+What real setups observe: V tracked markers along the cable, no orientations, no gripper
+commands. A state is the markers' positions x_t (B, V, 3) and the previous frame x_{t-1}
+(their difference is the velocity); the input of a step is the recorded next position of
+every held marker (the paper's per-vertex action a_i, as a boundary condition). A model
+predicts each marker's acceleration; x_{t+1} = 2 x_t - x_{t-1} + a, and the held markers
+are set to their recorded positions.
+
+Per-marker features (all in world axes, so gravity keeps its direction): position relative
+to the held markers' centroid, velocity, the held marker's next displacement (zero for free
+ones) and a held flag, each divided by a scale fitted on the training data (buffers, so
+they travel with the checkpoint).
+
+Every registered model has a marker form: the built-in ones in :data:`MARKER_FORMS`, a
+plugin's in its class attribute ``marker_form``. Build one with :func:`build_marker_model`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dlocli.errors import BadInput
+from dlocli.models.base import mlp
+from dlocli.models.in_bilstm import init_forget_bias
+from dlocli.models.spec import ModelSpec
+
+FEATURES = 10  # relative position 3, velocity 3, held displacement 3, held flag 1
+FORM = "markers"
+
+
+class MarkerModel(torch.nn.Module):
+    """Base of the marker-form models; subclasses implement :meth:`predict`."""
+
+    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
+        super().__init__()
+        held = torch.as_tensor(np.asarray(held, dtype=bool))
+        if held.shape != (n_markers,) or not held.any() or held.all():
+            raise BadInput(f"held markers must be a mask of {n_markers} with free ones")
+        self.spec = spec
+        self.n_segments = int(n_markers)  # the checkpoint's count field
+        self.register_buffer("held", held)
+        for name in ("position_scale", "velocity_scale", "acceleration_scale"):
+            self.register_buffer(name, torch.ones(3))
+        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+
+    def predict(self, features: Tensor) -> Tensor:
+        """Normalised accelerations (B, V, 3) from the features (B, V, FEATURES)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ normalisation
+    def fit_normalization(self, episodes: list[np.ndarray]) -> None:
+        """Scales from training episodes (each (T+1, V, 3)): per axis, the RMS of the
+        centroid-relative position, of the velocity and of the free markers' acceleration."""
+        held = self.held.cpu().numpy()
+        rel = np.concatenate([e - e[:, held].mean(1, keepdims=True) for e in episodes])
+        vel = np.concatenate([np.diff(e, axis=0) for e in episodes])
+        acc = np.concatenate([np.diff(e[:, ~held], 2, axis=0) for e in episodes])
+
+        def rms(a: np.ndarray) -> np.ndarray:
+            return np.maximum(np.sqrt(np.mean(a.reshape(-1, 3) ** 2, 0)), 1e-6)
+
+        for name, value in (("position_scale", rms(rel)), ("velocity_scale", rms(vel)),
+                            ("acceleration_scale", rms(acc))):  # fmt: skip
+            getattr(self, name).copy_(torch.as_tensor(value, dtype=torch.float32))
+        self.fitted.fill_(True)
+
+    def features(self, x: Tensor, x_prev: Tensor, held_next: Tensor) -> Tensor:
+        held = self.held[:, None].to(x.dtype)
+        centre = (x * held).sum(1, keepdim=True) / held.sum()
+        flag = held.expand(x.shape[0], -1, 1)
+        return torch.cat([(x - centre) / self.position_scale,
+                          (x - x_prev) / self.velocity_scale,
+                          (held_next - x) * held / self.velocity_scale, flag], -1)  # fmt: skip
+
+    # ------------------------------------------------------------------ the contract
+    def forward(self, x: Tensor, x_prev: Tensor, held_next: Tensor) -> Tensor:
+        """Next positions (B, V, 3) from x_t, x_{t-1} and the held markers' x_{t+1} (the
+        free rows of ``held_next`` are ignored)."""
+        acc = self.predict(self.features(x, x_prev, held_next)) * self.acceleration_scale
+        return torch.where(self.held[:, None], held_next, 2 * x - x_prev + acc)
+
+    def rollout(self, x: Tensor, x_prev: Tensor, held_future: Tensor) -> Tensor:
+        """Open loop: (B, V, 3) x_t, x_{t-1} and (B, H, V, 3) frames t+1..t+H of which only
+        the held markers are read -> predicted frames (B, H, V, 3)."""
+        out = []
+        for k in range(held_future.shape[1]):
+            x_prev, x = x, self(x, x_prev, held_future[:, k])
+            out.append(x)
+        return torch.stack(out, 1)
+
+    @property
+    def device(self) -> torch.device:
+        return self.held.device
+
+
+class MarkerINBiLSTM(MarkerModel):
+    """The paper's Interaction Network + bi-LSTM on the marker chain: f_e on each
+    neighbour relation (receiver features, sender minus receiver), summed per receiver, a
+    bidirectional LSTM along the cable, f_v on (own features, LSTM state)."""
+
+    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
+        super().__init__(spec, n_markers, held)
+        h = spec.hidden
+        self.edge_net = mlp([2 * FEATURES] + [h] * spec.edge_layers)
+        self.lstm = torch.nn.LSTM(h, h, spec.lstm_layers, batch_first=True, bidirectional=True)
+        self.node_net = mlp([FEATURES + 2 * h] + [h] * (spec.node_layers - 1) + [3])
+        init_forget_bias(self.lstm, 1.0)
+
+    def predict(self, f: Tensor) -> Tensor:
+        diff = f[:, 1:] - f[:, :-1]
+        from_left = torch.cat([f[:, 1:], -diff], -1)  # receivers 1..V-1
+        from_right = torch.cat([f[:, :-1], diff], -1)  # receivers 0..V-2
+        out = self.edge_net(torch.cat([from_left, from_right], 1))
+        left, right = out.split(self.n_segments - 1, dim=1)
+        pad = torch.nn.functional.pad
+        effects = pad(left, (0, 0, 1, 0)) + pad(right, (0, 0, 0, 1))
+        return self.node_net(torch.cat([f, self.lstm(effects)[0]], -1))
+
+
+class MarkerMLP(MarkerModel):
+    """The flattened baseline: one MLP from all markers' features to all accelerations."""
+
+    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
+        super().__init__(spec, n_markers, held)
+        self.net = mlp([n_markers * FEATURES] + [spec.mlp_hidden] * spec.mlp_layers
+                       + [n_markers * 3])  # fmt: skip
+
+    def predict(self, f: Tensor) -> Tensor:
+        return self.net(f.reshape(len(f), -1)).view(len(f), self.n_segments, 3)
+
+
+def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:
+    """A fresh marker-form model of the registered kind ``spec.name``."""
+    from dlocli.models.in_bilstm import INBiLSTM
+    from dlocli.models.mlp import MLPDynamics
+    from dlocli.registry import models
+
+    rod_model = models.get(spec.name)
+    form = getattr(rod_model, "marker_form", None) or {
+        INBiLSTM: MarkerINBiLSTM, MLPDynamics: MarkerMLP
+    }.get(rod_model)
+    if form is None:
+        raise BadInput(f"model '{spec.name}' has no marker form; use in-bilstm or mlp")
+    return form(spec, n_markers, held)
+
+
+def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:
+    """A trained marker-form model from a checkpoint or run directory, in eval mode."""
+    from pydantic import ValidationError
+
+    from dlocli.models.base import read_checkpoint, resolve_device
+    from dlocli.specs import format_validation_error
+
+    payload = read_checkpoint(path)
+    if payload.get("form") != FORM:
+        raise BadInput(f"{path} is a rod model; evaluate it on a rod dataset (`dlo collect`)")
+    try:
+        spec = ModelSpec.model_validate(payload.get("model_spec"))
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
+    state = payload["state_dict"]
+    held = state.get("held")
+    if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:
+        raise BadInput(f"checkpoint {path} lacks its held-marker mask; retrain it")
+    if not all(bool(torch.isfinite(w).all()) for w in state.values() if w.is_floating_point()):
+        raise BadInput(f"checkpoint {path} holds NaN or inf weights (training diverged); retrain")
+    model = build_marker_model(spec, len(held), held.numpy())
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()[0][:160]
+        raise BadInput(f"checkpoint {path} weights do not fit {spec.name} ({first})") from exc
+    return model.to(resolve_device(device)).eval().requires_grad_(False)

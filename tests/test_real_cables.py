@@ -1,0 +1,202 @@
+"""Recorded cables (marker form): `dlo import` of DEFORM-format files, the benchmark
+protocol and its references, marker-form training and evaluation, and files that must be
+refused. Tiny files of the same format are written here; the real data set is used when
+``DLOCLI_DEFORM_DATA`` (or the development checkout's copy) is present."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from dlocli.cli import main
+from dlocli.data import Dataset, load_dataset
+from dlocli.markers import deform, protocol
+from dlocli.markers.dataset import MarkerDataset
+
+FRAMES, MARKERS = 40, 6
+DEFORM_DATA = Path(os.environ.get("DLOCLI_DEFORM_DATA", Path(__file__).parents[2] / "shared/data/deform"))
+
+
+def _run(*argv: str) -> int:
+    old = sys.argv
+    sys.argv = ["dlo", *argv]
+    try:
+        main()
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 0
+    finally:
+        sys.argv = old
+    return 0
+
+
+def _swinging_cable(seed: int, frames: int = FRAMES, markers: int = MARKERS) -> np.ndarray:
+    """(frames, 3, markers) like a DEFORM file: a sagging cable whose ends move."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames)[:, None] / 100.0
+    s = np.linspace(0, 1, markers)[None, :]
+    phase, amp = rng.uniform(0, 6), rng.uniform(0.02, 0.08)
+    x = 0.8 * s + amp * np.sin(2 * np.pi * t + phase)
+    y = 0.05 * np.sin(np.pi * s) * np.cos(3 * t + phase)
+    z = 0.5 - 0.2 * np.sin(np.pi * s) + amp * np.sin(5 * t) * s
+    return np.stack([x, y, z], 1).astype(np.float64)
+
+
+def _write_cable(root: Path, n_train: int = 4, n_eval: int = 2, **kw) -> Path:
+    for split, n in (("train", n_train), ("eval", n_eval)):
+        (root / split).mkdir(parents=True, exist_ok=True)
+        for i in range(n):
+            array = _swinging_cable(i + (100 if split == "eval" else 0), **kw)
+            (root / split / f"{i}.pkl").write_bytes(pickle.dumps(array.tolist()))
+    return root
+
+
+@pytest.fixture(scope="module")
+def cable(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _write_cable(tmp_path_factory.mktemp("cable") / "CABLE")
+
+
+@pytest.fixture(scope="module")
+def imported(cable: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("imported") / "data"
+    assert _run("import", "--source", str(cable), "--out", str(out), "--json") == 0
+    return out
+
+
+def test_import_keeps_the_split_and_the_positions(cable: Path, imported: Path) -> None:
+    data = load_dataset(imported)
+    assert isinstance(data, MarkerDataset)
+    assert data.n_markers == MARKERS and list(np.flatnonzero(data.held)) == [0, 1, 4, 5]
+    assert data.episode_names("train") == ["0", "1", "2", "3"]
+    assert data.episode_names("eval") == ["0", "1"]
+    first = np.asarray(pickle.loads((cable / "eval" / "1.pkl").read_bytes())).transpose(0, 2, 1)
+    np.testing.assert_allclose(data.episodes("eval")[1], first, atol=1e-6)
+
+
+def test_the_freeze_reference_is_the_published_score(imported: Path, cable: Path) -> None:
+    """DEFORM's score of freezing the free markers at frame 1, computed here by hand from
+    the files: the mean |error| per coordinate over frames 2.., all markers, in cm."""
+    summary = json.loads((imported / "summary.json").read_text())
+    by_hand = []
+    for path in sorted((cable / "eval").glob("*.pkl")):
+        rec = np.asarray(pickle.loads(path.read_bytes()))  # (frames, 3, V)
+        pred = np.repeat(rec[1:2], len(rec), 0)
+        pred[:, :, [0, 1, -2, -1]] = rec[:, :, [0, 1, -2, -1]]
+        by_hand.append(np.abs(pred[2:] - rec[2:]).mean() * 100)
+    assert summary["eval_freeze_cm"] == pytest.approx(np.mean(by_hand), abs=1e-3)
+
+
+@pytest.mark.skipif(not (DEFORM_DATA / "DLO1" / "eval").is_dir(), reason="DEFORM data not here")
+def test_the_references_on_the_real_cables() -> None:
+    """The freeze and straight-line references of the data set's README, ±0.02 cm."""
+    published = {"DLO1": (5.673, 6.67), "DLO2": (5.288, 6.38), "DLO3": (4.849, 6.50),
+                 "DLO4": (5.299, 6.08)}  # fmt: skip
+    for name, (frozen, line) in published.items():
+        episodes = [a for _, a in deform.read_folder(DEFORM_DATA / name)["eval"]]
+        held = deform.held_markers(episodes[0].shape[1])
+        score = {k: np.mean([protocol.deform_score_cm(ref(e, held), e) for e in episodes])
+                 for k, ref in protocol.REFERENCES.items()}  # fmt: skip
+        assert score["freeze"] == pytest.approx(frozen, abs=0.02), name
+        assert score["straight_line"] == pytest.approx(line, abs=0.02), name
+
+
+def test_train_and_evaluate_by_the_protocol(imported: Path, tmp_path: Path) -> None:
+    """Three commands: import (above), train through rollouts, evaluate on the eval split.
+    A model trained through 8-step rollouts beats freezing the cable on this smooth motion."""
+    model = tmp_path / "model"
+    args = ["--data", str(imported), "--out", str(model), "--update-steps", "150",
+            "--rollout-steps", "8", "--lr", "3e-3", "--hidden", "16", "--device", "cpu",
+            "--val-fraction", "0.25", "--json"]  # fmt: skip
+    assert _run("train", *args) == 0
+    summary = json.loads((model / "summary.json").read_text())
+    assert summary["form"] == "markers" and summary["val_episodes"] == 1
+    plot = tmp_path / "horizon.png"
+    assert _run("eval", "--checkpoint", str(model), "--data", str(imported),
+                "--out", str(tmp_path / "eval"), "--plot", str(plot), "--json") == 0  # fmt: skip
+    result = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert result["episodes"] == 2 and len(result["model_scores_cm"]) == 2
+    assert result["model_score_cm"] < result["freeze_score_cm"]
+    assert result["ms_per_step_1_thread"] > 0 and plot.stat().st_size > 0
+    curves = json.loads((tmp_path / "eval" / "error_by_frame.json").read_text())
+    assert set(curves["free_error_mm"]) == {"model", "freeze", "straight_line"}
+    assert len(curves["abs_error_cm"]["model"]) == FRAMES
+
+
+@pytest.mark.parametrize("name", ["in-bilstm", "mlp"])
+def test_every_registered_model_has_a_marker_form(name: str) -> None:
+    import torch
+
+    from dlocli.models.markers import build_marker_model
+    from dlocli.models.spec import ModelSpec
+
+    held = deform.held_markers(MARKERS)
+    model = build_marker_model(ModelSpec(name=name, hidden=8, mlp_hidden=8), MARKERS, held)
+    rec = torch.as_tensor(_swinging_cable(0).transpose(0, 2, 1)[None], dtype=torch.float32)
+    pred = model.rollout(rec[:, 1], rec[:, 0], rec[:, 2:])
+    assert pred.shape == rec[:, 2:].shape
+    torch.testing.assert_close(pred[:, :, held], rec[:, 2:, held])  # held ones are the input
+
+
+def test_a_crafted_pickle_is_refused_and_runs_nothing(tmp_path: Path, capsys) -> None:
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    root = _write_cable(tmp_path / "CABLE")
+    (root / "train" / "evil.pkl").write_bytes(pickle.dumps(Payload()))
+    code = _run("import", "--source", str(root), "--out", str(tmp_path / "out"))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and not marker.exists() and not (tmp_path / "out").exists()
+    assert len(err.splitlines()) == 1 and "never run" in err and "posix.system" in err
+
+
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        (lambda: [[1.0, 2.0], [3.0]], "rectangular"),
+        (lambda: np.zeros((10, 4, 6)).tolist(), "shape"),
+        (lambda: np.zeros((10, 3, 3)).tolist(), "at least 4"),
+        (lambda: np.full((10, 3, 6), np.nan).tolist(), "NaN"),
+        (lambda: "text", "rectangular"),
+    ],
+)
+def test_bad_files_get_one_line(tmp_path: Path, capsys, bad, words: str) -> None:
+    root = _write_cable(tmp_path / "CABLE")
+    (root / "train" / "bad.pkl").write_bytes(pickle.dumps(bad()))
+    existing = tmp_path / "out"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("mine")
+    assert _run("import", "--source", str(root), "--out", str(existing), "--overwrite") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and words in err, err
+    assert [p.name for p in existing.iterdir()] == ["keep.txt"]
+
+
+def test_mixed_marker_counts_are_refused(tmp_path: Path, capsys) -> None:
+    root = _write_cable(tmp_path / "CABLE")
+    (root / "eval" / "z.pkl").write_bytes(pickle.dumps(_swinging_cable(0, markers=7).tolist()))
+    assert _run("import", "--source", str(root), "--out", str(tmp_path / "out")) == 2
+    assert "mixed marker counts" in capsys.readouterr().err
+
+
+def test_rollout_training_is_refused_for_rod_data(small_dataset_dir: Path, tmp_path: Path, capsys) -> None:
+    args = ["--data", str(small_dataset_dir), "--rollout-steps", "4", "--out", str(tmp_path / "m")]
+    assert _run("train", *args) == 2
+    assert "marker datasets" in capsys.readouterr().err
+
+
+def test_version_1_rod_datasets_still_load(small_dataset_dir: Path, tmp_path: Path) -> None:
+    old = tmp_path / "v1.h5"
+    old.write_bytes((small_dataset_dir / "dataset.h5").read_bytes())
+    with h5py.File(old, "r+") as f:
+        f.attrs["format_version"] = 1
+        del f.attrs["form"]
+    assert isinstance(load_dataset(old), Dataset)
