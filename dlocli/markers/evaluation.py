@@ -25,7 +25,7 @@ def evaluate_markers(
     predicted step on one CPU thread at batch 1. The curves: the free markers' mean error
     (mm) per frame, model and references."""
     episodes = dataset.episodes(split)
-    predictions = {"model": predict_episodes(model, episodes)}
+    predictions = {"model": predict_episodes(model, episodes, dataset.held)}
     for name, reference in protocol.REFERENCES.items():
         predictions[name] = [reference(e, dataset.held) for e in episodes]
     summary: dict[str, Any] = {"split": split, "episodes": len(episodes)}

@@ -18,6 +18,7 @@ import copy
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,7 @@ from dlocli.errors import DloError
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
+from dlocli.processes import raise_if_stopped
 
 Progress = Callable[[dict[str, Any]], None]
 CM = 0.01
@@ -41,44 +43,69 @@ def rollout_length(fit: FitSpec, step: int) -> int:
     return int(round(start * (fit.rollout_steps / start) ** frac))
 
 
-class WindowSampler:
-    """Random k-step windows (x_{t-1}, x_t, x_{t+1..t+k}) from training episodes."""
+@dataclass
+class Cable:
+    """Episodes (each (T+1, V, 3)) of one cable and its held-marker mask (V,)."""
 
-    def __init__(self, episodes: list[np.ndarray], fit: FitSpec, device: torch.device) -> None:
-        self.episodes = [torch.as_tensor(e, dtype=torch.float32, device=device) for e in episodes]
-        self.lengths = np.array([len(e) for e in episodes])
-        self.mirror = fit.mirror
+    episodes: list[np.ndarray]
+    held: np.ndarray
+
+    def mask(self, device: torch.device) -> torch.Tensor:
+        return torch.as_tensor(self.held, dtype=torch.bool, device=device)
+
+
+class WindowSampler:
+    """Random k-step windows (x_{t-1}, x_t, x_{t+1..t+k}), each batch from one cable (drawn
+    in proportion to its episodes)."""
+
+    def __init__(self, cables: list[Cable], fit: FitSpec, device: torch.device) -> None:
+        self.cables = cables
+        self.episodes = [[torch.as_tensor(e, dtype=torch.float32, device=device)
+                          for e in c.episodes] for c in cables]  # fmt: skip
+        counts = np.array([len(c.episodes) for c in cables], dtype=float)
+        self.weights = counts / counts.sum()
+        # the mirror reverses the marker order: valid where the held markers are symmetric
+        self.mirror = [fit.mirror and bool((c.held == c.held[::-1]).all()) for c in cables]
         self.rng = np.random.default_rng(fit.seed)
         self.device = device
 
-    def sample(self, batch: int, k: int) -> torch.Tensor:
-        """(B, k + 2, V, 3) frames t-1 .. t+k, augmented."""
-        eps = self.rng.integers(len(self.episodes), size=batch)
-        k = int(min(k, self.lengths[eps].min() - 2))
-        starts = self.rng.integers(1, self.lengths[eps] - k)
-        win = torch.stack([self.episodes[e][s - 1 : s + k + 1] for e, s in zip(eps, starts)])
-        if self.mirror:
+    def sample(self, batch: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, k + 2, V, 3) frames t-1 .. t+k, augmented, and the cable's held mask."""
+        c = int(self.rng.choice(len(self.cables), p=self.weights))
+        episodes = self.episodes[c]
+        lengths = np.array([len(e) for e in episodes])
+        eps = self.rng.integers(len(episodes), size=batch)
+        k = int(min(k, lengths[eps].min() - 2))
+        starts = self.rng.integers(1, lengths[eps] - k)
+        win = torch.stack([episodes[e][s - 1 : s + k + 1] for e, s in zip(eps, starts)])
+        if self.mirror[c]:
             flip = torch.as_tensor(self.rng.random(batch) < 0.5, device=self.device)
             win = torch.where(flip[:, None, None, None], win.flip(2), win)
-        angle = torch.as_tensor(self.rng.uniform(0, 2 * math.pi, batch), dtype=torch.float32,
-                                device=self.device)  # fmt: skip
-        c, s = torch.cos(angle), torch.sin(angle)
-        x, y = win[..., 0], win[..., 1]
-        c, s = c[:, None, None], s[:, None, None]
-        return torch.stack([c * x - s * y, s * x + c * y, win[..., 2]], -1)
+        return rotate_about_vertical(win, self.rng), self.cables[c].mask(self.device)
 
 
-def rollout_loss(model: MarkerModel, windows: torch.Tensor) -> torch.Tensor:
+def rotate_about_vertical(win: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+    """Each window turned by its own random angle about the z axis (gravity unchanged)."""
+    angle = torch.as_tensor(rng.uniform(0, 2 * math.pi, len(win)), dtype=win.dtype,
+                            device=win.device)  # fmt: skip
+    c, s = torch.cos(angle)[:, None, None], torch.sin(angle)[:, None, None]
+    x, y = win[..., 0], win[..., 1]
+    return torch.stack([c * x - s * y, s * x + c * y, win[..., 2]], -1)
+
+
+def rollout_loss(model: MarkerModel, windows: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
     """Mean absolute error (cm) of the free markers over the open-loop rollout."""
-    pred = model.rollout(windows[:, 1], windows[:, 0], windows[:, 2:])
-    free = ~model.held
-    return (pred[:, :, free] - windows[:, 2:, free]).abs().mean() / CM
+    pred = model.rollout(windows[:, 1], windows[:, 0], windows[:, 2:], held)
+    return (pred[:, :, ~held] - windows[:, 2:, ~held]).abs().mean() / CM
 
 
 @torch.no_grad()
-def predict_episodes(model: MarkerModel, episodes: list[np.ndarray]) -> list[np.ndarray]:
+def predict_episodes(
+    model: MarkerModel, episodes: list[np.ndarray], held: np.ndarray | None = None
+) -> list[np.ndarray]:
     """The benchmark's open-loop rollout of every episode from frame 1 (frames 0-1 copied),
     batched over episodes of equal length."""
+    mask = None if held is None else torch.as_tensor(held, dtype=torch.bool, device=model.device)
     out: list[np.ndarray] = [np.empty(0)] * len(episodes)
     by_length: dict[int, list[int]] = {}
     for i, e in enumerate(episodes):
@@ -86,47 +113,56 @@ def predict_episodes(model: MarkerModel, episodes: list[np.ndarray]) -> list[np.
     for idx in by_length.values():
         rec = torch.as_tensor(np.stack([episodes[i] for i in idx]), dtype=torch.float32,
                               device=model.device)  # fmt: skip
-        pred = torch.cat([rec[:, :2], model.rollout(rec[:, 1], rec[:, 0], rec[:, 2:])], 1)
+        rolled = model.rollout(rec[:, 1], rec[:, 0], rec[:, 2:], mask)
+        pred = torch.cat([rec[:, :2], rolled], 1)
         for j, i in enumerate(idx):
             out[i] = pred[j].double().cpu().numpy()
     return out
 
 
-def score_cm(model: MarkerModel, episodes: list[np.ndarray]) -> float:
-    """The benchmark score (cm) averaged over ``episodes``."""
+def scores_cm(model: MarkerModel, cable: Cable) -> list[float]:
+    """The benchmark score (cm) of every episode of ``cable``."""
     from dlocli.markers.protocol import deform_score_cm
 
-    preds = predict_episodes(model, episodes)
-    return float(np.mean([deform_score_cm(p, e) for p, e in zip(preds, episodes)]))
+    preds = predict_episodes(model, cable.episodes, cable.held)
+    return [deform_score_cm(p, e) for p, e in zip(preds, cable.episodes)]
+
+
+def validation_score(model: MarkerModel, cables: list[Cable]) -> float:
+    """The mean benchmark score over every validation episode (NaN: none)."""
+    scores = [s for c in cables for s in scores_cm(model, c)]
+    return float(np.mean(scores)) if scores else math.nan
 
 
 def fit_markers(
     model: MarkerModel,
-    train: list[np.ndarray],
-    val: list[np.ndarray],
+    train: list[Cable],
+    val: list[Cable],
     fit: FitSpec,
     progress: Progress | None = None,
 ) -> list[dict[str, float]]:
-    """Train ``model`` in place (see the module docstring); returns the validation history.
-    The model ends in eval mode with the best validated weights."""
+    """Train ``model`` in place on one or more cables (see the module docstring); returns
+    the validation history. The model ends in eval mode with the best validated weights."""
     from dlocli.models.base import resolve_device
 
     device = resolve_device(fit.device)
     torch.manual_seed(fit.seed)
     if not bool(model.fitted):
-        model.fit_normalization(train)
+        model.fit_normalization([(e, c.held) for c in train for e in c.episodes])
     model.to(device).train().requires_grad_(True)
     sampler = WindowSampler(train, fit, device)
     optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
+    total = fit.update_steps
     schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, fit.update_steps) / fit.update_steps))
+        optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
     )
     history: list[dict[str, float]] = []
     best = (math.inf, copy.deepcopy(model.state_dict()))
     start, running = time.perf_counter(), []
-    for step in range(1, fit.update_steps + 1):
+    for step in range(1, total + 1):
+        raise_if_stopped()
         k = rollout_length(fit, step)
-        loss = rollout_loss(model, sampler.sample(fit.batch_size, k))
+        loss = rollout_loss(model, *sampler.sample(fit.batch_size, k))
         if not math.isfinite(loss.item()):
             raise DloError(f"training diverged (loss {loss.item()}) at step {step}; lower --lr")
         optimizer.zero_grad(set_to_none=True)
@@ -135,19 +171,20 @@ def fit_markers(
         optimizer.step()
         schedule.step()
         running.append(loss.item())
-        if step % fit.eval_every == 0 or step == fit.update_steps:
+        if step % fit.eval_every == 0 or step == total:
             model.eval()
-            val_score = score_cm(model, val) if val else math.nan
+            val_score = validation_score(model, val)
             model.train()
             record = {"step": step, "k": k, "train_loss": float(np.mean(running)),
                       "val_score_cm": val_score, "seconds": time.perf_counter() - start}  # fmt: skip
             history.append(record)
             running = []
-            if not val or val_score < best[0]:
+            if math.isnan(val_score) or val_score < best[0]:
                 best = (val_score, copy.deepcopy(model.state_dict()))
             if progress:
                 progress(record)
     model.load_state_dict(best[1])
+    model.eval()
     return history
 
 
@@ -181,7 +218,9 @@ def run_marker_training(
                       "loss": record["train_loss"]})  # fmt: skip
             progress({"epoch": 1, "epochs": 1, "val_loss": record["val_score_cm"]})
 
-    history = fit_markers(model, train, val, spec, report)
+    held = dataset.held
+    history = fit_markers(model, [Cable(train, held)], [Cable(val, held)] if val else [],
+                          spec, report)  # fmt: skip
     save_checkpoint(model, out / "checkpoints" / "final.pt", {"form": FORM})
     lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
     lines += [f"{r['step']},{r['k']},{r['train_loss']:.6g},{r['val_score_cm']:.6g},"

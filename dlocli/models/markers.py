@@ -53,24 +53,25 @@ class MarkerModel(torch.nn.Module):
         raise NotImplementedError
 
     # ------------------------------------------------------------------ normalisation
-    def fit_normalization(self, episodes: list[np.ndarray]) -> None:
-        """Scales from training episodes (each (T+1, V, 3)): per axis, the RMS of the
-        centroid-relative position, of the velocity and of the free markers' acceleration."""
-        held = self.held.cpu().numpy()
-        rel = np.concatenate([e - e[:, held].mean(1, keepdims=True) for e in episodes])
-        vel = np.concatenate([np.diff(e, axis=0) for e in episodes])
-        acc = np.concatenate([np.diff(e[:, ~held], 2, axis=0) for e in episodes])
+    def fit_normalization(self, episodes: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Scales from training episodes ((T+1, V, 3) and their held mask (V,)): per axis,
+        the RMS of the centroid-relative position, of the velocity and of the free markers'
+        acceleration."""
+        rel = np.concatenate([(e - e[:, h].mean(1, keepdims=True)).reshape(-1, 3)
+                              for e, h in episodes])  # fmt: skip
+        vel = np.concatenate([np.diff(e, axis=0).reshape(-1, 3) for e, _ in episodes])
+        acc = np.concatenate([np.diff(e[:, ~h], 2, axis=0).reshape(-1, 3) for e, h in episodes])
 
         def rms(a: np.ndarray) -> np.ndarray:
-            return np.maximum(np.sqrt(np.mean(a.reshape(-1, 3) ** 2, 0)), 1e-6)
+            return np.maximum(np.sqrt(np.mean(a**2, 0)), 1e-6)
 
         for name, value in (("position_scale", rms(rel)), ("velocity_scale", rms(vel)),
                             ("acceleration_scale", rms(acc))):  # fmt: skip
             getattr(self, name).copy_(torch.as_tensor(value, dtype=torch.float32))
         self.fitted.fill_(True)
 
-    def features(self, x: Tensor, x_prev: Tensor, held_next: Tensor) -> Tensor:
-        held = self.held[:, None].to(x.dtype)
+    def features(self, x: Tensor, x_prev: Tensor, held_next: Tensor, held: Tensor) -> Tensor:
+        held = held[:, None].to(x.dtype)
         centre = (x * held).sum(1, keepdim=True) / held.sum()
         flag = held.expand(x.shape[0], -1, 1)
         return torch.cat([(x - centre) / self.position_scale,
@@ -78,24 +79,61 @@ class MarkerModel(torch.nn.Module):
                           (held_next - x) * held / self.velocity_scale, flag], -1)  # fmt: skip
 
     # ------------------------------------------------------------------ the contract
-    def forward(self, x: Tensor, x_prev: Tensor, held_next: Tensor) -> Tensor:
+    def forward(
+        self,
+        x: Tensor,
+        x_prev: Tensor,
+        held_next: Tensor,
+        lengths: Tensor | None = None,
+        held: Tensor | None = None,
+    ) -> Tensor:
         """Next positions (B, V, 3) from x_t, x_{t-1} and the held markers' x_{t+1} (the
-        free rows of ``held_next`` are ignored)."""
-        acc = self.predict(self.features(x, x_prev, held_next)) * self.acceleration_scale
-        return torch.where(self.held[:, None], held_next, 2 * x - x_prev + acc)
+        free rows of ``held_next`` are ignored); with ``lengths`` (B, V-1) and
+        ``spec.length_projection``, projected onto those neighbour distances. ``held``: the
+        mask of another cable (models whose size does not depend on V); default the model's."""
+        held = self.held if held is None else held
+        acc = self.predict(self.features(x, x_prev, held_next, held)) * self.acceleration_scale
+        nxt = torch.where(held[:, None], held_next, 2 * x - x_prev + acc)
+        if lengths is not None and self.spec.length_projection:
+            nxt = project_lengths(nxt, lengths, held, self.spec.length_projection)
+        return nxt
 
-    def rollout(self, x: Tensor, x_prev: Tensor, held_future: Tensor) -> Tensor:
+    def rollout(
+        self, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor | None = None
+    ) -> Tensor:
         """Open loop: (B, V, 3) x_t, x_{t-1} and (B, H, V, 3) frames t+1..t+H of which only
         the held markers are read -> predicted frames (B, H, V, 3)."""
+        lengths = neighbour_distances(x)
         out = []
         for k in range(held_future.shape[1]):
-            x_prev, x = x, self(x, x_prev, held_future[:, k])
+            x_prev, x = x, self(x, x_prev, held_future[:, k], lengths, held)
             out.append(x)
         return torch.stack(out, 1)
 
     @property
     def device(self) -> torch.device:
         return self.held.device
+
+
+def neighbour_distances(x: Tensor) -> Tensor:
+    """(B, V, 3) -> (B, V-1) distances between neighbouring markers."""
+    return (x[:, 1:] - x[:, :-1]).norm(dim=-1)
+
+
+def project_lengths(x: Tensor, lengths: Tensor, held: Tensor, sweeps: int) -> Tensor:
+    """Position-based projection onto the neighbour distances ``lengths``: each sweep
+    corrects the even edges, then the odd ones (each half touches a marker once, so it is
+    exact per edge and vectorised); held markers do not move (infinite mass)."""
+    w = (~held).to(x.dtype)
+    for _ in range(sweeps):
+        for first in (0, 1):
+            a = torch.arange(first, x.shape[1] - 1, 2, device=x.device)
+            d = x[:, a + 1] - x[:, a]
+            dist = d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+            wa, wb = w[a][:, None], w[a + 1][:, None]
+            share = (dist - lengths[:, a, None]) / dist / (wa + wb).clamp_min(1.0) * d
+            x = x.index_add(1, a, share * wa).index_add(1, a + 1, -share * wb)
+    return x
 
 
 class MarkerINBiLSTM(MarkerModel):
@@ -113,10 +151,11 @@ class MarkerINBiLSTM(MarkerModel):
 
     def predict(self, f: Tensor) -> Tensor:
         diff = f[:, 1:] - f[:, :-1]
+        n = f.shape[1]
         from_left = torch.cat([f[:, 1:], -diff], -1)  # receivers 1..V-1
         from_right = torch.cat([f[:, :-1], diff], -1)  # receivers 0..V-2
         out = self.edge_net(torch.cat([from_left, from_right], 1))
-        left, right = out.split(self.n_segments - 1, dim=1)
+        left, right = out.split(n - 1, dim=1)
         pad = torch.nn.functional.pad
         effects = pad(left, (0, 0, 1, 0)) + pad(right, (0, 0, 0, 1))
         return self.node_net(torch.cat([f, self.lstm(effects)[0]], -1))

@@ -44,6 +44,12 @@ class ModelSpec(Spec):
     mlp_hidden: int = Field(
         512, gt=0, le=65536, description="Width of the `mlp` baseline's hidden layers."
     )
+    length_projection: int = Field(
+        0, ge=0, le=50,
+        description="Marker form (recorded cables): sweeps projecting every predicted frame "
+        "onto the distances between neighbouring markers of the rollout's first frame (a "
+        "cable does not stretch); 0: none.",
+    )  # fmt: skip
 
 
 class FitSpec(Spec):
@@ -161,7 +167,11 @@ class EvalSpec(Spec):
 
 #: ModelSpec fields added after models and runs were first saved, with the value that
 #: rebuilds what was saved before the field existed
-LEGACY_VALUES: dict[str, Any] = {"velocity_input": False, "absolute_position": True}
+LEGACY_VALUES: dict[str, Any] = {
+    "velocity_input": False,
+    "absolute_position": True,
+    "length_projection": 0,
+}
 #: FitSpec fields added after runs were first saved, with the value that rebuilds what a saved
 #: run did before the field existed
 FIT_LEGACY_VALUES: dict[str, Any] = {
