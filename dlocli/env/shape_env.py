@@ -32,7 +32,7 @@ from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shapes import make_shape, max_twist
 from dlocli.env.tasks import Task, make_task
-from dlocli.errors import BadInput, BadOption, UnknownOption
+from dlocli.errors import BadInput, BadOption, UnknownOption, UnworkablePhysics
 from dlocli.io import atomic_path
 from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
@@ -274,7 +274,10 @@ class DLOShapeEnv(gym.Env):
     def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
         """A reachable goal: a random shape (:mod:`dlocli.env.shapes`) the rod settled in."""
         if not self._random_shape(rng, 2 * self.task_spec.reset_motion_steps):
-            raise RuntimeError("could not generate a goal: the simulation diverged 10 times")
+            raise UnworkablePhysics(
+                "could not generate a goal: the simulation diverged 10 times; lower the task's "
+                "velocities or backend.physics_dt, or bring the rod closer to the defaults"
+            )
         self.goal_gripper_poses = self.backend.gripper_poses()
         return self.backend.segment_positions().copy()
 
