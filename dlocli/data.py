@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.dataset_checks import check_fields
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
 
@@ -230,6 +231,7 @@ def load_dataset(path: Path) -> Dataset:
         ) from exc
     data = Dataset(**arrays, attrs=attrs)
     _check_consistent(data, path)
+    check_fields(arrays, attrs, path, FORMAT_VERSION)
     return data
 
 

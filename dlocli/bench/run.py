@@ -38,7 +38,6 @@ from s alone: one goal shape per seed, the same for every agent.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
@@ -57,7 +56,7 @@ from dlocli.bench.spec import (
     seeds_of,
 )
 from dlocli.errors import BadInput, DloError
-from dlocli.io import prepare_run_dir, write_json_atomic
+from dlocli.io import prepare_run_dir, read_json, write_json_atomic
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import InUse, owned
 
@@ -150,7 +149,7 @@ class BenchRun:
         path = self.job_file(agent, seed)
         if not path.is_file():
             return None
-        result = json.loads(path.read_text())
+        result = read_json(path, dict)
         return result if result.get("fingerprint") == fingerprint(self.spec, agent) else None
 
     def jobs(self) -> list[Job]:

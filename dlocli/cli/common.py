@@ -12,6 +12,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import Progress
 from rich.table import Table
 
@@ -72,8 +73,17 @@ def handle_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+#: longest error line printed: a message quoting a huge path or value keeps its start (what)
+#: and its end (the fix)
+MAX_ERROR_CHARS = 600
+
+
 def print_error(line: str) -> None:
-    console.print(f"[red]error:[/red] {line}", highlight=False, soft_wrap=True)
+    line = " ".join(line.split())  # one line, whatever a library's message held
+    if len(line) > MAX_ERROR_CHARS:
+        half = MAX_ERROR_CHARS // 2
+        line = f"{line[:half]} ... {line[-half:]}"
+    console.print(f"[red]error:[/red] {escape(line)}", highlight=False, soft_wrap=True)
 
 
 #: operating-system errors about a path the user gave (exit 2); others (disk full, ...) exit 1

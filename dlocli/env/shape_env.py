@@ -55,9 +55,12 @@ def load_goal(path: Path, n_segments: int) -> np.ndarray:
     if not path.is_file():
         raise BadInput(f"goal {path} does not exist; {expected} (make one with `dlo goal`)")
     try:
-        goal = np.load(path, allow_pickle=False)
+        # memory-mapped: a header that claims terabytes is refused by its shape, not allocated
+        goal = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
         raise BadInput(f"goal {path} could not be read as .npy ({exc}); {expected}") from exc
+    if not isinstance(goal, np.ndarray):
+        raise BadInput(f"goal {path} is an .npz archive, not one array; {expected}")
     if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused
         raise BadInput(f"goal {path} has dtype {goal.dtype} and shape {goal.shape}; {expected}")
     if not np.all(np.isfinite(goal)):
