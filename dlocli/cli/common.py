@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import sys
@@ -68,14 +69,14 @@ def handle_errors(fn: F) -> F:
             raise typer.Exit(143 if terminated else 130) from None
         except OSError as exc:
             print_error(os_error_line(exc))
-            raise typer.Exit(2 if isinstance(exc, PATH_ERRORS) else 1) from None
+            raise typer.Exit(2 if is_path_error(exc) else 1) from None
 
     return wrapper  # type: ignore[return-value]
 
 
 #: longest error line printed: a message quoting a huge path or value keeps its start (what)
 #: and its end (the fix)
-MAX_ERROR_CHARS = 600
+MAX_ERROR_CHARS = 500
 
 
 def print_error(line: str) -> None:
@@ -88,13 +89,19 @@ def print_error(line: str) -> None:
 
 #: operating-system errors about a path the user gave (exit 2); others (disk full, ...) exit 1
 PATH_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
+#: error numbers of a path that cannot name a file (too long, a symlink loop)
+PATH_ERRNOS = (errno.ENAMETOOLONG, errno.ELOOP)
+
+
+def is_path_error(exc: OSError) -> bool:
+    return isinstance(exc, PATH_ERRORS) or exc.errno in PATH_ERRNOS
 
 
 def os_error_line(exc: OSError) -> str:
     """One line naming the path, what the system said and what to do."""
     where = f" {exc.filename}" if exc.filename else ""
     what = exc.strerror or type(exc).__name__
-    if isinstance(exc, PATH_ERRORS):
+    if is_path_error(exc):
         return f"cannot use{where}: {what}; pass a path you can write to (or read from)"
     return f"{what}{where}; free space or fix the file system and run again"
 
