@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.dataset_checks import check_fields
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
 from dlocli.markers.dataset import FORM as MARKER_FORM
@@ -244,6 +245,7 @@ def load_dataset(path: Path) -> Dataset | MarkerDataset:
         ) from exc
     data = Dataset(**arrays, attrs=attrs)
     _check_consistent(data, path)
+    check_fields(arrays, attrs, path, FORMAT_VERSION)
     return data
 
 

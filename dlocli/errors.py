@@ -30,3 +30,8 @@ class BadOption(BadInput, ValueError):
 
 class SimulationDiverged(DloError):
     """The physics produced NaN or exploded; episodes end with a flag instead of raising."""
+
+
+class UnworkablePhysics(BadInput):
+    """Parameters within their ranges that together make the simulation diverge (a rod too
+    light for its stiffness at this time step, say): the message names them and the fix."""

@@ -65,9 +65,21 @@ def write_json_atomic(path: Path, data: Any) -> None:
     write_text_atomic(path, json.dumps(data, indent=2, default=str) + "\n")
 
 
-def read_json(path: Path) -> Any:
-    """The JSON value in ``path`` (one that :func:`write_json_atomic` wrote)."""
-    return json.loads(Path(path).read_text())
+def read_json(path: Path, expect: type = object) -> Any:
+    """The JSON value in ``path`` (one that :func:`write_json_atomic` wrote); BadInput naming
+    the file if it is not JSON, or not of type ``expect``."""
+    try:
+        value = json.loads(Path(path).read_bytes())
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
+        raise BadInput(
+            f"{path} is damaged ({str(exc)[:80]}); restore it, or start a new run"
+        ) from exc
+    if not isinstance(value, expect):
+        raise BadInput(
+            f"{path} is damaged (it holds a {type(value).__name__}, not a {expect.__name__}); "
+            "restore it, or start a new run"
+        )
+    return value
 
 
 def prepare_run_dir(out: Path, overwrite: bool) -> Path:

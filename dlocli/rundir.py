@@ -16,7 +16,6 @@ recorded and the change is the user's.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -24,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from dlocli.errors import BadInput
-from dlocli.io import LOCK_FILE, write_json_atomic
+from dlocli.io import LOCK_FILE, read_json, write_json_atomic
 
 try:  # POSIX; elsewhere runs are not locked
     import fcntl
@@ -135,13 +134,19 @@ def check_fingerprints(run_dir: Path, spec: Any, accept_changes: bool = False) -
     than fingerprints is trusted and gets them); with ``accept_changes`` record the new ones."""
     path = Path(run_dir) / FINGERPRINTS_FILE
     if path.is_file() and not accept_changes:
-        recorded = json.loads(path.read_text())
+        recorded = read_json(path, dict)
         now = fingerprints(run_dir, spec)
-        changed = [
-            name
-            for name in ("spec.json", *sorted({*recorded["inputs"], *now["inputs"]}))
-            if _entry(recorded, name) != _entry(now, name)
-        ]
+        try:
+            changed = [
+                name
+                for name in ("spec.json", *sorted({*recorded["inputs"], *now["inputs"]}))
+                if _entry(recorded, name) != _entry(now, name)
+            ]
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise BadInput(
+                f"--resume {run_dir}: {path.name} is damaged; pass --accept-changes to record "
+                "the current spec and inputs, or start a new run"
+            ) from exc
         if changed:
             raise BadInput(
                 f"--resume {run_dir}: {', '.join(changed)} changed since the run started; "

@@ -15,6 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from dlocli.errors import BadInput
+from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
 
 
 class Spec(BaseModel):
@@ -40,16 +41,27 @@ class Spec(BaseModel):
 
 
 # --------------------------------------------------------------------------- physics
+#: most control steps of a reset's motion or settling: each is a control period of physics
+MAX_RESET_STEPS = 10_000
+
 class RodSpec(Spec):
     """The deformable linear object. Defaults are the paper's material (DESIGN.md)."""
 
-    length: float = Field(1.0, gt=0, description="Rod length in metres.")
+    length: float = Field(1.0, ge=0.05, le=3, description="Rod length in metres (0.05 to 3).")
     n_segments: int = Field(20, ge=4, le=200, description="Number of rigid segments.")
-    radius: float = Field(0.01, gt=0, description="Rod cross-section radius in metres.")
-    density: float = Field(1000.0, gt=0, description="Material density in kg/m^3.")
-    young_tension: float = Field(1e8, gt=0, description="Young's modulus in tension (Pa).")
-    young_bending: float = Field(1e7, gt=0, description="Young's modulus in bending/twist (Pa).")
-    poisson: float = Field(0.33, gt=-1, lt=0.5, description="Poisson's ratio.")
+    radius: float = Field(
+        0.01, ge=1e-4, le=0.1, description="Rod cross-section radius in metres (1e-4 to 0.1)."
+    )
+    density: float = Field(
+        1000.0, ge=10, le=1e5, description="Material density in kg/m^3 (10 to 1e5)."
+    )
+    young_tension: float = Field(
+        1e8, ge=1e4, le=1e12, description="Young's modulus in tension (Pa, 1e4 to 1e12)."
+    )
+    young_bending: float = Field(
+        1e7, ge=1e4, le=1e12, description="Young's modulus in bending/twist (Pa, 1e4 to 1e12)."
+    )
+    poisson: float = Field(0.33, ge=0, lt=0.5, description="Poisson's ratio (0 to 0.5).")
 
     @property
     def segment_length(self) -> float:
@@ -86,9 +98,10 @@ class BackendSpec(Spec):
     name: str = Field("mujoco", description="Simulator backend (see `dlo list`).")
     physics_dt: float | None = Field(
         None,
-        gt=0,
+        ge=1e-5,
         le=0.02,
-        description="Physics step in seconds; None = the backend's stable default.",
+        description="Physics step in seconds (1e-5 to 0.02); None = the backend's stable "
+        "default.",
     )
     held_ends: Literal["both", "left"] = Field(
         "both", description="Which rod ends the grippers hold ('left' leaves a free cantilever)."
@@ -109,11 +122,17 @@ class TaskSpec(Spec):
     goal_file: Path | None = Field(
         None, description="Goal shape .npy (N,3) in metres; overrides `goal`."
     )
-    episode_steps: int = Field(200, gt=0, description="Control steps per episode (T).")
-    control_dt: float = Field(0.02, gt=0, description="Control period in seconds (50 Hz).")
-    max_linear_velocity: float = Field(0.1, gt=0, description="Gripper speed at action 1 (m/s).")
+    episode_steps: int = Field(
+        200, gt=0, le=MAX_COUNT, description="Control steps per episode (T)."
+    )
+    control_dt: float = Field(
+        0.02, ge=1e-3, le=1, description="Control period in seconds (50 Hz; 1e-3 to 1)."
+    )
+    max_linear_velocity: float = Field(
+        0.1, gt=0, le=2, description="Gripper speed at action 1 (m/s, at most 2)."
+    )
     max_angular_velocity: float = Field(
-        0.5, gt=0, description="Gripper angular speed at action 1 (rad/s)."
+        0.5, gt=0, le=10, description="Gripper angular speed at action 1 (rad/s, at most 10)."
     )
     max_separation: float = Field(
         0.95, gt=0, lt=1, description="Largest gripper separation as a fraction of the rod length."
@@ -153,10 +172,10 @@ class TaskSpec(Spec):
         "turns a gripper from its rest orientation.",
     )
     reset_motion_steps: int = Field(
-        40, ge=0, description="near-rest shapes: random gripper-motion steps (then settle)."
+        40, ge=0, le=MAX_RESET_STEPS, description="near-rest shapes: random gripper-motion steps (then settle)."
     )
     reset_settle_steps: int = Field(
-        40, ge=0, description="Zero-velocity steps to let the rod settle."
+        40, ge=0, le=MAX_RESET_STEPS, description="Zero-velocity steps to let the rod settle."
     )
     observe_velocity: bool = Field(
         True,
@@ -172,9 +191,17 @@ class TaskSpec(Spec):
         return {"reset_motion_steps"}
 
     @model_validator(mode="after")
-    def _pose_region_ordered(self) -> TaskSpec:
-        if any(lo > hi for lo, hi in zip(self.pose_offset_low, self.pose_offset_high, strict=True)):
-            raise ValueError("pose_offset_low must not exceed pose_offset_high in any axis")
+    def _regions_ordered(self) -> TaskSpec:
+        for low, high in (("pose_offset_low", "pose_offset_high"),
+                          ("workspace_low", "workspace_high")):  # fmt: skip
+            pairs = zip(getattr(self, low), getattr(self, high), strict=True)
+            if any(lo > hi for lo, hi in pairs):
+                raise ValueError(f"{low} must not exceed {high} in any axis")
+        if self.min_separation > self.max_separation:
+            raise ValueError(
+                f"min_separation {self.min_separation} exceeds max_separation "
+                f"{self.max_separation}"
+            )
         return self
 
 
@@ -189,7 +216,7 @@ class EnvSpec(Spec):
 
     backend: BackendSpec = Field(default_factory=BackendSpec, description="Simulator.")
     task: TaskSpec = Field(default_factory=TaskSpec, description="Task.")
-    seed: int = Field(0, ge=0, description="Seed of every random stream of the run.")
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of every random stream of the run.")
 
 
 class GoalSpec(EnvSpec):
@@ -203,8 +230,11 @@ class CollectSpec(EnvSpec):
 
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
 
-    episodes: int = Field(10, gt=0, description="Number of episodes.")
-    workers: int = Field(1, gt=0, description="Parallel worker processes (same data as 1 worker).")
+    episodes: int = Field(10, gt=0, le=MAX_COUNT, description="Number of episodes.")
+    workers: int = Field(
+        1, gt=0, le=MAX_PROCESSES,
+        description="Parallel worker processes (same data as 1 worker; at most one per CPU).",
+    )  # fmt: skip
     out: Path = Field(Path("runs/collect"), description="Run directory for the dataset.")
 
 
@@ -253,7 +283,7 @@ def load_spec_file(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text()
         data = json.loads(text) if path.suffix == ".json" else _load_yaml(text)
-    except (OSError, ValueError, yaml.YAMLError) as exc:
+    except (OSError, ValueError, yaml.YAMLError, RecursionError) as exc:  # Recursion: nesting
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise BadInput(
             f"spec file {path} is not valid YAML/JSON ({first}); fix or remove it"

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dlocli.errors import UnworkablePhysics
 from dlocli.specs import BackendSpec
 
 REST_HEIGHT = 0.8
@@ -253,6 +254,16 @@ class Backend(ABC):
     @property
     def physics_dt(self) -> float:
         return self.spec.physics_dt or self.default_physics_dt
+
+    def unworkable_rod(self, problem: str) -> UnworkablePhysics:
+        """The error of a rod the simulator cannot hold (``problem``), naming its parameters."""
+        rod = self.spec.rod
+        return UnworkablePhysics(
+            f"{self.spec.name}: {problem} (length {rod.length:g} m, radius "
+            f"{rod.radius:g} m, density {rod.density:g} kg/m^3, Young's moduli "
+            f"{rod.young_tension:g}/{rod.young_bending:g} Pa, physics_dt {self.physics_dt:g} s); "
+            "bring the material closer to the defaults or pass a smaller backend.physics_dt"
+        )
 
     #: subclasses: the physics step that keeps the rod stable at the maximum gripper speeds
     default_physics_dt: float = 0.002

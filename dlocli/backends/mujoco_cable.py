@@ -90,6 +90,16 @@ WELD_SOLIMP = (0.99, 0.8, 0.01, 0.5, 2.0)  # stiff near zero violation, yields b
 SETTLE_MAX_TIME = 20.0  # s of simulated time to reach the rest state
 SETTLE_TOLERANCE = 1e-6  # m/s, rad/s: largest generalized velocity counted as "at rest"
 _STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads, warmstart too
+
+
+def _keep_warnings_counted_only(message: str) -> None:
+    """MuJoCo's warnings (an unstable simulation, ...) are counted in ``MjData.warning``,
+    which the backend checks; printed, they would come before the one-line error, and MuJoCo
+    would append them to a MUJOCO_LOG.TXT in the working directory."""
+    del message
+
+
+mujoco.set_mju_user_warning(_keep_warnings_counted_only)
 _GL_BROKEN = False  # set once per process when no GL context can be made: no retry noise
 
 
@@ -263,7 +273,11 @@ class MujocoCable(Backend):
         self.n_substeps = max(1, math.ceil(control_dt / self.physics_dt - 1e-9))
         dt = control_dt / self.n_substeps
         rest = self.rest_gripper_poses()
-        self.model, frame_fix = build_model(self.rod, rest, self.spec.held_ends == "both", dt)
+        try:
+            self.model, frame_fix = build_model(self.rod, rest, self.spec.held_ends == "both", dt)
+        except ValueError as exc:  # MuJoCo's compiler refuses, e.g., a too light segment
+            reason = str(exc).strip().splitlines()[0][:160]
+            raise self.unworkable_rod(f"MuJoCo cannot build this rod ({reason})") from exc
         self.data = mujoco.MjData(self.model)
         self._frame_fix = _right_multiplier(frame_fix)
         self._half_segment = 0.5 * self.rod.segment_length
@@ -292,7 +306,7 @@ class MujocoCable(Backend):
             if np.max(np.abs(d.qvel)) < SETTLE_TOLERANCE or not np.all(np.isfinite(d.qvel)):
                 break
         if not np.all(np.isfinite(d.qpos)) or d.warning.number.any():
-            raise RuntimeError(f"MuJoCo cable: the rest state diverged for {self.rod!r}")
+            raise self.unworkable_rod("the rod's rest state diverged")
         d.time = 0.0
         return self._get_physics_state()
 

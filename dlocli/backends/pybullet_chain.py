@@ -53,7 +53,7 @@ import pybullet as p
 
 from dlocli.backends.base import REST_HEIGHT, Backend
 from dlocli.backends.rotations import quat_normalize, quat_rotate
-from dlocli.errors import BadInput, SimulationDiverged
+from dlocli.errors import BadInput
 from dlocli.specs import BackendSpec, RodSpec
 
 COURANT = 0.5  # target omega_max * dt of the fastest chain mode (explicit stability < 2)
@@ -287,7 +287,7 @@ class PybulletChain(Backend):
         self._set_dynamics(SETTLE_DAMPING)
         for _ in range(round(SETTLE_TIME / self.control_dt)):
             if not self._advance(rest, rest):
-                raise SimulationDiverged(f"pybullet: the rest shape of {self.rod} diverged")
+                raise self.unworkable_rod("the rod's rest state diverged")
         self._set_dynamics(AIR_DAMPING)
         state = self._get_physics_state()
         state[7:13] = 0.0  # at rest: exactly zero base and joint velocities

@@ -38,7 +38,6 @@ from s alone: one goal shape per seed, the same for every agent.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
@@ -57,7 +56,7 @@ from dlocli.bench.spec import (
     seeds_of,
 )
 from dlocli.errors import BadInput, DloError
-from dlocli.io import prepare_run_dir, write_json_atomic
+from dlocli.io import prepare_run_dir, read_json, write_json_atomic
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import InUse, owned
 
@@ -111,7 +110,25 @@ def check_spec(spec: BenchSpec) -> None:
                 "(mpc uses the spec's model, fit and mpc fields)"
             )
         controller_spec(name, options)
+    _refuse_oversized_agents(spec)
     check_executor(spec.executor, spec.ray_address)
+
+
+def _refuse_oversized_agents(spec: BenchSpec) -> None:
+    """BadInput, before any job starts, if a model or an SB3 agent would not fit in memory."""
+    from dlocli.controllers.base import controller_spec
+    from dlocli.controllers.sb3_agents import SB3Spec
+    from dlocli.env.shape_env import observation_space
+    from dlocli.models.base import refuse_oversized_model
+
+    n_segments = spec.backend.rod.n_segments
+    if {"mpc", "mpc-offline"} & set(spec.agents):
+        refuse_oversized_model(spec.model, n_segments)
+    obs_dim = observation_space(n_segments, spec.task.observe_velocity).shape[0]
+    for name in set(spec.agents) & set(option_agents()):
+        options = controller_spec(name, spec.options.get(name))
+        if isinstance(options, SB3Spec):  # 12: two grippers' actions, the largest
+            options.refuse_oversized(name, obs_dim, action_dim=12)
 
 
 # ----------------------------------------------------------------------------- the run
@@ -132,7 +149,7 @@ class BenchRun:
         path = self.job_file(agent, seed)
         if not path.is_file():
             return None
-        result = json.loads(path.read_text())
+        result = read_json(path, dict)
         return result if result.get("fingerprint") == fingerprint(self.spec, agent) else None
 
     def jobs(self) -> list[Job]:

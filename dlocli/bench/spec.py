@@ -6,11 +6,12 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, model_validator
 
 from dlocli.controllers.mpc import MPCSpec
+from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
 from dlocli.models.spec import FIT_LEGACY_VALUES, LEGACY_VALUES, FitSpec, ModelSpec
 from dlocli.specs import TASK_LEGACY_VALUES, EnvSpec
 
@@ -27,17 +28,17 @@ class BenchSpec(EnvSpec):
         description="Agents to compare: zero, random, sac, td3, pilco, mpc, mpc-offline "
         "(zero and random are the references every result is read against).",
     )
-    budget: int = Field(5000, gt=0, description="Env transitions each agent may learn from.")
-    budgets: dict[str, int] = Field(
+    budget: int = Field(5000, gt=0, le=MAX_TRANSITIONS, description="Env transitions each agent may learn from.")
+    budgets: dict[str, Annotated[int, Field(gt=0, le=MAX_TRANSITIONS)]] = Field(
         default_factory=dict,
         description="Per-agent budgets overriding `budget`, e.g. {sac: 50000, td3: 50000}; "
         "evaluation points stay `budget / evals` apart, so curves share their x values.",
     )
-    seeds: int = Field(3, gt=0, description="Seeds per agent: seed, seed+1, ...")
+    seeds: int = Field(3, gt=0, le=MAX_SEEDS, description="Seeds per agent: seed, seed+1, ...")
     evals: int = Field(
-        10, gt=0, description="Evaluation points, at regular transition counts (whole episodes)."
+        10, gt=0, le=MAX_COUNT, description="Evaluation points, at regular transition counts (whole episodes)."
     )
-    eval_trials: int = Field(5, gt=0, description="Noise-free episodes per evaluation point.")
+    eval_trials: int = Field(5, gt=0, le=MAX_COUNT, description="Noise-free episodes per evaluation point.")
     options: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
         description="Options of the learning agents by name, e.g. {sac: {net_arch: [64, 64]}}.",
@@ -58,14 +59,14 @@ class BenchSpec(EnvSpec):
         "local", description="Where jobs run: local processes, or Ray tasks."
     )
     workers: int | None = Field(
-        None, gt=0, description="Parallel jobs (local processes or Ray CPUs); None = CPU count."
+        None, gt=0, le=MAX_PROCESSES, description="Parallel jobs (local processes or Ray CPUs); None = CPU count."
     )
     ray_address: str | None = Field(
         None,
         description="Ray cluster to join (host:port, ray://host:port or auto); None = "
         "start a local Ray instance.",
     )
-    threads: int = Field(1, gt=0, description="Torch threads per job.")
+    threads: int = Field(1, gt=0, le=MAX_PROCESSES, description="Torch threads per job.")
     out: Path = Field(Path("runs/bench"), description="Run directory.")
 
     @model_validator(mode="before")

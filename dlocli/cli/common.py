@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import sys
@@ -12,6 +13,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import Progress
 from rich.table import Table
 
@@ -67,24 +69,39 @@ def handle_errors(fn: F) -> F:
             raise typer.Exit(143 if terminated else 130) from None
         except OSError as exc:
             print_error(os_error_line(exc))
-            raise typer.Exit(2 if isinstance(exc, PATH_ERRORS) else 1) from None
+            raise typer.Exit(2 if is_path_error(exc) else 1) from None
 
     return wrapper  # type: ignore[return-value]
 
 
+#: longest error line printed: a message quoting a huge path or value keeps its start (what)
+#: and its end (the fix)
+MAX_ERROR_CHARS = 500
+
+
 def print_error(line: str) -> None:
-    console.print(f"[red]error:[/red] {line}", highlight=False, soft_wrap=True)
+    line = " ".join(line.split())  # one line, whatever a library's message held
+    if len(line) > MAX_ERROR_CHARS:
+        half = MAX_ERROR_CHARS // 2
+        line = f"{line[:half]} ... {line[-half:]}"
+    console.print(f"[red]error:[/red] {escape(line)}", highlight=False, soft_wrap=True)
 
 
 #: operating-system errors about a path the user gave (exit 2); others (disk full, ...) exit 1
 PATH_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
+#: error numbers of a path that cannot name a file (too long, a symlink loop)
+PATH_ERRNOS = (errno.ENAMETOOLONG, errno.ELOOP)
+
+
+def is_path_error(exc: OSError) -> bool:
+    return isinstance(exc, PATH_ERRORS) or exc.errno in PATH_ERRNOS
 
 
 def os_error_line(exc: OSError) -> str:
     """One line naming the path, what the system said and what to do."""
     where = f" {exc.filename}" if exc.filename else ""
     what = exc.strerror or type(exc).__name__
-    if isinstance(exc, PATH_ERRORS):
+    if is_path_error(exc):
         return f"cannot use{where}: {what}; pass a path you can write to (or read from)"
     return f"{what}{where}; free space or fix the file system and run again"
 

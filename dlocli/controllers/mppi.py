@@ -28,7 +28,11 @@ class MPPISpec(PlannerSpec):
     """MPPI options."""
 
     samples: int = Field(
-        32, ge=2, le=100_000, description="Sampled action sequences per iteration (K), one batch."
+        32,
+        ge=2,
+        le=4096,
+        description="Sampled action sequences per iteration (K), one batch of model rollouts "
+        "(at most 4096: each holds every segment's hidden features).",
     )
     iterations: int = Field(
         1, ge=1, le=100, description="Sample-and-average iterations per re-plan."

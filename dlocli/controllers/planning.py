@@ -33,6 +33,7 @@ class PlannerSpec(Spec):
     replan_every: int = Field(
         1,
         ge=1,
+        le=100,
         description="Re-optimise every k control steps; in between, execute the plan's next "
         "actions.",
     )

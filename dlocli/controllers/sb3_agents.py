@@ -44,6 +44,7 @@ from pydantic import BeforeValidator, Field, ValidationError
 from dlocli.controllers.base import LearningAgent
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
+from dlocli.limits import MAX_COUNT, MAX_TRANSITIONS, refuse_unless_fits
 from dlocli.specs import Spec, format_validation_error
 
 SpecT = TypeVar("SpecT", bound=Spec)
@@ -77,14 +78,18 @@ class SB3Spec(Spec):
         1_000_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
     )
     learning_starts: int = Field(
-        1000, ge=0, description="Uniform random transitions before the first gradient step."
+        1000, ge=0,
+        le=MAX_TRANSITIONS,
+        description="Uniform random transitions before the first gradient step.",
     )
-    batch_size: int = Field(256, gt=0, description="Minibatch size of each gradient step.")
+    batch_size: int = Field(
+        256, gt=0, le=MAX_COUNT, description="Minibatch size of each gradient step."
+    )
     gamma: float = Field(0.98, gt=0, le=1, description="Discount factor.")
     tau: float = Field(0.005, gt=0, le=1, description="Polyak coefficient of the target networks.")
     train_freq: TrainFreq = Field(1, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        1, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
+        1, ge=-1, le=MAX_COUNT, description="Gradient steps per update (-1: one per env step since the last)."
     )
     net_arch: list[Annotated[int, Field(gt=0, le=65536)]] = Field(
         default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
@@ -102,6 +107,25 @@ class SB3Spec(Spec):
         data["policy_kwargs"] = {"net_arch": list(self.net_arch)}
         return data
 
+    def refuse_oversized(self, agent: str, obs_dim: int, action_dim: int) -> None:
+        """BadInput if the replay buffer (observation, next observation, action, reward,
+        done, timeout per row) and the networks (actor and two critics with their targets,
+        with gradients and Adam's two moments), all float32, exceed the usable memory."""
+        actor = _mlp_parameters([obs_dim, *self.net_arch, 2 * action_dim])
+        critic = _mlp_parameters([obs_dim + action_dim, *self.net_arch, 1])
+        networks = 2 * actor + 4 * critic
+        buffer = self.buffer_size * (2 * obs_dim + action_dim + 3)
+        refuse_unless_fits(
+            f"{agent} (net_arch {self.net_arch}, buffer_size {self.buffer_size})",
+            4.0 * (4 * networks + buffer),
+            "choose a smaller net_arch or buffer_size",
+        )
+
+
+def _mlp_parameters(sizes: list[int]) -> int:
+    """Weights and biases of fully connected layers ``sizes[0] -> ... -> sizes[-1]``."""
+    return sum((a + 1) * b for a, b in zip(sizes, sizes[1:], strict=False))
+
 
 class SACSpec(SB3Spec):
     """Soft Actor-Critic with automatic entropy tuning (zoo's Bullet values, see module doc)."""
@@ -115,7 +139,7 @@ class SACSpec(SB3Spec):
     tau: float = Field(0.02, gt=0, le=1, description="Polyak coefficient of the target networks.")
     train_freq: TrainFreq = Field(8, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        8, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
+        8, ge=-1, le=MAX_COUNT, description="Gradient steps per update (-1: one per env step since the last)."
     )
     ent_coef: str | float = Field(
         "auto", description="Entropy coefficient, or 'auto' to learn it (target -|A|)."
@@ -126,7 +150,7 @@ class SACSpec(SB3Spec):
         "Gaussian noise per step; false: SB3's default SAC exploration.",
     )
     sde_sample_freq: int = Field(
-        -1, ge=-1, description="gSDE: env steps between new noise matrices (-1: once per update)."
+        -1, ge=-1, le=MAX_COUNT, description="gSDE: env steps between new noise matrices (-1: once per update)."
     )
     log_std_init: float = Field(
         -3.0, le=2, description="gSDE: initial log std of the exploration noise matrix."
@@ -147,12 +171,14 @@ class TD3Spec(SB3Spec):
         1_000_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
     )
     learning_starts: int = Field(
-        100, ge=0, description="Uniform random transitions before the first gradient step."
+        100, ge=0,
+        le=MAX_TRANSITIONS,
+        description="Uniform random transitions before the first gradient step.",
     )
     gamma: float = Field(0.99, gt=0, le=1, description="Discount factor.")
     train_freq: TrainFreq = Field(1, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        1, ge=-1, description="Gradient steps per update (-1: one per env step since the last)."
+        1, ge=-1, le=MAX_COUNT, description="Gradient steps per update (-1: one per env step since the last)."
     )
     action_noise: float = Field(
         0.0,
@@ -160,7 +186,7 @@ class TD3Spec(SB3Spec):
         description="Std of the Gaussian exploration noise on actions in [-1, 1] (0: none, "
         "SB3's default; the zoo uses 0.1).",
     )
-    policy_delay: int = Field(2, gt=0, description="Critic updates per actor update.")
+    policy_delay: int = Field(2, gt=0, le=MAX_COUNT, description="Critic updates per actor update.")
     target_policy_noise: float = Field(0.2, ge=0, description="Std of target policy smoothing.")
     target_noise_clip: float = Field(0.5, ge=0, description="Clip of target policy smoothing.")
 
@@ -199,6 +225,9 @@ class SB3Agent(LearningAgent):
     def _build_model(self) -> Any:
         from stable_baselines3.common.monitor import Monitor
 
+        from gymnasium.spaces import flatdim
+
+        self.spec.refuse_oversized(self.name, flatdim(self.env.observation_space), self.action_dim)
         kwargs = self.spec.sb3_kwargs(self.action_dim, self.episode_steps)
         return self._algorithm_class()(
             "MlpPolicy", Monitor(self.env), seed=self.seed, verbose=0, **kwargs

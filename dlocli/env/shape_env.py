@@ -32,7 +32,7 @@ from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shapes import make_shape, max_twist
 from dlocli.env.tasks import Task, make_task
-from dlocli.errors import BadInput, BadOption, UnknownOption
+from dlocli.errors import BadInput, BadOption, UnknownOption, UnworkablePhysics
 from dlocli.io import atomic_path
 from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
@@ -55,9 +55,12 @@ def load_goal(path: Path, n_segments: int) -> np.ndarray:
     if not path.is_file():
         raise BadInput(f"goal {path} does not exist; {expected} (make one with `dlo goal`)")
     try:
-        goal = np.load(path, allow_pickle=False)
+        # memory-mapped: a header that claims terabytes is refused by its shape, not allocated
+        goal = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
         raise BadInput(f"goal {path} could not be read as .npy ({exc}); {expected}") from exc
+    if not isinstance(goal, np.ndarray):
+        raise BadInput(f"goal {path} is an .npz archive, not one array; {expected}")
     if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused
         raise BadInput(f"goal {path} has dtype {goal.dtype} and shape {goal.shape}; {expected}")
     if not np.all(np.isfinite(goal)):
@@ -274,7 +277,10 @@ class DLOShapeEnv(gym.Env):
     def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
         """A reachable goal: a random shape (:mod:`dlocli.env.shapes`) the rod settled in."""
         if not self._random_shape(rng, 2 * self.task_spec.reset_motion_steps):
-            raise RuntimeError("could not generate a goal: the simulation diverged 10 times")
+            raise UnworkablePhysics(
+                "could not generate a goal: the simulation diverged 10 times; lower the task's "
+                "velocities or backend.physics_dt, or bring the rod closer to the defaults"
+            )
         self.goal_gripper_poses = self.backend.gripper_poses()
         return self.backend.segment_positions().copy()
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize
+from dlocli.errors import BadInput
 from dlocli.specs import TaskSpec
 
 #: how many control steps a near-rest motion keeps one velocity before drawing the next
@@ -65,8 +66,8 @@ def draw_gripper_targets(
         separation = np.linalg.norm(targets[1, :3] - targets[0, :3])
         if limits.min_separation <= separation <= limits.max_separation:
             return targets
-    raise RuntimeError(
-        "no gripper targets inside the separation limits in "
+    raise BadInput(
+        "no gripper targets inside the workspace and separation limits in "
         f"{TARGET_DRAWS} draws; widen max_separation or narrow the pose region"
     )
 

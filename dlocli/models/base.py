@@ -36,6 +36,7 @@ from torch import Tensor
 from dlocli.backends.rotations import state_change
 from dlocli.errors import BadInput
 from dlocli.io import versions, write_bytes_atomic
+from dlocli.limits import refuse_unless_fits
 from dlocli.models.spec import ModelSpec, with_legacy_fields
 from dlocli.specs import format_validation_error
 
@@ -224,10 +225,28 @@ def node_actions(action: Tensor, n_segments: int) -> Tensor:
 
 # ---------------------------------------------------------------------- building, devices
 def build_model(spec: ModelSpec, n_segments: int) -> DynamicsModel:
-    """A fresh (untrained) model of the registered kind ``spec.name``."""
+    """A fresh (untrained) model of the registered kind ``spec.name``; BadInput if its
+    training would not fit in memory (:func:`refuse_oversized_model`)."""
     from dlocli.registry import models
 
+    refuse_oversized_model(spec, n_segments)
     return models.get(spec.name)(spec, n_segments)
+
+
+def refuse_oversized_model(spec: ModelSpec, n_segments: int) -> None:
+    """BadInput if the model's weights, gradients and Adam's two moments (4 float32 copies)
+    exceed the memory this run may use. The model is built on the meta device, which counts
+    its parameters exactly without allocating them."""
+    from dlocli.registry import models
+
+    with torch.device("meta"):
+        parameters = sum(p.numel() for p in models.get(spec.name)(spec, n_segments).parameters())
+    refuse_unless_fits(
+        f"model {spec.name} (hidden {spec.hidden}, mlp_hidden {spec.mlp_hidden}: "
+        f"{parameters:,} parameters)",
+        16.0 * parameters,
+        "choose smaller hidden/mlp_hidden or fewer layers",
+    )
 
 
 def resolve_device(device: str | torch.device = "auto") -> torch.device:

@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 from pydantic import Field
 
+from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.specs import Spec
 
 
@@ -66,10 +67,10 @@ class FitSpec(Spec):
         "`dlo train` trains by epochs.",
     )
     epochs: int = Field(
-        50, ge=0, description='Passes over the training transitions (schedule "epochs").'
+        50, ge=0, le=MAX_COUNT, description='Passes over the training transitions (schedule "epochs").'
     )
     update_steps: int = Field(
-        2000, gt=0, description='Schedule "steps": most gradient steps per model update.'
+        2000, gt=0, le=MAX_COUNT, description='Schedule "steps": most gradient steps per model update.'
     )
     recent_fraction: float = Field(
         0.5, ge=0, le=1,
@@ -77,20 +78,20 @@ class FitSpec(Spec):
         "added since the previous update (when there are any; the rest is drawn from all).",
     )  # fmt: skip
     eval_every: int = Field(
-        100, gt=0, description='Schedule "steps": gradient steps between validations.'
+        100, gt=0, le=MAX_COUNT, description='Schedule "steps": gradient steps between validations.'
     )
     patience: int = Field(
-        5, ge=0,
+        5, ge=0, le=MAX_COUNT,
         description="Schedule \"steps\": stop after this many validations without a lower "
         "validation loss, and keep the best weights (0: never stop early).",
     )  # fmt: skip
     val_transitions: int = Field(
-        4096, gt=0,
+        4096, gt=0, le=MAX_COUNT,
         description="Schedule \"steps\": most validation transitions per validation (a fixed "
         "random subset per update), so validating costs the same as the data grows.",
     )  # fmt: skip
     lr: float = Field(1e-4, gt=0, description="Adam learning rate.")
-    batch_size: int = Field(64, gt=0, description="Transitions per gradient step.")
+    batch_size: int = Field(64, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
     input_noise: float = Field(
         0.1, ge=0,
         description="Std of Gaussian noise on the input state (paper Sec. IV-C), in units of "
@@ -101,7 +102,9 @@ class FitSpec(Spec):
         0.1, ge=0, lt=1, description="Fraction of trajectories held out for validation."
     )
     device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
-    seed: int = Field(0, ge=0, description="Seed of initialisation, shuffling and noise.")
+    seed: int = Field(
+        0, ge=0, le=MAX_SEED, description="Seed of initialisation, shuffling and noise."
+    )
     mirror: bool = Field(
         True,
         description="Also train on every training transition's mirrored twin: the same motion "
@@ -140,7 +143,7 @@ class TrainSpec(FitSpec):
     out: Path = Field(Path("runs/train"), description="Run directory for the results.")
     # smaller than the online loop's: at lr 1e-4 the deep f_e -> LSTM -> f_v path needs the
     # extra steps within 50 epochs (README, model accuracy)
-    batch_size: int = Field(16, gt=0, description="Transitions per gradient step.")
+    batch_size: int = Field(16, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
 
 
 class EvalSpec(Spec):
@@ -154,7 +157,7 @@ class EvalSpec(Spec):
     )
     device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
     max_starts: int = Field(
-        512, gt=0, description="Most start states per rollout horizon (evenly spread)."
+        512, gt=0, le=MAX_COUNT, description="Most start states per rollout horizon (evenly spread)."
     )
     plot: Path | None = Field(
         None, description="Also write a PNG of the predicted vs true rod over a rollout of the "

@@ -42,6 +42,7 @@ from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
+from dlocli.limits import refuse_oversized_dataset
 from dlocli.processes import exit_with_parent, raise_if_stopped
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import CollectSpec, EnvSpec
@@ -136,6 +137,7 @@ def collect_random(
     KeyboardInterrupt the finished episodes are assembled into ``dataset.h5`` (atomically)
     before re-raising.
     """
+    refuse_oversized_dataset(spec.episodes, spec.task.episode_steps, spec.backend.rod.n_segments)
     with owned(spec.out):
         if resume:
             check_fingerprints(spec.out, spec, accept_changes)

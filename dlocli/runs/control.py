@@ -40,6 +40,7 @@ from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
+from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
 from dlocli.rundir import owned
 from dlocli.specs import EnvSpec
@@ -64,7 +65,7 @@ class ControlSpec(EnvSpec):
     )
     device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
     threads: int = Field(
-        1, ge=1, description="Torch CPU threads while controlling (1 is fastest at the planners' "
+        1, ge=1, le=MAX_PROCESSES, description="Torch CPU threads while controlling (1 is fastest at the planners' "
         "small batches and robust on a shared CPU).",
     )  # fmt: skip
     controller: str = Field("mpc", description="Controller (see `dlo list`).")
@@ -76,7 +77,7 @@ class ControlSpec(EnvSpec):
     video: Path | None = Field(
         None, description="Write frames of the rod and the goal to this .mp4 or .gif."
     )
-    video_every: int = Field(2, gt=0, description="Record every k-th control step in the video.")
+    video_every: int = Field(2, gt=0, le=MAX_COUNT, description="Record every k-th control step in the video.")
     out: Path = Field(Path("runs/control"), description="Run directory.")
 
 

@@ -41,6 +41,7 @@ from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.limits import MAX_COUNT, MAX_PROCESSES, refuse_oversized_dataset
 from dlocli.models.spec import FitSpec, ModelSpec
 from dlocli.processes import pool_initializer
 from dlocli.resume import resumed_run_spec
@@ -57,10 +58,12 @@ class OnlineSpec(EnvSpec):
 
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
 
-    iters: int = Field(20, gt=0, description="Iterations K of model update + MPC trials.")
-    trials: int = Field(50, gt=0, description="MPC trials N per iteration.")
+    iters: int = Field(
+        20, gt=0, le=MAX_COUNT, description="Iterations K of model update + MPC trials."
+    )
+    trials: int = Field(50, gt=0, le=MAX_COUNT, description="MPC trials N per iteration.")
     initial_episodes: int = Field(
-        10, gt=1, description="Random-action episodes (of T steps) in the initial dataset D."
+        10, gt=1, le=MAX_COUNT, description="Random-action episodes (of T steps) in the initial dataset D."
     )
     noise_probability: float = Field(
         0.2, ge=0, le=1, description="Probability that a step's MPC action gets action noise."
@@ -75,7 +78,10 @@ class OnlineSpec(EnvSpec):
         "paper), or fit.update_steps gradient steps (fit.schedule=steps).",
     )
     mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC that explores.")
-    workers: int = Field(1, gt=0, description="Processes running an iteration's trials.")
+    workers: int = Field(
+        1, gt=0, le=MAX_PROCESSES,
+        description="Processes running an iteration's trials (at most one per CPU).",
+    )  # fmt: skip
     offline: bool = Field(
         False,
         description="Also train a model offline on as many random transitions as D holds "
@@ -620,6 +626,17 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 
 # ----------------------------------------------------------------------------- entry points
+def refuse_oversized_run(spec: OnlineSpec) -> None:
+    """BadInput if the model or the datasets the run ends with would not fit in memory."""
+    from dlocli.models.base import refuse_oversized_model
+
+    n_segments = spec.backend.rod.n_segments
+    refuse_oversized_model(spec.model, n_segments)
+    episodes = spec.initial_episodes + spec.iters * spec.trials
+    datasets = 2 if spec.offline else 1  # the offline model's random data is as large
+    refuse_oversized_dataset(datasets * episodes, spec.task.episode_steps, n_segments)
+
+
 def start_online(
     spec: OnlineSpec, overwrite: bool = False, progress: Progress | None = None
 ) -> dict[str, Any]:
@@ -630,6 +647,7 @@ def start_online(
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
     models.check(spec.model.name)
+    refuse_oversized_run(spec)
     with owned(spec.out):
         out = prepare_run_dir(spec.out, overwrite)
         for state in RunLayout(out).state_dirs():
@@ -650,6 +668,7 @@ def resume_online(
     """Continue the run in ``run_dir``; flags that contradict its spec are refused, and so is
     a changed spec.json or input file unless ``accept_changes``."""
     spec = resumed_run_spec(OnlineSpec, run_dir, overrides, "an online", "dlo online")
+    refuse_oversized_run(spec)
     with owned(run_dir):
         check_fingerprints(run_dir, spec, accept_changes)
         return OnlineRun(spec, progress).run()

@@ -12,7 +12,6 @@ the main process then) 1,540 s in all, where the MPC took 5,211 s.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from dlocli.env.rollout import episode_scores, rollout
-from dlocli.io import write_json_atomic
+from dlocli.io import read_json, write_json_atomic
 
 #: the reference controllers (registered names) and how results and plots call them
 REFERENCES = {"zero": "doing nothing", "random": "random actions"}
@@ -46,7 +45,7 @@ class ReferenceTable:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         try:
-            self.table: dict[str, dict[str, dict[str, float]]] = json.loads(self.path.read_text())
+            self.table: dict[str, dict[str, dict[str, float]]] = read_json(self.path, dict)
         except FileNotFoundError:
             self.table = {}
 

@@ -1,0 +1,159 @@
+"""Broken and hostile input files (issue 33): damaged datasets, goals, specs and run files
+end in one line naming the file, exit 2, and leave every existing file as it was."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from test_bad_input_corpus import _run_main, _snapshot
+
+
+def _set(name: str, value: Callable[[np.ndarray], np.ndarray]) -> Callable[[h5py.File], None]:
+    def change(f: h5py.File) -> None:
+        new = value(f[name][()])
+        del f[name]
+        f[name] = new
+
+    return change
+
+
+def _set_attr(name: str, value: object) -> Callable[[h5py.File], None]:
+    return lambda f: f.attrs.__setitem__(name, value)
+
+
+def _zero_length_episode(f: h5py.File) -> None:
+    """Episode 0 shortened to no transition, its other states and actions dropped: shapes
+    consistent, the length refused by itself."""
+    lengths = f["episode_lengths"][()]
+    t0 = int(lengths[0])
+    _set("episode_lengths", lambda a: np.concatenate([[0], a[1:]]))(f)
+    for name in ("positions", "quaternions", "grippers"):
+        _set(name, lambda a: a[t0:])(f)
+    for name in ("actions", "rewards"):
+        _set(name, lambda a: a[t0:])(f)
+
+
+# (id, change to a good dataset file, words the one line must hold)
+DATASETS: list[tuple[str, Callable[[h5py.File], None], str]] = [
+    # lengths that no longer fit the arrays are found by the shape check first
+    ("zero-length", _set("episode_lengths", lambda a: np.where(np.arange(len(a)) == 0, 0, a)),
+     "inconsistent array shapes"),
+    ("negative-length", _set("episode_lengths", lambda a: -a), "inconsistent array shapes"),
+    ("zero-length-consistent", _zero_length_episode, "episode_lengths"),
+    ("rewards-rows", _set("rewards", lambda a: a[:-1]), "rewards"),
+    ("diverged-rows", _set("diverged", lambda a: a[:-1]), "diverged"),
+    ("gripper-columns", _set("grippers", lambda a: a[..., :6]), "grippers"),
+    ("zero-quaternions", _set("quaternions", lambda a: 0 * a), "quaternions"),
+    ("scaled-quaternions", _set("quaternions", lambda a: 1000 * a), "quaternions"),
+    ("huge-actions", _set("actions", lambda a: 1e6 * a), "actions"),
+    ("huge-positions", _set("positions", lambda a: (1e37 * a).astype(np.float32)), "positions"),
+    ("format-version", _set_attr("format_version", 99), "format_version"),
+    ("no-episodes", lambda f: [_set(n, lambda a: a[:0])(f) for n in
+                               ("episode_lengths", "positions", "quaternions", "grippers",
+                                "actions", "rewards", "goals", "diverged")],
+     "no episodes"),
+]  # fmt: skip
+
+
+def _one_line(argv: list[str], capsys, roots: list[Path], code: int = 2) -> str:
+    before = _snapshot(*roots)
+    exit_code = _run_main(argv)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert exit_code == code, err
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert len(lines[0]) < 600
+    assert _snapshot(*roots) == before
+    return lines[0]
+
+
+@pytest.mark.parametrize(("case", "change", "words"), DATASETS, ids=[c[0] for c in DATASETS])
+def test_a_damaged_dataset_is_refused_on_load(
+    case, change, words, small_dataset_dir, tmp_path, capsys
+):
+    bad = tmp_path / "dataset.h5"
+    shutil.copyfile(small_dataset_dir / "dataset.h5", bad)
+    with h5py.File(bad, "r+") as f:
+        change(f)
+    line = _one_line(["train", "--data", str(bad), "--epochs", "1", "--out",
+                      str(tmp_path / "out")], capsys, [tmp_path])  # fmt: skip
+    assert words in line and str(bad) in line
+
+
+def test_the_good_dataset_still_loads(small_dataset_dir):
+    from dlocli.data import load_dataset
+
+    assert load_dataset(small_dataset_dir).n_episodes == 6
+
+
+def _goal_npz(path: Path) -> None:
+    with open(path, "wb") as f:  # np.savez to an open file keeps the .npy name
+        np.savez(f, goal=np.zeros((20, 3)))
+
+
+def _goal_claiming_terabytes(path: Path) -> None:
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<f8", "fortran_order": False, "shape": (2**40 // 8, 1)}
+        )
+
+
+@pytest.mark.parametrize("write", [_goal_npz, _goal_claiming_terabytes])
+def test_a_goal_that_is_not_one_small_array_is_refused(write, tmp_path, capsys):
+    goal = tmp_path / "goal.npy"
+    write(goal)
+    line = _one_line(["control", "--goal", str(goal), "--controller", "zero", "--out",
+                      str(tmp_path / "out")], capsys, [tmp_path])  # fmt: skip
+    assert str(goal) in line
+
+
+@pytest.mark.parametrize("suffix", [".json", ".yaml"])
+def test_a_spec_nested_past_the_recursion_limit_is_refused(suffix, tmp_path, capsys):
+    spec = tmp_path / f"deep{suffix}"
+    depth = 100_000 if suffix == ".json" else 5_000
+    spec.write_text(f'{{"seed": {"[" * depth}{"]" * depth}}}')
+    line = _one_line(["goal", "--spec", str(spec), "--out", str(tmp_path / "g.npy")],
+                     capsys, [tmp_path])  # fmt: skip
+    assert str(spec) in line
+
+
+@pytest.mark.parametrize("damage", [b"{not json", b"\xff\xfe\x00", b"[1, 2]", b'{"inputs": 3}'])
+def test_damaged_fingerprints_on_resume_are_refused(damage, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert _run_main(["collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
+                      "--out", str(run), "--json"]) == 0  # fmt: skip
+    capsys.readouterr()
+    (run / "fingerprints.json").write_bytes(damage)
+    line = _one_line(["collect", "--resume", str(run)], capsys, [tmp_path])
+    assert "fingerprints.json" in line
+
+
+@pytest.mark.parametrize("damage", [b"{not json", b"\xff", b"[]"])
+def test_a_damaged_bench_job_or_reference_file_is_refused(damage, tmp_path):
+    from dlocli.errors import BadInput
+    from dlocli.io import read_json
+
+    (tmp_path / "jobs.json").write_bytes(damage)
+    with pytest.raises(BadInput, match="jobs.json is damaged"):
+        read_json(tmp_path / "jobs.json", dict)
+
+
+def test_a_very_long_error_is_cut_to_one_short_line(tmp_path, capsys):
+    long_path = tmp_path / ("x" * 5000) / "goal.npy"
+    line = _one_line(["control", "--goal", str(long_path), "--controller", "zero", "--out",
+                      str(tmp_path / "out")], capsys, [tmp_path])  # fmt: skip
+    assert " ... " in line and line.endswith("(or read from)")
+
+
+def test_json_output_of_the_damaged_files_helper_keeps_good_files(tmp_path):
+    from dlocli.io import read_json
+
+    (tmp_path / "ok.json").write_text(json.dumps({"a": 1}))
+    assert read_json(tmp_path / "ok.json", dict) == {"a": 1}

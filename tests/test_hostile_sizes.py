@@ -1,0 +1,131 @@
+"""Sizes that would exhaust the machine and physics that cannot work (issue 33): each is
+refused before work starts, in one line naming the limit, exit 2, within seconds, leaving
+every existing file as it was. The memory cases run in a subprocess under an address-space
+limit, so a regression fails fast instead of swapping."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from test_bad_input_corpus import _run_main, _snapshot
+
+HUGE = str(10**12)
+LIMIT = "less than or equal to"
+
+# (id, argv with {out}/{spec}, words the one line must hold)
+SIZES: list[tuple[str, str, str]] = [
+    ("collect-episodes", f"collect --episodes {HUGE} --out {{out}}", LIMIT),
+    ("collect-steps", f"collect --steps {HUGE} --out {{out}}", LIMIT),
+    ("collect-workers", "collect --workers 1000 --out {out}", LIMIT),
+    ("bench-seeds", f"bench --seeds {HUGE} --out {{out}}", LIMIT),
+    ("train-epochs", f"train --data {{out}} --epochs {HUGE} --out {{out}}", LIMIT),
+    ("train-seed", f"train --data {{out}} --seed {2**70} --out {{out}}", LIMIT),
+    ("online-iters", f"online --iters {HUGE} --out {{out}}", LIMIT),
+    ("online-trials", f"online --trials {HUGE} --out {{out}}", LIMIT),
+    ("online-workers", f"online --workers {HUGE} --out {{out}}", LIMIT),
+    ("control-threads", f"control --threads {HUGE} --out {{out}}", LIMIT),
+]
+
+# (id, spec file text, words the one line must hold) for `dlo goal --spec`
+PHYSICS: list[tuple[str, str, str]] = [
+    ("control-dt", "task: {control_dt: 1.0e+6}", "control_dt"),
+    ("physics-dt", "backend: {physics_dt: 1.0e-9}", "physics_dt"),
+    ("settle-steps", "task: {reset_settle_steps: 1000000000}", "reset_settle_steps"),
+    ("young-huge", "backend: {rod: {young_tension: 1.0e+30}}", "young_tension"),
+    ("young-tiny", "backend: {rod: {young_bending: 1.0e-30}}", "young_bending"),
+    ("density-huge", "backend: {rod: {density: 1.0e+30}}", "density"),
+    ("density-tiny", "backend: {rod: {density: 1.0e-30}}", "density"),
+    ("radius-tiny", "backend: {rod: {radius: 1.0e-9}}", "radius"),
+    ("length-tiny", "backend: {rod: {length: 1.0e-6}}", "length"),
+    ("length-huge", "backend: {rod: {length: 1000}}", "length"),
+    ("poisson", "backend: {rod: {poisson: -0.999}}", "poisson"),
+    ("velocity", "task: {max_linear_velocity: 1.0e+9}", "max_linear_velocity"),
+    ("workspace-inverted", "task: {workspace_low: [1, 1, 1], workspace_high: [0, 0, 0]}",
+     "workspace_low"),
+    ("separation-inverted", "task: {min_separation: 0.9, max_separation: 0.1}",
+     "min_separation"),
+    ("rest-state-mujoco", "backend: {name: mujoco, rod: {radius: 1.0e-4, density: 10}}",
+     "cannot build this rod"),
+]  # fmt: skip
+
+
+def _refused_in_one_line(argv: list[str], words: str, capsys, roots: list[Path]) -> None:
+    before = _snapshot(*roots)
+    start = time.monotonic()
+    code = _run_main(argv)
+    seconds = time.monotonic() - start
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], err
+    assert seconds < 10, seconds
+    assert _snapshot(*roots) == before
+
+
+@pytest.mark.parametrize(("case", "argv", "words"), SIZES, ids=[c[0] for c in SIZES])
+def test_a_count_beyond_its_limit_is_refused(case, argv, words, tmp_path, capsys):
+    (tmp_path / "kept.txt").write_text("mine\n")
+    args = argv.format(out=tmp_path).split()
+    _refused_in_one_line(args, words, capsys, [tmp_path])
+
+
+@pytest.mark.parametrize(("case", "text", "words"), PHYSICS, ids=[c[0] for c in PHYSICS])
+def test_physics_that_cannot_work_is_refused(case, text, words, tmp_path, capsys):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(text + "\n")
+    args = ["goal", "--spec", str(spec), "--out", str(tmp_path / "goal.npy")]
+    _refused_in_one_line(args, words, capsys, [tmp_path])
+    assert not (tmp_path / "goal.npy").exists()
+
+
+def test_too_many_mppi_samples_are_refused():
+    from pydantic import ValidationError
+
+    from dlocli.controllers.mppi import MPPISpec
+
+    with pytest.raises(ValidationError, match="less than or equal to 4096"):
+        MPPISpec(samples=100_000)
+
+
+# ----------------------------------------------------------------------------- memory
+#: address-space limit of the memory cases: enough for Python, torch and the simulators
+ADDRESS_SPACE = 3 * 2**30
+
+MEMORY: list[tuple[str, str, str]] = [
+    ("model-hidden", "online --hidden 8192 --out {out}", "hidden 8192"),
+    ("mlp-hidden", "online --model mlp --spec {spec} --out {out}", "mlp_hidden 65536"),
+    ("sac-net-arch", "bench --agents sac -o sac.net_arch=[65536,65536] --out {out}",
+     "net_arch [65536, 65536]"),
+    ("collect-dataset", "collect --episodes 1000000 --out {out}", "dataset of 1,000,000"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("case", "argv", "words"), MEMORY, ids=[c[0] for c in MEMORY])
+def test_a_size_beyond_memory_is_refused_under_a_memory_limit(case, argv, words, tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("model: {mlp_hidden: 65536}\n")
+    args = argv.format(out=tmp_path / "out", spec=spec).split()
+    program = (
+        "import resource, sys\n"
+        f"resource.setrlimit(resource.RLIMIT_AS, ({ADDRESS_SPACE}, {ADDRESS_SPACE}))\n"
+        "from dlocli.cli import main\n"
+        f"sys.argv = ['dlo', *{args!r}]\n"
+        "main()\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    start = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, timeout=60, env=env
+    )
+    seconds = time.monotonic() - start
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert len(lines) == 1 and words in lines[0] and "memory" in lines[0], done.stderr[-2000:]
+    assert seconds < 20, seconds  # Python, torch and the simulators start in the subprocess
+    assert not (tmp_path / "out").exists()
