@@ -224,12 +224,6 @@ def load_dataset(path: Path) -> Dataset | MarkerDataset:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != FORMAT:
                 raise BadInput(f"{path} is not a dlocli dataset (no format={FORMAT} attribute)")
-            version = f.attrs.get("format_version")
-            if version not in (1, FORMAT_VERSION):
-                raise BadInput(
-                    f"dataset {path} has format version {version}; this dlocli reads 1 and "
-                    f"{FORMAT_VERSION}: upgrade dlocli or re-collect it"
-                )
             if _decode_attr(f.attrs.get("form", "rod")) == MARKER_FORM:
                 attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
                 return read_marker_arrays(f, path, attrs)

@@ -125,6 +125,10 @@ def read_marker_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> MarkerDatas
     arrays["names"] = np.array([n.decode() if isinstance(n, bytes) else str(n) for n in arrays["names"]], dtype=object)
     data = MarkerDataset(**arrays, attrs=attrs)
     _check(data, path)
+    from dlocli.data import FORMAT_VERSION
+    from dlocli.dataset_checks import check_fields
+
+    check_fields(arrays, attrs, path, FORMAT_VERSION)
     return data
 
 
