@@ -60,7 +60,7 @@ class ControlSpec(EnvSpec):
     policy: Path | None = Field(
         None,
         description="A trained sac or td3 policy: the `policy` directory of a `dlo bench` job "
-        "(OUT/work/.../sac-s0/policy). SB3's format holds pickled parts: load only your own.",
+        "(OUT/work/.../sac-s0/policy). Its pickled parts are never loaded.",
     )
     device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
     threads: int = Field(
