@@ -34,9 +34,11 @@ from __future__ import annotations
 
 import io
 import json
+import warnings
 import zipfile
 from collections import deque
 from pathlib import Path
+from pickle import UnpicklingError  # what torch's weights_only loader raises
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import numpy as np
@@ -343,14 +345,17 @@ class SB3Agent(LearningAgent):
                 "run code. Pass a policy saved by `dlo bench`"
             )
         try:
-            return self._algorithm_class().load(
-                path,
-                env=self.model.get_env(),
-                device=self.spec.device,
-                force_reset=force_reset,
-                custom_objects=values,
-            )
-        except (RuntimeError, ValueError, KeyError, AssertionError) as exc:  # weights_only too
+            with warnings.catch_warnings():  # torch's on a crafted pickle: the error says it
+                warnings.simplefilter("ignore")
+                return self._algorithm_class().load(
+                    path,
+                    env=self.model.get_env(),
+                    device=self.spec.device,
+                    force_reset=force_reset,
+                    custom_objects=values,
+                )
+        except (RuntimeError, ValueError, KeyError, TypeError, AssertionError, EOFError,
+                UnpicklingError, zipfile.BadZipFile) as exc:  # fmt: skip
             raise BadInput(
                 f"--policy {directory}: model.zip does not load as this agent's "
                 f"{self.algorithm} policy ({str(exc).splitlines()[0][:200]}); pass the "
