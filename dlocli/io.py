@@ -14,6 +14,8 @@ from dlocli.errors import BadInput
 
 #: the lock file of a run directory (:mod:`dlocli.rundir`); it alone leaves a directory empty
 LOCK_FILE = ".dlo.lock"
+#: what dlo wrote in a run directory: its entries' paths, relative, as a JSON list
+MANIFEST_FILE = ".dlo-written.json"
 
 
 @contextmanager
@@ -71,18 +73,57 @@ def read_json(path: Path) -> Any:
 
 
 def prepare_run_dir(out: Path, overwrite: bool) -> Path:
-    """Create the run directory; refuse an existing non-empty one unless ``overwrite``.
+    """Create the run directory; refuse an existing non-empty one unless ``overwrite``, and
+    with ``overwrite`` one that holds anything dlo did not write there (its manifest).
 
-    Nothing is deleted here even with ``overwrite``: files are replaced atomically as the
-    run writes them, so an interrupted run never leaves a half-emptied directory.
+    Nothing is deleted here: files are replaced atomically as the run writes them, so an
+    interrupted run never leaves a half-emptied directory; a command may then remove what
+    an earlier run of its own left, since everything there is dlo's.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out} is a file; pass a directory path")
-    if out.is_dir() and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
+    if out.is_dir() and run_dir_entries(out) and not overwrite:
         raise BadInput(f"--out {out} exists and is not empty; pass --overwrite or another --out")
+    foreign = run_dir_entries(out) - written_by_dlo(out) if out.is_dir() else set()
+    foreign = sorted(foreign, key=lambda entry: (-entry.count(os.sep), entry))  # files first
+    if foreign:
+        more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+        raise BadInput(
+            f"--overwrite {out}: dlo did not write {foreign[0][:200]}{more} there and deletes "
+            "only its own files; move them out or pass another --out"
+        )
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def run_dir_entries(run_dir: Path) -> set[str]:
+    """Every file, folder and link under ``run_dir`` (relative paths; links not followed),
+    but its lock and manifest."""
+    found = set()
+    for folder, dirs, files in os.walk(run_dir):
+        relative = Path(folder).relative_to(run_dir)
+        found.update(str(relative / name) for name in (*dirs, *files))
+    return found - {LOCK_FILE, MANIFEST_FILE}
+
+
+def written_by_dlo(run_dir: Path) -> set[str]:
+    """The entries of ``run_dir`` its manifest says dlo wrote (none if it has no manifest)."""
+    try:
+        listed = json.loads((Path(run_dir) / MANIFEST_FILE).read_text())
+    except (OSError, ValueError):
+        return set()
+    if not isinstance(listed, list):
+        return set()
+    return {entry for entry in listed if isinstance(entry, str)}
+
+
+def record_written(run_dir: Path, before: set[str]) -> None:
+    """Update ``run_dir``'s manifest after a run: what it listed and is still there, and what
+    appeared since ``before`` (the entries when the run took the directory)."""
+    now = run_dir_entries(run_dir)
+    write_json_atomic(Path(run_dir) / MANIFEST_FILE, sorted(
+        (written_by_dlo(run_dir) & now) | (now - before)))  # fmt: skip
 
 
 def check_writable(path: Path, flag: str) -> None:

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from dlocli.errors import BadInput
-from dlocli.io import LOCK_FILE, write_json_atomic
+from dlocli.io import LOCK_FILE, record_written, run_dir_entries, write_json_atomic
 
 try:  # POSIX; elsewhere runs are not locked
     import fcntl
@@ -59,16 +59,27 @@ def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
         raise BadInput(f"--out {run_dir} is a file; pass a directory path")
     run_dir.mkdir(parents=True, exist_ok=True)
     key = run_dir.resolve()
-    if key in _held:
-        _held[key][1] += 1
-    else:
+    outermost = key not in _held
+    if outermost:
         _held[key] = [_acquire(run_dir, shared), 1]
+    else:
+        _held[key][1] += 1
+    before = run_dir_entries(run_dir) if outermost else set()
     try:
         yield run_dir
     finally:
         _held[key][1] -= 1
-        if _held[key][1] == 0:
-            os.close(_held.pop(key)[0])  # closing the descriptor releases the lock
+        if outermost:
+            _record_and_release(run_dir, key, before)
+
+
+def _record_and_release(run_dir: Path, key: Path, before: set[str]) -> None:
+    try:
+        record_written(run_dir, before)
+    except OSError:
+        pass  # a full disk: unrecorded files are refused by --overwrite, never deleted
+    finally:
+        os.close(_held.pop(key)[0])  # closing the descriptor releases the lock
 
 
 def _acquire(run_dir: Path, shared: bool) -> int:
@@ -96,23 +107,53 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
+def _path_fields(spec: Any, outputs: bool = False) -> Iterator[tuple[str, Path]]:
+    """(dotted name, path) of every path field of ``spec`` that it reads, or with ``outputs``
+    that it writes."""
+
+    def walk(node: Any, prefix: str) -> Iterator[tuple[str, Path]]:
+        for name in type(node).model_fields:
+            value = getattr(node, name)
+            if hasattr(type(value), "model_fields"):
+                yield from walk(value, f"{prefix}{name}.")
+            elif isinstance(value, Path) and (name in OUTPUT_FIELDS) == outputs:
+                yield prefix + name, value
+
+    return walk(spec, "")
+
+
 def input_files(spec: Any) -> dict[str, Path]:
     """The files a spec reads, by dotted field name (a run directory given as a dataset
     stands for its ``dataset.h5``)."""
     found: dict[str, Path] = {}
-
-    def walk(node: Any, prefix: str) -> None:
-        for name in type(node).model_fields:
-            value = getattr(node, name)
-            if hasattr(type(value), "model_fields"):
-                walk(value, f"{prefix}{name}.")
-            elif isinstance(value, Path) and name not in OUTPUT_FIELDS:
-                path = value / "dataset.h5" if value.is_dir() else value
-                if path.is_file():
-                    found[prefix + name] = path
-
-    walk(spec, "")
+    for name, value in _path_fields(spec):
+        path = value / "dataset.h5" if value.is_dir() else value
+        if path.is_file():
+            found[name] = path
     return found
+
+
+def refuse_outputs_in_inputs(spec: Any) -> None:
+    """BadInput if something ``spec`` writes would land in the run directory of something it
+    reads (``dlo train --data D --out D``): that run's results would be replaced."""
+    runs = {name: run for name, path in _path_fields(spec) if (run := _run_of(path))}
+    for output, path in _path_fields(spec, outputs=True):
+        target = path.resolve()
+        for name, run in runs.items():
+            if target == run or run in target.parents:
+                raise BadInput(
+                    f"--{output.replace('_', '-')} {path} is inside {run}, the run that "
+                    f"{name} comes from; write to another path, outside input runs"
+                )
+
+
+def _run_of(path: Path) -> Path | None:
+    """The run directory ``path`` is or lies in (one holding a spec.json), if any."""
+    path = path.resolve()
+    for folder in (path, *path.parents) if path.is_dir() else path.parents:
+        if (folder / "spec.json").is_file():
+            return folder
+    return None
 
 
 def fingerprints(run_dir: Path, spec: Any) -> dict[str, Any]:
