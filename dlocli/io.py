@@ -20,7 +20,9 @@ MANIFEST_FILE = ".dlo-written.json"
 
 @contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it over ``path`` only on success."""
+    """Yield a temporary path beside ``path``; on success make it durable and rename it over
+    ``path``. Every file dlo writes goes through here, so a full disk is one ``OSError``
+    naming the file and never a truncated file in its place."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -29,10 +31,23 @@ def atomic_path(path: Path) -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from the group
     try:
         yield tmp_path
+        _fsync(tmp_path)  # ENOSPC on delayed allocation surfaces here, not after the rename
         os.replace(tmp_path, path)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file we wrote
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _umask() -> int:
@@ -48,15 +63,8 @@ def write_bytes_atomic(path: Path, data: bytes | memoryview) -> None:
     Libraries that write files themselves (HDF5, torch's zip writer) serialise into memory
     first and land here, so a full disk is one clean ``OSError`` (ENOSPC) rather than a
     native library failing mid-file (HDF5's close then segfaults)."""
-    try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())  # ENOSPC on delayed allocation surfaces here, not after rename
-    except OSError as exc:
-        if exc.filename is not None:
-            raise
-        raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file we wrote
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -121,17 +129,21 @@ def written_by_dlo(run_dir: Path) -> set[str]:
 def record_written(run_dir: Path, before: set[str]) -> None:
     """Update ``run_dir``'s manifest after a run: what it listed and is still there, and what
     appeared since ``before`` (the entries when the run took the directory)."""
-    now = run_dir_entries(run_dir)
-    write_json_atomic(Path(run_dir) / MANIFEST_FILE, sorted(
-        (written_by_dlo(run_dir) & now) | (now - before)))  # fmt: skip
+    now, listed = run_dir_entries(run_dir), written_by_dlo(run_dir)
+    written = (listed & now) | (now - before)
+    if written != listed:  # a refused run leaves a user's folder as it was
+        write_json_atomic(Path(run_dir) / MANIFEST_FILE, sorted(written))
 
 
-def check_writable(path: Path, flag: str) -> None:
-    """BadInput unless a file could be written at ``path`` (checked before the work starts,
-    so a long run does not end on an unwritable output)."""
+def check_writable(path: Path, flag: str, overwrite: bool) -> None:
+    """BadInput unless a file could be written at ``path``, and replacing an existing one
+    only with ``overwrite`` (checked before the work starts, so a long run does not end on an
+    unwritable output)."""
     path = Path(path)
     if path.is_dir():
         raise BadInput(f"{flag} {path} is a directory; pass a file path")
+    if path.exists() and not overwrite:
+        raise BadInput(f"{flag} {path} exists; pass --overwrite or another {flag}")
     parent = path.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent

@@ -15,9 +15,11 @@ recorded and the change is the user's.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -83,7 +85,7 @@ def _record_and_release(run_dir: Path, key: Path, before: set[str]) -> None:
 
 
 def _acquire(run_dir: Path, shared: bool) -> int:
-    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    fd = _open_lock_file(run_dir / LOCK_FILE)
     if fcntl is None:  # pragma: no cover
         return fd
     try:
@@ -95,6 +97,26 @@ def _acquire(run_dir: Path, shared: bool) -> int:
     if not shared:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
+def _open_lock_file(path: Path) -> int:
+    """The lock file, created if missing; BadInput if it is a link or not a plain file of its
+    own (writing the PID there would change the file it stands for)."""
+    nofollow = getattr(os, "O_NOFOLLOW", 0)
+    refusal = BadInput(
+        f"{path} is not a lock file dlo made (a link or a special file); remove it and run again"
+    )
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | nofollow | os.O_NONBLOCK, 0o666)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.ENXIO, errno.EMLINK):
+            raise refusal from exc
+        raise
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+        os.close(fd)
+        raise refusal
     return fd
 
 
