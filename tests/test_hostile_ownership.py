@@ -20,7 +20,8 @@ COLLECT = ["collect", "--episodes", "2", "--steps", "3", "--shapes", "near-rest"
 def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A collect run, a model trained on it and a goal, all real."""
     root = tmp_path_factory.mktemp("ownership")
-    paths = {"root": root, "data": root / "data", "train": root / "train", "goal": root / "g.npy"}
+    paths = {"root": root, "data": root / "data", "train": root / "train"}
+    paths["goal"] = root / "g.npy"
     assert run_dlo([*COLLECT, "--out", str(paths["data"])]) == 0
     assert run_dlo(["train", "--data", str(paths["data"]), "--epochs", "1", "--hidden", "8",
                     "--val-fraction", "0", "--out", str(paths["train"]), "--json"]) == 0  # fmt: skip
