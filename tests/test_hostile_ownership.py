@@ -23,8 +23,9 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     paths = {"root": root, "data": root / "data", "train": root / "train"}
     paths["goal"] = root / "g.npy"
     assert run_dlo([*COLLECT, "--out", str(paths["data"])]) == 0
-    assert run_dlo(["train", "--data", str(paths["data"]), "--epochs", "1", "--hidden", "8",
-                    "--val-fraction", "0", "--out", str(paths["train"]), "--json"]) == 0  # fmt: skip
+    train = ["train", "--data", str(paths["data"]), "--epochs", "1", "--hidden", "8",
+             "--val-fraction", "0", "--out", str(paths["train"]), "--json"]  # fmt: skip
+    assert run_dlo(train) == 0
     assert run_dlo(["goal", "--out", str(paths["goal"]), "--shapes", "near-rest"]) == 0
     return paths
 
