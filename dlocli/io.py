@@ -14,11 +14,15 @@ from dlocli.errors import BadInput
 
 #: the lock file of a run directory (:mod:`dlocli.rundir`); it alone leaves a directory empty
 LOCK_FILE = ".dlo.lock"
+#: what dlo wrote in a run directory: its entries' paths, relative, as a JSON list
+MANIFEST_FILE = ".dlo-written.json"
 
 
 @contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it over ``path`` only on success."""
+    """Yield a temporary path beside ``path``; on success make it durable and rename it over
+    ``path``. Every file dlo writes goes through here, so a full disk is one ``OSError``
+    naming the file and never a truncated file in its place."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -27,10 +31,23 @@ def atomic_path(path: Path) -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from the group
     try:
         yield tmp_path
+        _fsync(tmp_path)  # ENOSPC on delayed allocation surfaces here, not after the rename
         os.replace(tmp_path, path)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file we wrote
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _umask() -> int:
@@ -46,15 +63,8 @@ def write_bytes_atomic(path: Path, data: bytes | memoryview) -> None:
     Libraries that write files themselves (HDF5, torch's zip writer) serialise into memory
     first and land here, so a full disk is one clean ``OSError`` (ENOSPC) rather than a
     native library failing mid-file (HDF5's close then segfaults)."""
-    try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())  # ENOSPC on delayed allocation surfaces here, not after rename
-    except OSError as exc:
-        if exc.filename is not None:
-            raise
-        raise OSError(exc.errno, exc.strerror, str(path)) from exc  # name the file we wrote
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -83,26 +93,69 @@ def read_json(path: Path, expect: type = object) -> Any:
 
 
 def prepare_run_dir(out: Path, overwrite: bool) -> Path:
-    """Create the run directory; refuse an existing non-empty one unless ``overwrite``.
+    """Create the run directory; refuse an existing non-empty one unless ``overwrite``, and
+    with ``overwrite`` one that holds anything dlo did not write there (its manifest).
 
-    Nothing is deleted here even with ``overwrite``: files are replaced atomically as the
-    run writes them, so an interrupted run never leaves a half-emptied directory.
+    Nothing is deleted here: files are replaced atomically as the run writes them, so an
+    interrupted run never leaves a half-emptied directory; a command may then remove what
+    an earlier run of its own left, since everything there is dlo's.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out} is a file; pass a directory path")
-    if out.is_dir() and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
+    if out.is_dir() and run_dir_entries(out) and not overwrite:
         raise BadInput(f"--out {out} exists and is not empty; pass --overwrite or another --out")
+    foreign = run_dir_entries(out) - written_by_dlo(out) if out.is_dir() else set()
+    foreign = sorted(foreign, key=lambda entry: (-entry.count(os.sep), entry))  # files first
+    if foreign:
+        more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+        raise BadInput(
+            f"--overwrite {out}: dlo did not write {foreign[0][:200]}{more} there and deletes "
+            "only its own files; move them out or pass another --out"
+        )
     out.mkdir(parents=True, exist_ok=True)
     return out
 
 
-def check_writable(path: Path, flag: str) -> None:
-    """BadInput unless a file could be written at ``path`` (checked before the work starts,
-    so a long run does not end on an unwritable output)."""
+def run_dir_entries(run_dir: Path) -> set[str]:
+    """Every file, folder and link under ``run_dir`` (relative paths; links not followed),
+    but its lock and manifest."""
+    found = set()
+    for folder, dirs, files in os.walk(run_dir):
+        relative = Path(folder).relative_to(run_dir)
+        found.update(str(relative / name) for name in (*dirs, *files))
+    return found - {LOCK_FILE, MANIFEST_FILE}
+
+
+def written_by_dlo(run_dir: Path) -> set[str]:
+    """The entries of ``run_dir`` its manifest says dlo wrote (none if it has no manifest)."""
+    try:
+        listed = json.loads((Path(run_dir) / MANIFEST_FILE).read_text())
+    except (OSError, ValueError):
+        return set()
+    if not isinstance(listed, list):
+        return set()
+    return {entry for entry in listed if isinstance(entry, str)}
+
+
+def record_written(run_dir: Path, before: set[str]) -> None:
+    """Update ``run_dir``'s manifest after a run: what it listed and is still there, and what
+    appeared since ``before`` (the entries when the run took the directory)."""
+    now, listed = run_dir_entries(run_dir), written_by_dlo(run_dir)
+    written = (listed & now) | (now - before)
+    if written != listed:  # a refused run leaves a user's folder as it was
+        write_json_atomic(Path(run_dir) / MANIFEST_FILE, sorted(written))
+
+
+def check_writable(path: Path, flag: str, overwrite: bool) -> None:
+    """BadInput unless a file could be written at ``path``, and replacing an existing one
+    only with ``overwrite`` (checked before the work starts, so a long run does not end on an
+    unwritable output)."""
     path = Path(path)
     if path.is_dir():
         raise BadInput(f"{flag} {path} is a directory; pass a file path")
+    if path.exists() and not overwrite:
+        raise BadInput(f"{flag} {path} exists; pass --overwrite or another {flag}")
     parent = path.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent

@@ -15,15 +15,17 @@ recorded and the change is the user's.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from dlocli.errors import BadInput
-from dlocli.io import LOCK_FILE, read_json, write_json_atomic
+from dlocli.io import LOCK_FILE, read_json, record_written, run_dir_entries, write_json_atomic
 
 try:  # POSIX; elsewhere runs are not locked
     import fcntl
@@ -58,20 +60,31 @@ def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
         raise BadInput(f"--out {run_dir} is a file; pass a directory path")
     run_dir.mkdir(parents=True, exist_ok=True)
     key = run_dir.resolve()
-    if key in _held:
-        _held[key][1] += 1
-    else:
+    outermost = key not in _held
+    if outermost:
         _held[key] = [_acquire(run_dir, shared), 1]
+    else:
+        _held[key][1] += 1
+    before = run_dir_entries(run_dir) if outermost else set()
     try:
         yield run_dir
     finally:
         _held[key][1] -= 1
-        if _held[key][1] == 0:
-            os.close(_held.pop(key)[0])  # closing the descriptor releases the lock
+        if outermost:
+            _record_and_release(run_dir, key, before)
+
+
+def _record_and_release(run_dir: Path, key: Path, before: set[str]) -> None:
+    try:
+        record_written(run_dir, before)
+    except OSError:
+        pass  # a full disk: unrecorded files are refused by --overwrite, never deleted
+    finally:
+        os.close(_held.pop(key)[0])  # closing the descriptor releases the lock
 
 
 def _acquire(run_dir: Path, shared: bool) -> int:
-    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    fd = _open_lock_file(run_dir / LOCK_FILE)
     if fcntl is None:  # pragma: no cover
         return fd
     try:
@@ -86,6 +99,26 @@ def _acquire(run_dir: Path, shared: bool) -> int:
     return fd
 
 
+def _open_lock_file(path: Path) -> int:
+    """The lock file, created if missing; BadInput if it is a link or not a plain file of its
+    own (writing the PID there would change the file it stands for)."""
+    nofollow = getattr(os, "O_NOFOLLOW", 0)
+    refusal = BadInput(
+        f"{path} is not a lock file dlo made (a link or a special file); remove it and run again"
+    )
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | nofollow | os.O_NONBLOCK, 0o666)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.ENXIO, errno.EMLINK):
+            raise refusal from exc
+        raise
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+        os.close(fd)
+        raise refusal
+    return fd
+
+
 # ----------------------------------------------------------------------------- fingerprints
 def file_digest(path: Path) -> str:
     digest = hashlib.sha256()
@@ -95,23 +128,53 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
+def _path_fields(spec: Any, outputs: bool = False) -> Iterator[tuple[str, Path]]:
+    """(dotted name, path) of every path field of ``spec`` that it reads, or with ``outputs``
+    that it writes."""
+
+    def walk(node: Any, prefix: str) -> Iterator[tuple[str, Path]]:
+        for name in type(node).model_fields:
+            value = getattr(node, name)
+            if hasattr(type(value), "model_fields"):
+                yield from walk(value, f"{prefix}{name}.")
+            elif isinstance(value, Path) and (name in OUTPUT_FIELDS) == outputs:
+                yield prefix + name, value
+
+    return walk(spec, "")
+
+
 def input_files(spec: Any) -> dict[str, Path]:
     """The files a spec reads, by dotted field name (a run directory given as a dataset
     stands for its ``dataset.h5``)."""
     found: dict[str, Path] = {}
-
-    def walk(node: Any, prefix: str) -> None:
-        for name in type(node).model_fields:
-            value = getattr(node, name)
-            if hasattr(type(value), "model_fields"):
-                walk(value, f"{prefix}{name}.")
-            elif isinstance(value, Path) and name not in OUTPUT_FIELDS:
-                path = value / "dataset.h5" if value.is_dir() else value
-                if path.is_file():
-                    found[prefix + name] = path
-
-    walk(spec, "")
+    for name, value in _path_fields(spec):
+        path = value / "dataset.h5" if value.is_dir() else value
+        if path.is_file():
+            found[name] = path
     return found
+
+
+def refuse_outputs_in_inputs(spec: Any) -> None:
+    """BadInput if something ``spec`` writes would land in the run directory of something it
+    reads (``dlo train --data D --out D``): that run's results would be replaced."""
+    runs = {name: run for name, path in _path_fields(spec) if (run := _run_of(path))}
+    for output, path in _path_fields(spec, outputs=True):
+        target = path.resolve()
+        for name, run in runs.items():
+            if target == run or run in target.parents:
+                raise BadInput(
+                    f"--{output.replace('_', '-')} {path} is inside {run}, the run that "
+                    f"{name} comes from; write to another path, outside input runs"
+                )
+
+
+def _run_of(path: Path) -> Path | None:
+    """The run directory ``path`` is or lies in (one holding a spec.json), if any."""
+    path = path.resolve()
+    for folder in (path, *path.parents) if path.is_dir() else path.parents:
+        if (folder / "spec.json").is_file():
+            return folder
+    return None
 
 
 def fingerprints(run_dir: Path, spec: Any) -> dict[str, Any]:

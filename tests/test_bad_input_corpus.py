@@ -340,7 +340,8 @@ def test_locked_run_directory_is_refused_naming_the_holder(world, tmp_path, caps
         for argv in (
             ["collect", "--episodes", "1", "--steps", "2", "--out", str(run), "--overwrite"],
             ["collect", "--resume", str(run)],
-            ["eval", "--checkpoint", model, "--data", str(run), "--out", str(run), "--overwrite"],
+            ["eval", "--checkpoint", model, "--data", str(world["data"]), "--out", str(run),
+             "--overwrite"],
         ):
             assert _run_main(argv) == 2
             err = capsys.readouterr().err

@@ -61,3 +61,40 @@ def lock_held_elsewhere(lock_file: Path) -> Iterator[subprocess.Popen]:
     finally:
         holder.kill()
         holder.wait()
+
+
+def run_dlo(argv: list[str]) -> int:
+    """Run the `dlo` entry point itself (``dlocli.cli.main``) in this process; its exit code."""
+    from dlocli.cli import main
+
+    old = sys.argv
+    sys.argv = ["dlo", *argv]
+    try:
+        main()
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 0
+    finally:
+        sys.argv = old
+    return 0
+
+
+def file_digests(*roots: Path) -> dict[str, str]:
+    """sha256 of every file under ``roots`` (lock files excepted: taking a lock is fine)."""
+    import hashlib
+
+    found = {}
+    for root in roots:
+        for path in sorted(Path(root).rglob("*")):
+            if path.is_file() and path.name != ".dlo.lock":
+                found[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return found
+
+
+class Payload:
+    """Unpickled, it creates the file ``marker``: what a crafted file would run instead."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.marker, "w"))

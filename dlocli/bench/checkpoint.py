@@ -9,19 +9,20 @@ gives the rows an uninterrupted job gives (``tests/test_bench_resume.py``).
 Layout of ``resume/``:
 
 - ``point-<index>/``: one slot per checkpoint; ``progress.json`` (the rows so far, the wall
-  time, the fingerprint) and ``generators.pkl`` there, and the learner's files
+  time, the fingerprint) and ``generators.json`` there, and the learner's files
   (:meth:`BenchLearner.save_state`). A slot is written under a temporary name and renamed,
   then older slots are removed, so a job killed while checkpointing keeps the previous one.
 - ``shared/``: what learners write once and keep growing (an SB3 replay buffer in chunks,
   each written once), so a checkpoint costs the new transitions, not the whole buffer.
 
-A checkpoint whose fingerprint or package versions differ from the job's is ignored.
+A checkpoint whose fingerprint, package versions or format differ from the job's is ignored.
+Nothing in a checkpoint is unpickled (JSON, ``.npz`` without objects, ``weights_only`` torch
+files, SB3 zips read without their pickled entries): a bench folder is made to be shared.
 """
 
 from __future__ import annotations
 
 import json
-import pickle
 import random
 import shutil
 from dataclasses import dataclass, field
@@ -30,12 +31,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dlocli.io import versions, write_bytes_atomic, write_json_atomic
+from dlocli.io import read_json, versions, write_json_atomic
 
 if TYPE_CHECKING:
     from dlocli.bench.agents import BenchLearner
 
 SLOT_PREFIX = "point-"
+#: the layout of a slot; 2: no pickles (slots of format 1 held pickled generators and learners)
+CHECKPOINT_FORMAT = 2
 
 
 @dataclass
@@ -54,21 +57,28 @@ class Progress:
 
 
 def _generators() -> dict[str, Any]:
+    """The global generators' states as JSON data."""
     import torch
 
+    version, mt_state, gauss = random.getstate()
+    numpy_state = np.random.get_state(legacy=False)
+    numpy_state["state"]["key"] = numpy_state["state"]["key"].tolist()
     return {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
+        "python": [version, list(mt_state), gauss],
+        "numpy": numpy_state,
+        "torch": torch.get_rng_state().tolist(),
     }
 
 
 def _set_generators(state: dict[str, Any]) -> None:
     import torch
 
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
+    version, mt_state, gauss = state["python"]
+    random.setstate((version, tuple(mt_state), gauss))
+    numpy_state = state["numpy"]
+    key = np.asarray(numpy_state["state"]["key"], dtype=np.uint32)
+    np.random.set_state({**numpy_state, "state": {**numpy_state["state"], "key": key}})
+    torch.set_rng_state(torch.tensor(state["torch"], dtype=torch.uint8))
 
 
 def _index(slot: Path) -> int | None:
@@ -97,7 +107,11 @@ class JobCheckpoint:
                 saved = json.loads((slot / "progress.json").read_text())
             except (OSError, ValueError):
                 continue
-            if saved.get("fingerprint") != self.fingerprint or saved.get("versions") != versions():
+            if (
+                saved.get("format") != CHECKPOINT_FORMAT
+                or saved.get("fingerprint") != self.fingerprint
+                or saved.get("versions") != versions()
+            ):
                 continue
             progress = Progress(saved["index"], saved["rows"], saved["wall"], saved["trained"])
             progress.resumed_at = saved.get("resumed_at", [])  # later fields: older files lack
@@ -113,8 +127,7 @@ class JobCheckpoint:
             return None
         slot, progress = found
         learner.load_state(slot, self.shared)
-        with open(slot / "generators.pkl", "rb") as f:
-            _set_generators(pickle.load(f))
+        _set_generators(read_json(slot / "generators.json"))
         progress.resumed_at.append(learner.transitions)
         return progress
 
@@ -129,10 +142,11 @@ class JobCheckpoint:
         if not learner.save_state(staging, self.shared):
             shutil.rmtree(staging)
             return False
-        write_bytes_atomic(staging / "generators.pkl", pickle.dumps(_generators()))
+        write_json_atomic(staging / "generators.json", _generators())
         write_json_atomic(
             staging / "progress.json",
             {
+                "format": CHECKPOINT_FORMAT,
                 "fingerprint": self.fingerprint,
                 "versions": versions(),
                 "index": progress.index,

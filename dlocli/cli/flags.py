@@ -101,8 +101,13 @@ class RunFlags:
     json: bool
 
     def spec(self) -> Any:
-        """The run's spec: defaults, then the spec file, then the flags given."""
-        return resolve_spec(self.spec_cls, self.spec_file, self.overrides)
+        """The run's spec: defaults, then the spec file, then the flags given; BadInput if
+        it would write into a run it reads."""
+        from dlocli.rundir import refuse_outputs_in_inputs
+
+        spec = resolve_spec(self.spec_cls, self.spec_file, self.overrides)
+        refuse_outputs_in_inputs(spec)
+        return spec
 
     def refuse_with_resume(self, resume: Path | None) -> None:
         """BadInput if flags that only make sense for a new run come with ``--resume``."""

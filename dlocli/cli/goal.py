@@ -5,6 +5,7 @@ from __future__ import annotations
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.errors import BadInput
+from dlocli.io import check_writable
 from dlocli.specs import GoalSpec
 
 
@@ -24,10 +25,7 @@ def goal(
     tasks.check(spec.task.name)
     if spec.out.suffix != ".npy":
         raise BadInput(f"--out {spec.out} must end in .npy (the goal format is a (N,3) .npy array)")
-    if spec.out.is_dir():
-        raise BadInput(f"--out {spec.out} is a directory; pass a .npy file path")
-    if spec.out.exists() and not run.overwrite:
-        raise BadInput(f"--out {spec.out} exists; pass --overwrite or another --out")
+    check_writable(spec.out, "--out", run.overwrite)
     shape = make_goal(spec)
     save_goal(shape, spec.out)
     rest = _rest_shape(spec)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import io
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -48,7 +48,7 @@ from dlocli.controllers.pilco_math import (
     expected_return_cost,
 )
 from dlocli.controllers.sb3_agents import resolve_agent_spec
-from dlocli.io import write_bytes_atomic
+from dlocli.io import read_json, write_bytes_atomic, write_json_atomic
 from dlocli.limits import MAX_COUNT
 from dlocli.specs import Spec
 
@@ -211,30 +211,58 @@ class PilcoAgent(LearningAgent):
         self._stale = True
 
     # ------------------------------------------------------------------ checkpoints
-    #: what learning has gathered and decided so far; the rest is per episode or per act()
-    LEARNED = ("transitions", "rng", "policy", "history", "_inputs", "_targets", "_starts",
-               "_episodes", "_stale")  # fmt: skip
-
     def save_state(self, slot: Path, shared: Path) -> bool:
-        """Between episodes: the data, the policy and every generator (the env's too)."""
+        """Between episodes: the data, the policy and every generator (the env's too), as
+        ``learner.json`` and tensors in ``learner.pt`` (read with ``weights_only=True``)."""
         if self._obs is not None:
             return False
-        state = {name: getattr(self, name) for name in self.LEARNED}
-        state["generator"] = self.generator.get_state()
-        state["env_generator"] = self.env.generator_state()
-        state["episode_returns"] = list(self.env.episode_returns)
+        tensors = {
+            "inputs": torch.from_numpy(np.asarray(self._inputs)),
+            "targets": torch.from_numpy(np.asarray(self._targets)),
+            "starts": torch.from_numpy(np.asarray(self._starts)),
+            "generator": self.generator.get_state(),
+            "policy": None if self.policy is None else self.policy.state_dict(),
+        }
         image = io.BytesIO()
-        torch.save(state, image)
+        torch.save(tensors, image)
         write_bytes_atomic(Path(slot) / "learner.pt", image.getbuffer())
+        write_json_atomic(
+            Path(slot) / "learner.json",
+            {
+                "transitions": self.transitions,
+                "episodes": self._episodes,
+                "stale": self._stale,
+                "rng": self.rng.bit_generator.state,
+                "history": [asdict(update) for update in self.history],
+                "env_generator": self.env.generator_state(),
+                "episode_returns": list(self.env.episode_returns),
+            },
+        )
         return True
 
     def load_state(self, slot: Path, shared: Path) -> None:
-        """Continue from :meth:`save_state` (a pickle: load only your own runs)."""
-        state = torch.load(Path(slot) / "learner.pt", weights_only=False)
-        for name in self.LEARNED:
-            setattr(self, name, state[name])
-        self.generator.set_state(state["generator"])
+        """Continue from :meth:`save_state` (nothing there is unpickled)."""
+        state = read_json(Path(slot) / "learner.json")
+        tensors = torch.load(Path(slot) / "learner.pt", weights_only=True)
+        self.transitions, self._episodes = state["transitions"], state["episodes"]
+        self._stale = state["stale"]
+        self.rng.bit_generator.state = state["rng"]
+        self.history = [PilcoUpdate(**update) for update in state["history"]]
+        self._inputs = list(tensors["inputs"].numpy())
+        self._targets = list(tensors["targets"].numpy())
+        self._starts = list(tensors["starts"].numpy())
+        self.generator.set_state(tensors["generator"])
+        self.policy = None if tensors["policy"] is None else self._saved_policy(tensors["policy"])
         self.env.restore_generator(state["env_generator"], state["episode_returns"])
+
+    def _saved_policy(self, weights: dict[str, torch.Tensor]) -> RBFPolicy:
+        """An RBF policy of the saved one's shape holding its ``weights``."""
+        action_dim, n_basis = weights["weights"].shape
+        centres = torch.zeros(n_basis, weights["centres"].shape[1], dtype=DTYPE)
+        # its random initial weights are overwritten: drawn from a throwaway generator
+        policy = RBFPolicy(centres, action_dim, weights["scale"], torch.Generator())
+        policy.load_state_dict(weights)
+        return policy
 
     # ------------------------------------------------------------------ PILCO update
     def update(self, goal: np.ndarray) -> PilcoUpdate:

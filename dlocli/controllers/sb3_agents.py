@@ -34,8 +34,11 @@ from __future__ import annotations
 
 import io
 import json
-import pickle
+import warnings
+import zipfile
+from collections import deque
 from pathlib import Path
+from pickle import UnpicklingError  # what torch's weights_only loader raises
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import numpy as np
@@ -43,7 +46,7 @@ from pydantic import BeforeValidator, Field, ValidationError
 
 from dlocli.controllers.base import LearningAgent
 from dlocli.errors import BadInput
-from dlocli.io import write_bytes_atomic
+from dlocli.io import read_json, write_bytes_atomic, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_TRANSITIONS, refuse_unless_fits
 from dlocli.specs import Spec, format_validation_error
 
@@ -286,7 +289,7 @@ class SB3Agent(LearningAgent):
     def save_policy(self, directory: Path) -> bool:
         """Write ``model.zip`` (SB3's own format: networks and optimizer, no replay buffer)
         and ``agent.json`` (algorithm, transitions, seed, spaces) into ``directory``."""
-        from dlocli.io import atomic_path, write_json_atomic
+        from dlocli.io import atomic_path
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
@@ -302,10 +305,10 @@ class SB3Agent(LearningAgent):
         write_json_atomic(directory / "agent.json", meta)
         return True
 
-    def load_policy(self, directory: Path, force_reset: bool = True) -> None:
-        """Act with a policy :meth:`save_policy` wrote (SB3's zip holds pickled parts: load
-        only policies you trust, such as your own bench's); ``force_reset=False`` keeps the
-        saved next observation, to continue learning in the saved episode."""
+    def load_policy(self, directory: Path, saved: dict[str, Any] | None = None) -> None:
+        """Act with a policy :meth:`save_policy` wrote; nothing in it is unpickled (see
+        :meth:`_load_model`). ``saved``: a checkpoint's learning state (:meth:`load_state`),
+        to continue learning in the saved episode."""
         directory = Path(directory)
         meta = self._saved_meta(directory)
         for key, space in (("observation_shape", self.env.observation_space),
@@ -316,13 +319,77 @@ class SB3Agent(LearningAgent):
                     f"{meta.get(key)}, this task has {list(space.shape)}; pass the same --task "
                     "and observation settings as its bench"
                 )
-        self.model = self._algorithm_class().load(
-            directory / "model.zip",
-            env=self.model.get_env(),
-            device=self.spec.device,
-            force_reset=force_reset,
-        )
+        values = self._unpickled_values(saved)
+        self.model = self._load_model(directory, values, force_reset=saved is None)
         self.transitions = int(meta["transitions"])
+
+    def _unpickled_values(self, saved: dict[str, Any] | None = None) -> dict[str, Any]:
+        """What stands in for each cloudpickled entry of the zip's ``data``: the agent's own
+        objects (built from its spec and env) and, for the learning state, ``saved`` (a
+        checkpoint's ``learner.json``); without it the state of a fresh agent."""
+        saved = saved or {}
+        model = self.model
+        window = model._stats_window_size
+        last_obs = saved.get("last_obs")
+        if last_obs is not None:
+            last_obs = np.asarray(last_obs, dtype=model.observation_space.dtype)
+        return {
+            "policy_class": model.policy_class,
+            "lr_schedule": model.lr_schedule,
+            "observation_space": model.observation_space,
+            "action_space": model.action_space,
+            "replay_buffer_class": model.replay_buffer_class,
+            "train_freq": model.train_freq,
+            "action_noise": model.action_noise,
+            "_last_obs": last_obs,
+            # checkpoints are taken between episodes only (save_state)
+            "_last_episode_starts": np.ones((model.n_envs,), dtype=bool),
+            "_last_original_obs": None,  # only read through a VecNormalize, which is not used
+            "ep_info_buffer": deque(saved.get("episode_infos", []), maxlen=window),
+            "ep_success_buffer": deque(saved.get("episode_successes", []), maxlen=window),
+        }
+
+    def _load_model(self, directory: Path, values: dict[str, Any], force_reset: bool) -> Any:
+        """SB3's model from ``directory/model.zip`` without running code from the file.
+
+        SB3 stores some attributes cloudpickled (``:serialized:``): unpickling them would run
+        whatever a crafted zip holds. The zips this agent writes pickle only the entries of
+        ``values``, which SB3 then takes from ``values`` instead; a zip pickling anything else
+        is refused. Its tensors are read with ``torch.load(weights_only=True)`` by SB3."""
+        path = directory / "model.zip"
+        try:
+            with zipfile.ZipFile(path) as archive:
+                data = json.loads(archive.read("data"))
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+            raise BadInput(
+                f"--policy {directory}: model.zip is not a stable-baselines3 zip ({exc}); "
+                "pass the policy directory of a `dlo bench` job"
+            ) from exc
+        entries = data.items() if isinstance(data, dict) else []
+        pickled = {k for k, v in entries if isinstance(v, dict) and ":serialized:" in v}
+        if not entries or pickled - values.keys():
+            raise BadInput(
+                f"--policy {directory}: model.zip holds pickled entries dlo never writes "
+                f"({', '.join(sorted(pickled - values.keys())) or 'data'}); loading them could "
+                "run code. Pass a policy saved by `dlo bench`"
+            )
+        try:
+            with warnings.catch_warnings():  # torch's on a crafted pickle: the error says it
+                warnings.simplefilter("ignore")
+                return self._algorithm_class().load(
+                    path,
+                    env=self.model.get_env(),
+                    device=self.spec.device,
+                    force_reset=force_reset,
+                    custom_objects=values,
+                )
+        except (RuntimeError, ValueError, KeyError, TypeError, AssertionError, EOFError,
+                UnpicklingError, zipfile.BadZipFile) as exc:  # fmt: skip
+            raise BadInput(
+                f"--policy {directory}: model.zip does not load as this agent's "
+                f"{self.algorithm} policy ({str(exc).splitlines()[0][:200]}); pass the "
+                "policy directory of a `dlo bench` job with the same options"
+            ) from exc
 
     def _saved_meta(self, directory: Path) -> dict[str, Any]:
         meta_path = directory / "agent.json"
@@ -347,9 +414,10 @@ class SB3Agent(LearningAgent):
         return meta
 
     def save_state(self, slot: Path, shared: Path) -> bool:
-        """Between episodes: the policy (SB3's zip holds networks, optimizers, counters and the
-        first observation of the next episode), the replay buffer's new rows as a chunk in
-        ``shared``, and the generators of the action space and of the env's next episodes."""
+        """Between episodes: the policy (SB3's zip holds networks, optimizers and counters),
+        the replay buffer's new rows as a chunk in ``shared``, and as JSON what the zip holds
+        only pickled (the first observation of the next episode, the episode statistics) and
+        the generators of the action space and of the env's next episodes."""
         buffer = self.model.replay_buffer
         episode_starts = getattr(self.model, "_last_episode_starts", None)
         if buffer is None or buffer.full or episode_starts is None or not episode_starts.all():
@@ -358,19 +426,22 @@ class SB3Agent(LearningAgent):
         save_buffer_rows(buffer, Path(shared) / REPLAY_DIR)
         state = {
             "buffer_rows": int(buffer.pos),
+            "last_obs": self.model._last_obs.tolist(),
+            "episode_infos": list(self.model.ep_info_buffer),
+            "episode_successes": list(self.model.ep_success_buffer),
             "action_space": self.model.action_space.np_random.bit_generator.state,
             # SB3 has already reset the env for the next episode: continue from that reset
             "env_generator": self.env.reset_generator_state,
             "episode_returns": list(self.env.episode_returns),
         }
-        write_bytes_atomic(Path(slot) / "learner.pkl", pickle.dumps(state))
+        write_json_atomic(Path(slot) / "learner.json", state)
         return True
 
     def load_state(self, slot: Path, shared: Path) -> None:
-        """Continue from :meth:`save_state` (SB3 zips are pickles: your own runs only)."""
-        self.load_policy(slot, force_reset=False)
-        with open(Path(slot) / "learner.pkl", "rb") as f:
-            state = pickle.load(f)
+        """Continue from :meth:`save_state` (nothing there is unpickled)."""
+        slot = Path(slot)
+        state = read_json(slot / "learner.json")
+        self.load_policy(slot, saved=state)
         load_buffer_rows(self.model.replay_buffer, Path(shared) / REPLAY_DIR, state["buffer_rows"])
         self.model.action_space.np_random.bit_generator.state = state["action_space"]
         self.env.restore_generator(state["env_generator"], state["episode_returns"])

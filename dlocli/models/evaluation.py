@@ -143,7 +143,7 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
     if spec.plot is not None and spec.plot.suffix != ".png":
         raise BadInput(f"--plot {spec.plot} must end in .png")
     if spec.plot is not None:
-        check_writable(spec.plot, "--plot")
+        check_writable(spec.plot, "--plot", overwrite)
     dataset = load_dataset(spec.data)
     if isinstance(dataset, MarkerDataset):
         from dlocli.models.markers import load_marker_model

@@ -61,7 +61,7 @@ class ControlSpec(EnvSpec):
     policy: Path | None = Field(
         None,
         description="A trained sac or td3 policy: the `policy` directory of a `dlo bench` job "
-        "(OUT/work/.../sac-s0/policy). SB3's format holds pickled parts: load only your own.",
+        "(OUT/work/.../sac-s0/policy). Its pickled parts are never loaded.",
     )
     device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
     threads: int = Field(
@@ -82,8 +82,9 @@ class ControlSpec(EnvSpec):
 
 
 # --------------------------------------------------------------------------- input checks
-def check_video_path(path: Path | None) -> None:
-    """BadInput unless ``path`` is None, a .gif, or a .mp4 with an mp4 writer installed."""
+def check_video_path(path: Path | None, overwrite: bool) -> None:
+    """BadInput unless ``path`` is None, a .gif, or a .mp4 with an mp4 writer installed, and
+    new unless ``overwrite``."""
     if path is None:
         return
     if path.suffix not in VIDEO_SUFFIXES:
@@ -92,7 +93,7 @@ def check_video_path(path: Path | None) -> None:
         raise BadInput(
             f"--video {path}: writing .mp4 needs `pip install imageio-ffmpeg`; or use a .gif"
         )
-    check_writable(path, "--video")
+    check_writable(path, "--video", overwrite)
 
 
 def check_inputs_used(spec: ControlSpec) -> None:
@@ -132,14 +133,17 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     return model
 
 
-def prepare(spec: ControlSpec) -> tuple[DLOShapeEnv, Controller, ControlSpec]:
-    """Check every input, build env and controller; the spec comes back fully resolved."""
+def prepare(
+    spec: ControlSpec, overwrite: bool = False
+) -> tuple[DLOShapeEnv, Controller, ControlSpec]:
+    """Check every input (outputs replaced only with ``overwrite``), build env and
+    controller; the spec comes back fully resolved."""
     if spec.task.goal_file is None:
         raise BadInput(
             "no goal: pass --goal shape.npy, a (N,3) float .npy in metres "
             "(make one with `dlo goal`)"
         )
-    check_video_path(spec.video)
+    check_video_path(spec.video, overwrite)
     options = controller_spec(spec.controller, spec.controller_options)
     goal = load_goal(spec.task.goal_file, spec.backend.rod.n_segments)
     check_inputs_used(spec)
@@ -182,7 +186,7 @@ def run_control(
     ``progress`` is called after every step with that step's record (step, shape_error_mm,
     reward, latency_ms and the controller's stats).
     """
-    env, controller, spec = prepare(spec)
+    env, controller, spec = prepare(spec, overwrite)
     with owned(spec.out):
         return _run_closed_loop(env, controller, spec, progress, overwrite)
 
