@@ -12,7 +12,14 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from dlocli.errors import BadInput
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
@@ -44,6 +51,25 @@ class Spec(BaseModel):
 #: most control steps of a reset's motion or settling: each is a control period of physics
 MAX_RESET_STEPS = 10_000
 
+INEXTENSIBLE_YOUNG_TENSION = 1e8  # Pa, the paper's; the only value a spec may give
+
+#: the most rod segments a backend can simulate, for backends with a limit below RodSpec's:
+#: PyBullet reports at most 128 joint coordinates, 7 for the floating base and 4 per
+#: spherical joint, so a chain of 32 segments would have its last joint locked
+MAX_SEGMENTS: dict[str, int] = {"pybullet": 31}
+
+
+def segment_limit_error(backend: str, n_segments: int) -> str | None:
+    """Why ``backend`` cannot simulate ``n_segments`` segments, or None if it can."""
+    limit = MAX_SEGMENTS.get(backend)
+    if limit is None or n_segments <= limit:
+        return None
+    return (
+        f"the {backend} backend simulates at most {limit} rod segments, got {n_segments}; "
+        "use fewer segments or another backend"
+    )
+
+
 class RodSpec(Spec):
     """The deformable linear object. Defaults are the paper's material (DESIGN.md)."""
 
@@ -56,12 +82,50 @@ class RodSpec(Spec):
         1000.0, ge=10, le=1e5, description="Material density in kg/m^3 (10 to 1e5)."
     )
     young_tension: float = Field(
-        1e8, ge=1e4, le=1e12, description="Young's modulus in tension (Pa, 1e4 to 1e12)."
+        INEXTENSIBLE_YOUNG_TENSION,
+        gt=0,
+        description="Young's modulus in tension (Pa). Every backend's rod is inextensible, so "
+        "only the paper's 1e8 is accepted.",
     )
     young_bending: float = Field(
         1e7, ge=1e4, le=1e12, description="Young's modulus in bending/twist (Pa, 1e4 to 1e12)."
     )
     poisson: float = Field(0.33, ge=0, lt=0.5, description="Poisson's ratio (0 to 0.5).")
+    bending_damping: float | None = Field(
+        None,
+        ge=0,
+        description="Bending damping time beta in seconds: each joint's bending moment is "
+        "(E I / l) (angle + beta * angular rate), a Kelvin-Voigt material of viscosity "
+        "beta * E. None = the backend's default: mujoco 0.05, pybullet two physics steps "
+        "(0.004 at its 2 ms step). MuJoCo's elasticity is explicit: with little damping it "
+        "needs a smaller physics_dt (undamped: 0.0005).",
+    )
+    twist_damping: float | None = Field(
+        None,
+        ge=0,
+        description="Twist damping time in seconds: each joint's twisting moment is "
+        "(G J / l) (angle + time * angular rate). None = the backend's default: mujoco the "
+        "bending damping coefficient (a time of (1 + poisson) * bending_damping), pybullet "
+        "two physics steps.",
+    )
+    air_damping: float | None = Field(
+        None,
+        ge=0,
+        description="Air damping d in 1/s: every segment's velocity v and angular velocity w "
+        "decay at d (1 + |v|) v and d (1 + |w|) w (|v| in m/s, |w| in rad/s; PyBullet's "
+        "velocity damping law). None = the backend's default: mujoco 0, pybullet 5.",
+    )
+
+    @field_validator("young_tension")
+    @classmethod
+    def _inextensible(cls, value: float) -> float:
+        # kept as a field so that specs and runs saved with it still load
+        if value != INEXTENSIBLE_YOUNG_TENSION:
+            raise ValueError(
+                "every backend's rod is inextensible, so young_tension changes nothing; "
+                f"remove it or leave it at {INEXTENSIBLE_YOUNG_TENSION:g}"
+            )
+        return value
 
     @property
     def segment_length(self) -> float:
@@ -107,6 +171,13 @@ class BackendSpec(Spec):
         "both", description="Which rod ends the grippers hold ('left' leaves a free cantilever)."
     )
     rod: RodSpec = Field(default_factory=RodSpec, description="Rod geometry and material.")
+
+    @model_validator(mode="after")
+    def _within_segment_limit(self) -> BackendSpec:
+        error = segment_limit_error(self.name, self.rod.n_segments)
+        if error:
+            raise ValueError(error)
+        return self
 
 
 class TaskSpec(Spec):
@@ -204,6 +275,14 @@ class TaskSpec(Spec):
             )
         return self
 
+
+#: RodSpec fields added after runs were first saved, with the value that rebuilds what a
+#: saved run did before the field existed
+ROD_LEGACY_VALUES: dict[str, Any] = {
+    "bending_damping": None,
+    "twist_damping": None,
+    "air_damping": None,
+}
 
 #: TaskSpec fields added after runs were first saved, with the value that rebuilds what a
 #: saved run did before the field existed

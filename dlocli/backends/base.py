@@ -16,7 +16,8 @@ Conventions (DESIGN.md):
   makes PyBullet let go; see FINDINGS.md).
 - ``reset()`` puts the rod at rest in its nominal configuration: grippers on the x axis,
   ``initial_separation`` apart, centred at (0, 0, ``rest_height``), the rod sagging between
-  them. Randomisation of the start is the task's job (it moves the grippers).
+  them. Like the workspace, the rest configuration scales with the rod length. Randomisation
+  of the start is the task's job (it moves the grippers).
 - A diverged simulation (NaN, explosion) sets ``diverged`` and makes further steps no-ops.
 """
 
@@ -28,10 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dlocli.errors import UnworkablePhysics
-from dlocli.specs import BackendSpec
+from dlocli.errors import BadInput, UnworkablePhysics
+from dlocli.specs import BackendSpec, segment_limit_error
 
-REST_HEIGHT = 0.8
+REST_HEIGHT = 0.8  # rod lengths: inside the length-scaled workspace (z from 0.3 to 1.4)
 INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (FINDINGS gotcha 1)
 
 
@@ -108,8 +109,6 @@ def integrate_gripper_poses(
         step = [v * dt for v in twist] if may_move else [0.0] * 6
         position = pose[:3]
         if may_move:
-            # a gripper that may not move stays put, even outside the workspace (a short
-            # cantilever rod's clamp at REST_HEIGHT lies above the length-scaled box)
             position = [
                 min(max(p + s, lo), hi)
                 for p, s, lo, hi in zip(position, step[:3], low, high, strict=True)
@@ -137,6 +136,10 @@ class Backend(ABC):
 
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
         self.spec = spec or BackendSpec(name=self.name)
+        # a spec changed by model_copy(update=...) skips the spec's own validation
+        error = segment_limit_error(self.name, self.spec.rod.n_segments)
+        if error:
+            raise BadInput(error)
         self.rod = self.spec.rod
         self.n_segments = self.rod.n_segments
         self.control_dt = control_dt
@@ -153,9 +156,14 @@ class Backend(ABC):
             half = 0.5 * self.rod.length  # cantilever: straight out from the left gripper
         poses = np.zeros((2, 7))
         poses[:, 3] = 1.0
-        poses[0, :3] = (-half, 0.0, REST_HEIGHT)
-        poses[1, :3] = (half, 0.0, REST_HEIGHT)
+        poses[0, :3] = (-half, 0.0, self.rest_height)
+        poses[1, :3] = (half, 0.0, self.rest_height)
         return poses
+
+    @property
+    def rest_height(self) -> float:
+        """Height (m) of the grippers at rest."""
+        return REST_HEIGHT * self.rod.length
 
     def reset(self, seed: int | None = None) -> None:
         """Rest configuration (deterministic); ``seed`` seeds any backend-internal noise."""

@@ -12,6 +12,10 @@ Model (built from the :class:`~dlocli.specs.RodSpec`, compiled once per backend)
   overdamped, the cantilever test settles in < 0.5 s. MuJoCo integrates joint damping
   implicitly, which is what keeps the (explicit) plugin stiffness stable at a 4 ms step even
   for short, stiff segments (the step is stable for dt < 2 beta in the linear analysis).
+  The rod spec's ``bending_damping`` and ``twist_damping`` replace it per joint axis (the
+  first degree of freedom of each ball joint is the twist about the rod axis) once the rest
+  state has settled with the default; ``air_damping`` adds forces on every segment at
+  every physics step, PyBullet's velocity damping law.
 - No contacts (not even rod self-contact): the rod hangs in the air and may pass through
   itself when it is coiled by large gripper rotations.
 - Each held rod end is rigidly part of a gravity-compensated "pad" body (the gripper's
@@ -291,6 +295,8 @@ class MujocoCable(Backend):
         self._renderer: mujoco.Renderer | None = None
         self._renderer_finalizer: weakref.finalize | None = None
         self._rest_state = self._settle(rest)
+        self._set_joint_damping()
+        self._air_damping = self.rod.air_damping or 0.0
         self.reset()
 
     # ----------------------------------------------------------------- physics hooks
@@ -310,6 +316,34 @@ class MujocoCable(Backend):
         d.time = 0.0
         return self._get_physics_state()
 
+    def _set_joint_damping(self) -> None:
+        """The rod spec's bending and twist damping, where it sets them (the compiled model
+        holds the default, ``RAYLEIGH_BETA`` times the bending stiffness, on every axis)."""
+        rod, seg = self.rod, self.rod.segment_length
+        dofs = self.model.dof_damping[self._rod_dofs].reshape(-1, 3)  # (twist, bend, bend)
+        if rod.bending_damping is not None:
+            dofs[:, 1:] = rod.bending_damping * rod.bending_stiffness / seg
+            if rod.twist_damping is None:  # the default twist coefficient is the bending one
+                dofs[:, 0] = dofs[:, 1]
+        if rod.twist_damping is not None:
+            dofs[:, 0] = rod.twist_damping * rod.torsional_stiffness / seg
+        self.model.dof_damping[self._rod_dofs] = dofs.ravel()
+
+    def _apply_air_damping(self) -> None:
+        """Set each segment's applied force and torque to PyBullet's velocity damping,
+        ``-d (1 + |v|) m v`` and ``-d (1 + |w|) I w``, from the velocities mj_step1 left."""
+        d, rod = self.data, self._rod_bodies
+        spin = d.cvel[rod, :3]  # world-frame angular velocity
+        # cvel's linear part is the velocity at the root's subtree centre of mass
+        arm = d.xipos[rod] - d.subtree_com[self.model.body_rootid[rod]]
+        velocity = d.cvel[rod, 3:] + np.cross(spin, arm)
+        rate = self._air_damping * (1.0 + np.linalg.norm(velocity, axis=1, keepdims=True))
+        d.xfrc_applied[rod, :3] = -rate * self._rod_masses * velocity
+        frames = d.ximat[rod].reshape(-1, 3, 3)  # principal axes of inertia, world frame
+        local = np.einsum("nji,nj->ni", frames, spin) * self.model.body_inertia[rod]
+        spin_rate = self._air_damping * (1.0 + np.linalg.norm(spin, axis=1, keepdims=True))
+        d.xfrc_applied[rod, 3:] = -spin_rate * np.einsum("nij,nj->ni", frames, local)
+
     def _reset_physics(self, seed: int | None) -> None:
         del seed  # no backend-internal noise: the rest state is deterministic
         self._set_physics_state(self._rest_state)
@@ -322,6 +356,13 @@ class MujocoCable(Backend):
         d = self.data
         first = self.model.body("rodB_first").id
         rod = slice(first, first + self.n_segments)
+        self._rod_bodies = rod
+        self._rod_masses = self.model.body_mass[rod, None]
+        # the ball joints of segments 1 .. N-1 (segment 0 is fixed in pad 0), 3 dofs each
+        joints = self.model.jnt_dofadr[
+            np.isin(self.model.jnt_bodyid, np.arange(first + 1, rod.stop))
+        ]
+        self._rod_dofs = (joints[:, None] + np.arange(3)).ravel()
         self._rod_origins = d.xpos[rod]  # segment start points
         self._rod_axes = d.xmat[rod, 0::3]  # x axis (first xmat column) of each segment
         self._rod_quats = d.xquat[rod]
@@ -343,7 +384,12 @@ class MujocoCable(Backend):
         for position, quat in zip(targets[:, :, :3], targets[:, :, 3:], strict=True):
             self._mocap_pos[:] = position
             self._mocap_quat[:] = quat
-            mujoco.mj_step(m, d)
+            if self._air_damping:
+                mujoco.mj_step1(m, d)
+                self._apply_air_damping()
+                mujoco.mj_step2(m, d)
+            else:
+                mujoco.mj_step(m, d)
         # mj_step leaves body poses of the state before its last integration: refresh them
         mujoco.mj_kinematics(m, d)
         return not self._warnings.any()

@@ -21,13 +21,15 @@ Model (SI units throughout)
   armature is ~96x (twist) and ~25x (bending) the physical rotary inertia, and random-motion
   trajectories stay within 2.9 mm (mean over segments and time) of a 0.5 ms run with almost
   no armature. The spring-proportional damping ``beta = DAMPING_STEPS * dt`` damps the
-  fastest modes (damping ratio ~0.5) and little else.
+  fastest modes (damping ratio ~0.5) and little else; the rod spec's ``bending_damping`` and
+  ``twist_damping`` replace it.
 - Discretisation: the held segment 0 is rigid, so a cantilever of N segments deflects
   ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at N = 20).
 - Damping: besides the joint damping above, PyBullet's velocity damping (``AIR_DAMPING``
   = 5/s, acceleration ``-d (1 + |v|) v`` on every link, like a strong air drag) lets the
   rod settle: after random gripper motion stops, segments slow below 1 mm/s within ~1.2 s.
-  At the largest gripper speed (0.1 m/s) the drag is ~6% of the rod's weight.
+  At the largest gripper speed (0.1 m/s) the drag is ~6% of the rod's weight. The rod spec's
+  ``air_damping`` replaces it (the rest shape still settles with ``SETTLE_DAMPING``).
 - Grippers: each held end is a ``JOINT_FIXED`` constraint between the end of its segment
   and a world frame moved every physics step (``changeConstraint``, global ERP 1: no lag).
   Both ends are held the same way, so the rod stays symmetric end to end (the mirror test);
@@ -36,8 +38,8 @@ Model (SI units throughout)
   change of command, since the joint velocities are relative to the base: a mirrored motion
   differed by up to 44 mm.) ``held_ends == "left"`` omits the right one (a free cantilever
   end).
-- Limits: PyBullet reports at most 128 joint coordinates, i.e. 31 spherical joints: the
-  chain has at most ``MAX_SEGMENTS`` = 32 segments.
+- Limits: PyBullet reports at most 128 joint coordinates, i.e. 30 spherical joints: the
+  chain has at most 31 segments (``dlocli.specs.MAX_SEGMENTS``, checked by the spec).
 """
 
 from __future__ import annotations
@@ -51,20 +53,19 @@ from typing import NamedTuple
 import numpy as np
 import pybullet as p
 
-from dlocli.backends.base import REST_HEIGHT, Backend
+from dlocli.backends.base import Backend
 from dlocli.backends.rotations import quat_normalize, quat_rotate
 from dlocli.errors import BadInput
 from dlocli.specs import BackendSpec, RodSpec
 
 COURANT = 0.5  # target omega_max * dt of the fastest chain mode (explicit stability < 2)
 DAMPING_STEPS = 2.0  # joint damping time beta, in physics steps (damps the fastest modes)
-AIR_DAMPING = 5.0  # 1/s, PyBullet linear/angular velocity damping of every link
+AIR_DAMPING = 5.0  # 1/s, default PyBullet linear/angular velocity damping of every link
 SETTLE_DAMPING = 20.0  # 1/s, air damping while the rest shape settles in reset()
 SETTLE_TIME = 3.0  # s of simulated settling for the rest shape
 HOLD_FORCE = 1e4  # N, maximum force of the right gripper's fixed constraint
 HOLD_ERP = 1.0  # fraction of the right gripper's pose error removed per physics step
 SOLVER_ITERATIONS = 10  # PGS sweeps; one 6-row constraint converges in a few
-MAX_SEGMENTS = 32  # PyBullet's 128 joint coordinates: 7 (base) + 4 per spherical joint
 GRAVITY = 9.81  # m/s^2
 MAX_JOINT_SPEED = 100.0  # rad/s; random gripper motion stays under 3, faster means a blow-up
 
@@ -110,7 +111,7 @@ class ChainModel:
     seg_length: float  # m
     seg_mass: float  # kg
     stiffness: np.ndarray  # (3,) N m/rad about (rod axis, bend y, bend z): (k_t, k_b, k_b)
-    damping: np.ndarray  # (3,) N m s/rad, stiffness-proportional
+    damping: np.ndarray  # (3,) N m s/rad, stiffness-proportional (a damping time each)
     inertia: np.ndarray  # (3,) kg m^2 about the segment centre, armature included
 
     @classmethod
@@ -121,16 +122,27 @@ class ChainModel:
         k_b = rod.bending_stiffness / seg
         k_t = rod.torsional_stiffness / seg
         h = dt / COURANT
+        default = DAMPING_STEPS * dt
+        bend_time = default if rod.bending_damping is None else rod.bending_damping
+        twist_time = default if rod.twist_damping is None else rod.twist_damping
+        c_t, c_b = twist_time * k_t, bend_time * k_b
         # zig-zag modes (neighbours alternate): twist omega^2 = 4 k_t / J_t,
         # bending omega^2 = 16 k_b / (m l^2 + 4 J_b); J >= bound <=> omega * dt <= COURANT
         j_twist = max(0.5 * m * r**2, 4.0 * k_t * h**2)
         j_bend = max(m * (3 * r**2 + seg**2) / 12.0, (16.0 * k_b * h**2 - m * seg**2) / 4.0)
+        # their explicit damping rates 4 c_t / J_t and 16 c_b / (m l^2 + 4 J_b) stay below
+        # 2 COURANT / dt the same way; the default damping (two steps) never needs more
+        j_twist_damped = max(j_twist, 2.0 * c_t * h)
+        j_bend_damped = max(j_bend, (8.0 * c_b * h - m * seg**2) / 4.0)
+        if (j_twist_damped, j_bend_damped) != (j_twist, j_bend):
+            # one axis much heavier than the others: the explicit gyroscopic torque blows up
+            j_twist = j_bend = max(j_twist_damped, j_bend_damped)
         stiffness = np.array([k_t, k_b, k_b])
         return cls(
             seg_length=seg,
             seg_mass=m,
             stiffness=stiffness,
-            damping=DAMPING_STEPS * dt * stiffness,
+            damping=np.array([c_t, c_b, c_b]),
             inertia=np.array([j_twist, j_bend, j_bend]),
         )
 
@@ -145,15 +157,10 @@ class PybulletChain(Backend):
 
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
         super().__init__(spec, control_dt)
-        if self.n_segments > MAX_SEGMENTS:
-            raise BadInput(
-                f"the pybullet backend supports at most {MAX_SEGMENTS} rod segments (PyBullet "
-                f"reports 128 joint coordinates), got {self.n_segments}; use fewer segments "
-                "or the mujoco backend"
-            )
         self._n_sub = max(1, round(control_dt / self.physics_dt))
         self._dt = control_dt / self._n_sub  # divides the control period exactly
         self.model = ChainModel.from_rod(self.rod, self._dt)
+        self._air_damping = AIR_DAMPING if self.rod.air_damping is None else self.rod.air_damping
         self._client = p.connect(p.DIRECT)  # private server: several envs per process
         if self._client < 0:
             raise RuntimeError("could not start a PyBullet DIRECT physics server")
@@ -195,7 +202,7 @@ class PybulletChain(Backend):
             baseMass=self.model.seg_mass,
             baseCollisionShapeIndex=-1,
             baseVisualShapeIndex=vis,
-            basePosition=[0, 0, REST_HEIGHT],
+            basePosition=[0, 0, self.rest_height],
             baseInertialFramePosition=[seg / 2, 0, 0],
             linkMasses=[self.model.seg_mass] * n,
             linkCollisionShapeIndices=[-1] * n,
@@ -209,7 +216,7 @@ class PybulletChain(Backend):
             linkJointAxis=[[0, 0, 1]] * n,
             physicsClientId=c,
         )
-        self._set_dynamics(AIR_DAMPING)
+        self._set_dynamics(self._air_damping)
         # switch off the default joint motors: the joints are driven by our spring torques
         p.setJointMotorControlMultiDofArray(
             self._body,
@@ -225,7 +232,7 @@ class PybulletChain(Backend):
         for link, end in ends[: 2 if self.spec.held_ends == "both" else 1]:
             hold = p.createConstraint(
                 self._body, link, -1, -1, p.JOINT_FIXED, [0, 0, 0], [end, 0, 0],
-                [0, 0, REST_HEIGHT], physicsClientId=c,
+                [0, 0, self.rest_height], physicsClientId=c,
             )  # fmt: skip
             p.changeConstraint(hold, maxForce=HOLD_FORCE, physicsClientId=c)
             self._holds.append(hold)
@@ -288,7 +295,7 @@ class PybulletChain(Backend):
         for _ in range(round(SETTLE_TIME / self.control_dt)):
             if not self._advance(rest, rest):
                 raise self.unworkable_rod("the rod's rest state diverged")
-        self._set_dynamics(AIR_DAMPING)
+        self._set_dynamics(self._air_damping)
         state = self._get_physics_state()
         state[7:13] = 0.0  # at rest: exactly zero base and joint velocities
         state[13 + 4 * n : 13 + 7 * n] = 0.0
@@ -493,8 +500,8 @@ class PybulletChain(Backend):
     def _camera_image(self, width: int, height: int) -> np.ndarray:
         """A fixed camera in front of the workspace (-y side), slightly above, looking at it."""
         L = self.rod.length
-        target = [0.0, 0.0, REST_HEIGHT - 0.2 * L]
-        view = p.computeViewMatrix([0.0, -1.6 * L, REST_HEIGHT + 0.3 * L], target, [0, 0, 1])
+        target = [0.0, 0.0, self.rest_height - 0.2 * L]
+        view = p.computeViewMatrix([0.0, -1.6 * L, self.rest_height + 0.3 * L], target, [0, 0, 1])
         proj = p.computeProjectionMatrixFOV(50.0, width / height, 0.05 * L, 10.0 * L)
         _, _, rgba, _, _ = p.getCameraImage(
             width,
