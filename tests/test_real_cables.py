@@ -21,7 +21,9 @@ from dlocli.markers import deform, protocol
 from dlocli.markers.dataset import MarkerDataset
 
 FRAMES, MARKERS = 40, 6
-DEFORM_DATA = Path(os.environ.get("DLOCLI_DEFORM_DATA", Path(__file__).parents[2] / "shared/data/deform"))
+DEFORM_DATA = Path(
+    os.environ.get("DLOCLI_DEFORM_DATA", Path(__file__).parents[2] / "shared/data/deform")
+)
 
 
 def _run(*argv: str) -> int:
@@ -187,7 +189,9 @@ def test_mixed_marker_counts_are_refused(tmp_path: Path, capsys) -> None:
     assert "mixed marker counts" in capsys.readouterr().err
 
 
-def test_rollout_training_is_refused_for_rod_data(small_dataset_dir: Path, tmp_path: Path, capsys) -> None:
+def test_rollout_training_is_refused_for_rod_data(
+    small_dataset_dir: Path, tmp_path: Path, capsys
+) -> None:
     args = ["--data", str(small_dataset_dir), "--rollout-steps", "4", "--out", str(tmp_path / "m")]
     assert _run("train", *args) == 2
     assert "marker datasets" in capsys.readouterr().err
@@ -200,3 +204,24 @@ def test_version_1_rod_datasets_still_load(small_dataset_dir: Path, tmp_path: Pa
         f.attrs["format_version"] = 1
         del f.attrs["form"]
     assert isinstance(load_dataset(old), Dataset)
+
+
+def test_the_length_projection_keeps_held_markers_and_restores_lengths() -> None:
+    """The compiled loop (no gradient, CPU) and the tensor form (training) agree; held
+    markers stay; the neighbour distances come back to the requested ones."""
+    import torch
+
+    from dlocli.models.markers import neighbour_distances, project_lengths
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 12, 3, generator=gen)
+    lengths, held = neighbour_distances(x), torch.as_tensor(deform.held_markers(12))
+    moved = x + 0.02 * torch.randn(x.shape, generator=gen)
+    moved[:, held] = x[:, held]
+    before = (neighbour_distances(moved) - lengths).abs().max()
+    tensor_form = project_lengths(moved.requires_grad_(True), lengths, held, 10)
+    with torch.no_grad():
+        compiled = project_lengths(moved, lengths, held, 10)
+    torch.testing.assert_close(compiled, tensor_form.detach(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(compiled[:, held], x[:, held])
+    assert (neighbour_distances(compiled) - lengths).abs().max() < 0.01 * before

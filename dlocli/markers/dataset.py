@@ -89,11 +89,11 @@ class MarkerDataset:
         ends = np.cumsum(self.episode_lengths + 1)
         starts = ends - (self.episode_lengths + 1)
         keep = np.ones(self.n_episodes, bool) if split is None else self.split == SPLIT_CODES[split]
-        return [self.positions[a:b] for a, b, k in zip(starts, ends, keep) if k]
+        return [self.positions[a:b] for a, b, k in zip(starts, ends, keep, strict=True) if k]
 
     def episode_names(self, split: str | None = None) -> list[str]:
         keep = np.ones(self.n_episodes, bool) if split is None else self.split == SPLIT_CODES[split]
-        return [str(n) for n, k in zip(self.names, keep) if k]
+        return [str(n) for n, k in zip(self.names, keep, strict=True) if k]
 
     def save(self, path: Path) -> Path:
         """Write atomically (temp file, then rename)."""
@@ -122,7 +122,9 @@ def read_marker_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> MarkerDatas
     if missing:
         raise BadInput(f"marker dataset {path} lacks {', '.join(missing)}; re-import it")
     arrays = {n: f[n][()] for n in ARRAYS}
-    arrays["names"] = np.array([n.decode() if isinstance(n, bytes) else str(n) for n in arrays["names"]], dtype=object)
+    arrays["names"] = np.array(
+        [n.decode() if isinstance(n, bytes) else str(n) for n in arrays["names"]], dtype=object
+    )
     data = MarkerDataset(**arrays, attrs=attrs)
     _check(data, path)
     from dlocli.data import FORMAT_VERSION

@@ -42,11 +42,15 @@ def read_trajectory(path: Path) -> np.ndarray:
             "is never run); pass the DEFORM data files"
         ) from exc
     except (EOFError, ValueError, TypeError, IndexError, KeyError, MemoryError) as exc:
-        raise BadInput(f"{path} is not a readable pickle ({type(exc).__name__}); re-download it") from exc
+        raise BadInput(
+            f"{path} is not a readable pickle ({type(exc).__name__}); re-download it"
+        ) from exc
     try:
         array = np.asarray(data, dtype=np.float64)
     except (ValueError, TypeError) as exc:
-        raise BadInput(f"{path} is not a rectangular array of numbers; pass a (frames, 3, V) list") from exc
+        raise BadInput(
+            f"{path} is not a rectangular array of numbers; pass a (frames, 3, V) list"
+        ) from exc
     if array.ndim != 3 or array.shape[1] != 3:
         raise BadInput(f"{path} has shape {array.shape}, expected (frames, 3, markers)")
     if array.shape[2] < MIN_MARKERS:
@@ -73,10 +77,14 @@ def read_folder(folder: Path) -> dict[str, list[tuple[str, np.ndarray]]]:
     ``folder/eval`` (sorted by name); every file must have the same marker count."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise BadInput(f"{folder} is not a folder; pass a DEFORM cable folder holding train/ and eval/")
+        raise BadInput(
+            f"{folder} is not a folder; pass a DEFORM cable folder holding train/ and eval/"
+        )
     found = {s: sorted((folder / s).glob("*.pkl")) for s in SPLITS if (folder / s).is_dir()}
     if not found.get("train"):
-        raise BadInput(f"{folder}/train holds no .pkl files; pass a DEFORM cable folder (e.g. DLO1)")
+        raise BadInput(
+            f"{folder}/train holds no .pkl files; pass a DEFORM cable folder (e.g. DLO1)"
+        )
     out: dict[str, list[tuple[str, np.ndarray]]] = {}
     counts: dict[int, str] = {}
     for split, files in found.items():

@@ -17,5 +17,7 @@ class ImportSpec(Spec):
         description="Folder of one cable's recordings in the DEFORM layout: train/*.pkl and "
         "eval/*.pkl, each a pickled (frames, 3, markers) list of metres.",
     )
-    rate_hz: float = Field(100.0, gt=0, le=100000, description="Frames per second of the recording.")
+    rate_hz: float = Field(
+        100.0, gt=0, le=100000, description="Frames per second of the recording."
+    )
     out: Path = Field(Path("runs/import"), description="Run directory for the dataset.")

@@ -77,7 +77,8 @@ class WindowSampler:
         eps = self.rng.integers(len(episodes), size=batch)
         k = int(min(k, lengths[eps].min() - 2))
         starts = self.rng.integers(1, lengths[eps] - k)
-        win = torch.stack([episodes[e][s - 1 : s + k + 1] for e, s in zip(eps, starts)])
+        pairs = zip(eps, starts, strict=True)
+        win = torch.stack([episodes[e][s - 1 : s + k + 1] for e, s in pairs])
         if self.mirror[c]:
             flip = torch.as_tensor(self.rng.random(batch) < 0.5, device=self.device)
             win = torch.where(flip[:, None, None, None], win.flip(2), win)
@@ -125,7 +126,7 @@ def scores_cm(model: MarkerModel, cable: Cable) -> list[float]:
     from dlocli.markers.protocol import deform_score_cm
 
     preds = predict_episodes(model, cable.episodes, cable.held)
-    return [deform_score_cm(p, e) for p, e in zip(preds, cable.episodes)]
+    return [deform_score_cm(p, e) for p, e in zip(preds, cable.episodes, strict=True)]
 
 
 def validation_score(model: MarkerModel, cables: list[Cable]) -> float:
@@ -175,8 +176,13 @@ def fit_markers(
             model.eval()
             val_score = validation_score(model, val)
             model.train()
-            record = {"step": step, "k": k, "train_loss": float(np.mean(running)),
-                      "val_score_cm": val_score, "seconds": time.perf_counter() - start}  # fmt: skip
+            record = {
+                "step": step,
+                "k": k,
+                "train_loss": float(np.mean(running)),
+                "val_score_cm": val_score,
+                "seconds": time.perf_counter() - start,
+            }
             history.append(record)
             running = []
             if math.isnan(val_score) or val_score < best[0]:
@@ -239,8 +245,11 @@ def run_marker_training(
         "train_episodes": len(train),
         "val_episodes": len(val),
         "val_score_cm": None if math.isnan(best) else round(best, 4),
-        "val_freeze_cm": round(float(np.mean([deform_score_cm(freeze(e, dataset.held), e)
-                                              for e in val])), 4) if val else None,  # fmt: skip
+        "val_freeze_cm": round(
+            float(np.mean([deform_score_cm(freeze(e, dataset.held), e) for e in val])), 4
+        )
+        if val
+        else None,  # fmt: skip
         "seconds": round(history[-1]["seconds"], 1) if history else 0.0,
         "out": str(out),
     }

@@ -31,7 +31,9 @@ CABLES = ("DLO1", "DLO2", "DLO3", "DLO4")
 
 def main() -> None:
     source, seed = Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 0
-    spec = TrainSpec.model_validate({**yaml.safe_load((HERE / "in-bilstm.yaml").read_text()), "seed": seed})
+    spec = TrainSpec.model_validate(
+        {**yaml.safe_load((HERE / "in-bilstm.yaml").read_text()), "seed": seed}
+    )
     train, val, evals = [], [], {}
     for name in CABLES:
         recorded = deform.read_folder(source / name)
@@ -49,8 +51,9 @@ def main() -> None:
         "seed": seed,
         "update_steps": spec.update_steps,
         "train_seconds": round(time.perf_counter() - start, 1),
-        "score_cm": {name: round(float(np.mean(scores_cm(model, cable))), 4)
-                     for name, cable in evals.items()},  # fmt: skip
+        "score_cm": {
+            name: round(float(np.mean(scores_cm(model, cable))), 4) for name, cable in evals.items()
+        },  # fmt: skip
     }
     print(result)
     path = HERE / "all_cables.json"

@@ -27,7 +27,10 @@ PUBLISHED = {
     "DER (physics)": ((1.96, 1.91, 1.86, 1.50), "17–18 ms"),
     "DEFORM": ((1.01, 0.97, 0.77, 0.85), "9–10 ms"),
 }
-REFERENCES = {"freeze": "freeze the free markers at frame 1", "straight_line": "straight line between the held ends"}
+REFERENCES = {
+    "freeze": "freeze the free markers at frame 1",
+    "straight_line": "straight line between the held ends",
+}
 
 
 def collect(runs: Path) -> dict:
@@ -41,19 +44,26 @@ def collect(runs: Path) -> dict:
             entry["seeds"][seed] = {
                 "score_cm": summary["model_score_cm"],
                 "ms_per_step": summary["ms_per_step_1_thread"],
-                "horizons_mm": {k.split("_")[-1]: v for k, v in summary.items()
-                                if k.startswith("model_error_mm_")},  # fmt: skip
+                "horizons_mm": {
+                    k.split("_")[-1]: v
+                    for k, v in summary.items()
+                    if k.startswith("model_error_mm_")
+                },  # fmt: skip
                 "abs_error_cm": curves["abs_error_cm"]["model"],
             }
             for ref in REFERENCES:
-                results[cable].setdefault(ref, {"score_cm": summary[f"{ref}_score_cm"],
-                                                "abs_error_cm": curves["abs_error_cm"][ref]})  # fmt: skip
+                reference = {
+                    "score_cm": summary[f"{ref}_score_cm"],
+                    "abs_error_cm": curves["abs_error_cm"][ref],
+                }
+                results[cable].setdefault(ref, reference)
     for cable in results.values():
-        for model, entry in cable.items():
+        for entry in cable.values():
             if "seeds" in entry:
-                scores = [s["score_cm"] for s in entry["seeds"].values()]
-                entry.update(mean_cm=float(np.mean(scores)), std_cm=float(np.std(scores)),
-                             ms_per_step=float(np.median([s["ms_per_step"] for s in entry["seeds"].values()])))  # fmt: skip
+                seeds = entry["seeds"].values()
+                scores = [s["score_cm"] for s in seeds]
+                entry["mean_cm"], entry["std_cm"] = float(np.mean(scores)), float(np.std(scores))
+                entry["ms_per_step"] = float(np.median([s["ms_per_step"] for s in seeds]))
     return results
 
 
@@ -62,18 +72,26 @@ def models_of(results: dict) -> list[str]:
 
 
 def table(results: dict) -> str:
-    head = "| method (cm, mean abs. error per coordinate, 5 s open loop) | " + " | ".join(CABLES) + " | time per step |"
+    head = (
+        "| method (cm, mean abs. error per coordinate, 5 s open loop) | "
+        + " | ".join(CABLES)
+        + " | time per step |"
+    )
     lines = [head, "|---|" + "---:|" * len(CABLES) + "---|"]
     for ref, words in REFERENCES.items():
         row = [f"{results[c][ref]['score_cm']:.2f}" if c in results else "–" for c in CABLES]
         lines.append(f"| {words} | " + " | ".join(row) + " | – |")
     for name, (scores, time) in PUBLISHED.items():
-        lines.append(f"| {name}, published | " + " | ".join(f"{s:.2f}" for s in scores) + f" | {time} |")
+        lines.append(
+            f"| {name}, published | " + " | ".join(f"{s:.2f}" for s in scores) + f" | {time} |"
+        )
     for model in models_of(results):
         cells, times = [], []
         for c in CABLES:
             e = results.get(c, {}).get(model)
-            cells.append(f"**{e['mean_cm']:.2f}** ± {e['std_cm']:.2f} ({len(e['seeds'])})" if e else "–")
+            cells.append(
+                f"**{e['mean_cm']:.2f}** ± {e['std_cm']:.2f} ({len(e['seeds'])})" if e else "–"
+            )
             if e:
                 times.append(e["ms_per_step"])
         t = f"{min(times):.2f}–{max(times):.2f} ms" if times else "–"
@@ -100,17 +118,36 @@ def figure(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(CABLES), figsize=(16, 4), sharey=True)
-    colours = {"in-bilstm": "tab:blue", "mlp": "tab:orange", "freeze": "tab:gray", "straight_line": "tab:brown"}
-    for ax, (i, cable) in zip(axes, enumerate(CABLES)):
+    colours = {
+        "in-bilstm": "tab:blue",
+        "mlp": "tab:orange",
+        "freeze": "tab:gray",
+        "straight_line": "tab:brown",
+    }
+    for ax, (i, cable) in zip(axes, enumerate(CABLES), strict=True):
         for name, entry in results.get(cable, {}).items():
-            curves = [s["abs_error_cm"] for s in entry["seeds"].values()] if "seeds" in entry else [entry["abs_error_cm"]]
+            curves = (
+                [s["abs_error_cm"] for s in entry["seeds"].values()]
+                if "seeds" in entry
+                else [entry["abs_error_cm"]]
+            )
             per_frame = np.mean(curves, 0)[2:]
             running = np.cumsum(per_frame) / np.arange(1, len(per_frame) + 1)
             t = np.arange(1, len(running) + 1) / 100.0
             style = "-" if "seeds" in entry else ":"
             ax.plot(t, running, style, color=colours.get(name), label=name.replace("_", " "))
-        for label, colour in (("DEFORM", "black"), ("DER (physics)", "tab:red"), ("Bi-LSTM (Yan et al. 2020)", "tab:green")):
-            ax.axhline(PUBLISHED[label][0][i], color=colour, lw=0.8, ls="--", label=f"{label.split(' (')[0]}, published")
+        for label, colour in (
+            ("DEFORM", "black"),
+            ("DER (physics)", "tab:red"),
+            ("Bi-LSTM (Yan et al. 2020)", "tab:green"),
+        ):
+            ax.axhline(
+                PUBLISHED[label][0][i],
+                color=colour,
+                lw=0.8,
+                ls="--",
+                label=f"{label.split(' (')[0]}, published",
+            )
         ax.set_title(cable)
         ax.set_xlabel("horizon (s)")
         ax.grid(alpha=0.3)
@@ -131,7 +168,12 @@ def main() -> None:
             for s in e.get("seeds", {}).values():
                 s.pop("abs_error_cm", None)
     (HERE / "results.json").write_text(json.dumps(slim, indent=1) + "\n")
-    text = table(results) + "\n\nFree markers' mean Euclidean error (mm) at each horizon, mean over seeds:\n\n" + horizon_table(results) + "\n"
+    text = (
+        table(results)
+        + "\n\nFree markers' mean Euclidean error (mm) at each horizon, mean over seeds:\n\n"
+        + horizon_table(results)
+        + "\n"
+    )
     (HERE / "results.md").write_text(text)
     print(text)
 

@@ -17,8 +17,8 @@ done
 job() {  # cable model seed
   local run="$RUNS/$1/$2-s$3"
   [ -f "$run-eval/summary.json" ] && return 0
-  dlo train --spec "$HERE/$2.yaml" --data "$RUNS/$1/data" --seed "$3" --out "$run" --overwrite --json > /dev/null
-  dlo eval --checkpoint "$run" --data "$RUNS/$1/data" --out "$run-eval" --plot "$run-eval/horizon.png" --overwrite --json > /dev/null
+  dlo train --spec "$HERE/$2.yaml" --data "$RUNS/$1/data" --seed "$3" --out "$run" --overwrite --json > /dev/null || return 1
+  dlo eval --checkpoint "$run" --data "$RUNS/$1/data" --out "$run-eval" --plot "$run-eval/horizon.png" --overwrite --json > /dev/null || return 1
   echo "$1 $2 seed $3: $(python -c "import json;print(json.load(open('$run-eval/summary.json'))['model_score_cm'])") cm"
 }
 export -f job; export RUNS HERE
