@@ -37,10 +37,41 @@ def save_figure(fig: Any, path: Path) -> Path:
     return path
 
 
-def shaded_curve(ax: Any, xs: list[float], mean: list[float], std: list[float], label: str) -> None:
+#: one colour per agent in every figure (matplotlib's cycle colours by name, so an agent keeps
+#: its colour whichever agents a figure shows); the references are black and grey
+AGENT_COLOURS = {"mpc": "C0", "mpc-offline": "C1", "sac": "C2", "td3": "C3", "pilco": "C4",
+                 "mppi": "C5", "zero": "black", "random": "0.45"}  # fmt: skip
+#: the references' line styles: doing nothing dashed, random actions dotted with crosses (the
+#: two often coincide: the crosses keep random visible on the dashes)
+REFERENCE_STYLES = {"zero": "--", "random": ":x"}
+
+
+def agent_colour(name: str) -> str:
+    """The agent's colour; an agent not in :data:`AGENT_COLOURS` gets one from its name."""
+    import zlib
+
+    return AGENT_COLOURS.get(name) or f"C{6 + zlib.crc32(name.encode()) % 4}"
+
+
+def integer_ticks(axis: Any) -> None:
+    """Ticks at whole numbers only (epochs, steps, transitions)."""
+    from matplotlib.ticker import MaxNLocator
+
+    axis.set_major_locator(MaxNLocator(integer=True))
+
+
+def shaded_curve(
+    ax: Any,
+    xs: list[float],
+    mean: list[float],
+    std: list[float],
+    label: str,
+    color: str | None = None,
+    linestyle: str = "-",
+) -> None:
     """A line with its mean +- std band (paper Figs. 4 and 7)."""
     mean_a, std_a = np.asarray(mean), np.asarray(std)
-    (line,) = ax.plot(xs, mean_a, marker="o", label=label)
+    (line,) = ax.plot(xs, mean_a, marker="o", label=label, color=color, linestyle=linestyle)
     ax.fill_between(xs, mean_a - std_a, mean_a + std_a, alpha=0.2, color=line.get_color())
 
 
@@ -65,6 +96,7 @@ def plot_learning_curve(
     ax_mm.set_ylabel("mean final shape error (mm)")
     ax_mm.set_yscale("log")
     ax_mm.set_xlabel("transitions")
+    integer_ticks(ax_mm.xaxis)
     for axis in (ax, ax_mm):
         axis.grid(alpha=0.3)
         axis.legend(fontsize="small")
@@ -74,15 +106,15 @@ def plot_learning_curve(
 def _reference_lines(ax: Any, ax_mm: Any, curve: list[dict[str, Any]], xs: list[int]) -> None:
     from dlocli.runs.references import REFERENCES
 
-    styles = {"zero": "k--", "random": "k:"}
     drawn = False
-    for name, style in styles.items():
+    for name, style in REFERENCE_STYLES.items():
         if all(f"{name}_final_error_mm_mean" in c for c in curve):
             label = f"{REFERENCES[name]}, same starts"
+            look = {"color": agent_colour(name), "lw": 1, "label": label}
             errors = [c[f"{name}_final_error_mm_mean"] for c in curve]
-            ax_mm.plot(xs, errors, style, lw=1, label=label)
+            ax_mm.plot(xs, errors, style, **look)
             rewards = [c[f"{name}_cumulative_reward_mean"] for c in curve]
-            ax.plot(xs, rewards, style, lw=1, label=label)
+            ax.plot(xs, rewards, style, **look)
             drawn = True
     if not drawn and all("initial_error_mm_mean" in c for c in curve):  # runs before references
         initial = [c["initial_error_mm_mean"] for c in curve]
@@ -97,6 +129,7 @@ def plot_losses(history: list[dict[str, float]], path: Path) -> Path:
     ax.plot(epochs, [r["val_loss"] for r in history], "o-", label="validation")
     ax.set_yscale("log")
     ax.set_xlabel("epoch")
+    integer_ticks(ax.xaxis)
     ax.set_ylabel("MSE of normalised state change")
     ax.legend()
     ax.grid(alpha=0.3)
@@ -111,13 +144,18 @@ def plot_errors(
     steps = [0] + [r["step"] for r in records]
     errors = [initial_error] + [r["shape_error_mm"] for r in records]
     fig, (ax_err, ax_lat) = plt.subplots(2, 1, figsize=(6, 5), sharex=True, height_ratios=(2, 1))
-    ax_err.plot(steps, errors, label=label)
+    ax_err.plot(steps, errors, label=label, color=agent_colour(label))
+    # the run's reference: doing nothing keeps the start's error
+    ax_err.axhline(initial_error, color="black", ls="--", lw=1,
+                   label=f"do nothing (start error {initial_error:.1f} mm)")  # fmt: skip
     ax_err.set_ylabel("shape error (mm)")
     ax_err.set_ylim(bottom=0)
+    ax_err.grid(alpha=0.3)
     ax_err.legend()
     ax_lat.plot(steps[1:], [r["latency_ms"] for r in records], lw=0.8)
     ax_lat.set_ylabel("latency (ms)")
     ax_lat.set_xlabel("control step")
+    integer_ticks(ax_lat.xaxis)
     return save_figure(fig, path)
 
 
@@ -138,13 +176,14 @@ def plot_rollout_figure(
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
-    ax.legend(fontsize=6, loc="upper left")
+    ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(-0.25, 1.0))
     ax.set_title(f"{title}: open-loop rollout")
     err = fig.add_subplot(1, 2, 2)
     steps = np.arange(1, h + 1)
     for label, values in errors.items():
         err.plot(steps, values, label=label)
     err.set_xlabel("prediction step")
+    integer_ticks(err.xaxis)
     err.set_ylabel("mean segment position error (mm)")
     err.legend()
     err.grid(alpha=0.3)

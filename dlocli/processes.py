@@ -58,6 +58,12 @@ def raise_if_stopped() -> None:
         raise kind
 
 
+def pending_stop() -> type[KeyboardInterrupt] | None:
+    """The stop that arrived and was not yet handled (None if none): an error that follows
+    a stop (a worker pool broken by Ctrl-C) is the stop, not a failure."""
+    return _pending if os.getpid() == _main_pid else None
+
+
 def stop_handled() -> None:
     """The stop reached the command's handler: forget it (finishing work may still step)."""
     global _pending
@@ -83,8 +89,12 @@ def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
     once that thread gets back to Python. When the kernel hands SIGTERM to another thread (the
     watcher below) while the main thread waits in C on a pool's queue lock, nothing handles it:
     ``Pool.terminate`` then joined such a worker forever (a CI run hung in ``dlo collect``). The
-    worker therefore takes the kernel's default action, whichever thread receives it."""
+    worker therefore takes the kernel's default action, whichever thread receives it.
+
+    Ctrl-C reaches every process of the terminal's group: a worker also ends at once on
+    SIGINT, without Python's KeyboardInterrupt traceback; the main process reports the stop."""
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     _ask_kernel_for_sigkill_on_parent_death()
     if os.getppid() != parent:  # the parent died before we asked
         os._exit(1)

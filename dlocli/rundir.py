@@ -15,6 +15,7 @@ recorded and the change is the user's.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
@@ -58,6 +59,7 @@ def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise BadInput(f"--out {run_dir} is a file; pass a directory path")
+    created = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     key = run_dir.resolve()
     outermost = key not in _held
@@ -71,20 +73,37 @@ def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
     finally:
         _held[key][1] -= 1
         if outermost:
-            _record_and_release(run_dir, key, before)
+            _record_and_release(run_dir, key, before, created, shared)
 
 
-def _record_and_release(run_dir: Path, key: Path, before: set[str]) -> None:
+def _record_and_release(
+    run_dir: Path, key: Path, before: set[str], created: bool, shared: bool
+) -> None:
     try:
-        record_written(run_dir, before)
+        if shared or not _remove_if_unused(run_dir, created):
+            record_written(run_dir, before)
     except OSError:
         pass  # a full disk: unrecorded files are refused by --overwrite, never deleted
     finally:
         os.close(_held.pop(key)[0])  # closing the descriptor releases the lock
 
 
+def _remove_if_unused(run_dir: Path, created: bool) -> bool:
+    """A run refused before it wrote anything leaves no lock file (nor the directory it
+    created); True if so. Unlinked while still locked: a process that opened the old file
+    sees that it is no longer the lock (:func:`_acquire`)."""
+    if [p.name for p in run_dir.iterdir()] != [LOCK_FILE]:
+        return False
+    (run_dir / LOCK_FILE).unlink(missing_ok=True)
+    if created:
+        with contextlib.suppress(OSError):  # something appeared meanwhile: it stays
+            run_dir.rmdir()
+    return True
+
+
 def _acquire(run_dir: Path, shared: bool) -> int:
-    fd = _open_lock_file(run_dir / LOCK_FILE)
+    path = run_dir / LOCK_FILE
+    fd = _open_lock_file(path)
     if fcntl is None:  # pragma: no cover
         return fd
     try:
@@ -93,6 +112,10 @@ def _acquire(run_dir: Path, shared: bool) -> int:
         holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
         os.close(fd)
         raise InUse(run_dir, holder) from None
+    if not _is_current(fd, path):  # its holder removed it before releasing: take the new one
+        os.close(fd)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        return _acquire(run_dir, shared)
     if not shared:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
@@ -117,6 +140,14 @@ def _open_lock_file(path: Path) -> int:
         os.close(fd)
         raise refusal
     return fd
+
+
+def _is_current(fd: int, path: Path) -> bool:
+    """Whether ``fd`` is still the file at ``path``."""
+    try:
+        return os.path.samestat(os.fstat(fd), os.stat(path))
+    except FileNotFoundError:
+        return False
 
 
 # ----------------------------------------------------------------------------- fingerprints

@@ -214,6 +214,8 @@ CORPUS: list[tuple[str, str, int]] = [
     # checkpoints
     ("ckpt-missing", "control --goal {goal} --checkpoint {root}/nope.pt --out {out}", 2),
     ("ckpt-text", "control --goal {goal} --checkpoint {bad}/text.pt --out {out}", 2),
+    ("device-missing", "train --data {data} --device cuda:99 --epochs 1 --out {out}", 2),
+    ("ckpt-is-a-goal", "control --goal {goal} --checkpoint {goal} --out {out}", 2),
     (
         "ckpt-huge-hidden",
         "control --goal {goal} --checkpoint {bad}/huge_hidden.pt --out {out}",
@@ -293,12 +295,16 @@ def test_bad_input(case, argv, code, world, tmp_path, capsys):
     before = _snapshot(world["root"], world["data"])
     exit_code = _run_main(_format(argv, world, tmp_path / "out"))
     captured = capsys.readouterr()
-    lines = [line for line in captured.err.splitlines() if line.strip()]
+    lines = captured.err.splitlines()
     assert exit_code == code, captured.err
-    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
+    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err  # no blank line
     assert len(lines[0]) < 600, lines[0][:200]
     assert "Traceback" not in captured.err + captured.out
+    # our own whole message, not a library's advice (numpy's allow_pickle, torch's tutorial)
+    assert "allow_pickle" not in lines[0] and "PyTorch 2.6" not in lines[0], lines[0]
     assert _snapshot(world["root"], world["data"]) == before
+    out = tmp_path / "out"
+    assert not (out.is_dir() and [p.name for p in out.iterdir()] == [".dlo.lock"]), "lock left"
     assert not Path("/tmp/dlocli_corpus_pwned").exists()
 
 

@@ -68,6 +68,24 @@ def test_version_and_python_dash_m():
     assert res.returncode == 0 and res.stdout.decode().startswith("dlocli ")
 
 
+def test_version_and_help_import_no_torch_or_simulator():
+    """`dlo --version` and `dlo --help` load no command module (torch alone takes seconds)."""
+    heavy = ["torch", "mujoco", "pybullet", "dlocli.cli.online"]
+    for flag in ("--version", "--help"):
+        script = (
+            "import sys\n"
+            f"sys.argv = ['dlo', '{flag}']\n"
+            "from dlocli.cli import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            f"print([m for m in {heavy!r} if m in sys.modules])\n"
+        )
+        res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+        assert res.stdout.strip().splitlines()[-1] == "[]", (flag, res.stdout)
+    help_text = runner.invoke(app, ["--help"]).output
+    assert "online" in help_text and "Learn the dynamics model online" in help_text
+
+
 def test_fields_that_moved_still_load():
     """Spec files and saved runs written before a field moved keep their meaning."""
     from dlocli.runs.control import ControlSpec

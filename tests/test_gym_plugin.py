@@ -52,9 +52,9 @@ def test_gym_make_every_id_in_a_process_that_imports_only_gymnasium():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert "unknown field 'episode_step'" in out.stdout
+    assert "got an unexpected keyword argument 'episode_step'" in out.stdout
     assert "did you mean 'episode_steps'" in out.stdout
-    assert "valid fields: backend, task, goal, seed, render_mode" in out.stdout
+    assert "valid ones: backend, task, goal, seed, render_mode" in out.stdout
     assert "shapes" in out.stdout and "max_linear_velocity" in out.stdout
 
 
@@ -62,8 +62,9 @@ def test_gym_make_every_id_in_a_process_that_imports_only_gymnasium():
 @pytest.mark.parametrize(
     "kwargs,error,match",
     [
-        ({"goals": "random"}, UnknownOption, "unknown field 'goals'.*valid fields: backend"),
-        ({"name": "bimanual"}, UnknownOption, "unknown field 'name'"),
+        ({"goals": "random"}, UnknownOption, "keyword argument 'goals'.*valid ones: backend"),
+        ({"name": "bimanual"}, UnknownOption, "unexpected keyword argument 'name'"),
+        ({"goal": "randm"}, BadOption, "'fixed' or 'random'.*did you mean 'random'"),
         ({"episode_steps": 0}, BadOption, "episode_steps"),
         ({"shapes": "circle"}, BadOption, "shapes"),
         ({"max_linear_velocity": -1.0}, BadOption, "max_linear_velocity"),
@@ -157,5 +158,21 @@ def test_render_follows_gymnasiums_convention():
         frame = env.render()
         assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
         check_env(env.unwrapped, skip_render_check=False)  # unwrapped, as Gymnasium advises
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", sorted(gym_ids()))
+def test_torchrl_gymenv_builds_every_id_and_passes_its_spec_check(env_id):
+    """TorchRL's GymEnv passes ``frameskip`` and retries without it on Python's own
+    "unexpected keyword argument" TypeError; its spec check then steps the env."""
+    pytest.importorskip("torchrl")
+    from torchrl.envs import GymEnv
+    from torchrl.envs.utils import check_env_specs
+
+    env = GymEnv("dlocli:" + env_id, episode_steps=5, **FAST)
+    try:
+        check_env_specs(env, seed=0)
+        assert env.rollout(3).batch_size == (3,)
     finally:
         env.close()

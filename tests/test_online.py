@@ -153,6 +153,14 @@ def test_references_shared_among_workers_match_the_serial_ones(uninterrupted, tm
             }
 
 
+def _steps(run: Path, tag: str) -> list[int]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    return [e.step for e in events.Scalars(tag)]
+
+
 def test_tensorboard_events_hold_loss_and_error(uninterrupted):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -195,6 +203,7 @@ def test_resume_after_sigkill_matches_uninterrupted(uninterrupted, tmp_path):
     assert res.exit_code == 0, res.output
     resumed = json.loads(res.stdout.strip().splitlines()[-1])
     assert resumed["transitions"] == summary["transitions"]
+    assert _steps(out, "trials/final_error_mm") == [c[0] for c in summary["curve"]], "once each"
     rows = read_rows(out)
     keys = [(r["iteration"], r["trial"]) for r in rows]
     assert len(keys) == len(set(keys)) == 4, "no duplicate or missing trials"
@@ -233,3 +242,25 @@ def test_offline_comparison_runs_beside_the_online_loop(tmp_path, schedule):
         random = load_dataset(out / "offline" / f"random_{k:02d}.h5")
         assert random.n_transitions >= online[k - 1]["transitions"] - 2 * 15  # as much data
     assert (out / "plots" / "learning_curve.png").is_file()
+
+
+def test_log_gets_a_line_per_unit_and_ctrl_c_stops_quietly(tmp_path):
+    """Output to a file: a plain progress line per finished trial and iteration (with elapsed
+    time and ETA). Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while
+    two workers run trials: exit 130, one line on stderr, no worker traceback."""
+    out, log, err = tmp_path / "run", tmp_path / "log.txt", tmp_path / "err.txt"
+    cmd = [sys.executable, "-m", "dlocli", "online", *TINY, "--workers", "2", "--out", str(out)]
+    with log.open("w") as stdout, err.open("w") as stderr:
+        proc = subprocess.Popen(cmd, stdout=stdout, stderr=stderr, start_new_session=True)
+        deadline = time.time() + 300
+        while log.read_text().count("epoch 1/1") < 2:  # iteration 2's trials start
+            assert proc.poll() is None and time.time() < deadline, err.read_text()
+            time.sleep(0.1)
+        os.killpg(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=120) == 130
+    lines = log.read_text().splitlines()
+    assert [line.split("  ")[0] for line in lines if line.startswith(("trial", "iteration"))][
+        :3
+    ] == ["trial 1/2", "trial 2/2", "iteration 1/2"], lines
+    assert "elapsed 0:00:" in lines[-1] and any("eta 0:" in line for line in lines), lines
+    assert err.read_text().splitlines() == ["interrupted: finished work was saved"]

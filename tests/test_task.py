@@ -169,7 +169,7 @@ def test_make_env_refuses_misspelt_fields_and_takes_the_goal_mode():
 
     from dlocli.errors import BadInput
 
-    with pytest.raises(BadInput, match="unknown field 'episode_step'"):
+    with pytest.raises(BadInput, match="unexpected keyword argument 'episode_step'"):
         dlocli.make_env(episode_step=50)
     env = gym.make("dlocli/MujocoSingle-v0", goal="random", episode_steps=5)
     try:

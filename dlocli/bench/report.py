@@ -30,7 +30,14 @@ import numpy as np
 from dlocli.bench.agents import is_reference
 from dlocli.errors import BadInput
 from dlocli.io import write_json_atomic, write_text_atomic
-from dlocli.plots import figure, save_figure, shaded_curve
+from dlocli.plots import (
+    REFERENCE_STYLES,
+    agent_colour,
+    figure,
+    integer_ticks,
+    save_figure,
+    shaded_curve,
+)
 
 Row = dict[str, Any]
 GOALS = {"fixed": "fixed goal", "random": "random goals"}
@@ -240,17 +247,21 @@ def plot_curves(
     ``zero`` reference dashed."""
     fig, ax = figure()
     groups = _group(rows, ("agent", "train_task", "train_goals"))
-    several = len({key[1:] for key in groups}) > 1
-    for (agent, task, goals), group in groups.items():
-        label = f"{agent} ({task}, {GOALS[goals]})" if several else agent
+    settings = sorted({key[1:] for key in groups})  # a line style per learning setting
+    for (agent, task, goals), group in sorted(groups.items(), key=lambda item: _rank(item[1][0])):
+        label = f"{agent} ({task}, {GOALS[goals]})" if len(settings) > 1 else agent
         xs, means, stds = curve(group, key)
         if not xs:
             continue
-        if agent == REFERENCE:
-            ax.plot(xs, means, "k--", lw=1, label=f"{label} (do nothing)")
+        if agent in REFERENCE_STYLES:  # a thin line without band, under the agents' curves
+            what = " (do nothing)" if agent == REFERENCE else ""
+            ax.plot(xs, means, REFERENCE_STYLES[agent], color=agent_colour(agent), lw=1.5,
+                    label=label + what, zorder=1)  # fmt: skip
         else:
-            shaded_curve(ax, xs, means, stds, label=label)
+            style = ["-", "--", "-.", ":"][settings.index((task, goals)) % 4]
+            shaded_curve(ax, xs, means, stds, label, agent_colour(agent), style)
     ax.set_xlabel("transitions")
+    integer_ticks(ax.xaxis)
     ax.set_ylabel(ylabel or "cumulative reward per episode")
     ax.set_title(title)
     ax.grid(alpha=0.3)

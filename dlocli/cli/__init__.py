@@ -5,23 +5,20 @@ The CLI is thin: parse flags -> resolve the run spec -> call the library -> prin
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
 
+import click
 import typer
+import typer.main
+from typer.core import TyperGroup
 
-app = typer.Typer(
-    name="dlo",
-    help="Learn and control the 3D shape of deformable linear objects (cables, ropes).",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-    invoke_without_command=True,
-    # plain help: the rich panels of this Typer/Click show flags as `--json <bool>`
-    rich_markup_mode=None,
-)
-
-# (command name, "module:function"); each command module imports its heavy libraries (torch,
-# simulators) inside the function, so `dlo --help` stays fast.
+# (command name, "module:function"); a command's module is imported only when that command
+# runs or shows its help, so `dlo --help` and `dlo --version` import no torch or simulator.
 COMMANDS = [
     ("list", "dlocli.cli.listing:list_plugins"),
     ("goal", "dlocli.cli.goal:goal"),
@@ -37,10 +34,70 @@ COMMANDS = [
 ]
 
 
-def _register() -> None:
-    for name, target in COMMANDS:
-        module_name, _, attr = target.partition(":")
-        app.command(name)(getattr(importlib.import_module(module_name), attr))
+class _LazyCommands(Mapping[str, click.Command]):
+    """The commands by name, each built from its module on first use."""
+
+    def __init__(self, targets: dict[str, str]) -> None:
+        self.targets = targets
+        self.built: dict[str, click.Command] = {}
+
+    def __getitem__(self, name: str) -> click.Command:
+        if name not in self.built:
+            module_name, _, attr = self.targets[name].partition(":")
+            function = getattr(importlib.import_module(module_name), attr)
+            one = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
+                              rich_markup_mode=None)  # fmt: skip
+            one.command(name)(function)
+            self.built[name] = typer.main.get_command(one)
+        return self.built[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.targets)
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+
+def _first_docstring_line(target: str) -> str:
+    """The first line of a command function's docstring, read from its source file without
+    importing the module."""
+    module_name, _, attr = target.partition(":")
+    origin = importlib.util.find_spec(module_name).origin
+    tree = ast.parse(Path(origin).read_text(encoding="utf-8"))
+    function = next(
+        node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == attr
+    )
+    return (ast.get_docstring(function) or "").strip().splitlines()[0]
+
+
+class _LazyGroup(TyperGroup):
+    """The root group: commands load on first use; its help lists them from their sources."""
+
+    def __init__(self, **attrs: Any) -> None:
+        super().__init__(**attrs)
+        self.commands = _LazyCommands(dict(COMMANDS))
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        limit = formatter.width - 6 - max(len(name) for name, _ in COMMANDS)
+        rows = [
+            (name, click.utils.make_default_short_help(_first_docstring_line(target), limit))
+            for name, target in COMMANDS
+        ]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+app = typer.Typer(
+    name="dlo",
+    cls=_LazyGroup,
+    help="Learn and control the 3D shape of deformable linear objects (cables, ropes).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    invoke_without_command=True,
+    # plain help: the rich panels of this Typer/Click show flags as `--json <bool>`
+    rich_markup_mode=None,
+)
 
 
 @app.callback()
@@ -57,9 +114,6 @@ def _root(
     if ctx.invoked_subcommand is None:
         typer.echo(ctx.get_help())
         raise typer.Exit(0)
-
-
-_register()
 
 
 def main() -> None:

@@ -10,8 +10,9 @@ from typing import Annotated, Any
 import typer
 
 from dlocli.bench.spec import BenchSpec as S
-from dlocli.cli.common import ResumeFlag, console, handle_errors
+from dlocli.cli.common import ResumeFlag, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
+from dlocli.cli.progress import Bars
 
 OPTION_HELP = (
     "An option of a learning agent, AGENT.KEY=VALUE (a field of its spec), repeatable: "
@@ -52,30 +53,39 @@ def bench(
         summary = report_bench(report)
     else:
         run.overrides |= parse_options(option or [], "options")
-        progress = _quiet if run.json else _print_progress
-        if resume is not None:
-            summary = resume_bench(resume, run.overrides, progress)
-        else:
-            summary = start_bench(run.spec(), run.overwrite, progress)
+        with Bars(run.json) as bars:
+            progress = _BenchProgress(bars)
+            if resume is not None:
+                summary = resume_bench(resume, run.overrides, progress)
+            else:
+                summary = start_bench(run.spec(), run.overwrite, progress)
     _emit(summary, run.json)
 
 
-def _quiet(event: str, info: dict[str, Any]) -> None:
-    return None
+class _BenchProgress:
+    """What is to run, then a bar of finished jobs (a line per job in a log)."""
 
+    def __init__(self, bars: Bars) -> None:
+        self.bars = bars
+        self.done = 0
 
-def _print_progress(event: str, info: dict[str, Any]) -> None:
-    if event == "start":
-        kept = info["total"] - info["todo"]
-        console.print(f"bench: {info['todo']} job(s) to run, {kept} finished job(s) kept")
-        for job, transitions in info.get("continuing", {}).items():
-            console.print(f"  {job} continues from its checkpoint at {transitions:,} transitions")
-        for job, pid in info.get("elsewhere", {}).items():
-            console.print(f"  {job} is running in another process (PID {pid}): left to it")
-    elif event == "job":
-        console.print(f"  {info['job']} done in {info['seconds']:.0f} s")
-    elif event == "failed":
-        console.print(f"  [red]{info['error']}[/red]", soft_wrap=True)
+    def __call__(self, event: str, info: dict[str, Any]) -> None:
+        bars = self.bars
+        if event == "start":
+            kept = info["total"] - info["todo"]
+            bars.note(f"bench: {info['todo']} job(s) to run, {kept} finished job(s) kept")
+            for job, transitions in info.get("continuing", {}).items():
+                bars.note(f"  {job} continues from its checkpoint at {transitions:,} transitions")
+            for job, pid in info.get("elsewhere", {}).items():
+                bars.note(f"  {job} is running in another process (PID {pid}): left to it")
+            bars.begin("job", info["todo"])
+        elif event == "job":
+            self.done += 1
+            bars.update("job", self.done, info=f"{info['job']} took {info['seconds']:.0f} s")
+        elif event == "failed":
+            bars.note(f"  {info['error']}")
+            self.done += 1
+            bars.update("job", self.done, info=f"{info['job']} failed")
 
 
 def _emit(summary: dict[str, Any], as_json: bool) -> None:

@@ -5,16 +5,15 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
 from dlocli.cli.common import (
     AcceptChangesFlag,
     ResumeFlag,
     emit_summary,
     handle_errors,
-    progress_bars,
 )
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.progress import Bars
 from dlocli.specs import CollectSpec
 
 
@@ -47,17 +46,12 @@ def collect(
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     backends.check(spec.backend.name)
     tasks.check(spec.task.name)
-    columns = (
-        TextColumn("collect"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
-        TimeRemainingColumn(),
-    )  # fmt: skip
-    with progress_bars(*columns, quiet=run.json) as progress:
-        bar = progress.add_task("collect", total=spec.episodes)
+    with Bars(run.json) as bars:
+        bars.begin("episode", spec.episodes, every=max(spec.episodes // 20, 1))
 
         def show(done: int, episode: Any) -> None:
             if episode is not None:  # not before the first episode: bad input stays one line
-                progress.start()
-            progress.update(bar, completed=done)
+                bars.update("episode", done)
 
         summary = collect_random(
             spec, run.overwrite, show, resume=resume is not None, accept_changes=accept_changes

@@ -6,19 +6,17 @@ import errno
 import functools
 import json
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, NoReturn, TypeVar
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import Progress
 from rich.table import Table
 
 from dlocli.errors import DloError
-from dlocli.processes import Terminated, raise_if_stopped, stop_handled
+from dlocli.processes import Terminated, pending_stop, raise_if_stopped, stop_handled
 
 F = TypeVar("F", bound=Callable[..., Any])
 console = Console(stderr=True)
@@ -62,12 +60,13 @@ def handle_errors(fn: F) -> F:
             print_error(str(exc))
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt as exc:
-            stop_handled()
-            terminated = isinstance(exc, Terminated)
-            what = "terminated (SIGTERM)" if terminated else "interrupted"
-            console.print(f"[yellow]{what}[/yellow]: finished work was saved")
-            raise typer.Exit(143 if terminated else 130) from None
-        except OSError as exc:
+            _report_stop(isinstance(exc, Terminated))
+        except Exception as exc:
+            stop = pending_stop()
+            if stop is not None:  # the error followed a stop (a worker pool broken by Ctrl-C)
+                _report_stop(stop is Terminated)
+            if not isinstance(exc, OSError):
+                raise
             print_error(os_error_line(exc))
             raise typer.Exit(2 if is_path_error(exc) else 1) from None
 
@@ -77,6 +76,14 @@ def handle_errors(fn: F) -> F:
 #: longest error line printed: a message quoting a huge path or value keeps its start (what)
 #: and its end (the fix)
 MAX_ERROR_CHARS = 500
+
+
+def _report_stop(terminated: bool) -> NoReturn:
+    """One line for Ctrl-C or SIGTERM, and its exit code (130 or 143)."""
+    stop_handled()
+    what = "terminated (SIGTERM)" if terminated else "interrupted"
+    console.print(f"[yellow]{what}[/yellow]: finished work was saved")
+    raise typer.Exit(143 if terminated else 130) from None
 
 
 def print_error(line: str) -> None:
@@ -104,18 +111,6 @@ def os_error_line(exc: OSError) -> str:
     if is_path_error(exc):
         return f"cannot use{where}: {what}; pass a path you can write to (or read from)"
     return f"{what}{where}; free space or fix the file system and run again"
-
-
-@contextmanager
-def progress_bars(*columns: Any, quiet: bool) -> Iterator[Progress]:
-    """Rich progress bars that show nothing until a callback calls ``start()`` (so bad input
-    stays one line), hidden with ``quiet`` (--json), stopped at the end."""
-    progress = Progress(*columns, transient=quiet, disable=quiet)
-    try:
-        yield progress
-    finally:
-        if progress.live.is_started:  # stopping a bar never shown would print a blank line
-            progress.stop()
 
 
 def emit_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:

@@ -5,10 +5,10 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
+from dlocli.cli.progress import Bars
 from dlocli.runs.control import ControlSpec
 
 OPTION_HELP = (
@@ -33,25 +33,15 @@ def control(
 
     run.overrides |= parse_options(option or [], "controller_options")
     spec = run.spec()
-    columns = (
-        TextColumn("control"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("error {task.fields[error]:7.1f} mm  latency {task.fields[latency]:6.1f} ms"),
-    )  # fmt: skip
-    progress = Progress(*columns, transient=run.json, disable=run.json)
-    bar = progress.add_task(
-        "control", total=spec.task.episode_steps, error=float("nan"), latency=0.0
-    )
+    with Bars(run.json) as bars:
+        steps = spec.task.episode_steps
 
-    def show(record: dict[str, float]) -> None:
-        progress.start()  # on the first step: bad input never shows a bar
-        progress.update(
-            bar, completed=record["step"], error=record["shape_error_mm"],
-            latency=record["latency_ms"],
-        )  # fmt: skip
+        def show(record: dict[str, float]) -> None:
+            if record["step"] == 1:  # the episode starts (the env and the model are built)
+                bars.begin("step", steps, every=max(steps // 10, 1))
+            bars.update("step", record["step"], info=f"error {record['shape_error_mm']:7.1f} mm"
+                        f"  latency {record['latency_ms']:6.1f} ms")  # fmt: skip
 
-    try:
         summary = run_control(spec, show, overwrite=run.overwrite)
-    finally:
-        progress.stop()
     summary.pop("versions", None)
     emit_summary(summary, run.json, "dlo control")

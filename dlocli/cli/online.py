@@ -4,17 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
-
 from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.progress import Bars
 from dlocli.runs.online import OnlineSpec as S
 
 
@@ -42,7 +34,8 @@ def online(
     from dlocli.runs.online import resume_online, start_online
 
     run.refuse_with_resume(resume)
-    with _progress(run.json) as callback:
+    with Bars(run.json) as bars:
+        callback = _OnlineProgress(bars)
         if resume is not None:
             summary = resume_online(resume, run.overrides, callback, accept_changes)
         else:
@@ -54,59 +47,30 @@ def online(
     emit_summary(summary, run.json, "dlo online")
 
 
-class _progress:
-    """Nested bars: iterations, trials, epochs (with ETA)."""
+class _OnlineProgress:
+    """Bars for iterations, the random episodes, model updates (epochs or gradient steps, as
+    the schedule counts them) and trials; each phase restarts its bar."""
 
-    def __init__(self, quiet: bool) -> None:
-        self.bars = Progress(
-            TextColumn("{task.description:<10}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[info]}"),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-            disable=quiet,
-        )
-        self.tasks: dict[str, Any] = {}
+    def __init__(self, bars: Bars) -> None:
+        self.bars = bars
 
-    def __enter__(self) -> Any:
-        self.bars.__enter__()
-        return self.update
-
-    def __exit__(self, *exc: object) -> None:
-        self.bars.__exit__(*exc)
-
-    def _bar(self, name: str, total: int | None) -> Any:
-        if name not in self.tasks:
-            self.tasks[name] = self.bars.add_task(name, total=total, info="")
-        return self.tasks[name]
-
-    def update(self, event: str, info: dict[str, Any]) -> None:
+    def __call__(self, event: str, info: dict[str, Any]) -> None:
+        bars = self.bars
         if event == "iteration":  # iteration k starts: k - 1 are done
-            self.bars.update(
-                self._bar("iteration", info["total"]),
-                completed=info["iteration"] - 1,
-                info=f"running {info['iteration']}",
-            )
-            for name in ("trial", "epoch"):
-                if name in self.tasks:
-                    self.bars.reset(self.tasks[name])
+            bars.update("iteration", info["iteration"] - 1, info["total"],
+                        info=f"running {info['iteration']}")  # fmt: skip
         elif event == "initial":
-            self.bars.update(self._bar("random", info["total"]), completed=info["episode"])
+            bars.update("random", info["episode"], info["total"], info="initial episodes")
         elif event == "iteration done":
-            self.bars.update(self._bar("iteration", info["total"]), completed=info["iteration"],
-                             info="")  # fmt: skip
+            bars.update("iteration", info["iteration"], info["total"])
+        elif event == "update":
+            bars.begin(info["unit"], info["total"])
         elif event == "epoch" and "batch" not in info:
             early = "stopped early, best " if info.get("stopped_early") else ""
-            self.bars.update(
-                self._bar("epoch", info.get("epochs")),
-                total=info.get("epochs"),
-                completed=info["epoch"],
-                info=f"{early}val loss {info.get('val_loss', float('nan')):.4f}",
-            )
+            loss = f"{early}val loss {info.get('val_loss', float('nan')):.4f}"
+            bars.update(info.get("unit", "epoch"), info["epoch"], info.get("epochs"), info=loss)
+        elif event == "trials":
+            bars.begin("trial", info["total"], done=info["done"])
         elif event == "trial":
-            self.bars.update(
-                self._bar("trial", info.get("total")),
-                completed=info["trial"],
-                info=f"final error {info['final_error_mm']:.1f} mm",
-            )
+            bars.update("trial", info["trial"], info.get("total"),
+                        info=f"final error {info['final_error_mm']:.1f} mm")  # fmt: skip

@@ -4,16 +4,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
-
 from dlocli.cli.common import (
     AcceptChangesFlag,
     ResumeFlag,
     emit_summary,
     handle_errors,
-    progress_bars,
 )
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.progress import Bars
 from dlocli.models.spec import TrainSpec as S
 
 
@@ -40,22 +38,18 @@ def train(
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     models.check(spec.model.name)
-    columns = (
-        TextColumn("epoch {task.fields[epoch]}/{task.fields[epochs]}"), BarColumn(),
-        MofNCompleteColumn(), TextColumn("loss {task.fields[loss]:.4g}"),
-        TextColumn("val {task.fields[val]:.4g}"), TimeRemainingColumn(),
-    )  # fmt: skip
-    with progress_bars(*columns, quiet=run.json) as progress:
-        bar = progress.add_task("train", total=None, epoch=0, epochs=spec.epochs,
-                                loss=float("nan"), val=float("nan"))  # fmt: skip
+    with Bars(run.json) as bars:
 
         def show(event: dict[str, Any]) -> None:
-            progress.start()
-            if "val_loss" in event:
-                progress.update(bar, val=event["val_loss"])
-                return
-            progress.update(bar, epoch=event["epoch"], total=event["batches"],
-                            completed=event["batch"], loss=event["loss"])  # fmt: skip
+            if "epoch" not in bars.phases:  # training starts (after earlier epochs, resumed)
+                bars.begin("epoch", spec.epochs, done=event["epoch"] - 1)
+                bars.begin("batch", None, every=None)  # a log gets the epochs only
+            if "val_loss" in event:  # an epoch finished
+                bars.update("epoch", event["epoch"], spec.epochs,
+                            info=f"val loss {event['val_loss']:.4g}")  # fmt: skip
+            else:  # each epoch counts its batches afresh
+                bars.update("batch", event["batch"], event["batches"],
+                            info=f"loss {event['loss']:.4g}")  # fmt: skip
 
         summary = run_training(
             spec, run.overwrite, show, resume=resume is not None, accept_changes=accept_changes

@@ -19,6 +19,7 @@ steps. Loops that stop at divergence count the steps they skip at -1.5
 from __future__ import annotations
 
 import difflib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +59,8 @@ def load_goal(path: Path, n_segments: int) -> np.ndarray:
         # memory-mapped: a header that claims terabytes is refused by its shape, not allocated
         goal = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
-        raise BadInput(f"goal {path} could not be read as .npy ({exc}); {expected}") from exc
+        # numpy's own text (an allow_pickle hint for a text file) would mislead
+        raise BadInput(f"goal {path} is not a readable .npy array; {expected}") from exc
     if not isinstance(goal, np.ndarray):
         raise BadInput(f"goal {path} is an .npz archive, not one array; {expected}")
     if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused
@@ -148,13 +150,21 @@ def resolve_env_options(
     valid = env_keywords()
     for key in task_options:
         if key not in valid:
-            close = difflib.get_close_matches(key, valid, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            # Python's own wording: wrappers such as TorchRL's GymEnv retry without a keyword
+            # (frameskip) only when the TypeError says "unexpected keyword argument"
+            hint = _did_you_mean(key, valid)
             raise UnknownOption(
-                f"DLOShapeEnv: unknown field '{key}'{hint}; valid fields: {', '.join(valid)}"
+                f"DLOShapeEnv() got an unexpected keyword argument '{key}'{hint}; "
+                f"valid ones: {', '.join(valid)}"
             )
-    if isinstance(goal, str) and goal in ("fixed", "random"):
+    modes = ("fixed", "random")
+    if isinstance(goal, str) and goal in modes:
         task_options, goal = {**task_options, "goal": goal}, None
+    elif isinstance(goal, str) and not goal.endswith(".npy"):
+        raise BadOption(
+            f"DLOShapeEnv: goal={goal!r} is neither a goal mode ('fixed' or 'random') nor a "
+            f".npy file{_did_you_mean(goal, modes)}; pass a mode, an (N, 3) array or a .npy path"
+        )
     try:  # validated as a whole: a bad value is refused, not silently dropped
         backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
         backend_spec = BackendSpec.model_validate(backend_spec)
@@ -169,6 +179,11 @@ def resolve_env_options(
     backend_registry.check(backend_spec.name)
     task_registry.check(task_spec.name)
     return backend_spec, task_spec, goal
+
+
+def _did_you_mean(name: str, valid: Sequence[str]) -> str:
+    close = difflib.get_close_matches(name, valid, n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 class DLOShapeEnv(gym.Env):

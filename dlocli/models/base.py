@@ -314,8 +314,11 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, pickle.UnpicklingError, EOFError, OSError, ValueError,
             zipfile.BadZipFile) as exc:  # fmt: skip
-        first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else type(exc).__name__
-        raise BadInput(f"{path} is not a readable checkpoint ({first}); retrain it") from exc
+        # torch's text is pages long (a weights_only tutorial); ours says what to pass instead
+        raise BadInput(
+            f"{path} is not a readable model checkpoint (torch.load with weights_only=True "
+            "refused it); pass a .pt file written by `dlo train`, or its run directory"
+        ) from exc
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise BadInput(f"{path} is not a dlocli model checkpoint; pass one written by `dlo train`")
     if not isinstance(payload.get("state_dict"), dict) or not isinstance(

@@ -290,6 +290,8 @@ class OnlineRun:
         steps = fit.schedule == "steps"
         per_update = fit.update_steps if steps else fit.epochs
         start = time.perf_counter()
+        self.progress("update", {"iteration": k, "unit": "step" if steps else "epoch",
+                                 "total": per_update})  # fmt: skip
 
         def log(record: dict[str, float], *_: Any) -> None:
             at = (k - 1) * per_update + record["step" if steps else "epoch"]  # over the run
@@ -335,6 +337,7 @@ class OnlineRun:
             if not self.paths.trial(k, j, offline).is_file()
         ]
         done = self.spec.trials - len(todo)
+        self.progress("trials", {"iteration": k, "done": done, "total": self.spec.trials})
         spec_json = self.spec.model_dump_json()
         if self.spec.workers == 1:
             for j in todo:
@@ -448,7 +451,9 @@ class OnlineRun:
     # ------------------------------------------------------------------ driver
     def run(self) -> dict[str, Any]:
         """Run (or resume) to the end; ``seconds`` in the summary counts every part's time."""
-        start = time.perf_counter() - self.earlier_seconds()
+        earlier = self.earlier_summary()
+        start = time.perf_counter() - float(earlier.get("seconds") or 0.0)
+        logged = len(earlier.get("curve") or [])  # iterations whose curves a run before wrote
         self.scalars = Scalars(self.spec.out)
         data = self.initial_dataset()
         try:
@@ -461,7 +466,8 @@ class OnlineRun:
                 if self.spec.offline:
                     self.offline_comparison(k, data.n_transitions)
                 summary = self.write_results(time.perf_counter() - start)
-                self.log_iteration(summary["curve"][k - 1])
+                if k > logged:  # TensorBoard gets each iteration once across resumes
+                    self.log_iteration(summary["curve"][k - 1])
                 self.progress("iteration done", {"iteration": k, "total": self.spec.iters})
             return self.write_results(time.perf_counter() - start, final=True)
         finally:
@@ -469,13 +475,13 @@ class OnlineRun:
             if self._pool is not None:
                 self._pool.shutdown(cancel_futures=True)
 
-    def earlier_seconds(self) -> float:
-        """The time earlier parts of this run took (0 for a new run)."""
-        path = self.spec.out / "summary.json"
+    def earlier_summary(self) -> dict[str, Any]:
+        """The summary the run wrote before it was stopped (empty for a new run)."""
         try:
-            return float(json.loads(path.read_text()).get("seconds") or 0.0)
-        except (OSError, ValueError, AttributeError):
-            return 0.0
+            summary = json.loads((self.spec.out / "summary.json").read_text())
+        except (OSError, ValueError):
+            return {}
+        return summary if isinstance(summary, dict) else {}
 
     def log_iteration(self, point: dict[str, Any]) -> None:
         self.scalars.add(
