@@ -41,6 +41,11 @@ def train(
     with Bars(run.json) as bars:
 
         def show(event: dict[str, Any]) -> None:
+            if "step" in event:  # a marker dataset: gradient steps through rollouts
+                info = (f"k {event['k']}, rollout loss {event['train_loss']:.3g} cm, "
+                        f"validation {event['val_score_cm']:.3g} cm")  # fmt: skip
+                bars.update("step", event["step"], event["steps"], info=info)
+                return
             if "epoch" not in bars.phases:  # training starts (after earlier epochs, resumed)
                 bars.begin("epoch", spec.epochs, done=event["epoch"] - 1)
                 bars.begin("batch", None, every=None)  # a log gets the epochs only

@@ -220,9 +220,7 @@ def run_marker_training(
 
     def report(record: dict[str, float]) -> None:
         if progress is not None:
-            progress({"epoch": 1, "batch": record["step"], "batches": spec.update_steps,
-                      "loss": record["train_loss"]})  # fmt: skip
-            progress({"epoch": 1, "epochs": 1, "val_loss": record["val_score_cm"]})
+            progress({**record, "steps": spec.update_steps})
 
     held = dataset.held
     history = fit_markers(model, [Cable(train, held)], [Cable(val, held)] if val else [],
