@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
-from test_bad_input_corpus import _run_main, _snapshot
+from tiny import file_digests, run_dlo
 
 
 def _set(name: str, value: Callable[[np.ndarray], np.ndarray]) -> Callable[[h5py.File], None]:
@@ -63,14 +63,14 @@ DATASETS: list[tuple[str, Callable[[h5py.File], None], str]] = [
 
 
 def _one_line(argv: list[str], capsys, roots: list[Path], code: int = 2) -> str:
-    before = _snapshot(*roots)
-    exit_code = _run_main(argv)
+    before = file_digests(*roots)
+    exit_code = run_dlo(argv)
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert exit_code == code, err
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     assert len(lines[0]) < 600
-    assert _snapshot(*roots) == before
+    assert file_digests(*roots) == before
     return lines[0]
 
 
@@ -127,7 +127,7 @@ def test_a_spec_nested_past_the_recursion_limit_is_refused(suffix, tmp_path, cap
 @pytest.mark.parametrize("damage", [b"{not json", b"\xff\xfe\x00", b"[1, 2]", b'{"inputs": 3}'])
 def test_damaged_fingerprints_on_resume_are_refused(damage, tmp_path, capsys):
     run = tmp_path / "run"
-    assert _run_main(["collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
+    assert run_dlo(["collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
                       "--out", str(run), "--json"]) == 0  # fmt: skip
     capsys.readouterr()
     (run / "fingerprints.json").write_bytes(damage)
