@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 
 from dlocli.bench.spec import BenchSpec as S
 from dlocli.cli.common import ResumeFlag, console, handle_errors
@@ -75,7 +76,7 @@ def _print_progress(event: str, info: dict[str, Any]) -> None:
     elif event == "job":
         console.print(f"  {info['job']} done in {info['seconds']:.0f} s")
     elif event == "failed":
-        console.print(f"  [red]{info['error']}[/red]", soft_wrap=True)
+        console.print(f"  {info['job']} [red]failed[/red]: {escape(info['error'])}", soft_wrap=True)
 
 
 def _emit(summary: dict[str, Any], as_json: bool) -> None:
