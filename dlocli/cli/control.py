@@ -5,9 +5,9 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn
 
-from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.common import emit_summary, handle_errors, progress_bars
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.runs.control import ControlSpec
 
@@ -37,21 +37,18 @@ def control(
         TextColumn("control"), BarColumn(), MofNCompleteColumn(),
         TextColumn("error {task.fields[error]:7.1f} mm  latency {task.fields[latency]:6.1f} ms"),
     )  # fmt: skip
-    progress = Progress(*columns, transient=run.json, disable=run.json)
-    bar = progress.add_task(
-        "control", total=spec.task.episode_steps, error=float("nan"), latency=0.0
-    )
+    with progress_bars(*columns, quiet=run.json) as progress:
+        bar = progress.add_task(
+            "control", total=spec.task.episode_steps, error=float("nan"), latency=0.0
+        )
 
-    def show(record: dict[str, float]) -> None:
-        progress.start()  # on the first step: bad input never shows a bar
-        progress.update(
-            bar, completed=record["step"], error=record["shape_error_mm"],
-            latency=record["latency_ms"],
-        )  # fmt: skip
+        def show(record: dict[str, float]) -> None:
+            progress.start()  # on the first step: bad input never shows a bar
+            progress.update(
+                bar, completed=record["step"], error=record["shape_error_mm"],
+                latency=record["latency_ms"],
+            )  # fmt: skip
 
-    try:
         summary = run_control(spec, show, overwrite=run.overwrite)
-    finally:
-        progress.stop()
     summary.pop("versions", None)
     emit_summary(summary, run.json, "dlo control")

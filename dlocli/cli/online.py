@@ -13,7 +13,13 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
+from dlocli.cli.common import (
+    AcceptChangesFlag,
+    ResumeFlag,
+    emit_summary,
+    handle_errors,
+    progress_bars,
+)
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.runs.online import OnlineSpec as S
 
@@ -42,7 +48,8 @@ def online(
     from dlocli.runs.online import resume_online, start_online
 
     run.refuse_with_resume(resume)
-    with _progress(run.json) as callback:
+    with progress_bars(*_bar_columns(), quiet=run.json) as bars:
+        callback = _OnlineProgress(bars).update
         if resume is not None:
             summary = resume_online(resume, run.overrides, callback, accept_changes)
         else:
@@ -54,27 +61,25 @@ def online(
     emit_summary(summary, run.json, "dlo online")
 
 
-class _progress:
-    """Nested bars: iterations, trials, epochs (with ETA)."""
+def _bar_columns() -> tuple[Any, ...]:
+    """Columns of the nested bars (iterations, trials, epochs), with ETA; new for each run,
+    as columns cache what they drew."""
+    return (
+        TextColumn("{task.description:<10}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[info]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
 
-    def __init__(self, quiet: bool) -> None:
-        self.bars = Progress(
-            TextColumn("{task.description:<10}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[info]}"),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-            disable=quiet,
-        )
+
+class _OnlineProgress:
+    """The online loop's events shown on nested bars: iterations, trials, epochs."""
+
+    def __init__(self, bars: Progress) -> None:
+        self.bars = bars
         self.tasks: dict[str, Any] = {}
-
-    def __enter__(self) -> Any:
-        self.bars.__enter__()
-        return self.update
-
-    def __exit__(self, *exc: object) -> None:
-        self.bars.__exit__(*exc)
 
     def _bar(self, name: str, total: int | None) -> Any:
         if name not in self.tasks:
@@ -82,6 +87,7 @@ class _progress:
         return self.tasks[name]
 
     def update(self, event: str, info: dict[str, Any]) -> None:
+        self.bars.start()  # on the first event: bad input never shows a bar
         if event == "iteration":  # iteration k starts: k - 1 are done
             self.bars.update(
                 self._bar("iteration", info["total"]),
