@@ -8,6 +8,7 @@ so ``dlo <command> --spec RUN/spec.json`` re-runs it. Units: metres, seconds, ra
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any, ClassVar, Literal, TypeVar
 
@@ -45,6 +46,25 @@ class Spec(BaseModel):
             if old in data:
                 _set_dotted(data, dotted, data.pop(old), copy=True)
         return data
+
+    @field_validator("*")
+    @classmethod
+    def _utf8_paths(cls, value: Any) -> Any:
+        # a path of undecodable bytes cannot be saved in spec.json, nor the run re-run from it
+        if isinstance(value, Path):
+            require_utf8_path(value)
+        return value
+
+
+def require_utf8_path(path: Path) -> None:
+    """Refuse a path whose name is not valid UTF-8 (bytes the shell passed undecoded)."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise ValueError(
+            f"the path {shown} is not valid UTF-8; use a name of UTF-8 characters"
+        ) from None
 
 
 # --------------------------------------------------------------------------- physics
@@ -164,8 +184,7 @@ class BackendSpec(Spec):
         None,
         ge=1e-5,
         le=0.02,
-        description="Physics step in seconds (1e-5 to 0.02); None = the backend's stable "
-        "default.",
+        description="Physics step in seconds (1e-5 to 0.02); None = the backend's stable default.",
     )
     held_ends: Literal["both", "left"] = Field(
         "both", description="Which rod ends the grippers hold ('left' leaves a free cantilever)."
@@ -243,7 +262,10 @@ class TaskSpec(Spec):
         "turns a gripper from its rest orientation.",
     )
     reset_motion_steps: int = Field(
-        40, ge=0, le=MAX_RESET_STEPS, description="near-rest shapes: random gripper-motion steps (then settle)."
+        40,
+        ge=0,
+        le=MAX_RESET_STEPS,
+        description="near-rest shapes: random gripper-motion steps (then settle).",
     )
     reset_settle_steps: int = Field(
         40, ge=0, le=MAX_RESET_STEPS, description="Zero-velocity steps to let the rod settle."
@@ -270,8 +292,7 @@ class TaskSpec(Spec):
                 raise ValueError(f"{low} must not exceed {high} in any axis")
         if self.min_separation > self.max_separation:
             raise ValueError(
-                f"min_separation {self.min_separation} exceeds max_separation "
-                f"{self.max_separation}"
+                f"min_separation {self.min_separation} exceeds max_separation {self.max_separation}"
             )
         return self
 

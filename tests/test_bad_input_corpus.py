@@ -5,7 +5,6 @@ real data, a real trained model and real simulators."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import pickle
@@ -20,9 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from dlocli.cli import main
-
-from tiny import lock_held_elsewhere
+from tiny import file_digests, lock_held_elsewhere, run_dlo
 
 # ----------------------------------------------------------------------------- fixtures
 
@@ -50,20 +47,8 @@ def world(tmp_path_factory: pytest.TempPathFactory, small_dataset_dir: Path) -> 
 
 
 def _dlo(*args: str) -> None:
-    code = _run_main(list(args))
+    code = run_dlo(list(args))
     assert code == 0, args
-
-
-def _run_main(argv: list[str]) -> int:
-    old = sys.argv
-    sys.argv = ["dlo", *argv]
-    try:
-        main()
-    except SystemExit as exc:
-        return exc.code if isinstance(exc.code, int) else 0
-    finally:
-        sys.argv = old
-    return 0
 
 
 def _write_bad_specs(bad: Path) -> None:
@@ -275,16 +260,6 @@ def _format(argv: str, world: dict[str, Path], out: Path) -> list[str]:
     return [part.format(**values) for part in argv.split()]
 
 
-def _snapshot(*roots: Path) -> dict[str, str]:
-    """sha256 of every file under ``roots`` (lock files excepted: taking a lock is fine)."""
-    found = {}
-    for root in roots:
-        for path in sorted(Path(root).rglob("*")):
-            if path.is_file() and path.name != ".dlo.lock":
-                found[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
-    return found
-
-
 def test_corpus_is_large_enough():
     assert len(CORPUS) >= 60
     assert len({case[0] for case in CORPUS}) == len(CORPUS)
@@ -292,8 +267,8 @@ def test_corpus_is_large_enough():
 
 @pytest.mark.parametrize(("case", "argv", "code"), CORPUS, ids=[c[0] for c in CORPUS])
 def test_bad_input(case, argv, code, world, tmp_path, capsys):
-    before = _snapshot(world["root"], world["data"])
-    exit_code = _run_main(_format(argv, world, tmp_path / "out"))
+    before = file_digests(world["root"], world["data"])
+    exit_code = run_dlo(_format(argv, world, tmp_path / "out"))
     captured = capsys.readouterr()
     lines = captured.err.splitlines()
     assert exit_code == code, captured.err
@@ -302,7 +277,7 @@ def test_bad_input(case, argv, code, world, tmp_path, capsys):
     assert "Traceback" not in captured.err + captured.out
     # our own whole message, not a library's advice (numpy's allow_pickle, torch's tutorial)
     assert "allow_pickle" not in lines[0] and "PyTorch 2.6" not in lines[0], lines[0]
-    assert _snapshot(world["root"], world["data"]) == before
+    assert file_digests(world["root"], world["data"]) == before
     out = tmp_path / "out"
     assert not (out.is_dir() and [p.name for p in out.iterdir()] == [".dlo.lock"]), "lock left"
     assert not Path("/tmp/dlocli_corpus_pwned").exists()
@@ -317,9 +292,9 @@ def test_resume_refuses_an_edited_spec_unless_accepted(world, tmp_path, capsys):
     spec["lr"] = 0.5
     (run / "spec.json").write_text(json.dumps(spec))
     capsys.readouterr()
-    assert _run_main(["train", "--resume", str(run)]) == 2
+    assert run_dlo(["train", "--resume", str(run)]) == 2
     assert "spec.json changed" in capsys.readouterr().err
-    assert _run_main(["train", "--resume", str(run), "--accept-changes", "--json"]) == 0
+    assert run_dlo(["train", "--resume", str(run), "--accept-changes", "--json"]) == 0
 
 
 def test_resume_refuses_a_replaced_dataset(world, tmp_path, capsys):
@@ -331,7 +306,7 @@ def test_resume_refuses_a_replaced_dataset(world, tmp_path, capsys):
     with h5py.File(data, "r+") as f:
         f["rewards"][0] = 0.0 if f["rewards"][0] != 0 else -1.0
     capsys.readouterr()
-    assert _run_main(["train", "--resume", str(run)]) == 2
+    assert run_dlo(["train", "--resume", str(run)]) == 2
     assert "data changed" in capsys.readouterr().err
 
 
@@ -340,21 +315,22 @@ def test_locked_run_directory_is_refused_naming_the_holder(world, tmp_path, caps
     _dlo("collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
          "--out", str(run), "--json")  # fmt: skip
     with lock_held_elsewhere(run / ".dlo.lock") as holder:
-        before = _snapshot(run)
+        before = file_digests(run)
         capsys.readouterr()
         model = str(world["train"] / "checkpoints" / "final.pt")
+        eval_into_run = ["eval", "--checkpoint", model, "--data", str(world["data"]),
+                         "--out", str(run), "--overwrite"]  # fmt: skip
         for argv in (
             ["collect", "--episodes", "1", "--steps", "2", "--out", str(run), "--overwrite"],
             ["collect", "--resume", str(run)],
-            ["eval", "--checkpoint", model, "--data", str(world["data"]), "--out", str(run),
-             "--overwrite"],
+            eval_into_run,
         ):
-            assert _run_main(argv) == 2
+            assert run_dlo(argv) == 2
             err = capsys.readouterr().err
             assert f"PID {holder.pid}" in err and len(err.strip().splitlines()) == 1
-        assert _snapshot(run) == before
+        assert file_digests(run) == before
     # the holder died: its stale lock is taken over
-    assert _run_main(["collect", "--resume", str(run), "--json"]) == 0
+    assert run_dlo(["collect", "--resume", str(run), "--json"]) == 0
 
 
 def test_sigterm_saves_finished_work_and_exits_143(world, tmp_path):
@@ -487,7 +463,7 @@ def test_a_full_disk_ends_in_one_line_and_resumes(world, tmp_path, command):
     assert not list(run.rglob("*.tmp")), "a partial file was left behind"
     assert not (run / "dataset.h5").exists() and not (run / "checkpoints" / "final.pt").exists()
     if command[0] == "collect":  # the finished episodes are kept; resume assembles the dataset
-        assert _run_main(["collect", "--resume", str(run), "--json"]) == 0
+        assert run_dlo(["collect", "--resume", str(run), "--json"]) == 0
         assert (run / "dataset.h5").is_file()
 
 

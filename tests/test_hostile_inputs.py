@@ -4,6 +4,7 @@ end in one line naming the file, exit 2, and leave every existing file as it was
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -12,7 +13,17 @@ import h5py
 import numpy as np
 import pytest
 
-from test_bad_input_corpus import _run_main, _snapshot
+from dlocli.bench.report import COLUMNS
+from dlocli.errors import BadInput
+
+from tiny import (
+    TINY_BENCH,
+    control_with_policy,
+    crafted_policy,
+    edit_policy_data,
+    file_digests,
+    run_dlo,
+)
 
 
 def _set(name: str, value: Callable[[np.ndarray], np.ndarray]) -> Callable[[h5py.File], None]:
@@ -63,14 +74,14 @@ DATASETS: list[tuple[str, Callable[[h5py.File], None], str]] = [
 
 
 def _one_line(argv: list[str], capsys, roots: list[Path], code: int = 2) -> str:
-    before = _snapshot(*roots)
-    exit_code = _run_main(argv)
+    before = file_digests(*roots)
+    exit_code = run_dlo(argv)
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert exit_code == code, err
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     assert len(lines[0]) < 600
-    assert _snapshot(*roots) == before
+    assert file_digests(*roots) == before
     return lines[0]
 
 
@@ -127,7 +138,7 @@ def test_a_spec_nested_past_the_recursion_limit_is_refused(suffix, tmp_path, cap
 @pytest.mark.parametrize("damage", [b"{not json", b"\xff\xfe\x00", b"[1, 2]", b'{"inputs": 3}'])
 def test_damaged_fingerprints_on_resume_are_refused(damage, tmp_path, capsys):
     run = tmp_path / "run"
-    assert _run_main(["collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
+    assert run_dlo(["collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest",
                       "--out", str(run), "--json"]) == 0  # fmt: skip
     capsys.readouterr()
     (run / "fingerprints.json").write_bytes(damage)
@@ -157,3 +168,104 @@ def test_json_output_of_the_damaged_files_helper_keeps_good_files(tmp_path):
 
     (tmp_path / "ok.json").write_text(json.dumps({"a": 1}))
     assert read_json(tmp_path / "ok.json", dict) == {"a": 1}
+
+
+# ----------------------------------------------------------------------------- names and files
+#: what Python makes of a shell argument holding a byte that is not UTF-8 (a surrogate escape)
+NOT_UTF8 = os.fsdecode(b"\xff")
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["goal", "--shapes", "near-rest"],
+     ["collect", "--episodes", "1", "--steps", "2", "--shapes", "near-rest"]],
+    ids=["goal-file", "run-directory"],
+)  # fmt: skip
+def test_an_output_path_that_is_not_utf8_is_refused(command, tmp_path, capsys):
+    out = tmp_path / f"{NOT_UTF8}out"
+    line = _one_line([*command, "--out", str(out)], capsys, [tmp_path])
+    assert "not valid UTF-8" in line and "\\xffout" in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b"\xff\xfe\x00\x01" * 256,
+     b"agent,seed\n\x00\x00,1\n",
+     (",".join(COLUMNS) + "\n" + ",".join(["x"] * len(COLUMNS)) + "\n").encode()],
+    ids=["binary", "nul-bytes", "text-for-numbers"],
+)  # fmt: skip
+def test_report_on_a_csv_that_is_not_bench_results_is_refused(content, tmp_path, capsys):
+    (tmp_path / "results.csv").write_bytes(content)
+    line = _one_line(["bench", "--report", str(tmp_path)], capsys, [tmp_path])
+    assert "is not a dlo bench results.csv" in line
+
+
+def _truncate_zip(policy: Path) -> None:
+    zip_path = policy / "model.zip"
+    zip_path.write_bytes(zip_path.read_bytes()[: zip_path.stat().st_size // 2])
+
+
+def _drop_transitions(policy: Path) -> None:
+    meta = json.loads((policy / "agent.json").read_text())
+    del meta["transitions"]
+    (policy / "agent.json").write_text(json.dumps(meta))
+
+
+# (id, change to the zip's entries (name -> bytes), change to the policy folder afterwards)
+BROKEN_POLICIES = [
+    ("no-data-entry", lambda m: m.pop("data"), None),
+    ("no-weights-entry", lambda m: m.pop("policy.pth"), None),
+    ("data-not-json", lambda m: m.update(data=b"{not json"), None),
+    ("data-not-utf8", lambda m: m.update(data=b"\xff\xfe\x00"), None),
+    ("data-entry-of-wrong-type", lambda m: edit_policy_data(m, policy_kwargs="x"), None),
+    ("weights-truncated", lambda m: m.update({"policy.pth": m["policy.pth"][:1000]}), None),
+    ("zip-truncated", lambda m: None, _truncate_zip),
+    ("agent-json-without-transitions", lambda m: None, _drop_transitions),
+]
+
+
+@pytest.mark.parametrize(("case", "edit", "after"), BROKEN_POLICIES,
+                         ids=[c[0] for c in BROKEN_POLICIES])  # fmt: skip
+def test_a_broken_policy_is_refused(
+    case, edit, after, sac_policy, near_rest_goal, tmp_path, capsys
+):
+    policy = crafted_policy(sac_policy, tmp_path / "policy", edit)
+    if after is not None:
+        after(policy)
+    argv = control_with_policy(near_rest_goal, policy, tmp_path / "out")
+    line = _one_line(argv, capsys, [tmp_path, near_rest_goal.parent])
+    assert f"--policy {policy}" in line
+
+
+@pytest.mark.parametrize(
+    ("raised", "code"),
+    [(RuntimeError("the rest state diverged\n  at step 3"), 1),
+     (BadInput("no such option\n  of the agent"), 2)],
+    ids=["machine-failure", "bad-input"],
+)  # fmt: skip
+def test_a_failed_bench_job_is_one_line_naming_the_job_and_its_cause(
+    raised, code, tmp_path, capsys, monkeypatch
+):
+    def fail(*args: object) -> None:
+        raise raised
+
+    monkeypatch.setattr("dlocli.bench.executors.run_job", fail)
+    spec = tmp_path / "bench.json"
+    spec.write_text(json.dumps(TINY_BENCH | {"agents": ["zero"]}))
+    argv = ["bench", "--spec", str(spec), "--out", str(tmp_path / "out"), "--json"]
+    line = _one_line(argv, capsys, [spec], code=code)
+    assert "zero-s0" in line and " ".join(str(raised).split()) in line
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["control", "--goal", "{tmp}/missing.npy", "--controller", "zero", "--out", "{tmp}/out"],
+     ["online", "--iters", "-1", "--out", "{tmp}/out"]],
+    ids=["control", "online"],
+)  # fmt: skip
+def test_an_input_error_has_no_blank_line_before_it(argv, tmp_path, capsys):
+    code = run_dlo([part.format(tmp=tmp_path) for part in argv])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "", out
+    assert err.startswith("error: ") and err.count("\n") == 1, err

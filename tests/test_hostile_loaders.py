@@ -9,7 +9,6 @@ import base64
 import json
 import pickle
 import shutil
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -19,31 +18,15 @@ import pytest
 from dlocli.bench import jobs
 from dlocli.bench.spec import BenchSpec
 
-from tiny import TINY_AGENTS, TINY_BENCH, Payload, file_digests, run_dlo
-
-
-@pytest.fixture(scope="module")
-def policy(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tiny SAC policy as `dlo bench` saves it (model.zip and agent.json)."""
-    from dlocli.controllers.sb3_agents import SACAgent
-    from dlocli.env.shape_env import make_env
-    from dlocli.specs import BackendSpec, TaskSpec
-
-    task = TaskSpec(episode_steps=20, reset_motion_steps=10, reset_settle_steps=10)
-    env = make_env(BackendSpec(), task, seed=0)
-    agent = SACAgent(env, seed=0, **TINY_AGENTS["sac"])
-    agent.learn(25)
-    directory = tmp_path_factory.mktemp("policy")
-    agent.save_policy(directory)
-    env.close()
-    return directory
-
-
-@pytest.fixture(scope="module")
-def goal(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("goal") / "goal.npy"
-    assert run_dlo(["goal", "--out", str(path), "--shapes", "near-rest"]) == 0
-    return path
+from tiny import (
+    TINY_BENCH,
+    Payload,
+    control_with_policy,
+    crafted_policy,
+    edit_policy_data,
+    file_digests,
+    run_dlo,
+)
 
 
 def _pickled(value: Any) -> dict[str, str]:
@@ -52,32 +35,9 @@ def _pickled(value: Any) -> dict[str, str]:
         cloudpickle.dumps(value)).decode()}  # fmt: skip
 
 
-def _crafted_policy(policy: Path, target: Path, edit: Any) -> Path:
-    """A copy of ``policy`` whose model.zip is rewritten by ``edit(members)`` (name -> bytes)."""
-    shutil.copytree(policy, target)
-    with zipfile.ZipFile(policy / "model.zip") as archive:
-        members = {name: archive.read(name) for name in archive.namelist()}
-    edit(members)
-    with zipfile.ZipFile(target / "model.zip", "w") as archive:
-        for name, data in members.items():
-            archive.writestr(name, data)
-    return target
-
-
-def _edit_data(members: dict[str, bytes], **entries: Any) -> None:
-    data = json.loads(members["data"])
-    data.update(entries)
-    members["data"] = json.dumps(data).encode()
-
-
-def _control(goal: Path, policy: Path, out: Path) -> list[str]:
-    return ["control", "--goal", str(goal), "--controller", "sac", "--policy", str(policy),
-            "--steps", "3", "--shapes", "near-rest", "--out", str(out)]  # fmt: skip
-
-
 REFUSED = {
     # an attribute SB3 would unpickle that dlo never writes
-    "unknown-pickled-entry": lambda m, marker: _edit_data(m, evil=_pickled(Payload(marker))),
+    "unknown-pickled-entry": lambda m, marker: edit_policy_data(m, evil=_pickled(Payload(marker))),
     # SB3 reads tensors with torch.load(weights_only=True)
     "pickled-weights": lambda m, marker: m.update({"policy.pth": pickle.dumps(Payload(marker))}),
     "pickled-variables": lambda m, marker: m.update(
@@ -88,32 +48,36 @@ REFUSED = {
 
 @pytest.mark.parametrize("case", sorted(REFUSED))
 def test_a_crafted_policy_is_refused_and_runs_nothing(
-    case: str, policy: Path, goal: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    case: str,
+    sac_policy: Path,
+    near_rest_goal: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
 ):
     marker = tmp_path / "pwned"
-    crafted = _crafted_policy(policy, tmp_path / "policy", lambda m: REFUSED[case](m, marker))
-    before = file_digests(crafted, goal.parent)
+    crafted = crafted_policy(sac_policy, tmp_path / "policy", lambda m: REFUSED[case](m, marker))
+    before = file_digests(crafted, near_rest_goal.parent)
     capsys.readouterr()
-    assert run_dlo(_control(goal, crafted, tmp_path / "out")) == 2
+    assert run_dlo(control_with_policy(near_rest_goal, crafted, tmp_path / "out")) == 2
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
     assert "--policy" in lines[0]
     assert not marker.exists()
-    assert file_digests(crafted, goal.parent) == before
+    assert file_digests(crafted, near_rest_goal.parent) == before
 
 
 def test_pickled_entries_dlo_writes_are_never_unpickled(
-    policy: Path, goal: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    sac_policy: Path, near_rest_goal: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ):
     """SB3 pickles the policy class, spaces, schedules and the last observation: dlo takes
     them from the agent it builds instead, so crafted ones stay inert and the policy acts."""
     marker = tmp_path / "pwned"
     entries = ("policy_class", "lr_schedule", "observation_space", "action_space", "_last_obs",
                "ep_info_buffer", "train_freq", "replay_buffer_class")  # fmt: skip
-    crafted = _crafted_policy(policy, tmp_path / "policy", lambda m: _edit_data(
+    crafted = crafted_policy(sac_policy, tmp_path / "policy", lambda m: edit_policy_data(
         m, **{name: _pickled(Payload(marker)) for name in entries}))  # fmt: skip
-    assert run_dlo([*_control(goal, crafted, tmp_path / "out"), "--json"]) == 0
+    assert run_dlo([*control_with_policy(near_rest_goal, crafted, tmp_path / "out"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["steps"] == 3
     assert not marker.exists()
 
@@ -181,7 +145,7 @@ def test_a_crafted_policy_in_a_bench_checkpoint_runs_nothing(
 ):
     marker = tmp_path / "pwned"
     slot = _stopped_job("sac", tmp_path / "job", monkeypatch)
-    _crafted_policy(slot, tmp_path / "crafted", lambda m: _edit_data(
+    crafted_policy(slot, tmp_path / "crafted", lambda m: edit_policy_data(
         m, evil=_pickled(Payload(marker))))  # fmt: skip
     shutil.copy(tmp_path / "crafted" / "model.zip", slot / "model.zip")
     result = jobs.run_job(SPEC.model_dump_json(), "sac", 0, str(tmp_path / "job"))

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from test_bad_input_corpus import _run_main, _snapshot
+from tiny import file_digests, run_dlo
 
 HUGE = str(10**12)
 LIMIT = "less than or equal to"
@@ -56,16 +56,16 @@ PHYSICS: list[tuple[str, str, str]] = [
 
 
 def _refused_in_one_line(argv: list[str], words: str, capsys, roots: list[Path]) -> None:
-    before = _snapshot(*roots)
+    before = file_digests(*roots)
     start = time.monotonic()
-    code = _run_main(argv)
+    code = run_dlo(argv)
     seconds = time.monotonic() - start
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2, err
     assert len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], err
     assert seconds < 10, seconds
-    assert _snapshot(*roots) == before
+    assert file_digests(*roots) == before
 
 
 @pytest.mark.parametrize(("case", "argv", "words"), SIZES, ids=[c[0] for c in SIZES])

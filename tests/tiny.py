@@ -4,8 +4,11 @@ and a lock held by another process."""
 
 from __future__ import annotations
 
+import json
+import shutil
 import subprocess
 import sys
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -88,6 +91,31 @@ def file_digests(*roots: Path) -> dict[str, str]:
             if path.is_file() and path.name != ".dlo.lock":
                 found[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
     return found
+
+
+def crafted_policy(policy: Path, target: Path, edit: Any) -> Path:
+    """A copy of ``policy`` whose model.zip is rewritten by ``edit(members)`` (name -> bytes)."""
+    shutil.copytree(policy, target)
+    with zipfile.ZipFile(policy / "model.zip") as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    edit(members)
+    with zipfile.ZipFile(target / "model.zip", "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return target
+
+
+def edit_policy_data(members: dict[str, bytes], **entries: Any) -> None:
+    """Set ``entries`` in the ``data`` JSON of a policy zip's ``members``."""
+    data = json.loads(members["data"])
+    data.update(entries)
+    members["data"] = json.dumps(data).encode()
+
+
+def control_with_policy(goal: Path, policy: Path, out: Path) -> list[str]:
+    """`dlo control` arguments: three steps of the SAC ``policy`` towards ``goal``."""
+    return ["control", "--goal", str(goal), "--controller", "sac", "--policy", str(policy),
+            "--steps", "3", "--shapes", "near-rest", "--out", str(out)]  # fmt: skip
 
 
 class Payload:

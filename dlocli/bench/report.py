@@ -112,12 +112,20 @@ def read_results_csv(path: Path) -> list[dict[str, Any]]:
     """results.csv with typed values; BadInput if it is not one."""
     if not Path(path).is_file():
         raise BadInput(f"{path} does not exist; pass the --out directory of a `dlo bench` run")
+    not_results = f"{path} is not a dlo bench results.csv"
+    kinds = {**COLUMNS, **NEW_COLUMNS}
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
-        if set(COLUMNS) - set(reader.fieldnames or []):
-            raise BadInput(f"{path} is not a dlo bench results.csv (missing columns)")
-        kinds = {**COLUMNS, **NEW_COLUMNS}
-        return [{k: _typed(kind, row.get(k)) for k, kind in kinds.items()} for row in reader]
+        try:
+            if set(COLUMNS) - set(reader.fieldnames or []):
+                raise BadInput(f"{not_results} (missing columns)")
+            return [{k: _typed(kind, row.get(k)) for k, kind in kinds.items()} for row in reader]
+        # undecodable bytes (a UnicodeDecodeError is a ValueError), NUL bytes, over-long
+        # fields, values of the wrong type or missing: another file, damaged or not a CSV
+        except (csv.Error, ValueError, TypeError) as exc:
+            raise BadInput(
+                f"{not_results} ({str(exc)[:120]}); pass the --out directory of a `dlo bench` run"
+            ) from exc
 
 
 def write_summary(

@@ -187,9 +187,12 @@ class BenchRun:
             failed = self._run_jobs(executor, todo)
         summary = self.write_results()
         if failed:
-            raise DloError(
-                f"{len(failed)} job(s) failed (finished ones are saved; rerun with "
-                f"--resume {self.out}): {failed[0]}"
+            # bad input if that is all the jobs met; else the machine's own failure (exit 1)
+            error = BadInput if all(isinstance(e, BadInput) for e in failed.values()) else DloError
+            causes = "; ".join(f"{name}: {_cause(exc)}" for name, exc in failed.items())
+            raise error(
+                f"{len(failed)} bench job(s) failed ({causes}); finished jobs are saved, rerun "
+                f"with --resume {self.out}"
             )
         return summary
 
@@ -204,14 +207,14 @@ class BenchRun:
                 elsewhere[job.name] = busy.holder
         return elsewhere
 
-    def _run_jobs(self, executor: Any, todo: list[Job]) -> list[str]:
-        """Run ``todo``, saving each job as it finishes; the failures, one line each."""
-        failed: list[str] = []
+    def _run_jobs(self, executor: Any, todo: list[Job]) -> dict[str, BaseException]:
+        """Run ``todo``, saving each job as it finishes; what each failed job raised."""
+        failed: dict[str, BaseException] = {}
         if todo:
             for job, result in executor.run(self.spec.model_dump_json(), todo):
                 if isinstance(result, BaseException):
-                    failed.append(f"{job.name}: {type(result).__name__}: {result}")
-                    self.progress("failed", {"job": job.name, "error": failed[-1]})
+                    failed[job.name] = result
+                    self.progress("failed", {"job": job.name, "error": _cause(result)})
                     continue
                 write_json_atomic(self.job_file(job.agent, job.seed), result)
                 self.progress("job", {"job": job.name, "seconds": result["seconds"]})
@@ -297,6 +300,13 @@ def resume_bench(
     with open_executor(spec) as executor, owned(run_dir, shared=True):
         write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
         return BenchRun(spec, progress).run(executor)
+
+
+def _cause(exc: BaseException) -> str:
+    """What a job raised, on one line: our own errors by their message (it names the fix),
+    any other by its type too."""
+    message = " ".join(str(exc).split())
+    return message if isinstance(exc, DloError) else f"{type(exc).__name__}: {message}"
 
 
 def report_bench(run_dirs: list[Path]) -> dict[str, Any]:

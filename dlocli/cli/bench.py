@@ -83,7 +83,7 @@ class _BenchProgress:
             self.done += 1
             bars.update("job", self.done, info=f"{info['job']} took {info['seconds']:.0f} s")
         elif event == "failed":
-            bars.note(f"  {info['error']}")
+            bars.note(f"  {info['job']} failed: {info['error']}")
             self.done += 1
             bars.update("job", self.done, info=f"{info['job']} failed")
 

@@ -81,7 +81,8 @@ class SB3Spec(Spec):
         1_000_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
     )
     learning_starts: int = Field(
-        1000, ge=0,
+        1000,
+        ge=0,
         le=MAX_TRANSITIONS,
         description="Uniform random transitions before the first gradient step.",
     )
@@ -92,7 +93,10 @@ class SB3Spec(Spec):
     tau: float = Field(0.005, gt=0, le=1, description="Polyak coefficient of the target networks.")
     train_freq: TrainFreq = Field(1, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        1, ge=-1, le=MAX_COUNT, description="Gradient steps per update (-1: one per env step since the last)."
+        1,
+        ge=-1,
+        le=MAX_COUNT,
+        description="Gradient steps per update (-1: one per env step since the last).",
     )
     net_arch: list[Annotated[int, Field(gt=0, le=65536)]] = Field(
         default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
@@ -142,7 +146,10 @@ class SACSpec(SB3Spec):
     tau: float = Field(0.02, gt=0, le=1, description="Polyak coefficient of the target networks.")
     train_freq: TrainFreq = Field(8, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        8, ge=-1, le=MAX_COUNT, description="Gradient steps per update (-1: one per env step since the last)."
+        8,
+        ge=-1,
+        le=MAX_COUNT,
+        description="Gradient steps per update (-1: one per env step since the last).",
     )
     ent_coef: str | float = Field(
         "auto", description="Entropy coefficient, or 'auto' to learn it (target -|A|)."
@@ -153,7 +160,10 @@ class SACSpec(SB3Spec):
         "Gaussian noise per step; false: SB3's default SAC exploration.",
     )
     sde_sample_freq: int = Field(
-        -1, ge=-1, le=MAX_COUNT, description="gSDE: env steps between new noise matrices (-1: once per update)."
+        -1,
+        ge=-1,
+        le=MAX_COUNT,
+        description="gSDE: env steps between new noise matrices (-1: once per update).",
     )
     log_std_init: float = Field(
         -3.0, le=2, description="gSDE: initial log std of the exploration noise matrix."
@@ -174,14 +184,18 @@ class TD3Spec(SB3Spec):
         1_000_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
     )
     learning_starts: int = Field(
-        100, ge=0,
+        100,
+        ge=0,
         le=MAX_TRANSITIONS,
         description="Uniform random transitions before the first gradient step.",
     )
     gamma: float = Field(0.99, gt=0, le=1, description="Discount factor.")
     train_freq: TrainFreq = Field(1, description=TRAIN_FREQ_HELP)
     gradient_steps: int = Field(
-        1, ge=-1, le=MAX_COUNT, description="Gradient steps per update (-1: one per env step since the last)."
+        1,
+        ge=-1,
+        le=MAX_COUNT,
+        description="Gradient steps per update (-1: one per env step since the last).",
     )
     action_noise: float = Field(
         0.0,
@@ -226,9 +240,8 @@ class SB3Agent(LearningAgent):
         return getattr(stable_baselines3, self.algorithm)
 
     def _build_model(self) -> Any:
-        from stable_baselines3.common.monitor import Monitor
-
         from gymnasium.spaces import flatdim
+        from stable_baselines3.common.monitor import Monitor
 
         self.spec.refuse_oversized(self.name, flatdim(self.env.observation_space), self.action_dim)
         kwargs = self.spec.sb3_kwargs(self.action_dim, self.episode_steps)
@@ -383,8 +396,8 @@ class SB3Agent(LearningAgent):
                     force_reset=force_reset,
                     custom_objects=values,
                 )
-        except (RuntimeError, ValueError, KeyError, TypeError, AssertionError, EOFError,
-                UnpicklingError, zipfile.BadZipFile) as exc:  # fmt: skip
+        except (RuntimeError, ValueError, KeyError, TypeError, AttributeError, AssertionError,
+                EOFError, UnpicklingError, zipfile.BadZipFile) as exc:  # fmt: skip
             raise BadInput(
                 f"--policy {directory}: model.zip does not load as this agent's "
                 f"{self.algorithm} policy ({str(exc).splitlines()[0][:200]}); pass the "
@@ -405,8 +418,14 @@ class SB3Agent(LearningAgent):
             raise BadInput(
                 f"--policy {directory}: agent.json is not JSON; re-run the bench"
             ) from exc
-        if not isinstance(meta, dict) or meta.get("algorithm") != self.algorithm:
-            found = meta.get("algorithm") if isinstance(meta, dict) else None
+        transitions = meta.get("transitions") if isinstance(meta, dict) else None
+        if not isinstance(transitions, int) or isinstance(transitions, bool) or transitions < 0:
+            raise BadInput(
+                f"--policy {directory}: agent.json is not one `dlo bench` wrote (no count of "
+                "transitions); pass the policy directory of a `dlo bench` job"
+            )
+        if meta.get("algorithm") != self.algorithm:
+            found = meta.get("algorithm")
             raise BadInput(
                 f"--policy {directory} holds a {found} policy, not {self.algorithm}; pass "
                 f"--controller {str(found).lower()} or another --policy"
