@@ -37,14 +37,12 @@ from typing import Any
 import numpy as np
 
 from dlocli.dataset_checks import check_fields
+from dlocli.dataset_format import DATASET_FILE, FORMAT, FORMAT_VERSION
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
 from dlocli.markers.dataset import FORM as MARKER_FORM
 from dlocli.markers.dataset import MarkerDataset, read_marker_arrays
 
-FORMAT = "dlocli-dataset"
-FORMAT_VERSION = 2  # 2: the ``form`` attribute ("rod", or "markers": dlocli.markers.dataset)
-DATASET_FILE = "dataset.h5"
 STATE_ARRAYS = ("positions", "quaternions", "grippers")
 EPISODE_ARRAYS = ("actions", "rewards")
 

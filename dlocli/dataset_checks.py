@@ -52,10 +52,16 @@ def check_episode_lengths(arrays: dict[str, np.ndarray], path: Path) -> None:
         raise BadInput(f"dataset {path}: episode_lengths must be integers (E,); re-collect it")
     if len(lengths) == 0:
         raise BadInput(f"dataset {path} holds no episodes; collect at least one")
-    if (lengths <= 0).any():
+    # an episode whose physics diverged on its first step is stored with no transition
+    diverged = arrays.get("diverged")
+    may_be_empty = (
+        diverged.astype(bool) if diverged is not None and diverged.shape == lengths.shape else False
+    )
+    bad = (lengths < 0) | ((lengths == 0) & ~may_be_empty)
+    if bad.any():
         raise BadInput(
-            f"dataset {path}: episode_lengths holds {int(lengths.min())}; every episode needs "
-            "at least one transition; re-collect it"
+            f"dataset {path}: episode_lengths holds {int(lengths[bad][0])}; every episode "
+            "needs at least one transition (none only if it diverged); re-collect it"
         )
 
 

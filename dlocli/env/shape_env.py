@@ -60,7 +60,7 @@ def load_goal(path: Path, n_segments: int) -> np.ndarray:
         goal = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
         # numpy's own text (an allow_pickle hint for a text file) would mislead
-        raise BadInput(f"goal {path} is not a readable .npy array; {expected}") from exc
+        raise BadInput(f"goal {path} could not be read as a .npy array; {expected}") from exc
     if not isinstance(goal, np.ndarray):
         raise BadInput(f"goal {path} is an .npz archive, not one array; {expected}")
     if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused

@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.dataset_format import DATASET_FILE, FORMAT, FORMAT_VERSION
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
 
 FORM = "markers"
 SPLIT_CODES = {"train": 0, "eval": 1}
-DATASET_FILE = "dataset.h5"
 ARRAYS = ("episode_lengths", "positions", "held", "split", "names")
 
 
@@ -99,12 +99,10 @@ class MarkerDataset:
         """Write atomically (temp file, then rename)."""
         import h5py
 
-        from dlocli.data import FORMAT
-
         image = io.BytesIO()
         with h5py.File(image, "w") as f:
             f.attrs["format"] = FORMAT
-            f.attrs["format_version"] = 2
+            f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["form"] = FORM
             f.attrs["n_segments"] = self.n_markers
             for key, value in self.attrs.items():
@@ -127,7 +125,6 @@ def read_marker_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> MarkerDatas
     )
     data = MarkerDataset(**arrays, attrs=attrs)
     _check(data, path)
-    from dlocli.data import FORMAT_VERSION
     from dlocli.dataset_checks import check_fields
 
     check_fields(arrays, attrs, path, FORMAT_VERSION)

@@ -206,7 +206,7 @@ def run_marker_training(
     from dlocli.markers.protocol import freeze
     from dlocli.models.base import save_checkpoint
     from dlocli.models.markers import FORM, build_marker_model
-    from dlocli.models.training import split_episodes
+    from dlocli.models.splits import split_episodes
 
     if spec.init_from is not None:
         raise BadInput("--init-from is not supported for marker datasets yet; drop it")

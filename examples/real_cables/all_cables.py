@@ -23,7 +23,7 @@ from dlocli.markers import deform
 from dlocli.models.marker_training import Cable, fit_markers, scores_cm
 from dlocli.models.markers import build_marker_model
 from dlocli.models.spec import TrainSpec
-from dlocli.models.training import split_episodes
+from dlocli.models.splits import split_episodes
 
 HERE = Path(__file__).parent
 CABLES = ("DLO1", "DLO2", "DLO3", "DLO4")
