@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.dataset_format import DATASET_FILE, FORMAT, FORMAT_VERSION
+from dlocli.dataset_format import FORMAT, FORMAT_VERSION
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
 

@@ -6,9 +6,10 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
 from dlocli.markers import deform, protocol
-from dlocli.markers.dataset import DATASET_FILE, MarkerDataset
+from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.spec import ImportSpec
 
 
