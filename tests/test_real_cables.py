@@ -8,17 +8,17 @@ from __future__ import annotations
 import json
 import os
 import pickle
-import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
-from dlocli.cli import main
 from dlocli.data import Dataset, load_dataset
 from dlocli.markers import deform, protocol
 from dlocli.markers.dataset import MarkerDataset
+
+from tiny import run_dlo
 
 FRAMES, MARKERS = 40, 6
 DEFORM_DATA = Path(
@@ -27,15 +27,7 @@ DEFORM_DATA = Path(
 
 
 def _run(*argv: str) -> int:
-    old = sys.argv
-    sys.argv = ["dlo", *argv]
-    try:
-        main()
-    except SystemExit as exc:
-        return exc.code if isinstance(exc.code, int) else 0
-    finally:
-        sys.argv = old
-    return 0
+    return run_dlo(list(argv))
 
 
 def _swinging_cable(seed: int, frames: int = FRAMES, markers: int = MARKERS) -> np.ndarray:
