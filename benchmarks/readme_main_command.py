@@ -1,0 +1,61 @@
+"""Does the README's main command give the README's numbers on this machine?
+
+    python benchmarks/readme_main_command.py [--out DIR]
+
+Runs the command of "Two commands on a fresh machine" (its flags exactly) and checks the
+mean final shape error of each iteration's MPC trials, the last score and doing nothing
+against the ranges the README states: measured on AMD EPYC VMs (identical over runs) and on
+an Intel Xeon VM; float rounding differs by CPU. Prints each number, its range, and PASS or
+FAIL; exits 1 if any is outside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+COMMAND = ["online", "--iters", "3", "--trials", "5", "--steps", "200", "--epochs", "10",
+           "--lr", "1e-3", "--initial-episodes", "2", "--overwrite"]  # fmt: skip
+#: (low, high) over the machines measured: AMD EPYC 100.4 / 28.8 / 6.5 mm, score 0.946;
+#: Intel Xeon 109.7 / 25.7 / 4.3 mm, score 0.964; doing nothing 129.0 mm
+RANGES = {
+    "iteration 1 final error (mm)": (100.4, 109.7),
+    "iteration 2 final error (mm)": (25.7, 28.8),
+    "iteration 3 final error (mm)": (4.3, 6.5),
+    "iteration 3 score": (0.946, 0.964),
+    "doing nothing, iteration 3 (mm)": (128.5, 129.5),
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=None, help="run directory (default: temp)")
+    args = parser.parse_args()
+    out = args.out or Path(tempfile.mkdtemp()) / "demo"
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "dlocli", *COMMAND, "--out", str(out), "--json"],
+                   check=True, stdout=subprocess.DEVNULL)  # fmt: skip
+    seconds = time.perf_counter() - start
+    curve = json.loads((out / "summary.json").read_text())["curve"]
+    found = {
+        f"iteration {c['iteration']} final error (mm)": c["final_error_mm_mean"] for c in curve
+    }
+    found["iteration 3 score"] = curve[-1]["score_mean"]
+    found["doing nothing, iteration 3 (mm)"] = curve[-1]["zero_final_error_mm_mean"]
+    ok = True
+    for name, (low, high) in RANGES.items():
+        value = found.get(name, float("nan"))
+        inside = low - 0.05 <= round(value, 3) <= high + 0.05
+        ok &= inside
+        print(f"{name:34s} {value:8.3f}  README range {low}–{high}  {'PASS' if inside else 'FAIL'}")
+    print(f"wall time {seconds:.0f} s (the README: 2 min 9 s with the install, on 2 free cores)")
+    sys.exit(0 if ok else 1)
+
+
+if __name__ == "__main__":
+    main()
