@@ -91,7 +91,7 @@ def segment_limit_error(backend: str, n_segments: int) -> str | None:
 
 
 class RodSpec(Spec):
-    """The deformable linear object. Defaults are the paper's material (DESIGN.md)."""
+    """The deformable linear object. Defaults are the paper's material."""
 
     length: float = Field(1.0, ge=0.05, le=3, description="Rod length in metres (0.05 to 3).")
     n_segments: int = Field(20, ge=4, le=200, description="Number of rigid segments.")

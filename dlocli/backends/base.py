@@ -1,6 +1,6 @@
 """The backend contract: a rod held by two 6-DoF kinematic grippers, stepped at control rate.
 
-Conventions (DESIGN.md):
+Conventions (the README's):
 - World frame, metres, z up, gravity -9.81 z. No floor: the rod hangs in the air.
 - Rod of ``n_segments`` rigid segments. Segment i's frame has its x axis along the rod
   (from the left end towards the right end) and its origin at the segment centre.
@@ -13,7 +13,7 @@ Conventions (DESIGN.md):
   then world-frame angular velocity (rad/s) about the gripper position — and advances one
   control period. Translations are clipped to the workspace and the separation limits here,
   once, for every backend, so the rod cannot be torn (a taut rod blows up MuJoCo's cable and
-  makes PyBullet let go; see FINDINGS.md).
+  makes PyBullet let go).
 - ``reset()`` puts the rod at rest in its nominal configuration: grippers on the x axis,
   ``initial_separation`` apart, centred at (0, 0, ``rest_height``), the rod sagging between
   them. Like the workspace, the rest configuration scales with the rod length. Randomisation

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import time
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,7 @@ def evaluate_markers(
 @torch.no_grad()
 def time_per_step_ms(model: MarkerModel, episode: np.ndarray) -> float:
     """Median over 3 runs of a batch-1 open-loop rollout's time per step, one CPU thread."""
-    cpu = model.to("cpu") if model.device.type != "cpu" else model
+    cpu = model if model.device.type == "cpu" else copy.deepcopy(model).to("cpu")
     rec = torch.as_tensor(episode[None, : TIMING_STEPS + 2], dtype=torch.float32)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -70,7 +71,7 @@ def time_per_step_ms(model: MarkerModel, episode: np.ndarray) -> float:
 
 def plot_error_by_horizon(
     summary: dict[str, Any],
-    curves: dict[str, list[float]],
+    curves: dict[str, dict[str, list[float]]],
     rate_hz: float,
     path: Path,
     title: str = "",

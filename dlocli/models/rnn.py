@@ -113,7 +113,7 @@ def _kernels() -> tuple[Callable[..., Any], Callable[..., Any]]:
     """:func:`_forward` and :func:`_backward` compiled by TorchScript (1.2-1.5x faster than
     Python at small batches, where per-operation overhead dominates); plain Python if
     scripting is unavailable. TorchScript is deprecated but still the fastest option here:
-    ``torch.compile`` took 150 s to compile this LSTM and was not faster (FINDINGS.md too)."""
+    ``torch.compile`` took 150 s to compile this LSTM and was not faster."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
