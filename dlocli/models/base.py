@@ -343,23 +343,36 @@ def load_model(
             f"{path} is a marker-form model (trained on recorded markers); use it with "
             "`dlo eval` on a marker dataset"
         )
-    spec_dict = with_legacy_fields(payload.get("model_spec"))  # older checkpoints' models
-    try:
-        spec = ModelSpec.model_validate(spec_dict)
-    except ValidationError as exc:
-        raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
+    spec = checkpoint_spec(payload, path)
     if expect is not None and expect != spec:
         raise BadInput(
             f"checkpoint {path} holds model {spec.model_dump()} but {expect.model_dump()} "
             "was requested; pass the matching --model or another checkpoint"
         )
+    return with_weights(build_model(spec, payload["n_segments"]), payload, path, device)
+
+
+def checkpoint_spec(payload: dict[str, Any], path: Path) -> ModelSpec:
+    """The model spec a checkpoint's payload holds (older ones' missing fields at their
+    legacy values); BadInput if it is not one."""
+    spec_dict = with_legacy_fields(payload.get("model_spec"))  # older checkpoints' models
+    try:
+        return ModelSpec.model_validate(spec_dict)
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
+
+
+def with_weights(
+    model: torch.nn.Module, payload: dict[str, Any], path: Path, device: str | torch.device
+) -> Any:
+    """``model`` with the checkpoint's finite weights, on ``device``, in eval mode, frozen;
+    BadInput if they are not finite or do not fit."""
     weights = payload["state_dict"].values()
     if not all(torch.is_tensor(w) and bool(torch.isfinite(w).all()) for w in weights):
         raise BadInput(f"checkpoint {path} holds NaN or inf weights (training diverged); retrain")
-    model = build_model(spec, payload["n_segments"])
     try:
         model.load_state_dict(payload["state_dict"])
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()[0][:160]
-        raise BadInput(f"checkpoint {path} weights do not fit {spec.name} ({first})") from exc
+        raise BadInput(f"checkpoint {path} weights do not fit {model.spec.name} ({first})") from exc
     return model.to(resolve_device(device)).eval().requires_grad_(False)

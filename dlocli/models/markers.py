@@ -219,28 +219,13 @@ def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> Mar
 
 def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:
     """A trained marker-form model from a checkpoint or run directory, in eval mode."""
-    from pydantic import ValidationError
-
-    from dlocli.models.base import read_checkpoint, resolve_device
-    from dlocli.specs import format_validation_error
+    from dlocli.models.base import checkpoint_spec, read_checkpoint, with_weights
 
     payload = read_checkpoint(path)
     if payload.get("form") != FORM:
         raise BadInput(f"{path} is a rod model; evaluate it on a rod dataset (`dlo collect`)")
-    try:
-        spec = ModelSpec.model_validate(payload.get("model_spec"))
-    except ValidationError as exc:
-        raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
-    state = payload["state_dict"]
-    held = state.get("held")
+    spec = checkpoint_spec(payload, path)
+    held = payload["state_dict"].get("held")
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:
         raise BadInput(f"checkpoint {path} lacks its held-marker mask; retrain it")
-    if not all(bool(torch.isfinite(w).all()) for w in state.values() if w.is_floating_point()):
-        raise BadInput(f"checkpoint {path} holds NaN or inf weights (training diverged); retrain")
-    model = build_marker_model(spec, len(held), held.numpy())
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as exc:
-        first = str(exc).strip().splitlines()[0][:160]
-        raise BadInput(f"checkpoint {path} weights do not fit {spec.name} ({first})") from exc
-    return model.to(resolve_device(device)).eval().requires_grad_(False)
+    return with_weights(build_marker_model(spec, len(held), held.numpy()), payload, path, device)
