@@ -9,19 +9,22 @@ from typing import Any, TypeVar
 
 from dlocli.errors import BadInput
 from dlocli.models.spec import FIT_LEGACY_VALUES, with_legacy_fields
-from dlocli.specs import TASK_LEGACY_VALUES, Spec
+from dlocli.specs import ROD_LEGACY_VALUES, TASK_LEGACY_VALUES, Spec
 
 SpecT = TypeVar("SpecT", bound=Spec)
 
 
 def saved_spec(path: Path) -> Any:
-    """A run's spec.json as data, its model, task and fit specs completed with the fields they
+    """A run's spec.json as data, its model, task, rod and fit specs completed with the fields they
     predate (ValueError if it is not JSON): a run keeps its meaning when a default changes."""
     data = json.loads(Path(path).read_text())
     if isinstance(data, dict) and isinstance(data.get("model"), dict):
         data["model"] = with_legacy_fields(data["model"])
     if isinstance(data, dict) and isinstance(data.get("task"), dict):
         data["task"] = {**TASK_LEGACY_VALUES, **data["task"]}
+    backend = data.get("backend") if isinstance(data, dict) else None
+    if isinstance(backend, dict) and isinstance(backend.get("rod", {}), dict):
+        data["backend"] = {**backend, "rod": {**ROD_LEGACY_VALUES, **backend.get("rod", {})}}
     if isinstance(data, dict) and isinstance(data.get("fit"), dict):
         data["fit"] = {**FIT_LEGACY_VALUES, **data["fit"]}
     if isinstance(data, dict) and "epochs" in data:  # a train run: the fit fields are its own

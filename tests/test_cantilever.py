@@ -3,9 +3,10 @@
 A 0.2 m rod of the default material and 20 segments, held only by the left gripper, sticks
 out along +x and bends under its own weight. Linear beam theory gives the tip deflection
 ``w L^4 / (8 E I)`` with ``w = rho A g`` (7.8 mm here: 4% of the length, so the small-
-deflection theory holds). A chain of N rigid segments whose first segment is held rigidly
-by the gripper bends only at its N-1 joints; with joint stiffness ``E I / l`` its tip
-deflection is ``(1 - 1/N)^2`` of the beam's (0.90 at N = 20), inside the 15% tolerance.
+deflection theory holds). Each held end bends at a clamp joint with the compliance of the
+half segment it stands for (the rod spec's default ``clamp_compliance``), so the chain's
+statics match the continuum's to O(1/N^2): within 3% at N = 20. With the end segment
+rigid in the gripper (the earlier rod) the tip deflects ``(1 - 1/N)^2`` of the beam's.
 """
 
 from __future__ import annotations
@@ -29,9 +30,15 @@ def tip_position(backend) -> np.ndarray:
     return centre + 0.5 * backend.rod.segment_length * axis
 
 
+#: relative tolerance per clamp model at N = 20: the compliant clamp is measured at 1.002 on
+#: both backends, the rigid one at 0.902 (its discretisation bias, (1 - 1/N)^2 = 0.9025)
+TOLERANCE = {"half-segment": 0.03, "rigid": 0.15}
+
+
+@pytest.mark.parametrize("clamp", sorted(TOLERANCE))
 @pytest.mark.parametrize("name", backends.names())
-def test_cantilever_deflection_matches_euler_bernoulli(name: str) -> None:
-    rod = RodSpec(length=0.2)
+def test_cantilever_deflection_matches_euler_bernoulli(name: str, clamp: str) -> None:
+    rod = RodSpec(length=0.2, clamp_compliance=clamp)
     backend = backends.get(name)(BackendSpec(name=name, held_ends="left", rod=rod))
     try:
         backend.reset(seed=0)
@@ -53,7 +60,7 @@ def test_cantilever_deflection_matches_euler_bernoulli(name: str) -> None:
         deflection = clamp[2] - tip[2]
         load = rod.density * rod.area * GRAVITY  # N/m
         theory = load * rod.length**4 / (8.0 * rod.bending_stiffness)
-        assert deflection == pytest.approx(theory, rel=0.15), (
+        assert deflection == pytest.approx(theory, rel=TOLERANCE[rod.clamp_compliance]), (
             f"{name}: tip deflection {deflection * 1e3:.2f} mm vs Euler-Bernoulli "
             f"{theory * 1e3:.2f} mm"
         )

@@ -4,6 +4,7 @@ simulate is refused by the spec itself."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from pydantic import ValidationError
 from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
 from dlocli.registry import backends
-from dlocli.specs import BackendSpec, CollectSpec, RodSpec, resolve_spec
+from dlocli.specs import ROD_LEGACY_VALUES, BackendSpec, CollectSpec, RodSpec, resolve_spec
 
 BACKENDS = backends.names()
 #: positions every 5th step of MOTION at the default spec, recorded at commit 7473c21 (before
@@ -53,6 +54,7 @@ MATERIAL_CHANGES = [
     ("bending_damping", 0.2),
     ("twist_damping", 0.2),
     ("air_damping", 20.0),
+    ("clamp_compliance", "rigid"),
 ]
 
 
@@ -69,11 +71,13 @@ def test_every_material_field_changes_the_motion(name: str) -> None:
 @pytest.mark.parametrize("name", BACKENDS)
 def test_damping_defaults_are_the_earlier_rod_and_zero_damping_changes_it(name: str) -> None:
     recorded = np.load(BEFORE_DAMPING_FIELDS)[name]
-    today = run_motion(BackendSpec(name=name), steps=30)[4::5, :, :3]
+    earlier = RodSpec(**ROD_LEGACY_VALUES)  # the rod of runs saved before these fields
+    today = run_motion(BackendSpec(name=name, rod=earlier), steps=30)[4::5, :, :3]
     # bit for bit on the machine that recorded it; other CPUs round differently
     np.testing.assert_allclose(today, recorded, rtol=0, atol=1e-9)
 
-    undamped = RodSpec(bending_damping=0, twist_damping=0, air_damping=0)
+    off = {"bending_damping": 0, "twist_damping": 0, "air_damping": 0}
+    undamped = earlier.model_copy(update=off)
     dt = UNDAMPED_MUJOCO_DT if name == "mujoco" else None
     free = run_motion(BackendSpec(name=name, rod=undamped, physics_dt=dt), steps=30)[4::5, :, :3]
     assert np.abs(free - recorded).max() > 1e-3
@@ -112,3 +116,20 @@ def test_damping_fields_enter_a_bench_job_s_fingerprint_only_when_set() -> None:
     assert fingerprint(BenchSpec.model_validate(saved)) == fingerprint(spec)
     damped = BenchSpec.model_validate({"backend": {"rod": {"air_damping": 5.0}}})
     assert fingerprint(damped) != fingerprint(spec)
+
+
+def test_a_spec_saved_before_the_clamp_field_keeps_the_rigid_clamp_and_its_fingerprint(
+    tmp_path: Path,
+) -> None:
+    from dlocli.bench.spec import BenchSpec, fingerprint
+    from dlocli.resume import saved_spec
+
+    saved = BenchSpec().model_dump(mode="json")
+    del saved["backend"]["rod"]["clamp_compliance"]  # a bench job made with the earlier rod
+    path = tmp_path / "spec.json"
+    path.write_text(json.dumps(saved))
+    earlier = BenchSpec.model_validate(saved_spec(path))
+    assert earlier.backend.rod.clamp_compliance == "rigid"
+    # its fingerprint is the one it was saved with; today's default rod is another
+    legacy = BenchSpec(backend=BackendSpec(rod=RodSpec(**ROD_LEGACY_VALUES)))
+    assert fingerprint(earlier) == fingerprint(legacy) != fingerprint(BenchSpec())

@@ -18,12 +18,21 @@ Model (built from the :class:`~dlocli.specs.RodSpec`, compiled once per backend)
   every physics step, PyBullet's velocity damping law.
 - No contacts (not even rod self-contact): the rod hangs in the air and may pass through
   itself when it is coiled by large gripper rotations.
-- Each held rod end is rigidly part of a gravity-compensated "pad" body (the gripper's
-  fingers): the first segment is a jointless child of pad 0, pad 1 (``held_ends="both"``
-  only) a jointless child of the last segment. Each pad is welded to a kinematic (mocap)
-  body that follows the commanded gripper pose. A weld on the light end segment alone is
-  far too soft at this stiffness (FINDINGS gotcha 2); the pads' inertia makes the weld's
-  rotational stiffness ``PAD_STIFFNESS_RATIO`` (25) times the joint bending stiffness, so
+- Clamps (the rod spec's ``clamp_compliance``, default "half-segment"): a joint at each
+  held end stands for the half segment between the gripper and the first joint, stiffness
+  2 E I / l and 2 G J / l, so the statics converge to the continuum's as 1/N^2 (a rigid end
+  segment leaves out that compliance: a cantilever deflects (1 - 1/N)^2 of the beam's). The
+  cable has an invisible, gravity-compensated stub body behind each gripper whose joint to
+  the rod end is that clamp joint: the plugin's stiffness of the joint after a body is
+  E I / (that body's length), so the left stub is half a segment long, and the right stub
+  (whose joint follows a full segment) has twice the second moment.
+- Each held rod end (its stub, or with "rigid" clamps the end segment) is rigidly part of a
+  gravity-compensated "pad" body (the gripper's fingers): the first cable body is a jointless
+  child of pad 0, pad 1 (``held_ends="both"`` only) a jointless child of the last one.
+  Each pad is welded to a kinematic (mocap) body that follows the commanded gripper pose.
+  A weld on the light end segment alone is far too soft at this stiffness; the pads'
+  inertia makes the weld's rotational stiffness ``PAD_STIFFNESS_RATIO`` (25) times the
+  joint bending stiffness, so
   the held segment stays within ~0.7 degrees and ~0.5 mm of a gripper moving at full speed.
   Stiffer pads hold the ends so rigidly that a rod pulled taut kinks at its end joint and
   diverges (100x: 7 in 10 stress episodes, 40x: 2 in 40, 25x and 15x: none in 100).
@@ -87,6 +96,10 @@ except Exception:  # a broken GL stack must not take the physics down: render() 
     _forget_gl_imports(_had_pyopengl_platform)
     import mujoco
 
+#: segment lengths of the clamp stub behind a gripper: the plugin gives the joint that
+#: follows a body the stiffness E I / (that body's length), so a half-segment stub makes the
+#: joint at the gripper 2 E I / l, the compliance of the rod's half segment at its end
+STUB_LENGTH = 0.5
 RAYLEIGH_BETA = 0.05  # s; joint damping = beta * bending stiffness EI/l
 PAD_MASS_RATIO = 3.0  # pad mass as a multiple of the rod mass
 PAD_STIFFNESS_RATIO = 25.0  # weld rotational stiffness / joint bending stiffness
@@ -224,19 +237,33 @@ def build_model(
     chord = float(np.linalg.norm(grippers[1, :3] - grippers[0, :3]))
     vertices = rest_polyline(rod.n_segments, rod.length, chord)
     seg = rod.segment_length
+    stubs = clamp_stubs(rod, held_right)
+    if stubs[0]:  # behind the left gripper, along the (level) first segment
+        vertices = np.concatenate([[[-STUB_LENGTH * seg, 0.0, 0.0]], vertices])
+    if stubs[1]:
+        vertices = np.concatenate([vertices, [vertices[-1] + [STUB_LENGTH * seg, 0.0, 0.0]]])
     tau = 2.0 * dt
     pad_mass = PAD_MASS_RATIO * rod.mass
     # rotational weld stiffness = inertia / (d tau)^2 (MuJoCo's solref in acceleration units)
     pad_inertia = PAD_STIFFNESS_RATIO * rod.bending_stiffness / seg * (WELD_SOLIMP[0] * tau) ** 2
     xml = _cable_xml(rod, grippers, vertices, dt, pad_mass, pad_inertia, held_right)
     spec = mujoco.MjSpec.from_string(xml)
-    names = ["rodB_first"] + [f"rodB_{i}" for i in range(1, rod.n_segments - 1)] + ["rodB_last"]
+    bodies = len(vertices) - 1
+    names = ["rodB_first"] + [f"rodB_{i}" for i in range(1, bodies - 1)] + ["rodB_last"]
     frame_fix = _conj(np.asarray(spec.body("rodB_first").quat, dtype=np.float64))
+    for name, present in zip(("rodB_first", "rodB_last"), stubs, strict=True):
+        if present:
+            _make_stub(spec.body(name), rod.radius)
+    if stubs[1]:
+        # the plugin's joint stiffness is E I / (previous body's length): a full segment
+        # here, so the right stub doubles its second moment instead (radius 2^(1/4) r)
+        spec.body("rodB_last").first_geom().size[0] = rod.radius * 2.0**0.25
     if held_right:
-        # pad 1 sits at the end point of the last segment, in the dlocli segment frame
+        # pad 1 sits at the end point of the last segment (the right stub's start), in the
+        # dlocli segment frame
         spec.body("rodB_last").add_body(
             name="pad1",
-            pos=[seg, 0.0, 0.0],
+            pos=[0.0 if stubs[1] else seg, 0.0, 0.0],
             quat=frame_fix.tolist(),
             mass=pad_mass,
             inertia=[pad_inertia] * 3,
@@ -248,6 +275,20 @@ def build_model(
         if abs(abs(float(last[0])) - 1.0) > 1e-6:
             raise RuntimeError("rest shape: the last segment does not lie along +x")
     return spec.compile(), frame_fix
+
+
+def clamp_stubs(rod: RodSpec, held_right: bool) -> tuple[bool, bool]:
+    """Whether the cable has a stub body behind (left, right) gripper: the clamp joints."""
+    compliant = rod.clamp_compliance == "half-segment"
+    return compliant, compliant and held_right
+
+
+def _make_stub(body: mujoco.MjsBody, radius: float) -> None:
+    """A clamp stub: invisible, weightless (part of its pad), the rod's radius by default."""
+    body.gravcomp = 1.0
+    geom = body.first_geom()
+    geom.rgba[3] = 0.0
+    geom.size[0] = radius
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -321,13 +362,15 @@ class MujocoCable(Backend):
         holds the default, ``RAYLEIGH_BETA`` times the bending stiffness, on every axis)."""
         rod, seg = self.rod, self.rod.segment_length
         dofs = self.model.dof_damping[self._rod_dofs].reshape(-1, 3)  # (twist, bend, bend)
+        scale = self._joint_stiffness
         if rod.bending_damping is not None:
             dofs[:, 1:] = rod.bending_damping * rod.bending_stiffness / seg
             if rod.twist_damping is None:  # the default twist coefficient is the bending one
                 dofs[:, 0] = dofs[:, 1]
         if rod.twist_damping is not None:
             dofs[:, 0] = rod.twist_damping * rod.torsional_stiffness / seg
-        self.model.dof_damping[self._rod_dofs] = dofs.ravel()
+        # a clamp joint is stiffer, so its damping is too (the same material)
+        self.model.dof_damping[self._rod_dofs] = (dofs * scale[:, None]).ravel()
 
     def _apply_air_damping(self) -> None:
         """Set each segment's applied force and torque to PyBullet's velocity damping,
@@ -355,14 +398,21 @@ class MujocoCable(Backend):
         """
         d = self.data
         first = self.model.body("rodB_first").id
-        rod = slice(first, first + self.n_segments)
+        stubs = clamp_stubs(self.rod, self.spec.held_ends == "both")
+        rod = slice(first + stubs[0], first + stubs[0] + self.n_segments)
         self._rod_bodies = rod
         self._rod_masses = self.model.body_mass[rod, None]
-        # the ball joints of segments 1 .. N-1 (segment 0 is fixed in pad 0), 3 dofs each
-        joints = self.model.jnt_dofadr[
-            np.isin(self.model.jnt_bodyid, np.arange(first + 1, rod.stop))
-        ]
+        # the ball joints of the cable, 3 dofs each: those of segments 1 .. N-1, and those of
+        # segment 0 and the right stub where the clamps are compliant (the first cable body
+        # is fixed in pad 0)
+        last = self.model.body("rodB_last").id
+        cable = np.arange(first + 1, last + 1)
+        joints = self.model.jnt_dofadr[np.isin(self.model.jnt_bodyid, cable)]
         self._rod_dofs = (joints[:, None] + np.arange(3)).ravel()
+        # each joint's stiffness in units of the segment's (E I / l, G J / l): 2 at a clamp
+        self._joint_stiffness = np.ones(len(joints))
+        self._joint_stiffness[0] += stubs[0]
+        self._joint_stiffness[-1] += stubs[1]
         self._rod_origins = d.xpos[rod]  # segment start points
         self._rod_axes = d.xmat[rod, 0::3]  # x axis (first xmat column) of each segment
         self._rod_quats = d.xquat[rod]

@@ -23,15 +23,20 @@ Model (SI units throughout)
   no armature. The spring-proportional damping ``beta = DAMPING_STEPS * dt`` damps the
   fastest modes (damping ratio ~0.5) and little else; the rod spec's ``bending_damping`` and
   ``twist_damping`` replace it.
-- Discretisation: the held segment 0 is rigid, so a cantilever of N segments deflects
-  ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at N = 20).
+- Clamps (the rod spec's ``clamp_compliance``, default "half-segment"): each held end
+  segment hangs on a point-to-point constraint at the gripper and a clamp spring-damper to
+  the gripper's orientation, twice a rod joint's (the half segment between gripper and first
+  joint), applied as an external torque: the statics converge to the continuum's as 1/N^2.
+  With "rigid" clamps the held segment is fixed in the gripper and a cantilever of N
+  segments deflects ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at 20).
 - Damping: besides the joint damping above, PyBullet's velocity damping (``AIR_DAMPING``
   = 5/s, acceleration ``-d (1 + |v|) v`` on every link, like a strong air drag) lets the
   rod settle: after random gripper motion stops, segments slow below 1 mm/s within ~1.2 s.
   At the largest gripper speed (0.1 m/s) the drag is ~6% of the rod's weight. The rod spec's
   ``air_damping`` replaces it (the rest shape still settles with ``SETTLE_DAMPING``).
-- Grippers: each held end is a ``JOINT_FIXED`` constraint between the end of its segment
-  and a world frame moved every physics step (``changeConstraint``, global ERP 1: no lag).
+- Grippers: each held end is a constraint (point-to-point, or ``JOINT_FIXED`` for rigid
+  clamps) between the end of its segment and a world frame moved every physics step
+  (``changeConstraint``, global ERP 1: no lag).
   Both ends are held the same way, so the rod stays symmetric end to end (the mirror test);
   the multibody's floating base, segment 0, is an ordinary segment. (Driving the base
   kinematically instead, by resetting its twist, carried the whole chain along at every
@@ -55,10 +60,10 @@ import pybullet as p
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import quat_normalize, quat_rotate
-from dlocli.errors import BadInput
 from dlocli.specs import BackendSpec, RodSpec
 
 COURANT = 0.5  # target omega_max * dt of the fastest chain mode (explicit stability < 2)
+CLAMP_STIFFENING = 1.5  # fastest clamp-segment mode / fastest rod mode, squared (measured)
 DAMPING_STEPS = 2.0  # joint damping time beta, in physics steps (damps the fastest modes)
 AIR_DAMPING = 5.0  # 1/s, default PyBullet linear/angular velocity damping of every link
 SETTLE_DAMPING = 20.0  # 1/s, air damping while the rest shape settles in reset()
@@ -102,6 +107,29 @@ class _Targets(NamedTuple):
 
     hold_pos: list[list[list[float]]]  # (2, n, 3) gripper positions at each physics step's end
     hold_orn: list[list[list[float]]]  # (2, n, 4) their orientations (x y z w)
+    spin: list[list[float]]  # (2, 3) their world angular velocities (rad/s)
+
+
+def _rotate(q: tuple[float, ...], v: tuple[float, ...], inverse: bool = False) -> tuple:
+    """Vector v rotated by the unit quaternion q (x y z w), or by its inverse; plain floats."""
+    x, y, z, w = q
+    if inverse:
+        x, y, z = -x, -y, -z
+    tx, ty, tz = 2 * (y * v[2] - z * v[1]), 2 * (z * v[0] - x * v[2]), 2 * (x * v[1] - y * v[0])
+    return (
+        v[0] + w * tx + y * tz - z * ty,
+        v[1] + w * ty + z * tx - x * tz,
+        v[2] + w * tz + x * ty - y * tx,
+    )
+
+
+def _rotation_vector(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
+    """Rotation vector (rad) of the quaternion (x y z w), the shorter rotation; plain floats."""
+    sin_half = math.sqrt(x * x + y * y + z * z)
+    # theta = 2 asin(|v|) v / |v| for the shorter rotation (sign of w); -> 2 v at 0
+    f = math.asin(min(sin_half, 1.0)) / sin_half if sin_half > 1e-12 else 1.0
+    f = math.copysign(2.0 * f, w)
+    return f * x, f * y, f * z
 
 
 @dataclass(frozen=True)
@@ -128,8 +156,10 @@ class ChainModel:
         c_t, c_b = twist_time * k_t, bend_time * k_b
         # zig-zag modes (neighbours alternate): twist omega^2 = 4 k_t / J_t,
         # bending omega^2 = 16 k_b / (m l^2 + 4 J_b); J >= bound <=> omega * dt <= COURANT
-        j_twist = max(0.5 * m * r**2, 4.0 * k_t * h**2)
-        j_bend = max(m * (3 * r**2 + seg**2) / 12.0, (16.0 * k_b * h**2 - m * seg**2) / 4.0)
+        # a compliant clamp is twice as stiff as a rod joint: its segment's modes are faster
+        clamp = CLAMP_STIFFENING if rod.clamp_compliance == "half-segment" else 1.0
+        j_twist = max(0.5 * m * r**2, 4.0 * clamp * k_t * h**2)
+        j_bend = max(m * (3 * r**2 + seg**2) / 12.0, (16.0 * clamp * k_b * h**2 - m * seg**2) / 4.0)
         # their explicit damping rates 4 c_t / J_t and 16 c_b / (m l^2 + 4 J_b) stay below
         # 2 COURANT / dt the same way; the default damping (two steps) never needs more
         j_twist_damped = max(j_twist, 2.0 * c_t * h)
@@ -229,9 +259,14 @@ class PybulletChain(Backend):
         # (link, its end in its centre-of-mass frame): the start of segment 0 (the base),
         # the end of segment N-1
         ends = [(-1, -seg / 2), (n - 1, seg / 2)]
-        for link, end in ends[: 2 if self.spec.held_ends == "both" else 1]:
+        held = ends[: 2 if self.spec.held_ends == "both" else 1]
+        compliant = self.rod.clamp_compliance == "half-segment"
+        # a compliant clamp holds the end point only; its joint springs are _clamp_torques'
+        kind = p.JOINT_POINT2POINT if compliant else p.JOINT_FIXED
+        self._clamp_links = [link for link, _ in held] if compliant else []
+        for link, end in held:
             hold = p.createConstraint(
-                self._body, link, -1, -1, p.JOINT_FIXED, [0, 0, 0], [end, 0, 0],
+                self._body, link, -1, -1, kind, [0, 0, 0], [end, 0, 0],
                 [0, 0, self.rest_height], physicsClientId=c,
             )  # fmt: skip
             p.changeConstraint(hold, maxForce=HOLD_FORCE, physicsClientId=c)
@@ -313,16 +348,17 @@ class PybulletChain(Backend):
         that :func:`integrate_gripper_poses` applied (``end = exp(w T) start``).
         """
         frac = np.arange(1, self._n_sub + 1)[:, None] / self._n_sub  # ends of the physics steps
-        positions, orientations = [], []
+        positions, orientations, spins_per_second = [], [], []
         for g in range(len(self._holds)):
             rotvec = _spin(start[g, 3:], end[g, 3:])
+            spins_per_second.append((rotvec / self.control_dt).tolist())
             angle = float(np.linalg.norm(rotvec))
             axis = rotvec / angle if angle > 1e-15 else np.zeros(3)
             half = 0.5 * angle * frac
             spins = np.hstack([np.cos(half), np.sin(half) * axis])  # (n,4) w x y z
             orientations.append(_xyzw(spins @ _right_product(start[g, 3:]).T).tolist())
             positions.append((start[g, :3] + frac * (end[g, :3] - start[g, :3])).tolist())
-        return _Targets(hold_pos=positions, hold_orn=orientations)
+        return _Targets(hold_pos=positions, hold_orn=orientations, spin=spins_per_second)
 
     def _spring_torques(self, states: list) -> list[tuple[float, float, float]] | None:
         """Joint torques (N m, child frame) from PyBullet's multi-DoF joint states.
@@ -333,14 +369,46 @@ class PybulletChain(Backend):
         """
         kt, kb, ct, cb = self._gains
         torques = []
-        for (x, y, z, w), (ox, oy, oz) in ((s[0], s[1]) for s in states):
+        for quat, (ox, oy, oz) in ((s[0], s[1]) for s in states):
             if not abs(ox) + abs(oy) + abs(oz) < MAX_JOINT_SPEED:
                 return None
-            sin_half = math.sqrt(x * x + y * y + z * z)
-            # theta = 2 asin(|v|) v / |v| for the shorter rotation (sign of w); -> 2 v at 0
-            f = math.asin(min(sin_half, 1.0)) / sin_half if sin_half > 1e-12 else 1.0
-            f = math.copysign(2.0 * f, w)
-            torques.append((-kt * f * x - ct * ox, -kb * f * y - cb * oy, -kb * f * z - cb * oz))
+            tx, ty, tz = _rotation_vector(*quat)
+            torques.append((-kt * tx - ct * ox, -kb * ty - cb * oy, -kb * tz - cb * oz))
+        return torques
+
+    def _clamp_torques(self, targets: _Targets, i: int) -> list[tuple[float, float, float]]:
+        """World torques (N m) of the clamp joints on the held segments at physics step i.
+
+        The spring-damper of a rod joint, twice as stiff (the half segment at the rod's end),
+        between each gripper's orientation at the step's end and its segment's.
+        """
+        c, b = self._client, self._body
+        kt, kb, ct, cb = (2.0 * gain for gain in self._gains)
+        torques = []
+        for g, link in enumerate(self._clamp_links):
+            if link < 0:
+                quat = p.getBasePositionAndOrientation(b, physicsClientId=c)[1]
+                spin = p.getBaseVelocity(b, physicsClientId=c)[1]
+            else:
+                state = p.getLinkState(
+                    b, link, computeLinkVelocity=1, computeForwardKinematics=1, physicsClientId=c
+                )
+                quat, spin = state[5], state[7]
+            grip = targets.hold_orn[g][i]
+            gx, gy, gz, gw = grip
+            sx, sy, sz, sw = quat  # conj(grip) * segment, both x y z w
+            rel = (
+                gw * sx - gx * sw - gy * sz + gz * sy,
+                gw * sy + gx * sz - gy * sw - gz * sx,
+                gw * sz - gx * sy + gy * sx - gz * sw,
+                gw * sw + gx * sx + gy * sy + gz * sz,
+            )
+            tx, ty, tz = _rotation_vector(*rel)
+            ox, oy, oz = _rotate(
+                grip, [a - e for a, e in zip(spin, targets.spin[g], strict=True)], inverse=True
+            )
+            local = (-kt * tx - ct * ox, -kb * ty - cb * oy, -kb * tz - cb * oz)
+            torques.append(_rotate(grip, local))
         return torques
 
     def _advance(self, start: np.ndarray, end: np.ndarray) -> bool:
@@ -362,6 +430,11 @@ class PybulletChain(Backend):
                     maxForce=HOLD_FORCE,
                     physicsClientId=c,
                 )
+            if self._clamp_links:
+                for link, torque in zip(
+                    self._clamp_links, self._clamp_torques(targets, i), strict=True
+                ):
+                    p.applyExternalTorque(b, link, torque, p.WORLD_FRAME, physicsClientId=c)
             p.stepSimulation(physicsClientId=c)
         return True
 
