@@ -71,6 +71,9 @@ def require_utf8_path(path: Path) -> None:
 #: most control steps of a reset's motion or settling: each is a control period of physics
 MAX_RESET_STEPS = 10_000
 
+STANDARD_GRAVITY = 9.81  # m/s^2
+#: s, the rod's bending and twist damping time: the paper rod's first mode gets ratio 0.044
+DEFAULT_DAMPING_TIME = 0.05
 INEXTENSIBLE_YOUNG_TENSION = 1e8  # Pa, the paper's; the only value a spec may give
 
 #: the most rod segments a backend can simulate, for backends with a limit below RodSpec's:
@@ -120,28 +123,33 @@ class RodSpec(Spec):
         "this field (a cantilever deflects about (1 - 1/N)^2 of the continuum's).",
     )
     bending_damping: float | None = Field(
-        None,
+        DEFAULT_DAMPING_TIME,
         ge=0,
-        description="Bending damping time beta in seconds: each joint's bending moment is "
-        "(E I / l) (angle + beta * angular rate), a Kelvin-Voigt material of viscosity "
-        "beta * E. None = the backend's default: mujoco 0.05, pybullet two physics steps "
-        "(0.004 at its 2 ms step). MuJoCo's elasticity is explicit: with little damping it "
-        "needs a smaller physics_dt (undamped: 0.0005).",
+        description="Bending damping time beta in seconds (Kelvin-Voigt: each joint's bending "
+        "moment is (E I / l) (angle + beta * angular rate), a material of viscosity beta E). "
+        "A bending mode of angular frequency w gets the damping ratio beta w / 2: the first "
+        "mode of the 1 m paper rod (1.76 rad/s) 0.044 at the default 0.05. None = each "
+        "backend's earlier constant (mujoco 0.05, pybullet two physics steps), the rod of runs "
+        "saved before this field. MuJoCo's elasticity is explicit: with little damping it "
+        "needs a smaller physics_dt; PyBullet's springs and damping are explicit: at its 2 ms "
+        "default it adds rotary inertia to the segments (see the README's rod physics).",
     )
     twist_damping: float | None = Field(
-        None,
+        DEFAULT_DAMPING_TIME,
         ge=0,
-        description="Twist damping time in seconds: each joint's twisting moment is "
-        "(G J / l) (angle + time * angular rate). None = the backend's default: mujoco the "
-        "bending damping coefficient (a time of (1 + poisson) * bending_damping), pybullet "
-        "two physics steps.",
+        description="Twist damping time in seconds: each joint's twisting moment is (G J / l) "
+        "(angle + time * angular rate); a twist mode of angular frequency w gets the damping "
+        "ratio time * w / 2. None = each backend's earlier constant (mujoco the bending "
+        "coefficient, a time of (1 + poisson) * 0.05; pybullet two physics steps).",
     )
     air_damping: float | None = Field(
-        None,
+        0.0,
         ge=0,
         description="Air damping d in 1/s: every segment's velocity v and angular velocity w "
         "decay at d (1 + |v|) v and d (1 + |w|) w (|v| in m/s, |w| in rad/s; PyBullet's "
-        "velocity damping law). None = the backend's default: mujoco 0, pybullet 5.",
+        "velocity damping law); slow motions of every mode of angular frequency w get the "
+        "damping ratio d / (2 w). None = each backend's earlier constant (mujoco 0, pybullet "
+        "5).",
     )
 
     @field_validator("young_tension")
@@ -192,7 +200,17 @@ class BackendSpec(Spec):
         None,
         ge=1e-5,
         le=0.02,
-        description="Physics step in seconds (1e-5 to 0.02); None = the backend's stable default.",
+        description="Physics step in seconds (1e-5 to 0.02); None = the backend's stable default. "
+        "With little damping the explicit springs need the step of the rod's fastest mode, "
+        "dlocli.backends.base.material_physics_dt (the 1 m paper rod 0.17 ms, a 0.2 m rod "
+        "33 us); there PyBullet's segments also keep their real rotary inertia.",
+    )
+    gravity: float = Field(
+        STANDARD_GRAVITY,
+        ge=0,
+        le=100,
+        description="Gravitational acceleration in m/s^2, along -z (0 to 100; 0 puts the rod "
+        "in free space, for physics checks).",
     )
     held_ends: Literal["both", "left"] = Field(
         "both", description="Which rod ends the grippers hold ('left' leaves a free cantilever)."
@@ -313,6 +331,9 @@ ROD_LEGACY_VALUES: dict[str, Any] = {
     "twist_damping": None,
     "air_damping": None,
 }
+
+#: BackendSpec fields added after runs were first saved, with the value runs had before
+BACKEND_LEGACY_VALUES: dict[str, Any] = {"gravity": STANDARD_GRAVITY}
 
 #: TaskSpec fields added after runs were first saved, with the value that rebuilds what a
 #: saved run did before the field existed

@@ -106,30 +106,24 @@ def test_segment_limits_are_the_spec_s() -> None:
         make_backend(unchecked)
 
 
-def test_damping_fields_enter_a_bench_job_s_fingerprint_only_when_set() -> None:
-    from dlocli.bench.spec import BenchSpec, fingerprint
-
-    spec = BenchSpec()
-    saved = spec.model_dump(mode="json")
-    for field in ("bending_damping", "twist_damping", "air_damping"):
-        del saved["backend"]["rod"][field]  # a spec saved before the fields existed
-    assert fingerprint(BenchSpec.model_validate(saved)) == fingerprint(spec)
-    damped = BenchSpec.model_validate({"backend": {"rod": {"air_damping": 5.0}}})
-    assert fingerprint(damped) != fingerprint(spec)
-
-
-def test_a_spec_saved_before_the_clamp_field_keeps_the_rigid_clamp_and_its_fingerprint(
+def test_a_spec_saved_before_the_rod_fields_is_the_earlier_rod_with_its_fingerprint(
     tmp_path: Path,
 ) -> None:
     from dlocli.bench.spec import BenchSpec, fingerprint
     from dlocli.resume import saved_spec
 
     saved = BenchSpec().model_dump(mode="json")
-    del saved["backend"]["rod"]["clamp_compliance"]  # a bench job made with the earlier rod
+    for name in ROD_LEGACY_VALUES:  # a bench job made before the clamp and damping fields
+        del saved["backend"]["rod"][name]
+    del saved["backend"]["gravity"]
     path = tmp_path / "spec.json"
     path.write_text(json.dumps(saved))
     earlier = BenchSpec.model_validate(saved_spec(path))
-    assert earlier.backend.rod.clamp_compliance == "rigid"
+    assert earlier.backend.rod == RodSpec(**ROD_LEGACY_VALUES)
     # its fingerprint is the one it was saved with; today's default rod is another
     legacy = BenchSpec(backend=BackendSpec(rod=RodSpec(**ROD_LEGACY_VALUES)))
     assert fingerprint(earlier) == fingerprint(legacy) != fingerprint(BenchSpec())
+    damped = legacy.model_copy(
+        update={"backend": BackendSpec(rod=RodSpec(**{**ROD_LEGACY_VALUES, "air_damping": 5.0}))}
+    )
+    assert fingerprint(damped) != fingerprint(legacy)

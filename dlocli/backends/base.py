@@ -30,8 +30,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from dlocli.errors import BadInput, UnworkablePhysics
-from dlocli.specs import BackendSpec, segment_limit_error
+from dlocli.specs import BackendSpec, RodSpec, segment_limit_error
 
+#: omega_max * dt of the chain's fastest mode for explicit springs: stable and accurate
+#: (semi-implicit Euler diverges from 2, PyBullet's chain from ~0.85)
+COURANT = 0.5
+#: the fastest mode of a compliant clamp's segment over the fastest rod mode, squared: the
+#: clamp joint is twice a rod joint (measured: 1.0 diverges at 10 segments and 2e7 Pa)
+CLAMP_STIFFENING = 1.5
+#: backend capabilities (``Backend.capabilities``) that physics checks may need
+END_LOAD = "end_load"  # set_end_load
+#: implicit joint damping: Kelvin-Voigt damping of any strength on the segments' real inertia
+KELVIN_VOIGT_REAL_INERTIA = "kelvin_voigt_real_inertia"
 REST_HEIGHT = 0.8  # rod lengths: inside the length-scaled workspace (z from 0.3 to 1.4)
 INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (FINDINGS gotcha 1)
 
@@ -128,11 +138,39 @@ def integrate_gripper_poses(
     return result
 
 
+def chain_modes_squared(rod: RodSpec, twist_inertia: float, bend_inertia: float) -> np.ndarray:
+    """(twist, bending) omega^2 (rad^2/s^2) of the chain's fastest modes, neighbours
+    alternating, for segments of these rotary inertias (kg m^2, about the centre):
+    ``4 k_t / J_t`` and ``16 k_b / (m l^2 + 4 J_b)``, a compliant clamp's segment faster."""
+    seg = rod.segment_length
+    mass = rod.density * rod.area * seg
+    clamp = CLAMP_STIFFENING if rod.clamp_compliance == "half-segment" else 1.0
+    k_t, k_b = rod.torsional_stiffness / seg, rod.bending_stiffness / seg
+    return clamp * np.array(
+        [4.0 * k_t / twist_inertia, 16.0 * k_b / (mass * seg**2 + 4.0 * bend_inertia)]
+    )
+
+
+def segment_inertia(rod: RodSpec) -> tuple[float, float]:
+    """(twist, bending) rotary inertia (kg m^2) of one cylindrical segment about its centre."""
+    seg, r = rod.segment_length, rod.radius
+    mass = rod.density * rod.area * seg
+    return 0.5 * mass * r**2, mass * (3 * r**2 + seg**2) / 12.0
+
+
+def material_physics_dt(rod: RodSpec) -> float:
+    """The largest physics step (s) at which explicit springs move the rod's real segments,
+    damping off: ``COURANT / omega`` of the chain's fastest mode."""
+    return COURANT / math.sqrt(chain_modes_squared(rod, *segment_inertia(rod)).max())
+
+
 class Backend(ABC):
     """A simulated rod held by grippers. Subclasses implement the physics hooks (``_*``)."""
 
     #: registry name, set by subclasses
     name: str = ""
+    #: optional abilities a physics check may need ("end_load": :meth:`set_end_load`)
+    capabilities: frozenset[str] = frozenset()
 
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
         self.spec = spec or BackendSpec(name=self.name)
@@ -147,8 +185,25 @@ class Backend(ABC):
         self.moving = np.array([True, self.spec.held_ends == "both"])
         self.diverged = False
         self._gripper_poses = self.rest_gripper_poses()
+        self._end_load: tuple[list[float], list[float]] | None = None
 
     # ----------------------------------------------------------------- public API
+    def set_end_load(self, force: np.ndarray, torque: np.ndarray) -> None:
+        """Load the free rod end from the next step on: a constant world-frame force (N) at
+        its end point and torque (N m) on its last segment (both zero: no load).
+
+        For physics checks on a cantilever (``held_ends="left"``), where backends have the
+        "end_load" capability.
+        """
+        if END_LOAD not in self.capabilities:
+            raise NotImplementedError(f"the {self.name} backend cannot load the rod's end")
+        if self.spec.held_ends != "left":
+            raise ValueError("an end load needs a free rod end: held_ends='left'")
+        force = np.asarray(force, dtype=np.float64).reshape(3)
+        torque = np.asarray(torque, dtype=np.float64).reshape(3)
+        loaded = bool(np.any(force) or np.any(torque))
+        self._end_load = (force.tolist(), torque.tolist()) if loaded else None
+
     def rest_gripper_poses(self) -> np.ndarray:
         """(2,7) nominal gripper poses: on the x axis, slack separation, rod along +x."""
         half = 0.5 * INITIAL_SEPARATION * self.rod.length

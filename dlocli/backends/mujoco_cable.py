@@ -56,7 +56,7 @@ import weakref
 
 import numpy as np
 
-from dlocli.backends.base import Backend
+from dlocli.backends.base import END_LOAD, KELVIN_VOIGT_REAL_INERTIA, Backend
 from dlocli.backends.render import finite_points, render_rod
 from dlocli.backends.rotations import quat_multiply, quat_normalize
 from dlocli.specs import BackendSpec, RodSpec
@@ -155,6 +155,7 @@ def _cable_xml(
     pad_mass: float,
     pad_inertia: float,
     held_right: bool,
+    gravity: float,
 ) -> str:
     """MJCF of the cable, its left pad, both mocap grippers and the welds (pad 1 is added later)."""
     seg = rod.segment_length
@@ -173,7 +174,7 @@ def _cable_xml(
     return f"""
 <mujoco model="dlocli_cable">
   <extension><plugin plugin="mujoco.elasticity.cable"/></extension>
-  <option timestep="{dt:.12g}" integrator="implicitfast">
+  <option timestep="{dt:.12g}" integrator="implicitfast" gravity="0 0 {-gravity:.12g}">
     <flag contact="disable" autoreset="disable"/>
   </option>
   <visual><global offwidth="1920" offheight="1440"/></visual>
@@ -226,7 +227,7 @@ def _chain_quat(spec: mujoco.MjSpec, names: list[str]) -> np.ndarray:
 
 
 def build_model(
-    rod: RodSpec, grippers: np.ndarray, held_right: bool, dt: float
+    rod: RodSpec, grippers: np.ndarray, held_right: bool, dt: float, gravity: float = 9.81
 ) -> tuple[mujoco.MjModel, np.ndarray]:
     """Compile the cable model for rest gripper poses (2,7).
 
@@ -246,7 +247,7 @@ def build_model(
     pad_mass = PAD_MASS_RATIO * rod.mass
     # rotational weld stiffness = inertia / (d tau)^2 (MuJoCo's solref in acceleration units)
     pad_inertia = PAD_STIFFNESS_RATIO * rod.bending_stiffness / seg * (WELD_SOLIMP[0] * tau) ** 2
-    xml = _cable_xml(rod, grippers, vertices, dt, pad_mass, pad_inertia, held_right)
+    xml = _cable_xml(rod, grippers, vertices, dt, pad_mass, pad_inertia, held_right, gravity)
     spec = mujoco.MjSpec.from_string(xml)
     bodies = len(vertices) - 1
     names = ["rodB_first"] + [f"rodB_{i}" for i in range(1, bodies - 1)] + ["rodB_last"]
@@ -307,6 +308,8 @@ class MujocoCable(Backend):
     """
 
     name = "mujoco"
+    # joint damping is implicit in MuJoCo: any Kelvin-Voigt time at the segments' real inertia
+    capabilities = frozenset({END_LOAD, KELVIN_VOIGT_REAL_INERTIA})
     # The largest step that survives the stress tests (benchmarks/backend_stability.py):
     # random smooth gripper motion is stable even at 10 ms, but full-speed rotations that pull
     # the rod taut diverge in 0/100 episodes at 4 ms, 2/40 at 5 ms, 7/10 at 10 ms.
@@ -319,7 +322,9 @@ class MujocoCable(Backend):
         dt = control_dt / self.n_substeps
         rest = self.rest_gripper_poses()
         try:
-            self.model, frame_fix = build_model(self.rod, rest, self.spec.held_ends == "both", dt)
+            self.model, frame_fix = build_model(
+                self.rod, rest, self.spec.held_ends == "both", dt, self.spec.gravity
+            )
         except ValueError as exc:  # MuJoCo's compiler refuses, e.g., a too light segment
             reason = str(exc).strip().splitlines()[0][:160]
             raise self.unworkable_rod(f"MuJoCo cannot build this rod ({reason})") from exc
@@ -371,6 +376,20 @@ class MujocoCable(Backend):
             dofs[:, 0] = rod.twist_damping * rod.torsional_stiffness / seg
         # a clamp joint is stiffer, so its damping is too (the same material)
         self.model.dof_damping[self._rod_dofs] = (dofs * scale[:, None]).ravel()
+
+    def _apply_segment_forces(self) -> None:
+        """Air damping and the end load as applied forces, from the state mj_step1 left."""
+        if self._air_damping:
+            self._apply_air_damping()
+        else:
+            self.data.xfrc_applied[self._rod_bodies] = 0.0
+        if self._end_load is not None:
+            force, torque = (np.array(v) for v in self._end_load)
+            last = self._rod_bodies.stop - 1
+            end = self._rod_origins[-1] + 2.0 * self._half_segment * self._rod_axes[-1]
+            arm = end - self.data.xipos[last]  # xfrc_applied acts at the centre of mass
+            self.data.xfrc_applied[last, :3] += force
+            self.data.xfrc_applied[last, 3:] += torque + np.cross(arm, force)
 
     def _apply_air_damping(self) -> None:
         """Set each segment's applied force and torque to PyBullet's velocity damping,
@@ -434,9 +453,9 @@ class MujocoCable(Backend):
         for position, quat in zip(targets[:, :, :3], targets[:, :, 3:], strict=True):
             self._mocap_pos[:] = position
             self._mocap_quat[:] = quat
-            if self._air_damping:
+            if self._air_damping or self._end_load is not None:
                 mujoco.mj_step1(m, d)
-                self._apply_air_damping()
+                self._apply_segment_forces()
                 mujoco.mj_step2(m, d)
             else:
                 mujoco.mj_step(m, d)

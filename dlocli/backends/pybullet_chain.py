@@ -58,12 +58,16 @@ from typing import NamedTuple
 import numpy as np
 import pybullet as p
 
-from dlocli.backends.base import Backend
+from dlocli.backends.base import (
+    CLAMP_STIFFENING,
+    COURANT,
+    END_LOAD,
+    Backend,
+    segment_inertia,
+)
 from dlocli.backends.rotations import quat_normalize, quat_rotate
 from dlocli.specs import BackendSpec, RodSpec
 
-COURANT = 0.5  # target omega_max * dt of the fastest chain mode (explicit stability < 2)
-CLAMP_STIFFENING = 1.5  # fastest clamp-segment mode / fastest rod mode, squared (measured)
 DAMPING_STEPS = 2.0  # joint damping time beta, in physics steps (damps the fastest modes)
 AIR_DAMPING = 5.0  # 1/s, default PyBullet linear/angular velocity damping of every link
 SETTLE_DAMPING = 20.0  # 1/s, air damping while the rest shape settles in reset()
@@ -71,7 +75,6 @@ SETTLE_TIME = 3.0  # s of simulated settling for the rest shape
 HOLD_FORCE = 1e4  # N, maximum force of the right gripper's fixed constraint
 HOLD_ERP = 1.0  # fraction of the right gripper's pose error removed per physics step
 SOLVER_ITERATIONS = 10  # PGS sweeps; one 6-row constraint converges in a few
-GRAVITY = 9.81  # m/s^2
 MAX_JOINT_SPEED = 100.0  # rad/s; random gripper motion stays under 3, faster means a blow-up
 
 
@@ -145,7 +148,7 @@ class ChainModel:
     @classmethod
     def from_rod(cls, rod: RodSpec, dt: float) -> ChainModel:
         """Physical mass and stiffness; rotary inertia raised to keep explicit springs stable."""
-        seg, r = rod.segment_length, rod.radius
+        seg = rod.segment_length
         m = rod.density * rod.area * seg
         k_b = rod.bending_stiffness / seg
         k_t = rod.torsional_stiffness / seg
@@ -156,14 +159,15 @@ class ChainModel:
         c_t, c_b = twist_time * k_t, bend_time * k_b
         # zig-zag modes (neighbours alternate): twist omega^2 = 4 k_t / J_t,
         # bending omega^2 = 16 k_b / (m l^2 + 4 J_b); J >= bound <=> omega * dt <= COURANT
-        # a compliant clamp is twice as stiff as a rod joint: its segment's modes are faster
+        # (chain_modes_squared); a compliant clamp's segment is faster
         clamp = CLAMP_STIFFENING if rod.clamp_compliance == "half-segment" else 1.0
-        j_twist = max(0.5 * m * r**2, 4.0 * clamp * k_t * h**2)
-        j_bend = max(m * (3 * r**2 + seg**2) / 12.0, (16.0 * clamp * k_b * h**2 - m * seg**2) / 4.0)
+        real_twist, real_bend = segment_inertia(rod)
+        j_twist = max(real_twist, 4.0 * clamp * k_t * h**2)
+        j_bend = max(real_bend, (16.0 * clamp * k_b * h**2 - m * seg**2) / 4.0)
         # their explicit damping rates 4 c_t / J_t and 16 c_b / (m l^2 + 4 J_b) stay below
         # 2 COURANT / dt the same way; the default damping (two steps) never needs more
-        j_twist_damped = max(j_twist, 2.0 * c_t * h)
-        j_bend_damped = max(j_bend, (8.0 * c_b * h - m * seg**2) / 4.0)
+        j_twist_damped = max(j_twist, 2.0 * clamp * c_t * h)
+        j_bend_damped = max(j_bend, (8.0 * clamp * c_b * h - m * seg**2) / 4.0)
         if (j_twist_damped, j_bend_damped) != (j_twist, j_bend):
             # one axis much heavier than the others: the explicit gyroscopic torque blows up
             j_twist = j_bend = max(j_twist_damped, j_bend_damped)
@@ -181,6 +185,8 @@ class PybulletChain(Backend):
     """PyBullet chain of capsules, joint stiffness from EI/l and GJ/l (see module docstring)."""
 
     name = "pybullet"
+    # its explicit joint damping needs added rotary inertia: no KELVIN_VOIGT_REAL_INERTIA
+    capabilities = frozenset({END_LOAD})
     #: every dt is stable (the armature scales with dt^2); 2 ms keeps dynamics within ~3 mm of
     #: a converged run (4 ms: 5.4 mm, 10 ms: 10 mm) at >= 250 env steps/s on 2 cores
     default_physics_dt = 0.002
@@ -208,7 +214,7 @@ class PybulletChain(Backend):
     def _build(self) -> None:
         c = self._client
         p.resetSimulation(physicsClientId=c)
-        p.setGravity(0, 0, -GRAVITY, physicsClientId=c)
+        p.setGravity(0, 0, -self.spec.gravity, physicsClientId=c)
         p.setTimeStep(self._dt, physicsClientId=c)
         # the multibody fixed constraint uses the global ERP; the default 0.2 lags a moving
         # gripper by (1 - erp) / erp physics steps of travel (0.8 mm at 0.1 m/s)
@@ -327,7 +333,9 @@ class PybulletChain(Backend):
             b, centre.tolist(), _xyzw(rest[0, 3:]).tolist(), physicsClientId=c
         )
         self._set_dynamics(SETTLE_DAMPING)
-        for _ in range(round(SETTLE_TIME / self.control_dt)):
+        # a straight cantilever in free space is at rest already
+        settling = len(self._holds) == 2 or self.spec.gravity > 0
+        for _ in range(round(SETTLE_TIME / self.control_dt) if settling else 0):
             if not self._advance(rest, rest):
                 raise self.unworkable_rod("the rod's rest state diverged")
         self._set_dynamics(self._air_damping)
@@ -375,6 +383,21 @@ class PybulletChain(Backend):
             tx, ty, tz = _rotation_vector(*quat)
             torques.append((-kt * tx - ct * ox, -kb * ty - cb * oy, -kb * tz - cb * oz))
         return torques
+
+    def _apply_end_load(self, force: list[float], torque: list[float]) -> None:
+        """The end load on the last segment for the coming physics step (PyBullet clears
+        external forces after every step)."""
+        c, b, last = self._client, self._body, self.n_segments - 2
+        start, quat = p.getLinkState(b, last, computeForwardKinematics=1, physicsClientId=c)[4:6]
+        along = _rotate(quat, (self.model.seg_length, 0.0, 0.0))
+        end = [s + a for s, a in zip(start, along, strict=True)]
+        p.applyExternalForce(b, last, force, end, p.WORLD_FRAME, physicsClientId=c)
+        p.applyExternalTorque(b, last, torque, p.WORLD_FRAME, physicsClientId=c)
+
+    @property
+    def added_inertia(self) -> float:
+        """The segments' rotary inertia over their real one, largest axis (1: none added)."""
+        return float((self.model.inertia / np.array(segment_inertia(self.rod))[[0, 1, 1]]).max())
 
     def _clamp_torques(self, targets: _Targets, i: int) -> list[tuple[float, float, float]]:
         """World torques (N m) of the clamp joints on the held segments at physics step i.
@@ -435,6 +458,8 @@ class PybulletChain(Backend):
                     self._clamp_links, self._clamp_torques(targets, i), strict=True
                 ):
                     p.applyExternalTorque(b, link, torque, p.WORLD_FRAME, physicsClientId=c)
+            if self._end_load is not None:
+                self._apply_end_load(*self._end_load)
             p.stepSimulation(physicsClientId=c)
         return True
 

@@ -13,7 +13,7 @@ from pydantic import Field, model_validator
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
 from dlocli.models.spec import FIT_LEGACY_VALUES, LEGACY_VALUES, FitSpec, ModelSpec
-from dlocli.specs import ROD_LEGACY_VALUES, TASK_LEGACY_VALUES, EnvSpec
+from dlocli.specs import BACKEND_LEGACY_VALUES, ROD_LEGACY_VALUES, TASK_LEGACY_VALUES, EnvSpec
 
 #: fields that may change between runs of one directory: they do not change any result
 #: (``budgets`` enters the fingerprint of each job through that agent's own budget)
@@ -111,7 +111,10 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
         "task": at_values(spec.task, TASK_LEGACY_VALUES) | spec.task.inert_fields(),
         "fit": at_values(spec.fit, FIT_LEGACY_VALUES),
         "mpc": at_values(spec.mpc, spec.mpc.legacy_values),
-        "backend": {"rod": at_values(spec.backend.rod, ROD_LEGACY_VALUES)},
+        "backend": {
+            "rod": at_values(spec.backend.rod, ROD_LEGACY_VALUES),
+            **dict.fromkeys(at_values(spec.backend, BACKEND_LEGACY_VALUES), True),
+        },
     }
     exclude = {**dict.fromkeys(FREE_FIELDS, True), **legacy}
     if agent is None:
