@@ -127,3 +127,17 @@ def test_a_spec_saved_before_the_rod_fields_is_the_earlier_rod_with_its_fingerpr
         update={"backend": BackendSpec(rod=RodSpec(**{**ROD_LEGACY_VALUES, "air_damping": 5.0}))}
     )
     assert fingerprint(damped) != fingerprint(legacy)
+
+
+def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod() -> None:
+    from dlocli.bench.spec import BenchSpec, fingerprint
+    from dlocli.resume import saved_spec
+
+    run = Path(__file__).parents[1] / "examples" / "bench_paper"
+    spec = BenchSpec.model_validate(saved_spec(run / "spec.json"))
+    assert spec.backend.rod == RodSpec(**ROD_LEGACY_VALUES)
+    today = spec.model_copy(update={"backend": spec.backend.model_copy(update={"rod": RodSpec()})})
+    for path in sorted((run / "jobs").glob("*.json")):
+        job = json.loads(path.read_text())
+        assert job["fingerprint"] == fingerprint(spec, job["agent"]), path.name
+        assert job["fingerprint"] != fingerprint(today, job["agent"]), path.name

@@ -14,26 +14,25 @@ Model (SI units throughout)
   spring (measured: ``STABLE_PD_CONTROL`` gives static joint deflections 300x to 3e7x off
   ``tau / kp``, changing with kd; the spherical ``POSITION_CONTROL`` motor is a velocity
   constraint, not a spring). Explicit torques at 2 ms are unstable for the physical rotary
-  inertia (the twist "zig-zag" mode of a 5 cm segment is ~2400 rad/s). So the segments'
-  rotary inertia is raised (an armature, as in MuJoCo) just enough that the fastest
-  discrete modes satisfy ``omega_max * dt <= COURANT`` (unstable from ~0.85). Masses and
-  stiffnesses stay physical and statics are exact; for the default rod at 2 ms the
-  armature is ~96x (twist) and ~25x (bending) the physical rotary inertia, and random-motion
-  trajectories stay within 2.9 mm (mean over segments and time) of a 0.5 ms run with almost
-  no armature. The spring-proportional damping ``beta = DAMPING_STEPS * dt`` damps the
-  fastest modes (damping ratio ~0.5) and little else; the rod spec's ``bending_damping`` and
-  ``twist_damping`` replace it.
+  inertia (the twist "zig-zag" mode of a 5 cm segment is ~2400 rad/s), and so is explicit
+  Kelvin-Voigt damping whose rate at those modes exceeds ~1 / dt. So the segments' rotary
+  inertia is raised (an armature, as in MuJoCo) just enough that the fastest discrete modes
+  satisfy ``omega_max * dt <= COURANT`` (unstable from ~0.85), their damping rates likewise.
+  Masses and stiffnesses stay physical and statics are exact; the dynamics are the real
+  rod's only where no armature is needed: with little damping at
+  ``base.material_physics_dt`` (``added_inertia`` says how much was added;
+  benchmarks/results/rod_physics.txt gives it for the default rods). The backend therefore
+  does not declare ``KELVIN_VOIGT_REAL_INERTIA``.
 - Clamps (the rod spec's ``clamp_compliance``, default "half-segment"): each held end
   segment hangs on a point-to-point constraint at the gripper and a clamp spring-damper to
   the gripper's orientation, twice a rod joint's (the half segment between gripper and first
   joint), applied as an external torque: the statics converge to the continuum's as 1/N^2.
   With "rigid" clamps the held segment is fixed in the gripper and a cantilever of N
   segments deflects ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at 20).
-- Damping: besides the joint damping above, PyBullet's velocity damping (``AIR_DAMPING``
-  = 5/s, acceleration ``-d (1 + |v|) v`` on every link, like a strong air drag) lets the
-  rod settle: after random gripper motion stops, segments slow below 1 mm/s within ~1.2 s.
-  At the largest gripper speed (0.1 m/s) the drag is ~6% of the rod's weight. The rod spec's
-  ``air_damping`` replaces it (the rest shape still settles with ``SETTLE_DAMPING``).
+- Damping: the rod spec's bending and twist damping times (above) and its air damping,
+  PyBullet's own velocity damping of every link (acceleration ``-d (1 + |v|) v``). A spec
+  whose damping is None keeps the earlier constants: ``DAMPING_STEPS`` physics steps of
+  joint damping and ``AIR_DAMPING`` = 5/s (the rest shape settles with ``SETTLE_DAMPING``).
 - Grippers: each held end is a constraint (point-to-point, or ``JOINT_FIXED`` for rigid
   clamps) between the end of its segment and a world frame moved every physics step
   (``changeConstraint``, global ERP 1: no lag).
