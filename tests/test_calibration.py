@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from dlocli.calibration.fit import load_cable
@@ -198,3 +199,36 @@ def test_a_real_cable_replays_better_than_freezing() -> None:
     held = deform.held_markers(recording.shape[1])
     freeze = protocol.deform_score_cm(protocol.freeze(recording, held), recording)
     assert result.diverged_at is None and result.score_cm < freeze
+
+
+def test_simulated_markers_train_a_model_that_fine_tunes(cable: Path, tmp_path: Path) -> None:
+    """Simulated data of the rod is a marker dataset `dlo train` takes; --init-from starts a
+    marker model from that checkpoint (its weights and normalization)."""
+    from dlocli.calibration.simulate import simulate_markers
+    from dlocli.markers.dataset import MarkerDataset
+    from dlocli.models.markers import load_marker_model
+
+    recordings = [deform.read_trajectory(cable / f"train/{i}.pkl") for i in range(2)]
+    backend = backends.get("mujoco")(_rod(TRUE_E), control_dt=1 / RATE)
+    sims, dropped = simulate_markers(backend, recordings, ARC, 3, 0, SETTINGS)
+    assert dropped == 0 and len(sims) == 3
+    for sim, rec in zip(sims, [recordings[0], recordings[1], recordings[0]], strict=True):
+        # a rigid move of the recorded held motion: the end markers' separations are kept
+        span = np.linalg.norm(sim[:, -1] - sim[:, 0], axis=-1)
+        recorded_span = np.linalg.norm(rec[:, -1] - rec[:, 0], axis=-1)
+        assert np.abs(np.sort(span) - np.sort(recorded_span)).max() < 5e-3
+    held = deform.held_markers(len(ARC))
+    named = {"train": [(f"sim{i}", s) for i, s in enumerate(sims)]}
+    MarkerDataset.from_trajectories(named, held, {"rate_hz": RATE}).save(tmp_path / "sim.h5")
+    common = ["--model", "mlp", "--rollout-steps", "8", "--device", "cpu", "--json"]
+    assert run_dlo(["train", "--data", str(tmp_path / "sim.h5"), "--update-steps", "20",
+                    "--lr", "3e-3", "--out", str(tmp_path / "sim"), *common]) == 0  # fmt: skip
+    assert run_dlo(["import", "--source", str(cable), "--out", str(tmp_path / "real"),
+                    "--json"]) == 0  # fmt: skip
+    assert run_dlo(["train", "--data", str(tmp_path / "real"), "--update-steps", "1",
+                    "--lr", "1e-12", "--init-from", str(tmp_path / "sim"),
+                    "--out", str(tmp_path / "tuned"), *common]) == 0  # fmt: skip
+    start = load_marker_model(tmp_path / "sim").state_dict()
+    tuned = load_marker_model(tmp_path / "tuned").state_dict()
+    for name, value in start.items():
+        assert torch.allclose(value.float(), tuned[name].float(), atol=1e-6), name
