@@ -134,6 +134,40 @@ def test_calibration_recovers_the_stiffness(cable: Path, tmp_path: Path) -> None
     assert report["eval_calibrated_cm"] < report["eval_default_cm"]
     calibrated = yaml.safe_load((out / "calibrated.yaml").read_text())
     assert calibrated["backend"]["rod"]["young_bending"] == fitted
+    _rehearse_on(out / "calibrated.yaml", BackendSpec.model_validate(calibrated["backend"]))
+
+
+def _rehearse_on(spec_file: Path, rod: BackendSpec) -> None:
+    """The calibrated rod is a task: every simulating command's spec takes the file, and a
+    short control episode runs on it."""
+    from dlocli.bench.spec import BenchSpec
+    from dlocli.runs.control import ControlSpec
+    from dlocli.runs.online import OnlineSpec
+    from dlocli.specs import resolve_spec
+
+    for command in (OnlineSpec, ControlSpec, BenchSpec):
+        assert resolve_spec(command, spec_file, {}).backend == rod
+    out = spec_file.parent.parent / "rehearsal"  # outside the calibration run (an input)
+    assert run_dlo(["goal", "--spec", str(spec_file), "--shapes", "near-rest",
+                    "--out", str(out / "goal.npy"), "--json"]) == 0  # fmt: skip
+    argv = [
+        "control",
+        "--spec",
+        str(spec_file),
+        "--goal",
+        str(out / "goal.npy"),
+        "--controller",
+        "random",
+        "--steps",
+        "3",
+        "--shapes",
+        "near-rest",
+        "--out",
+        str(out / "control"),
+    ]
+    assert run_dlo([*argv, "--json"]) == 0
+    summary = json.loads((out / "control" / "summary.json").read_text())
+    assert summary["steps"] == 3 and not summary["diverged"]
 
 
 @pytest.mark.slow
