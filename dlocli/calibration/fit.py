@@ -165,8 +165,10 @@ class Replayer:
         order = {n: i for i, n in enumerate(names)}
         return [sorted(results, key=lambda x: order[x["name"]]) for results in out]
 
-    def close(self) -> None:
-        self.pool.shutdown(cancel_futures=True)
+    def close(self, wait: bool = True) -> None:
+        """Shut the pool down; ``wait=False`` (a stop) leaves running replays to end with
+        this process (the workers exit when their parent does)."""
+        self.pool.shutdown(wait=wait, cancel_futures=True)
 
 
 def mean_score(results: list[dict[str, Any]]) -> float:

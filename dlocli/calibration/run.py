@@ -99,8 +99,10 @@ def run_calibration(
                 eval_names,
                 lambda k, n: show({"eval_done": k, "total": n}),
             )
-        finally:
-            replayer.close()
+        except BaseException:
+            replayer.close(wait=False)
+            raise
+        replayer.close()
         summary = _summary(spec, cable, names, history, best, before, after, fit_seconds)
         summary["calibrated"] = calibrated.model_dump(mode="json")
         write_text_atomic(out / CALIBRATED_SPEC, calibrated_yaml(calibrated))

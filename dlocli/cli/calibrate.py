@@ -36,7 +36,7 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
 
     Grippers follow the recorded end markers; the rod is the cable between its outermost
     markers, with the cable's mass per length. `--resume OUT` continues after the last
-    finished generation."""
+    finished generation (`--generations` may change there: more extends the search)."""
     from dlocli.calibration.run import run_calibration
     from dlocli.cli.progress import Bars
     from dlocli.registry import backends
@@ -50,7 +50,7 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
             run.overrides,
             "a calibration",
             "dlo calibrate",
-            free=frozenset({"workers"}),
+            free=frozenset({"workers", "generations"}),
         )
     else:
         spec = run.spec()

@@ -38,7 +38,7 @@ HERE = Path(__file__).parent
 RECIPE = HERE.parent / "real_cables" / "mlp.yaml"
 SIMULATED = 56
 COUNTS = (1, 4, 16, 56)
-PRETRAIN_STEPS, FINETUNE_STEPS, SMALL_REAL_STEPS = 1000, 300, 500
+PRETRAIN_STEPS, FINETUNE_STEPS, SMALL_REAL_STEPS = 1000, 200, 300
 
 
 def dlo(*argv: str) -> dict:
