@@ -24,6 +24,7 @@ COMMANDS = [
     ("goal", "dlocli.cli.goal:goal"),
     ("collect", "dlocli.cli.collect:collect"),
     ("import", "dlocli.cli.importing:import_recordings"),
+    ("calibrate", "dlocli.cli.calibrate:calibrate"),
     ("train", "dlocli.cli.train:train"),
     ("eval", "dlocli.cli.eval:evaluate"),
     ("control", "dlocli.cli.control:control"),

@@ -205,16 +205,22 @@ def run_marker_training(
     from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
     from dlocli.markers.protocol import freeze
     from dlocli.models.base import save_checkpoint
-    from dlocli.models.markers import FORM, build_marker_model
+    from dlocli.models.markers import FORM, build_marker_model, load_marker_model
     from dlocli.models.splits import split_episodes
 
-    if spec.init_from is not None:
-        raise BadInput("--init-from is not supported for marker datasets yet; drop it")
     episodes = dataset.episodes("train")
     train_idx, val_idx = split_episodes(len(episodes), spec.val_fraction)
     train, val = [episodes[i] for i in train_idx], [episodes[i] for i in val_idx]
     torch.manual_seed(spec.seed)
-    model = build_marker_model(spec.model, dataset.n_markers, dataset.held)
+    if spec.init_from is not None:  # fine-tuning: the checkpoint's model and normalization
+        model = load_marker_model(spec.init_from)
+        if not np.array_equal(model.held.cpu().numpy(), dataset.held):
+            raise BadInput(
+                f"--init-from {spec.init_from} was trained on another marker layout than "
+                "--data (held markers differ); pass a checkpoint of the same cable"
+            )
+    else:
+        model = build_marker_model(spec.model, dataset.n_markers, dataset.held)
     out = prepare_run_dir(spec.out, overwrite)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
 

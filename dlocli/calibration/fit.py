@@ -1,0 +1,206 @@
+"""`dlo calibrate`: fit a simulated rod's material to a recorded cable by CMA-ES.
+
+The objective of a candidate material is its mean replay score (DEFORM protocol, cm) over a
+seeded draw of the cable's train recordings; the replays run in a process pool. After every
+generation the candidates and their scores are written (atomically) to OUT/history.json: a
+resumed run replays that history through a CMA-ES of the same seed (ask/tell are
+deterministic), so it continues exactly where the finished generations left it. The best
+material is scored on every eval recording next to the spec's own (the "default material"),
+written as a backend spec (OUT/calibrated.yaml, for any command's --spec) and reported.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from dlocli.calibration import parameters as params
+from dlocli.calibration.replay import MarkerLayout, ReplaySettings, check_rod_fits, replay
+from dlocli.calibration.spec import CalibrateSpec
+from dlocli.errors import BadInput, UnworkablePhysics
+from dlocli.markers import deform, protocol
+from dlocli.processes import exit_with_parent, raise_if_stopped
+from dlocli.specs import BackendSpec, RodSpec, format_validation_error
+
+HISTORY_FILE = "history.json"
+CALIBRATED_SPEC = "calibrated.yaml"
+#: score (cm) of a material the simulator cannot build: worse than any replay
+UNWORKABLE_SCORE_CM = 100.0
+
+
+@dataclass
+class Cable:
+    """A cable's recordings and the simulated rod that stands for it."""
+
+    train: list[tuple[str, np.ndarray]]
+    eval: list[tuple[str, np.ndarray]]
+    arc: np.ndarray  # marker arc lengths on the rod (m)
+    backend: BackendSpec  # the rod at the spec's (default) material
+
+
+def load_cable(spec: CalibrateSpec) -> Cable:
+    """Read and check everything a calibration needs; BadInput before anything is written."""
+    if spec.source is None:
+        raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
+    if spec.cable_length is None or spec.cable_mass is None:
+        raise BadInput(
+            "the cable's length and mass are needed; pass --cable-length and "
+            "--cable-mass (metres, kilograms)"
+        )
+    found = deform.read_folder(spec.source)
+    train, evaluation = found["train"], found.get("eval") or found["train"]
+    layout = MarkerLayout.from_recordings([r for _, r in train])
+    rod_length = spec.rod_length or layout.rod_length
+    if spec.cable_length < rod_length:
+        raise BadInput(
+            f"cable_length {spec.cable_length:g} m is shorter than the rod between its "
+            f"outermost markers ({rod_length:.3f} m); pass the cable's real length"
+        )
+    everything = train + evaluation
+    check_rod_fits(
+        rod_length, [r for _, r in everything], [f"{spec.source}/{n}.pkl" for n, _ in everything]
+    )
+    rod = spec.backend.rod
+    density = spec.cable_mass / spec.cable_length / rod.area
+    try:
+        rod = RodSpec.model_validate({**rod.model_dump(), "length": rod_length, "density": density})
+        backend = BackendSpec.model_validate({**spec.backend.model_dump(), "rod": rod})
+    except ValidationError as exc:
+        raise BadInput(f"the cable's rod: {format_validation_error(exc)}") from None
+    arc = layout.arc * (rod_length / layout.rod_length)
+    return Cable(train, evaluation, arc, backend)
+
+
+# --------------------------------------------------------------------------- worker side
+_worker: dict[str, Any] = {}
+
+
+def _init_worker(
+    parent: int,
+    recordings: dict[str, np.ndarray],
+    arc: np.ndarray,
+    settings: ReplaySettings,
+    rate_hz: float,
+) -> None:
+    exit_with_parent(parent)
+    _worker.update(recordings=recordings, arc=arc, settings=settings, dt=1.0 / rate_hz)
+
+
+def replay_named(backend_spec: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
+    """Replay the worker's recordings ``names`` on one rod; one result dict per recording
+    (score None where the simulator cannot build the rod)."""
+    from dlocli.registry import backends
+
+    spec = BackendSpec.model_validate(backend_spec)
+    try:
+        backend = backends.get(spec.name)(spec, control_dt=_worker["dt"])
+    except UnworkablePhysics:
+        return [{"name": n, "score_cm": None} for n in names]
+    try:
+        out = []
+        for name in names:
+            result = replay(
+                backend, _worker["recordings"][name], _worker["arc"], _worker["settings"]
+            )
+            out.append(
+                {
+                    "name": name,
+                    "score_cm": result.score_cm,
+                    "start_error_mm": result.start_error_mm,
+                    "held_error_mm": result.held_error_mm,
+                    "diverged_at": result.diverged_at,
+                }
+            )
+        return out
+    finally:
+        backend.close()
+
+
+# --------------------------------------------------------------------------- driver side
+class Replayer:
+    """A pool of workers holding the cable's recordings, replaying rods on request."""
+
+    def __init__(self, cable: Cable, spec: CalibrateSpec) -> None:
+        import os
+
+        recordings = {
+            f"{split}/{n}": r
+            for split, items in (("train", cable.train), ("eval", cable.eval))
+            for n, r in items
+        }
+        settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s)
+        args = (os.getpid(), recordings, cable.arc, settings, spec.rate_hz)
+        self.workers = spec.workers
+        self.pool = ProcessPoolExecutor(
+            spec.workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=args,
+        )
+
+    def scores(
+        self, rods: list[BackendSpec], names: list[str], done: Callable[[int, int], None]
+    ) -> list[list[dict[str, Any]]]:
+        """Per rod, the replay results of every recording of ``names``; ``done(k, total)``
+        after each finished piece of work. Each rod's recordings are split into chunks so that
+        every worker has work even for a single rod."""
+        chunks = max(1, min(len(names), -(-self.workers // len(rods))))
+        parts = [names[i::chunks] for i in range(chunks)]
+        futures = [
+            (r, self.pool.submit(replay_named, rod.model_dump(mode="json"), part))
+            for r, rod in enumerate(rods)
+            for part in parts
+        ]
+        out: list[list[dict[str, Any]]] = [[] for _ in rods]
+        for k, (r, future) in enumerate(futures, start=1):
+            out[r].extend(future.result())
+            raise_if_stopped()
+            done(k, len(futures))
+        order = {n: i for i, n in enumerate(names)}
+        return [sorted(results, key=lambda x: order[x["name"]]) for results in out]
+
+    def close(self, wait: bool = True) -> None:
+        """Shut the pool down; ``wait=False`` (a stop) leaves running replays to end with
+        this process (the workers exit when their parent does)."""
+        self.pool.shutdown(wait=wait, cancel_futures=True)
+
+
+def mean_score(results: list[dict[str, Any]]) -> float:
+    """The mean replay score (cm) over recordings; an unbuildable rod scores the penalty."""
+    scores = [r["score_cm"] for r in results]
+    return UNWORKABLE_SCORE_CM if None in scores else float(np.mean(scores))
+
+
+def draw_train(cable: Cable, spec: CalibrateSpec) -> list[str]:
+    """The seeded draw of train recordings the optimiser replays."""
+    rng = np.random.default_rng(spec.seed)
+    count = min(spec.train_trajectories, len(cable.train))
+    picked = sorted(rng.choice(len(cable.train), size=count, replace=False))
+    return [f"train/{cable.train[i][0]}" for i in picked]
+
+
+def freeze_reference_cm(cable: Cable) -> float:
+    """The freeze reference on the eval recordings (free markers stay at frame 1)."""
+    scores = []
+    for _, rec in cable.eval:
+        held = deform.held_markers(rec.shape[1])
+        scores.append(protocol.deform_score_cm(protocol.freeze(rec, held), rec))
+    return float(np.mean(scores))
+
+
+def rod_spec(cable: Cable, names: list[str], unit: np.ndarray) -> BackendSpec:
+    """The cable's backend spec with the fitted fields from a point in [0, 1]^n."""
+    return cable.backend.model_copy(update={"rod": params.decode(names, unit, cable.backend.rod)})
+
+
+def calibrated_yaml(backend: BackendSpec) -> str:
+    """The backend spec any command takes through --spec (a YAML of its ``backend`` field)."""
+    import yaml
+
+    return yaml.safe_dump({"backend": backend.model_dump(mode="json")}, sort_keys=False)

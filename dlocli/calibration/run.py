@@ -1,0 +1,185 @@
+"""The calibration run: CMA-ES generations with a checkpoint each, then the eval report."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dlocli.calibration import parameters as params
+from dlocli.calibration.fit import (
+    CALIBRATED_SPEC,
+    HISTORY_FILE,
+    Cable,
+    Replayer,
+    calibrated_yaml,
+    draw_train,
+    freeze_reference_cm,
+    load_cable,
+    mean_score,
+    rod_spec,
+)
+from dlocli.calibration.report import write_report
+from dlocli.calibration.spec import CalibrateSpec
+from dlocli.errors import BadInput
+
+Event = dict[str, Any]
+
+
+def new_strategy(spec: CalibrateSpec, cable: Cable) -> Any:
+    """A CMA-ES over [0, 1]^n started at the spec's material."""
+    try:
+        import cma
+    except ImportError:
+        raise BadInput(
+            "dlo calibrate needs pycma; install it with: pip install 'dlocli[calibrate]'"
+        ) from None
+
+    x0 = params.encode(spec.parameters, cable.backend.rod, cable.backend.name)
+    # pycma refuses a start exactly on a bound
+    x0 = np.clip(x0, 1e-3, 1 - 1e-3)
+    options = {
+        "bounds": [0.0, 1.0],
+        "popsize": spec.population,
+        "seed": spec.seed + 1,
+        "verbose": -9,
+    }
+    return cma.CMAEvolutionStrategy(x0.tolist(), spec.sigma0, options)
+
+
+def replay_history(strategy: Any, history: list[Event], out: Path) -> None:
+    """Feed the recorded generations to a fresh strategy; BadInput if it asks otherwise."""
+    for generation in history:
+        asked = np.array(strategy.ask())
+        recorded = np.array(generation["candidates"])
+        if asked.shape != recorded.shape or not np.allclose(asked, recorded, atol=1e-9):
+            raise BadInput(
+                f"--resume {out}: {HISTORY_FILE} does not match this CMA-ES (another seed or "
+                "library version wrote it); start a new run"
+            )
+        strategy.tell(list(asked), generation["scores"])
+
+
+def run_calibration(
+    spec: CalibrateSpec, overwrite: bool, show: Callable[[Event], None], resume: bool = False
+) -> dict[str, Any]:
+    """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary."""
+    from dlocli.io import prepare_run_dir, read_json, write_json_atomic, write_text_atomic
+    from dlocli.rundir import owned
+
+    cable = load_cable(spec)  # every input checked before OUT is touched
+    names = draw_train(cable, spec)
+    strategy = new_strategy(spec, cable)
+    with owned(spec.out):
+        out = Path(spec.out) if resume else prepare_run_dir(spec.out, overwrite)
+        history_file = out / HISTORY_FILE
+        state = read_json(history_file, dict) if resume and history_file.is_file() else {}
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        history: list[Event] = state.get("generations", [])
+        elapsed = float(state.get("seconds", 0.0))
+        replayer = Replayer(cable, spec)
+        try:
+            replay_history(strategy, history, out)
+            started = time.perf_counter()
+            for g in range(len(history), spec.generations):
+                history.append(_generation(strategy, replayer, cable, spec, names, g, show))
+                seconds = elapsed + time.perf_counter() - started
+                write_json_atomic(history_file, {"generations": history, "seconds": seconds})
+                best_cm = min(min(h["scores"]) for h in history)
+                show({"generation": g + 1, "generations": spec.generations, "best_cm": best_cm})
+            fit_seconds = elapsed + time.perf_counter() - started
+            best = _best(history)
+            calibrated = rod_spec(cable, spec.parameters, np.array(best["candidate"]))
+            eval_names = [f"eval/{n}" for n, _ in cable.eval]
+            before, after = replayer.scores(
+                [cable.backend, calibrated],
+                eval_names,
+                lambda k, n: show({"eval_done": k, "total": n}),
+            )
+        except BaseException:
+            replayer.close(wait=False)
+            raise
+        replayer.close()
+        summary = _summary(spec, cable, names, history, best, before, after, fit_seconds)
+        summary["calibrated"] = calibrated.model_dump(mode="json")
+        write_text_atomic(out / CALIBRATED_SPEC, calibrated_yaml(calibrated))
+        write_report(out, summary)
+        summary["out"] = str(out)
+    return summary
+
+
+def _generation(
+    strategy: Any,
+    replayer: Replayer,
+    cable: Cable,
+    spec: CalibrateSpec,
+    names: list[str],
+    g: int,
+    show: Callable[[Event], None],
+) -> Event:
+    """Ask for candidates, replay the train draw on each, tell the scores; the record."""
+    candidates = np.array(strategy.ask())
+    rods = [rod_spec(cable, spec.parameters, x) for x in candidates]
+    results = replayer.scores(
+        rods, names, lambda k, total: show({"generation": g, "done": k, "total": total})
+    )
+    scores = [mean_score(r) for r in results]
+    strategy.tell(list(candidates), scores)
+    return {"candidates": candidates.tolist(), "scores": scores}
+
+
+def _best(history: list[Event]) -> Event:
+    """The best candidate ever scored (on the train draw)."""
+    flat = [(s, c) for h in history for s, c in zip(h["scores"], h["candidates"], strict=True)]
+    score, candidate = min(flat, key=lambda x: x[0])
+    return {"score_cm": score, "candidate": candidate}
+
+
+def _summary(
+    spec: CalibrateSpec,
+    cable: Cable,
+    names: list[str],
+    history: list[Event],
+    best: Event,
+    before: list[Event],
+    after: list[Event],
+    seconds: float,
+) -> dict[str, Any]:
+    start = params.encode(spec.parameters, cable.backend.rod, cable.backend.name)
+    fitted = params.decode(spec.parameters, np.array(best["candidate"]), cable.backend.rod)
+    return {
+        "source": str(spec.source),
+        "backend": cable.backend.name,
+        "rod_length_m": round(cable.backend.rod.length, 4),
+        "density_kg_m3": round(cable.backend.rod.density, 2),
+        "parameters": {n: getattr(fitted, n) for n in spec.parameters},
+        "default_parameters": {
+            n: params.start_value(n, cable.backend.rod, cable.backend.name) for n in spec.parameters
+        },
+        "start_point": start.tolist(),
+        "train_recordings": names,
+        "generations": len(history),
+        "evaluations": sum(len(h["scores"]) for h in history),
+        "fit_seconds": round(seconds, 1),
+        "train_best_cm": round(best["score_cm"], 4),
+        "eval_default_cm": round(mean_score(before), 4),
+        "eval_calibrated_cm": round(mean_score(after), 4),
+        "eval_freeze_cm": round(freeze_reference_cm(cable), 4),
+        "eval_start_error_mm": round(
+            float(
+                np.mean([r["start_error_mm"] for r in after if r["score_cm"] is not None] or [0])
+            ),
+            2,
+        ),
+        "eval_held_error_mm": round(
+            float(np.mean([r["held_error_mm"] for r in after if r["score_cm"] is not None] or [0])),
+            2,
+        ),
+        "eval_diverged": sum(r.get("diverged_at") is not None for r in after),
+        "eval_per_recording": {
+            r["name"]: [b["score_cm"], r["score_cm"]] for b, r in zip(before, after, strict=True)
+        },
+    }

@@ -1,0 +1,102 @@
+"""The spec of `dlo calibrate` (torch-free: the CLI builds its --help without torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from dlocli.limits import MAX_PROCESSES, MAX_SEED
+from dlocli.specs import BackendSpec, RodSpec, Spec
+
+
+class CableRodSpec(RodSpec):
+    """A cable's rod: 1 cm thick (the radius only sets the scale of E, since E I is fitted),
+    segments of about 4 cm (a held marker pair, 2-3 cm apart, lies in the held segment)."""
+
+    radius: float = Field(
+        0.005, ge=1e-4, le=0.1, description="Rod cross-section radius in metres (1e-4 to 0.1)."
+    )
+    n_segments: int = Field(24, ge=4, le=200, description="Number of rigid segments.")
+
+
+class CableBackendSpec(BackendSpec):
+    """The simulator of a calibration, holding a :class:`CableRodSpec`."""
+
+    rod: CableRodSpec = Field(
+        default_factory=CableRodSpec, description="Rod geometry and material."
+    )
+
+
+class CalibrateSpec(Spec):
+    """`dlo calibrate`: fit a simulated rod's material to a recorded cable's motion."""
+
+    source: Path | None = Field(
+        None,
+        description="Folder of one cable's recordings in the DEFORM layout: train/*.pkl and "
+        "eval/*.pkl, each a pickled (frames, 3, markers) list of metres.",
+    )
+    cable_length: float | None = Field(
+        None, gt=0, le=10, description="The real cable's length in metres."
+    )
+    cable_mass: float | None = Field(
+        None, gt=0, le=100, description="The real cable's mass in kilograms."
+    )
+    rod_length: float | None = Field(
+        None,
+        gt=0,
+        le=10,
+        description="Length (m) of the simulated rod, the cable between its outermost "
+        "markers; None = the markers' mean polyline length over the train recordings.",
+    )
+    rate_hz: float = Field(100.0, gt=0, le=10000, description="Frames per second recorded.")
+    backend: CableBackendSpec = Field(
+        default_factory=CableBackendSpec,
+        description="Simulator and rod; the rod's length and density come from the cable, "
+        "its material is the optimiser's start (the 'default material').",
+    )
+    parameters: list[str] = Field(
+        ["young_bending", "bending_damping", "air_damping"],
+        min_length=1,
+        description="Rod fields the optimiser fits (see `dlocli.calibration.fit.PARAMETERS`).",
+    )
+    roll: Literal["transported", "level"] = Field(
+        "transported",
+        description="How the grippers' unrecorded roll about the cable axis is chosen: "
+        "'transported' turns it with the axis (no spin), 'level' keeps the gripper's y axis "
+        "horizontal.",
+    )
+    approach_s: float = Field(
+        1.0, gt=0, le=10, description="Seconds to move the grippers from rest to frame 0."
+    )
+    settle_s: float = Field(
+        1.0, ge=0, le=10, description="Seconds the rod settles at frame 0 before the replay."
+    )
+    train_trajectories: int = Field(
+        8, ge=1, le=10000, description="Train recordings the optimiser replays (a seeded draw)."
+    )
+    generations: int = Field(8, ge=1, le=1000, description="CMA-ES generations.")
+    population: int = Field(8, ge=2, le=256, description="CMA-ES candidates per generation.")
+    sigma0: float = Field(
+        0.25, gt=0, le=1, description="CMA-ES initial step, in units of each parameter's range."
+    )
+    workers: int = Field(
+        2, ge=1, le=MAX_PROCESSES, description="Processes replaying trajectories in parallel."
+    )
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of the draw and of CMA-ES.")
+    out: Path = Field(Path("runs/calibrate"), description="Run directory.")
+
+    @field_validator("parameters")
+    @classmethod
+    def _known(cls, value: list[str]) -> list[str]:
+        from dlocli.calibration.parameters import PARAMETERS
+
+        unknown = [p for p in value if p not in PARAMETERS]
+        if unknown:
+            raise ValueError(
+                f"unknown parameter {unknown[0]!r}; choose from {', '.join(PARAMETERS)}"
+            )
+        if len(set(value)) != len(value):
+            raise ValueError("a parameter is listed twice; list each once")
+        return value

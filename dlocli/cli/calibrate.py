@@ -1,0 +1,75 @@
+"""`dlo calibrate`: fit a simulated rod's material to a recorded cable's motion."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dlocli.calibration.spec import CalibrateSpec
+from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
+
+
+@handle_errors
+@spec_flags(
+    CalibrateSpec,
+    [
+        "source",
+        "cable_length",
+        "cable_mass",
+        "rod_length",
+        "backend.name",
+        "parameters",
+        "roll",
+        "train_trajectories",
+        "generations",
+        "population",
+        "workers",
+        "seed",
+        "out",
+    ],
+)
+def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
+    """Fit the rod's material (--parameters) to the --source cable's train recordings by
+    CMA-ES on the DEFORM replay score; write OUT/calibrated.yaml (a backend spec for any
+    command's --spec) and OUT/report.{json,md} (eval score before and after, next to
+    DEFORM's published physics rows and the freeze reference).
+
+    Grippers follow the recorded end markers; the rod is the cable between its outermost
+    markers, with the cable's mass per length. `--resume OUT` continues after the last
+    finished generation (`--generations` may change there: more extends the search)."""
+    from dlocli.calibration.run import run_calibration
+    from dlocli.cli.progress import Bars
+    from dlocli.registry import backends
+    from dlocli.resume import resumed_run_spec
+
+    run.refuse_with_resume(resume)
+    if resume is not None:
+        spec = resumed_run_spec(
+            CalibrateSpec,
+            resume,
+            run.overrides,
+            "a calibration",
+            "dlo calibrate",
+            free=frozenset({"workers", "generations"}),
+        )
+    else:
+        spec = run.spec()
+    backends.check(spec.backend.name)
+    with Bars(run.json) as bars:
+
+        def show(event: dict[str, Any]) -> None:
+            if "best_cm" in event:
+                bars.update(
+                    "generation",
+                    event["generation"],
+                    event["generations"],
+                    info=f"best train score {event['best_cm']:.3f} cm",
+                )
+            elif "done" in event:
+                bars.update("replay", event["done"], event["total"])
+            elif "eval_done" in event:
+                bars.update("eval", event["eval_done"], event["total"])
+
+        summary = run_calibration(spec, run.overwrite, show, resume=resume is not None)
+    summary.pop("eval_per_recording", None)
+    emit_summary(summary, run.json, "dlo calibrate")
