@@ -38,8 +38,8 @@ class ClusterLost(DloError):
     """The executor stopped answering while work ran (a Ray cluster went down). Work that
     finished before is saved; :meth:`line` tells how to go on. Exit 1."""
 
-    def __init__(self, address: str, cause: BaseException) -> None:
-        self.address = address
+    def __init__(self, where: str, cause: BaseException) -> None:
+        self.where = where
         self.cause = cause
         super().__init__(self.line())
 
@@ -47,7 +47,7 @@ class ClusterLost(DloError):
         first = str(self.cause).strip().splitlines()[0] if str(self.cause).strip() else ""
         resume = f"--resume {run_dir}" if run_dir is not None else "--resume"
         return (
-            f"the Ray cluster at {self.address} stopped answering ({type(self.cause).__name__}"
+            f"{self.where} stopped answering ({type(self.cause).__name__}"
             f"{': ' + first if first else ''}); finished work is saved: restart the cluster "
             f"(`ray start --head`) or pass --executor local, and continue with {resume}"
         )
@@ -132,7 +132,7 @@ class RayExecutor:
 
     @property
     def where(self) -> str:
-        return self.address or "this machine (a local Ray instance)"
+        return f"the Ray cluster at {self.address}" if self.address else "the local Ray instance"
 
     def connect(self) -> None:
         """Join the cluster (or start a local instance); BadInput if the address fails."""
