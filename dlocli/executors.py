@@ -23,15 +23,32 @@ import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager, suppress
-from typing import Any
+from typing import Any, Literal
+
+from pydantic import Field
 
 from dlocli.errors import BadInput, DloError
 from dlocli.processes import pool_initializer
+from dlocli.specs import Spec
 from dlocli.threads import machine_cpus, set_worker_threads
 
 Outcome = tuple[int, Any]
 #: Ray's connection window in seconds when joining a cluster (Ray's default: about 20 tries)
 WINDOW_VARIABLE = "RAY_gcs_server_port_wait_time_s"
+
+
+class ExecutorChoice(Spec):
+    """The fields that say where a command's independent work runs (``--executor``,
+    ``--ray-address``); every command with an executor has them, with these meanings."""
+
+    executor: Literal["local", "ray"] = Field(
+        "local", description="Where jobs run: local processes, or Ray tasks."
+    )
+    ray_address: str | None = Field(
+        None,
+        description="Ray cluster to join (host:port, ray://host:port or auto); None = "
+        "start a local Ray instance.",
+    )
 
 
 class ClusterLost(DloError):

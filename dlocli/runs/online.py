@@ -39,7 +39,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -48,7 +48,13 @@ from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.errors import DloError
-from dlocli.executors import ClusterLost, LocalExecutor, check_executor, open_executor
+from dlocli.executors import (
+    ClusterLost,
+    ExecutorChoice,
+    LocalExecutor,
+    check_executor,
+    open_executor,
+)
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, refuse_oversized_dataset
 from dlocli.models.spec import FitSpec, ModelSpec
@@ -62,8 +68,9 @@ from dlocli.threads import torch_threads
 Progress = Callable[[str, dict[str, Any]], None]
 
 
-class OnlineSpec(EnvSpec):
-    """`dlo online`: Algorithm 1 of the paper. Defaults are the paper's parameters."""
+class OnlineSpec(EnvSpec, ExecutorChoice):
+    """`dlo online`: Algorithm 1 of the paper. Defaults are the paper's parameters. Its jobs
+    are the trials and reference episodes; the model update stays in this process."""
 
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
 
@@ -95,16 +102,6 @@ class OnlineSpec(EnvSpec):
         description="Processes running an iteration's trials (at most one per CPU); with "
         "--executor ray and no --ray-address, the CPUs of the local Ray instance.",
     )  # fmt: skip
-    executor: Literal["local", "ray"] = Field(
-        "local",
-        description="Where trials run: local processes, or Ray tasks (the model update "
-        "stays in this process).",
-    )
-    ray_address: str | None = Field(
-        None,
-        description="Ray cluster to join (host:port, ray://host:port or auto); None = "
-        "start a local Ray instance.",
-    )
     offline: bool = Field(
         False,
         description="Also train a model offline on as many random transitions as D holds "
