@@ -107,9 +107,20 @@ def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
-def pool_initializer() -> dict[str, Any]:
-    """``initializer`` and ``initargs`` for a process pool whose workers end with this one."""
-    return {"initializer": exit_with_parent, "initargs": (os.getpid(),)}
+def start_worker(parent: int, threads: int) -> None:
+    """A pool worker's start: ``threads`` threads with passive waiting
+    (:func:`dlocli.threads.set_worker_threads`, before the tasks import torch), and an end
+    with the process ``parent`` (:func:`exit_with_parent`)."""
+    from dlocli.threads import set_worker_threads
+
+    set_worker_threads(threads)
+    exit_with_parent(parent)
+
+
+def pool_initializer(threads: int = 1) -> dict[str, Any]:
+    """``initializer`` and ``initargs`` for a process pool whose workers run ``threads``
+    threads each and end with this process."""
+    return {"initializer": start_worker, "initargs": (os.getpid(), threads)}
 
 
 def _ask_kernel_for_sigkill_on_parent_death() -> None:

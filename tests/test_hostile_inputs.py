@@ -250,7 +250,7 @@ def test_a_failed_bench_job_is_one_line_naming_the_job_and_its_cause(
     def fail(*args: object) -> None:
         raise raised
 
-    monkeypatch.setattr("dlocli.bench.executors.run_job", fail)
+    monkeypatch.setattr("dlocli.bench.run.run_job", fail)
     spec = tmp_path / "bench.json"
     spec.write_text(json.dumps(TINY_BENCH | {"agents": ["zero"]}))
     argv = ["bench", "--spec", str(spec), "--out", str(tmp_path / "out"), "--json"]

@@ -142,7 +142,7 @@ def test_references_shared_among_workers_match_the_serial_ones(uninterrupted, tm
     try:
         run.run_references(2)
     finally:
-        run._pool.shutdown()
+        run.executor.close()
     serial = json.loads((first / "references.json").read_text())
     shared = json.loads((out / "references.json").read_text())
     for name in ("zero", "random"):

@@ -20,6 +20,7 @@ from dlocli.bench.spec import BenchSpec, fingerprint, resolved_options
 from dlocli.env.rollout import episode_scores, rollout, stream_seed
 from dlocli.io import versions
 from dlocli.tensorboard import Scalars
+from dlocli.threads import torch_threads
 
 EVAL = 5  # seed stream of evaluation starts
 #: the directory of a job's mid-job checkpoints, in its work directory
@@ -90,25 +91,18 @@ def _workdir(scratch: str | None) -> Iterator[Path]:
 
 def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -> dict[str, Any]:
     """Learn and evaluate one agent x seed; returns its result (rows of results.csv)."""
-    import torch
-
     spec = BenchSpec.model_validate_json(spec_json)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(spec.threads)
     _seed_globals(seed)
-    try:
-        with _workdir(scratch) as work:
-            # a scratch directory is the job's own directory in the run: its policy stays,
-            # and a stopped job continues there from its last evaluation point
-            policy = work / "policy" if scratch is not None else None
-            checkpoint = None
-            if scratch is not None:
-                checkpoint = JobCheckpoint(work / RESUME_DIR, fingerprint(spec, agent))
-            progress, saved = _learn_and_evaluate(spec, agent, seed, work, policy, checkpoint)
-            if checkpoint is not None:
-                checkpoint.remove()
-    finally:
-        torch.set_num_threads(threads)
+    with torch_threads(spec.threads), _workdir(scratch) as work:
+        # a scratch directory is the job's own directory in the run: its policy stays,
+        # and a stopped job continues there from its last evaluation point
+        policy = work / "policy" if scratch is not None else None
+        checkpoint = None
+        if scratch is not None:
+            checkpoint = JobCheckpoint(work / RESUME_DIR, fingerprint(spec, agent))
+        progress, saved = _learn_and_evaluate(spec, agent, seed, work, policy, checkpoint)
+        if checkpoint is not None:
+            checkpoint.remove()
     return {
         "agent": agent,
         "seed": seed,

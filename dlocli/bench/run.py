@@ -45,7 +45,7 @@ from typing import Any
 
 from dlocli.bench.agents import agent_names, check_agent, is_reference
 from dlocli.bench.checkpoint import JobCheckpoint
-from dlocli.bench.jobs import RESUME_DIR, Job
+from dlocli.bench.jobs import RESUME_DIR, Job, run_job
 from dlocli.bench.spec import (
     FREE_FIELDS,
     BenchSpec,
@@ -59,6 +59,7 @@ from dlocli.errors import BadInput, DloError
 from dlocli.io import prepare_run_dir, read_json, write_json_atomic
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import InUse, owned
+from dlocli.threads import machine_cpus, warn_if_oversubscribed
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -66,8 +67,8 @@ Progress = Callable[[str, dict[str, Any]], None]
 # ----------------------------------------------------------------------------- checks
 def check_spec(spec: BenchSpec) -> None:
     """Refuse what cannot run, with one line naming the fix (BadInput)."""
-    from dlocli.bench.executors import check_executor
     from dlocli.controllers.base import controller_spec
+    from dlocli.executors import check_executor
     from dlocli.registry import backends, tasks
 
     backends.check(spec.backend.name)
@@ -112,6 +113,8 @@ def check_spec(spec: BenchSpec) -> None:
         controller_spec(name, options)
     _refuse_oversized_agents(spec)
     check_executor(spec.executor, spec.ray_address)
+    if spec.executor == "local":
+        warn_if_oversubscribed(spec.threads, spec.workers or machine_cpus())
 
 
 def _refuse_oversized_agents(spec: BenchSpec) -> None:
@@ -174,7 +177,7 @@ class BenchRun:
         return found[1].rows[-1]["transitions"] if found and found[1].rows else None
 
     def run(self, executor: Any) -> dict[str, Any]:
-        """Run the missing jobs on ``executor`` (:mod:`dlocli.bench.executors`), saving each
+        """Run the missing jobs on ``executor`` (:mod:`dlocli.executors`), saving each
         as it finishes; then write the results."""
         todo = self.jobs()
         total = len(self.spec.agents) * self.spec.seeds
@@ -209,15 +212,22 @@ class BenchRun:
 
     def _run_jobs(self, executor: Any, todo: list[Job]) -> dict[str, BaseException]:
         """Run ``todo``, saving each job as it finishes; what each failed job raised."""
+        from dlocli.executors import ClusterLost
+
         failed: dict[str, BaseException] = {}
-        if todo:
-            for job, result in executor.run(self.spec.model_dump_json(), todo):
+        spec_json = self.spec.model_dump_json()
+        calls = [(spec_json, job.agent, job.seed, job.scratch) for job in todo]
+        try:
+            for index, result in executor.map(run_job, calls):
+                job = todo[index]
                 if isinstance(result, BaseException):
                     failed[job.name] = result
                     self.progress("failed", {"job": job.name, "error": _cause(result)})
                     continue
                 write_json_atomic(self.job_file(job.agent, job.seed), result)
                 self.progress("job", {"job": job.name, "seconds": result["seconds"]})
+        except ClusterLost as lost:
+            raise DloError(lost.line(self.out)) from lost
         return failed
 
     def write_results_csv_from_jobs(self) -> None:
@@ -267,7 +277,7 @@ def start_bench(
     spec: BenchSpec, overwrite: bool = False, progress: Progress | None = None
 ) -> dict[str, Any]:
     """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept)."""
-    from dlocli.bench.executors import open_executor
+    from dlocli.executors import open_executor
 
     check_spec(spec)
     if (Path(spec.out) / "spec.json").is_file() and not overwrite:
@@ -277,7 +287,8 @@ def start_bench(
                 f"{spec.out}, or pass --overwrite or another --out"
             )
         raise BadInput(f"--out {spec.out} holds another command's run; pass another --out")
-    with open_executor(spec) as executor, owned(spec.out):  # a bad Ray address: nothing written
+    # the executor connects first: a bad Ray address leaves the directory as it was
+    with open_executor(spec, spec.threads) as executor, owned(spec.out):
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         return BenchRun(spec, progress).run(executor)
@@ -293,11 +304,11 @@ def resume_bench(
     run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
 ) -> dict[str, Any]:
     """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change."""
-    from dlocli.bench.executors import open_executor
+    from dlocli.executors import open_executor
 
     spec = load_bench_spec(run_dir, overrides)
     check_spec(spec)
-    with open_executor(spec) as executor, owned(run_dir, shared=True):
+    with open_executor(spec, spec.threads) as executor, owned(run_dir, shared=True):
         write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
         return BenchRun(spec, progress).run(executor)
 

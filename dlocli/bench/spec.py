@@ -6,11 +6,12 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from pydantic import Field, model_validator
 
 from dlocli.controllers.mpc import MPCSpec
+from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
 from dlocli.models.spec import FIT_LEGACY_VALUES, LEGACY_VALUES, FitSpec, ModelSpec
 from dlocli.specs import BACKEND_LEGACY_VALUES, ROD_LEGACY_VALUES, TASK_LEGACY_VALUES, EnvSpec
@@ -20,7 +21,7 @@ from dlocli.specs import BACKEND_LEGACY_VALUES, ROD_LEGACY_VALUES, TASK_LEGACY_V
 FREE_FIELDS = {"agents", "seeds", "executor", "workers", "ray_address", "out", "budgets"}
 
 
-class BenchSpec(EnvSpec):
+class BenchSpec(EnvSpec, ExecutorChoice):
     """`dlo bench`: every agent x seed learns under the same transition budget."""
 
     agents: list[str] = Field(
@@ -28,7 +29,9 @@ class BenchSpec(EnvSpec):
         description="Agents to compare: zero, random, sac, td3, pilco, mpc, mpc-offline "
         "(zero and random are the references every result is read against).",
     )
-    budget: int = Field(5000, gt=0, le=MAX_TRANSITIONS, description="Env transitions each agent may learn from.")
+    budget: int = Field(
+        5000, gt=0, le=MAX_TRANSITIONS, description="Env transitions each agent may learn from."
+    )
     budgets: dict[str, Annotated[int, Field(gt=0, le=MAX_TRANSITIONS)]] = Field(
         default_factory=dict,
         description="Per-agent budgets overriding `budget`, e.g. {sac: 50000, td3: 50000}; "
@@ -36,9 +39,14 @@ class BenchSpec(EnvSpec):
     )
     seeds: int = Field(3, gt=0, le=MAX_SEEDS, description="Seeds per agent: seed, seed+1, ...")
     evals: int = Field(
-        10, gt=0, le=MAX_COUNT, description="Evaluation points, at regular transition counts (whole episodes)."
+        10,
+        gt=0,
+        le=MAX_COUNT,
+        description="Evaluation points, at regular transition counts (whole episodes).",
     )
-    eval_trials: int = Field(5, gt=0, le=MAX_COUNT, description="Noise-free episodes per evaluation point.")
+    eval_trials: int = Field(
+        5, gt=0, le=MAX_COUNT, description="Noise-free episodes per evaluation point."
+    )
     options: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
         description="Options of the learning agents by name, e.g. {sac: {net_arch: [64, 64]}}.",
@@ -55,16 +63,11 @@ class BenchSpec(EnvSpec):
         description="Also evaluate final agents on random goals (after a fixed goal) and "
         "model-based ones on the bimanual task (after the single one).",
     )
-    executor: Literal["local", "ray"] = Field(
-        "local", description="Where jobs run: local processes, or Ray tasks."
-    )
     workers: int | None = Field(
-        None, gt=0, le=MAX_PROCESSES, description="Parallel jobs (local processes or Ray CPUs); None = CPU count."
-    )
-    ray_address: str | None = Field(
         None,
-        description="Ray cluster to join (host:port, ray://host:port or auto); None = "
-        "start a local Ray instance.",
+        gt=0,
+        le=MAX_PROCESSES,
+        description="Parallel jobs (local processes or Ray CPUs); None = CPU count.",
     )
     threads: int = Field(1, gt=0, le=MAX_PROCESSES, description="Torch threads per job.")
     out: Path = Field(Path("runs/bench"), description="Run directory.")

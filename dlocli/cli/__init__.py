@@ -123,6 +123,9 @@ def main() -> None:
 
     from dlocli.cli.common import print_error
     from dlocli.processes import handle_stop_signals
+    from dlocli.threads import fit_this_process
+
+    fit_this_process()  # before any command imports torch
 
     # Typer vendors Click; its UsageError is public only as BadParameter's base
     usage_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")

@@ -17,7 +17,7 @@ from dlocli.runs.online import OnlineSpec as S
      "initial_episodes", "mpc.horizon",
      "fit.lr", "model.name", "model.hidden", "model.velocity_input", "task.goal", "task.name",
      "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
-     "fit.mirror", "offline", "seed", "out"],
+     "executor", "ray_address", "fit.mirror", "offline", "seed", "out"],
 )  # fmt: skip
 def online(
     run: RunFlags,

@@ -14,6 +14,7 @@ from dlocli.markers import protocol
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.models.marker_training import predict_episodes
 from dlocli.models.markers import MarkerModel
+from dlocli.threads import torch_threads
 
 TIMING_STEPS = 200
 
@@ -56,16 +57,12 @@ def time_per_step_ms(model: MarkerModel, episode: np.ndarray) -> float:
     """Median over 3 runs of a batch-1 open-loop rollout's time per step, one CPU thread."""
     cpu = model if model.device.type == "cpu" else copy.deepcopy(model).to("cpu")
     rec = torch.as_tensor(episode[None, : TIMING_STEPS + 2], dtype=torch.float32)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        times = []
+    times = []
+    with torch_threads(1):
         for _ in range(3):
             start = time.perf_counter()
             cpu.rollout(rec[:, 1], rec[:, 0], rec[:, 2:])
             times.append((time.perf_counter() - start) / (len(rec[0]) - 2))
-    finally:
-        torch.set_num_threads(threads)
     return float(np.median(times) * 1000.0)
 
 

@@ -43,7 +43,7 @@ from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
-from dlocli.processes import exit_with_parent, raise_if_stopped
+from dlocli.processes import raise_if_stopped, start_worker
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.specs import CollectSpec, EnvSpec
 
@@ -65,8 +65,8 @@ _worker_spec: CollectSpec | None = None
 
 def _init_worker(spec_json: str, parent: int | None = None) -> None:
     global _worker_env, _worker_spec
-    if parent is not None:  # a pool worker: end with the collecting process
-        exit_with_parent(parent)
+    if parent is not None:  # a pool worker: one thread, and an end with the collecting process
+        start_worker(parent, threads=1)
     _worker_spec = CollectSpec.model_validate_json(spec_json)
     _worker_env = make_env_from_spec(_worker_spec)
 

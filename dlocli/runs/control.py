@@ -21,8 +21,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -44,6 +43,7 @@ from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
 from dlocli.rundir import owned
 from dlocli.specs import EnvSpec
+from dlocli.threads import torch_threads, warn_if_oversubscribed
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 
@@ -77,7 +77,9 @@ class ControlSpec(EnvSpec):
     video: Path | None = Field(
         None, description="Write frames of the rod and the goal to this .mp4 or .gif."
     )
-    video_every: int = Field(2, gt=0, le=MAX_COUNT, description="Record every k-th control step in the video.")
+    video_every: int = Field(
+        2, gt=0, le=MAX_COUNT, description="Record every k-th control step in the video."
+    )
     out: Path = Field(Path("runs/control"), description="Run directory.")
 
 
@@ -165,19 +167,6 @@ def prepare(
 
 
 # --------------------------------------------------------------------------- closed loop
-@contextmanager
-def torch_threads(threads: int) -> Iterator[None]:
-    """Run the block with ``threads`` torch CPU threads, then restore the previous number."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def run_control(
     spec: ControlSpec, progress: Progress | None = None, *, overwrite: bool = False
 ) -> dict[str, Any]:
@@ -202,6 +191,7 @@ def _run_closed_loop(
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         start = time.perf_counter()
+        warn_if_oversubscribed(spec.threads, processes=1)
         with torch_threads(spec.threads):
             records, initial_error, frames, diverged = closed_loop(env, controller, spec, progress)
         wall = time.perf_counter() - start

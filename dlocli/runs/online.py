@@ -20,6 +20,13 @@ Run directory (every file written atomically)::
 Resume (``--resume RUN``): an iteration whose checkpoint exists is not retrained; a trial
 whose file exists is not rerun. Every random stream is derived from (seed, iteration, trial),
 so a resumed run reproduces an uninterrupted one with the same seed.
+
+Where trials run (:mod:`dlocli.executors`): in this process, a pool of local processes
+(``workers``), or Ray tasks on a cluster (``executor``, ``ray_address``). Each trial gets the
+model's checkpoint as bytes and one thread, and returns its episode: this process (the
+driver) writes every file and updates the model, so a cluster needs no shared file system,
+and the same seed gives the same trials on any executor. Executor and workers may change on
+resume.
 """
 
 from __future__ import annotations
@@ -28,9 +35,9 @@ import csv
 import io
 import json
 import shutil
+import tempfile
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -40,21 +47,30 @@ from pydantic import Field
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
+from dlocli.errors import DloError
+from dlocli.executors import (
+    ClusterLost,
+    ExecutorChoice,
+    LocalExecutor,
+    check_executor,
+    open_executor,
+)
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, refuse_oversized_dataset
 from dlocli.models.spec import FitSpec, ModelSpec
-from dlocli.processes import pool_initializer
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.runs.references import REFERENCES, ReferenceTable, reference_episode_scores
 from dlocli.specs import EnvSpec
 from dlocli.tensorboard import Scalars
+from dlocli.threads import torch_threads
 
 Progress = Callable[[str, dict[str, Any]], None]
 
 
-class OnlineSpec(EnvSpec):
-    """`dlo online`: Algorithm 1 of the paper. Defaults are the paper's parameters."""
+class OnlineSpec(EnvSpec, ExecutorChoice):
+    """`dlo online`: Algorithm 1 of the paper. Defaults are the paper's parameters. Its jobs
+    are the trials and reference episodes; the model update stays in this process."""
 
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
 
@@ -63,7 +79,10 @@ class OnlineSpec(EnvSpec):
     )
     trials: int = Field(50, gt=0, le=MAX_COUNT, description="MPC trials N per iteration.")
     initial_episodes: int = Field(
-        10, gt=1, le=MAX_COUNT, description="Random-action episodes (of T steps) in the initial dataset D."
+        10,
+        gt=1,
+        le=MAX_COUNT,
+        description="Random-action episodes (of T steps) in the initial dataset D.",
     )
     noise_probability: float = Field(
         0.2, ge=0, le=1, description="Probability that a step's MPC action gets action noise."
@@ -80,7 +99,8 @@ class OnlineSpec(EnvSpec):
     mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC that explores.")
     workers: int = Field(
         1, gt=0, le=MAX_PROCESSES,
-        description="Processes running an iteration's trials (at most one per CPU).",
+        description="Processes running an iteration's trials (at most one per CPU); with "
+        "--executor ray and no --ray-address, the CPUs of the local Ray instance.",
     )  # fmt: skip
     offline: bool = Field(
         False,
@@ -91,6 +111,12 @@ class OnlineSpec(EnvSpec):
     )
     out: Path = Field(Path("runs/online"), description="Run directory.")
 
+
+#: fields that may change when a run resumes: they change where trials run, not the results
+FREE_FIELDS = frozenset({"executor", "ray_address", "workers"})
+#: torch threads of a trial, on every executor: the planner is fastest with one at these
+#: sizes, and the same number everywhere gives the same floats everywhere
+TRIAL_THREADS = 1
 
 # ----------------------------------------------------------------------------- seeds
 INITIAL, TRAIN, TRIAL, NOISE, OFFLINE, REFERENCE = 0, 1, 2, 3, 4, 5
@@ -150,19 +176,13 @@ class _TimedController:
             self.seconds += time.perf_counter() - start
 
 
-def _trial_episode(
-    spec: OnlineSpec, checkpoint: Path, k: int, j: int, threads: int | None = None
-) -> tuple[Episode, float]:
+def _trial_episode(spec: OnlineSpec, checkpoint: Path, k: int, j: int) -> tuple[Episode, float]:
     """One MPC trial through the model in ``checkpoint`` (seeds from (seed, k, j)), and the
     seconds the MPC took in it."""
-    import torch
-
     from dlocli.controllers.mpc import GradientMPC
     from dlocli.env.shape_env import make_env_from_spec
     from dlocli.models.base import load_model
 
-    if threads is not None:
-        torch.set_num_threads(threads)
     env = make_env_from_spec(_env_spec(spec))
     try:
         model = load_model(checkpoint, spec.fit.device)
@@ -179,20 +199,21 @@ def _env_spec(spec: OnlineSpec) -> EnvSpec:
     return EnvSpec(backend=spec.backend, task=spec.task, seed=spec.seed)
 
 
-def _run_trial_to_file(
-    spec_json: str, checkpoint: str, k: int, j: int, path: str, threads: int | None
-) -> dict[str, Any]:
-    """Run one trial and write its dataset file atomically (a worker-process entry point)."""
+def _run_trial(spec_json: str, checkpoint: bytes, k: int, j: int) -> tuple[Episode, dict[str, Any]]:
+    """Trial j of iteration k through the model whose checkpoint file holds ``checkpoint``:
+    its episode and scores (an executor's task; the driver writes the file)."""
     spec = OnlineSpec.model_validate_json(spec_json)
     start = time.perf_counter()
-    episode, mpc_seconds = _trial_episode(spec, Path(checkpoint), k, j, threads)
+    with tempfile.TemporaryDirectory(prefix="dlo-trial-") as tmp, torch_threads(TRIAL_THREADS):
+        model = Path(tmp) / "model.pt"
+        model.write_bytes(checkpoint)
+        episode, mpc_seconds = _trial_episode(spec, model, k, j)
     attrs = {
         **episode_scores(episode, spec.task.episode_steps),
         "trial_seconds": round(time.perf_counter() - start, 3),
         "mpc_seconds": round(mpc_seconds, 3),
     }
-    Dataset.from_episodes([episode], {**attrs, "iteration": k, "trial": j}).save(Path(path))
-    return attrs
+    return episode, attrs
 
 
 def _reference_episodes(
@@ -218,11 +239,16 @@ def _reference_episodes(
 class OnlineRun:
     """Algorithm 1 over a run directory; :meth:`run` can be called again to resume."""
 
-    def __init__(self, spec: OnlineSpec, progress: Progress | None = None) -> None:
+    def __init__(
+        self, spec: OnlineSpec, progress: Progress | None = None, executor: Any = None
+    ) -> None:
+        """``executor``: where trials run (:mod:`dlocli.executors`), connected; None: the
+        local processes of ``spec.workers``, ended with :meth:`run`."""
         self.spec = spec
         self.paths = RunLayout(spec.out)
         self.progress = progress or (lambda event, info: None)
-        self._pool: ProcessPoolExecutor | None = None
+        self._own_executor = executor is None
+        self.executor = LocalExecutor(spec.workers, TRIAL_THREADS) if executor is None else executor
         self.scalars = Scalars(None)
         self._train_seconds: dict[int, float] = {}
 
@@ -338,32 +364,17 @@ class OnlineRun:
         ]
         done = self.spec.trials - len(todo)
         self.progress("trials", {"iteration": k, "done": done, "total": self.spec.trials})
-        spec_json = self.spec.model_dump_json()
-        if self.spec.workers == 1:
-            for j in todo:
-                attrs = _run_trial_to_file(
-                    spec_json, str(checkpoint), k, j, str(self.paths.trial(k, j, offline)), None
-                )
-                done += 1
-                self.progress(
-                    "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
-                )
+        if not todo:
             return
-        pool = self._get_pool()
-        futures = [
-            pool.submit(
-                _run_trial_to_file,
-                spec_json,
-                str(checkpoint),
-                k,
-                j,
-                str(self.paths.trial(k, j, offline)),
-                1,
+        spec_json = self.spec.model_dump_json()
+        model = self.executor.share(Path(checkpoint).read_bytes())
+        calls = [(spec_json, model, k, j) for j in todo]
+        for index, result in self.executor.map(_run_trial, calls):
+            episode, attrs = _returned(result)
+            j = todo[index]
+            Dataset.from_episodes([episode], {**attrs, "iteration": k, "trial": j}).save(
+                self.paths.trial(k, j, offline)
             )
-            for j in todo
-        ]
-        for future in futures:
-            attrs = future.result()
             done += 1
             self.progress(
                 "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
@@ -379,26 +390,12 @@ class OnlineRun:
             return
         self.progress("references", {"iteration": k, "total": len(missing)})
         spec_json = self.spec.model_dump_json()
-        if self.spec.workers == 1:
-            done = _reference_episodes(spec_json, k, missing)
-        else:
-            shares = [missing[w :: self.spec.workers] for w in range(self.spec.workers)]
-            pool = self._get_pool()
-            futures = [pool.submit(_reference_episodes, spec_json, k, s) for s in shares if s]
-            done = [episode for future in futures for episode in future.result()]
-        for name, j, scores in done:
-            table.add(name, k, j, scores)
+        shares = [missing[w :: self.spec.workers] for w in range(self.spec.workers)]
+        calls = [(spec_json, k, share) for share in shares if share]
+        for _, result in self.executor.map(_reference_episodes, calls):
+            for name, j, scores in _returned(result):
+                table.add(name, k, j, scores)
         table.save()
-
-    def _get_pool(self) -> ProcessPoolExecutor:
-        if self._pool is None:
-            import multiprocessing as mp
-
-            # spawn: forking a process whose torch already started OpenMP threads can hang
-            self._pool = ProcessPoolExecutor(
-                self.spec.workers, mp_context=mp.get_context("spawn"), **pool_initializer()
-            )
-        return self._pool
 
     def offline_comparison(self, k: int, n_transitions: int) -> None:
         """Paper Fig. 7: a model trained from scratch on ``n_transitions`` random transitions."""
@@ -470,10 +467,12 @@ class OnlineRun:
                     self.log_iteration(summary["curve"][k - 1])
                 self.progress("iteration done", {"iteration": k, "total": self.spec.iters})
             return self.write_results(time.perf_counter() - start, final=True)
+        except ClusterLost as lost:
+            raise DloError(lost.line(self.spec.out)) from lost
         finally:
             self.scalars.close()
-            if self._pool is not None:
-                self._pool.shutdown(cancel_futures=True)
+            if self._own_executor:
+                self.executor.close()
 
     def earlier_summary(self) -> dict[str, Any]:
         """The summary the run wrote before it was stopped (empty for a new run)."""
@@ -621,6 +620,13 @@ def iteration_curve(
     return curve
 
 
+def _returned(result: Any) -> Any:
+    """An executor's result, raised if it is the error the call raised."""
+    if isinstance(result, BaseException):
+        raise result
+    return result
+
+
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     if not rows:
         return
@@ -654,7 +660,9 @@ def start_online(
     tasks.check(spec.task.name)
     models.check(spec.model.name)
     refuse_oversized_run(spec)
-    with owned(spec.out):
+    check_executor(spec.executor, spec.ray_address)
+    # the executor connects first: an address that fails leaves the directory as it was
+    with open_executor(spec, TRIAL_THREADS) as executor, owned(spec.out):
         out = prepare_run_dir(spec.out, overwrite)
         for state in RunLayout(out).state_dirs():
             shutil.rmtree(state, ignore_errors=True)
@@ -662,7 +670,7 @@ def start_online(
         RunLayout(out).references().unlink(missing_ok=True)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         record_fingerprints(out, spec)
-        return OnlineRun(spec, progress).run()
+        return OnlineRun(spec, progress, executor).run()
 
 
 def resume_online(
@@ -671,10 +679,21 @@ def resume_online(
     progress: Progress | None = None,
     accept_changes: bool = False,
 ) -> dict[str, Any]:
-    """Continue the run in ``run_dir``; flags that contradict its spec are refused, and so is
-    a changed spec.json or input file unless ``accept_changes``."""
-    spec = resumed_run_spec(OnlineSpec, run_dir, overrides, "an online", "dlo online")
+    """Continue the run in ``run_dir``; flags that contradict its spec are refused (but for
+    where trials run: :data:`FREE_FIELDS`), and so is a changed spec.json or input file
+    unless ``accept_changes``."""
+    spec = resumed_run_spec(OnlineSpec, run_dir, overrides, "an online", "dlo online", FREE_FIELDS)
     refuse_oversized_run(spec)
-    with owned(run_dir):
+    check_executor(spec.executor, spec.ray_address)
+    with open_executor(spec, TRIAL_THREADS) as executor, owned(run_dir):
         check_fingerprints(run_dir, spec, accept_changes)
-        return OnlineRun(spec, progress).run()
+        if _changed_free_fields(run_dir, spec):  # the saved spec says where trials run now
+            write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
+            record_fingerprints(run_dir, spec)
+        return OnlineRun(spec, progress, executor).run()
+
+
+def _changed_free_fields(run_dir: Path, spec: OnlineSpec) -> bool:
+    saved = json.loads((Path(run_dir) / "spec.json").read_text())
+    now = spec.model_dump(mode="json")
+    return any(saved.get(name, now[name]) != now[name] for name in FREE_FIELDS)

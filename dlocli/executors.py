@@ -1,0 +1,300 @@
+"""Where independent tasks run: local processes, or Ray tasks on a cluster (the jobs of
+``dlo bench``, the trials and reference episodes of ``dlo online``).
+
+An executor is connected first and closed after (:func:`open_executor`). Its ``map(fn,
+calls)`` runs ``fn(*args)`` for every ``args`` in ``calls`` and yields ``(index, result)`` as
+calls finish, where ``result`` is what ``fn`` returned or the exception it raised (the caller
+saves finished work and reports failures). ``share(value)`` makes a large argument that many
+calls take travel once (a Ray object; the value itself locally). Results travel back to the
+driver, which writes the files, so the nodes of a cluster need dlocli installed but no shared
+file system. The functions reseed everything they use, so the same seeds give the same
+results on either executor. A new executor is one class with ``connect``, ``share``, ``map``
+and ``close``, registered in :data:`EXECUTORS`.
+
+Each call runs with ``threads`` threads (one CPU of Ray's scheduler per thread); the local
+pool's workers start with them, and with passive waiting (:mod:`dlocli.threads`).
+
+Ray is optional (``pip install 'dlocli[ray]'``) and imported only here, when used.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager, suppress
+from typing import Any, Literal
+
+from pydantic import Field
+
+from dlocli.errors import BadInput, DloError
+from dlocli.processes import pool_initializer
+from dlocli.specs import Spec
+from dlocli.threads import machine_cpus, set_worker_threads
+
+Outcome = tuple[int, Any]
+#: Ray's connection window in seconds when joining a cluster (Ray's default: about 20 tries)
+WINDOW_VARIABLE = "RAY_gcs_server_port_wait_time_s"
+
+
+class ExecutorChoice(Spec):
+    """The fields that say where a command's independent work runs (``--executor``,
+    ``--ray-address``); every command with an executor has them, with these meanings."""
+
+    executor: Literal["local", "ray"] = Field(
+        "local", description="Where jobs run: local processes, or Ray tasks."
+    )
+    ray_address: str | None = Field(
+        None,
+        description="Ray cluster to join (host:port, ray://host:port or auto); None = "
+        "start a local Ray instance.",
+    )
+
+
+class ClusterLost(DloError):
+    """The executor stopped answering while work ran (a Ray cluster went down). Work that
+    finished before is saved; :meth:`line` tells how to go on. Exit 1."""
+
+    def __init__(self, where: str, cause: BaseException) -> None:
+        self.where = where
+        self.cause = cause
+        super().__init__(self.line())
+
+    def line(self, run_dir: Any = None) -> str:
+        first = str(self.cause).strip().splitlines()[0] if str(self.cause).strip() else ""
+        resume = f"--resume {run_dir}" if run_dir is not None else "--resume"
+        return (
+            f"{self.where} stopped answering ({type(self.cause).__name__}"
+            f"{': ' + first if first else ''}); finished work is saved: restart the cluster "
+            f"(`ray start --head`) or pass --executor local, and continue with {resume}"
+        )
+
+
+def _call(fn: Callable[..., Any], args: tuple) -> Any:
+    try:
+        return fn(*args)
+    except Exception as exc:  # a failed call is reported; the others go on
+        return exc
+
+
+class LocalExecutor:
+    """A pool of ``workers`` processes (spawned once, kept until :meth:`close`), or this
+    process for a single worker (or a single call)."""
+
+    def __init__(self, workers: int | None = None, threads: int = 1) -> None:
+        self.workers = workers or machine_cpus()
+        self.threads = threads
+        self._pool: ProcessPoolExecutor | None = None
+
+    def connect(self) -> None:
+        """Nothing to connect to: processes start with the first calls."""
+
+    def close(self) -> None:
+        """End the pool's processes (queued calls are dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+    def share(self, value: Any) -> Any:
+        return value
+
+    def map(self, fn: Callable[..., Any], calls: list[tuple]) -> Iterator[Outcome]:
+        if min(self.workers, len(calls)) <= 1:
+            for index, args in enumerate(calls):
+                yield index, _call(fn, args)
+            return
+        from concurrent.futures import as_completed
+
+        pool = self._get_pool()
+        futures = {pool.submit(fn, *args): index for index, args in enumerate(calls)}
+        try:
+            for future in as_completed(futures):
+                error = future.exception()
+                yield futures[future], error if error is not None else future.result()
+        finally:
+            for future in futures:
+                future.cancel()
+
+    def _get_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            import multiprocessing as mp
+
+            # spawn: forking a process whose torch already started OpenMP threads can hang
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=mp.get_context("spawn"), **pool_initializer(self.threads)
+            )
+        return self._pool
+
+
+def _in_ray_worker(fn: Callable[..., Any], threads: int, *args: Any) -> Any:
+    """A Ray task: ``fn(*args)`` with ``threads`` threads and passive waiting."""
+    set_worker_threads(threads)
+    return fn(*args)
+
+
+class RayExecutor:
+    """One Ray task per call on the cluster at ``address`` (None: a local Ray instance of
+    ``workers`` CPUs)."""
+
+    #: seconds Ray may try to reach a cluster address before the address is refused
+    CONNECT_WINDOW_S = "5"
+
+    def __init__(
+        self, workers: int | None = None, address: str | None = None, threads: int = 1
+    ) -> None:
+        self.workers = workers
+        self.address = address
+        self.threads = threads
+        self._started = False
+
+    @property
+    def where(self) -> str:
+        return f"the Ray cluster at {self.address}" if self.address else "the local Ray instance"
+
+    def connect(self) -> None:
+        """Join the cluster (or start a local instance); BadInput if the address fails."""
+        import logging
+
+        import ray
+
+        if ray.is_initialized():
+            return
+        options: dict[str, Any] = {
+            "include_dashboard": False,
+            "log_to_driver": False,
+            "logging_level": logging.ERROR,
+        }
+        if self.address is None:
+            ray.init(num_cpus=self.workers or machine_cpus(), **options)
+            self._started = True
+            return
+        preset = WINDOW_VARIABLE in os.environ  # the user's own window wins
+        os.environ.setdefault(WINDOW_VARIABLE, self.CONNECT_WINDOW_S)
+        try:
+            with _stderr_silenced():  # Ray's core logs every failed attempt
+                ray.init(address=self.address, **options)
+        except ConnectionError as exc:
+            raise BadInput(
+                f"Ray address {self.address} does not answer as a Ray cluster "
+                "(start it with `ray start --head`) or drop --ray-address"
+            ) from exc
+        finally:
+            if not preset:
+                os.environ.pop(WINDOW_VARIABLE, None)
+        self._started = True
+
+    def close(self) -> None:
+        """Disconnect (and stop a local instance) if :meth:`connect` started Ray."""
+        if self._started:
+            import ray
+
+            ray.shutdown()
+            self._started = False
+
+    def share(self, value: Any) -> Any:
+        import ray
+
+        self.connect()
+        return ray.put(value)
+
+    def map(self, fn: Callable[..., Any], calls: list[tuple]) -> Iterator[Outcome]:
+        import ray
+
+        self.connect()
+        task = ray.remote(num_cpus=self.threads, max_retries=0)(_in_ray_worker)
+        pending: dict[Any, int] = {}
+        try:
+            pending = {
+                task.remote(fn, self.threads, *args): index for index, args in enumerate(calls)
+            }
+            while pending:
+                (ref,), _ = ray.wait(list(pending), num_returns=1)
+                index = pending.pop(ref)
+                yield index, self._result(ray, ref)
+        except (ray.exceptions.RayError, ConnectionError) as exc:
+            raise ClusterLost(self.where, exc) from exc
+        finally:  # stopped early: the calls left would hold the cluster's CPUs for nothing
+            for ref in pending:
+                _cancel(ray, ref)
+
+    @staticmethod
+    def _result(ray: Any, ref: Any) -> Any:
+        try:
+            return ray.get(ref)
+        except ray.exceptions.RayTaskError as exc:  # the call's own error
+            return exc
+
+
+def _cancel(ray: Any, ref: Any) -> None:
+    # already finished, or the cluster is gone: nothing left to stop
+    with suppress(Exception):
+        ray.cancel(ref, force=True)
+
+
+#: executors by name (``--executor``)
+EXECUTORS: dict[str, Callable[..., LocalExecutor | RayExecutor]] = {
+    "local": lambda workers, address, threads: LocalExecutor(workers, threads),
+    "ray": lambda workers, address, threads: RayExecutor(workers, address, threads),
+}
+
+
+@contextmanager
+def _stderr_silenced() -> Iterator[None]:
+    """Send file descriptor 2 (C++ logs included) to /dev/null for the block."""
+    saved = os.dup(2)
+    with open(os.devnull, "w") as null:
+        os.dup2(null.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+# ----------------------------------------------------------------------------- checks
+def check_executor(executor: str, ray_address: str | None) -> None:
+    """Ray requested: installed, and its address (if any) answers (BadInput otherwise)."""
+    if executor == "local":
+        if ray_address is not None:
+            raise BadInput("--ray-address needs --executor ray")
+        return
+    try:
+        import ray  # noqa: F401
+    except ImportError as exc:
+        raise BadInput(
+            "--executor ray: Ray is not installed; pip install 'dlocli[ray]' "
+            "or use --executor local"
+        ) from exc
+    if ray_address is not None:
+        check_ray_address(ray_address)
+
+
+def check_ray_address(address: str, timeout: float = 3.0) -> None:
+    """Open a TCP connection to a host:port address (``auto`` is left to Ray)."""
+    import socket
+
+    if address == "auto":
+        return
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise BadInput(f"--ray-address {address!r} is not host:port, ray://host:port or auto")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as exc:
+        raise BadInput(
+            f"Ray address {address} does not answer ({exc.strerror or exc}); start "
+            "the cluster (`ray start --head`) or drop --ray-address"
+        ) from exc
+
+
+@contextmanager
+def open_executor(spec: Any, threads: int = 1) -> Iterator[LocalExecutor | RayExecutor]:
+    """The executor a spec names (its ``executor``, ``workers`` and ``ray_address``), each
+    call with ``threads`` threads, connected (Ray) before the caller writes anything; closed
+    after."""
+    executor = EXECUTORS[spec.executor](spec.workers, spec.ray_address, threads)
+    executor.connect()
+    try:
+        yield executor
+    finally:
+        executor.close()
