@@ -34,7 +34,7 @@ import io
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -55,9 +55,6 @@ from dlocli.specs import Spec
 
 class PilcoSpec(Spec):
     """PILCO hyperparameters (reduced state, GP data, policy, cost, optimisers)."""
-
-    #: fields added after bench jobs were first saved, at the value that reproduces them
-    legacy_values: ClassVar[dict[str, Any]] = {"policy_scale_floor": 0.01}
 
     n_keypoints: int = Field(3, ge=1, le=200, description="Segments whose positions form the GP state.")
     action_repeat: int = Field(10, ge=1, le=MAX_COUNT, description="Env steps each PILCO action is held for.")
