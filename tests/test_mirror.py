@@ -23,6 +23,7 @@ from dlocli.models.mirror import (
     mirror_transitions,
 )
 from dlocli.models.spec import FitSpec
+from dlocli.models.fitting import BatchDone, Validated
 from dlocli.models.training import split_episodes, train_model, transition_tensors
 
 MOTION_STEPS = 60  # control steps of piecewise-constant random commands (1.2 s)
@@ -217,9 +218,9 @@ def test_training_on_twins_doubles_the_data_and_learns_the_other_end(
         model = build_model(ModelSpec(name="in-bilstm", hidden=16), data.n_segments)
         seen: list[int] = []
 
-        def progress(info: dict, seen: list[int] = seen) -> None:
-            if "batches" in info:
-                seen.append(info["batches"])
+        def progress(event: BatchDone | Validated, seen: list[int] = seen) -> None:
+            if isinstance(event, BatchDone):
+                seen.append(event.batches)
 
         result = train_model(model, data, FitSpec(**FIT, mirror=flag), progress=progress)
         np.testing.assert_array_equal(result.val_episodes, val_eps)

@@ -80,7 +80,7 @@ def train_model(
     *,
     optimizer_state: dict[str, Any] | None = None,
     progress: Progress | None = None,
-    on_epoch: OnValidation | None = None,
+    on_validation: OnValidation | None = None,
     start_epoch: int = 0,
     generator_state: torch.Tensor | None = None,
     best: KeepBest | None = None,
@@ -93,7 +93,7 @@ def train_model(
     fitted on the training data if it was never fitted (a continued model keeps its own).
     ``optimizer_state`` resumes Adam's moments (from a previous :class:`TrainResult` or
     checkpoint). ``progress`` gets a :class:`~dlocli.models.fitting.BatchDone` every few
-    steps and a :class:`Validated` after each epoch; ``on_epoch`` each epoch's
+    steps and a :class:`Validated` after each epoch; ``on_validation`` each epoch's
     :class:`FitRecord`, the optimizer and the random generator (for checkpoints), after
     ``best`` (the lowest validation loss so far) has seen it. ``start_epoch`` epochs are
     taken as done: given the generator state saved after them, the remaining epochs are
@@ -106,7 +106,8 @@ def train_model(
     device = setup.train["state"].device
     plan = EpochPlan(fit, len(setup.train["state"]), setup.val, gen, device, start_epoch)
     start = time.perf_counter()
-    history, rows = fit_loop(model, setup, fit, plan, gen, best or KeepBest(), progress, on_epoch)
+    history, rows = fit_loop(model, setup, fit, plan, gen, best or KeepBest(), progress,
+                                on_validation)  # fmt: skip
     elapsed = time.perf_counter() - start
     return TrainResult(
         history=history,
@@ -238,7 +239,7 @@ def _train_in(
 
     try:
         result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
-                             on_epoch=on_epoch, start_epoch=done.epoch,
+                             on_validation=on_epoch, start_epoch=done.epoch,
                              generator_state=done.generator, best=best)  # fmt: skip
     finally:
         scalars.close()

@@ -13,6 +13,7 @@ import math
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -39,18 +40,14 @@ def update_model(
     fit: UpdateSpec,
     *,
     recent_episodes: np.ndarray | None = None,
-    optimizer_state: dict | None = None,
-    progress: Progress | None = None,
-    on_validation: OnValidation | None = None,
+    **options: Any,
 ) -> TrainResult:
     """Train ``model`` in place as ``fit.schedule`` says: :func:`train_steps` ("steps", with
-    ``recent_episodes`` weighted in) or :func:`~dlocli.models.training.train_model`."""
+    ``recent_episodes`` weighted in) or :func:`~dlocli.models.training.train_model`; the
+    ``options`` both take (``optimizer_state``, ``progress``, ``on_validation``)."""
     if fit.schedule == "steps":
-        return train_steps(model, dataset, fit, recent_episodes=recent_episodes,
-                           optimizer_state=optimizer_state, progress=progress,
-                           on_eval=on_validation)  # fmt: skip
-    return train_model(model, dataset, fit, optimizer_state=optimizer_state, progress=progress,
-                       on_epoch=on_validation)  # fmt: skip
+        return train_steps(model, dataset, fit, recent_episodes=recent_episodes, **options)
+    return train_model(model, dataset, fit, **options)
 
 
 @dataclass
@@ -100,7 +97,7 @@ def train_steps(
     recent_episodes: np.ndarray | None = None,
     optimizer_state: dict | None = None,
     progress: Progress | None = None,
-    on_eval: OnValidation | None = None,
+    on_validation: OnValidation | None = None,
 ) -> TrainResult:
     """Train ``model`` in place for at most ``fit.update_steps`` Adam steps (schedule
     "steps"): a cost per call that does not grow with ``dataset``.
@@ -119,7 +116,7 @@ def train_steps(
     generator seeded with ``fit.seed``, so the result is a function of the seed, the data and
     the starting weights and optimizer state. ``progress`` gets a
     :class:`~dlocli.models.fitting.Validated` (unit "step") after each validation;
-    ``on_eval`` each validation's :class:`~dlocli.models.fitting.FitRecord`, the optimizer
+    ``on_validation`` each validation's :class:`~dlocli.models.fitting.FitRecord`, the optimizer
     and the generator.
     """
     setup = set_up(model, dataset, fit, optimizer_state)
@@ -132,7 +129,7 @@ def train_steps(
     best = KeepBest(validation_loss(model, val), patience=fit.patience, keep=has_val)
     best.start(model, setup.optimizer)
     start = time.perf_counter()
-    history, _ = fit_loop(model, setup, fit, plan, gen, best, progress, on_eval)
+    history, _ = fit_loop(model, setup, fit, plan, gen, best, progress, on_validation)
     elapsed = time.perf_counter() - start
     step = plan.steps
     return TrainResult(
