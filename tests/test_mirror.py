@@ -15,6 +15,7 @@ from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shape_env import make_env
 from dlocli.models.base import ModelSpec, build_model
 from dlocli.models.evaluation import evaluate_model
+from dlocli.models.fitting import BatchDone, Validated
 from dlocli.models.mirror import (
     mirror,
     mirror_grippers,
@@ -23,7 +24,6 @@ from dlocli.models.mirror import (
     mirror_transitions,
 )
 from dlocli.models.spec import FitSpec
-from dlocli.models.fitting import BatchDone, Validated
 from dlocli.models.training import split_episodes, train_model, transition_tensors
 
 MOTION_STEPS = 60  # control steps of piecewise-constant random commands (1.2 s)
