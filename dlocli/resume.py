@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from dlocli.errors import BadInput
-from dlocli.models.spec import FIT_LEGACY_VALUES, with_legacy_fields
-from dlocli.specs import ROD_LEGACY_VALUES, TASK_LEGACY_VALUES, Spec
+from dlocli.migrations import completed
+from dlocli.specs import Spec
 
 SpecT = TypeVar("SpecT", bound=Spec)
 
@@ -18,17 +18,19 @@ def saved_spec(path: Path) -> Any:
     """A run's spec.json as data, its model, task, rod and fit specs completed with the fields they
     predate (ValueError if it is not JSON): a run keeps its meaning when a default changes."""
     data = json.loads(Path(path).read_text())
-    if isinstance(data, dict) and isinstance(data.get("model"), dict):
-        data["model"] = with_legacy_fields(data["model"])
-    if isinstance(data, dict) and isinstance(data.get("task"), dict):
-        data["task"] = {**TASK_LEGACY_VALUES, **data["task"]}
-    backend = data.get("backend") if isinstance(data, dict) else None
-    if isinstance(backend, dict) and isinstance(backend.get("rod", {}), dict):
-        data["backend"] = {**backend, "rod": {**ROD_LEGACY_VALUES, **backend.get("rod", {})}}
-    if isinstance(data, dict) and isinstance(data.get("fit"), dict):
-        data["fit"] = {**FIT_LEGACY_VALUES, **data["fit"]}
-    if isinstance(data, dict) and "epochs" in data:  # a train run: the fit fields are its own
-        data = {**FIT_LEGACY_VALUES, **data}
+    if not isinstance(data, dict):
+        return data
+    for kind in ("model", "task", "fit"):
+        if isinstance(data.get(kind), dict):
+            data[kind] = completed(kind, data[kind])
+    backend = data.get("backend")
+    if isinstance(backend, dict):
+        rod = backend.get("rod", {})
+        data["backend"] = completed("backend", backend)
+        if isinstance(rod, dict):
+            data["backend"]["rod"] = completed("rod", rod)
+    if "epochs" in data:  # a train run: the fit fields are its own
+        data = completed("fit", data)
     return data
 
 
@@ -75,7 +77,7 @@ def refuse_resume_conflicts(
             continue
         current: Any = saved
         for key in dotted.split("."):
-            current = current[key]
+            current = current.get(key) if isinstance(current, dict) else None
         if str(current) != str(value):
             raise BadInput(
                 f"--resume {run_dir}: {dotted}={value!r} conflicts with the run's "

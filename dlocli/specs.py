@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, ClassVar, Literal, TypeVar
+from types import UnionType
+from typing import Annotated, Any, ClassVar, Literal, TypeVar, Union, get_args, get_origin
 
 import yaml
 from pydantic import (
@@ -36,6 +37,11 @@ class Spec(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
     moved: ClassVar[dict[str, str]] = {}
 
+    @classmethod
+    def field_of(cls, name: str) -> Any:
+        """The FieldInfo of the field ``name`` (KeyError if there is none)."""
+        return cls.model_fields[name]
+
     @model_validator(mode="before")
     @classmethod
     def _move_fields(cls, data: Any) -> Any:
@@ -54,6 +60,13 @@ class Spec(BaseModel):
         if isinstance(value, Path):
             require_utf8_path(value)
         return value
+
+
+#: the torch device a run computes on (one meaning in every spec that has one)
+Device = Annotated[
+    str,
+    Field(description="Torch device: auto (CUDA if present, else the CPU), cpu, cuda or cuda:K."),
+]
 
 
 def require_utf8_path(path: Path) -> None:
@@ -323,23 +336,6 @@ class TaskSpec(Spec):
         return self
 
 
-#: RodSpec fields added after runs were first saved, with the value that rebuilds what a
-#: saved run did before the field existed
-ROD_LEGACY_VALUES: dict[str, Any] = {
-    "clamp_compliance": "rigid",
-    "bending_damping": None,
-    "twist_damping": None,
-    "air_damping": None,
-}
-
-#: BackendSpec fields added after runs were first saved, with the value runs had before
-BACKEND_LEGACY_VALUES: dict[str, Any] = {"gravity": STANDARD_GRAVITY}
-
-#: TaskSpec fields added after runs were first saved, with the value that rebuilds what a
-#: saved run did before the field existed
-TASK_LEGACY_VALUES: dict[str, Any] = {"shapes": "near-rest", "observe_velocity": False}
-
-
 # --------------------------------------------------------------------------- commands
 class EnvSpec(Spec):
     """Backend + task: everything needed to build a DLOShapeEnv."""
@@ -477,6 +473,13 @@ def field_info(cls: type[Spec], dotted: str) -> Any:
     model: Any = cls
     info = None
     for key in dotted.split("."):
-        info = model.model_fields[key]
-        model = info.default_factory if info.default_factory is not None else info.annotation
+        info = model.field_of(key)
+        model = strip_none(info.annotation)
     return info
+
+
+def strip_none(annotation: Any) -> Any:
+    """``X`` of ``X | None``; other annotations as they are."""
+    if get_origin(annotation) in (Union, UnionType):
+        return next(a for a in get_args(annotation) if a is not type(None))
+    return annotation

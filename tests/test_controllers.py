@@ -21,14 +21,14 @@ from dlocli.controllers.mppi import MPPI, MPPISpec
 from dlocli.controllers.planning import shift_plan
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
-from dlocli.models import ModelSpec, build_model, save_checkpoint
-from dlocli.models.spec import FitSpec
+from dlocli.models import build_model, save_checkpoint
+from dlocli.models.spec import FitSpec, model_spec
 from dlocli.models.training import train_model
 from dlocli.registry import controllers
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
 
-TINY = ModelSpec(hidden=32, edge_layers=2, node_layers=2, lstm_layers=1)
+TINY = model_spec({"hidden": 32, "edge_layers": 2, "node_layers": 2, "lstm_layers": 1})
 SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "score", "best_error_mm",
                 "cumulative_reward", "latency_ms_median", "latency_ms_p95", "steps"}  # fmt: skip
 

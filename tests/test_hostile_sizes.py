@@ -99,7 +99,7 @@ ADDRESS_SPACE = 3 * 2**30
 
 MEMORY: list[tuple[str, str, str]] = [
     ("model-hidden", "online --hidden 8192 --out {out}", "hidden 8192"),
-    ("mlp-hidden", "online --model mlp --spec {spec} --out {out}", "mlp_hidden 65536"),
+    ("mlp-hidden", "online --model mlp --spec {spec} --out {out}", "mlp (hidden 65536"),
     ("sac-net-arch", "bench --agents sac -o sac.net_arch=[65536,65536] --out {out}",
      "net_arch [65536, 65536]"),
     ("collect-dataset", "collect --episodes 1000000 --out {out}", "dataset of 1,000,000"),
@@ -109,7 +109,7 @@ MEMORY: list[tuple[str, str, str]] = [
 @pytest.mark.parametrize(("case", "argv", "words"), MEMORY, ids=[c[0] for c in MEMORY])
 def test_a_size_beyond_memory_is_refused_under_a_memory_limit(case, argv, words, tmp_path):
     spec = tmp_path / "spec.yaml"
-    spec.write_text("model: {mlp_hidden: 65536}\n")
+    spec.write_text("model: {hidden: 65536}\n")
     args = argv.format(out=tmp_path / "out", spec=spec).split()
     program = (
         "import resource, sys\n"

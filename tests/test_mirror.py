@@ -15,6 +15,7 @@ from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shape_env import make_env
 from dlocli.models.base import ModelSpec, build_model
 from dlocli.models.evaluation import evaluate_model
+from dlocli.models.fitting import BatchDone, Validated
 from dlocli.models.mirror import (
     mirror,
     mirror_grippers,
@@ -217,9 +218,9 @@ def test_training_on_twins_doubles_the_data_and_learns_the_other_end(
         model = build_model(ModelSpec(name="in-bilstm", hidden=16), data.n_segments)
         seen: list[int] = []
 
-        def progress(info: dict, seen: list[int] = seen) -> None:
-            if "batches" in info:
-                seen.append(info["batches"])
+        def progress(event: BatchDone | Validated, seen: list[int] = seen) -> None:
+            if isinstance(event, BatchDone):
+                seen.append(event.batches)
 
         result = train_model(model, data, FitSpec(**FIT, mirror=flag), progress=progress)
         np.testing.assert_array_equal(result.val_episodes, val_eps)

@@ -12,15 +12,15 @@ import torch
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
 from dlocli.models.base import (
-    ModelSpec,
     build_model,
     load_model,
     resolve_device,
     save_checkpoint,
 )
+from dlocli.models.spec import model_spec
 from dlocli.registry import models
 
-TINY = {"hidden": 16, "mlp_hidden": 32, "mlp_layers": 2}
+TINY = {"hidden": 16}
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def real(small_dataset_dir):
 def fitted(name: str, real, **sizes) -> torch.nn.Module:
     data, arrays, _ = real
     torch.manual_seed(0)
-    model = build_model(ModelSpec(name=name, **{**TINY, **sizes}), data.n_segments)
+    model = build_model({"name": name, **TINY, **sizes}, data.n_segments)
     model.fit_normalization(arrays)
     return model.eval()
 
@@ -174,7 +174,7 @@ def test_bad_checkpoints_are_bad_input(name, real, tmp_path):
         with pytest.raises(BadInput):
             load_model(tmp_path / path)
     with pytest.raises(BadInput, match="requested"):
-        load_model(good, expect=ModelSpec(name=name, **{**TINY, "hidden": 17}))
+        load_model(good, expect=model_spec({"name": name, **TINY, "hidden": 17}))
     (tmp_path / "empty_run").mkdir()
     with pytest.raises(BadInput, match="final.pt"):
         load_model(tmp_path / "empty_run")
@@ -191,15 +191,14 @@ def test_devices():
 
 
 def test_paper_architecture_defaults():
-    spec = ModelSpec()
-    model = build_model(spec, 20)
+    model = build_model({}, 20)
     linear = torch.nn.Linear
     assert [m.out_features for m in model.edge_net if isinstance(m, linear)] == [150] * 4
     assert [m.out_features for m in model.node_net if isinstance(m, linear)] == [150] * 3 + [7]
     # v_i = (position, quaternion, their change over the last step): 14 numbers
     assert model.edge_net[0].in_features == 2 * (14 + 6), "(v_i, a_i, v_j, a_j)"
     assert model.node_net[0].in_features == 14 + 2 * 150, "(v_i, [h_left_i, h_right_i])"
-    without = build_model(ModelSpec(velocity_input=False), 20)
+    without = build_model({"velocity_input": False}, 20)
     assert without.edge_net[0].in_features == 2 * (7 + 6)
     lstm = model.lstm
     assert (lstm.num_layers, lstm.hidden_size, lstm.bidirectional) == (2, 150, True)

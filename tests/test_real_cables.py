@@ -17,6 +17,7 @@ import pytest
 from dlocli.data import Dataset, load_dataset
 from dlocli.markers import deform, protocol
 from dlocli.markers.dataset import MarkerDataset
+from dlocli.registry import models
 
 from tiny import run_dlo
 
@@ -122,15 +123,14 @@ def test_train_and_evaluate_by_the_protocol(imported: Path, tmp_path: Path) -> N
     assert len(curves["abs_error_cm"]["model"]) == FRAMES
 
 
-@pytest.mark.parametrize("name", ["in-bilstm", "mlp"])
+@pytest.mark.parametrize("name", models.names())
 def test_every_registered_model_has_a_marker_form(name: str) -> None:
     import torch
 
     from dlocli.models.markers import build_marker_model
-    from dlocli.models.spec import ModelSpec
 
     held = deform.held_markers(MARKERS)
-    model = build_marker_model(ModelSpec(name=name, hidden=8, mlp_hidden=8), MARKERS, held)
+    model = build_marker_model({"name": name, "hidden": 8}, MARKERS, held)
     rec = torch.as_tensor(_swinging_cable(0).transpose(0, 2, 1)[None], dtype=torch.float32)
     pred = model.rollout(rec[:, 1], rec[:, 0], rec[:, 2:])
     assert pred.shape == rec[:, 2:].shape

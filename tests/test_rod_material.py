@@ -13,8 +13,9 @@ from pydantic import ValidationError
 
 from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
+from dlocli.migrations import LEGACY_VALUES
 from dlocli.registry import backends
-from dlocli.specs import ROD_LEGACY_VALUES, BackendSpec, CollectSpec, RodSpec, resolve_spec
+from dlocli.specs import BackendSpec, CollectSpec, RodSpec, resolve_spec
 
 BACKENDS = backends.names()
 #: positions every 5th step of MOTION at the default spec, recorded at commit 7473c21 (before
@@ -71,7 +72,7 @@ def test_every_material_field_changes_the_motion(name: str) -> None:
 @pytest.mark.parametrize("name", BACKENDS)
 def test_damping_defaults_are_the_earlier_rod_and_zero_damping_changes_it(name: str) -> None:
     recorded = np.load(BEFORE_DAMPING_FIELDS)[name]
-    earlier = RodSpec(**ROD_LEGACY_VALUES)  # the rod of runs saved before these fields
+    earlier = RodSpec(**LEGACY_VALUES["rod"])  # the rod of runs saved before these fields
     today = run_motion(BackendSpec(name=name, rod=earlier), steps=30)[4::5, :, :3]
     # bit for bit on the machine that recorded it; other CPUs round differently
     np.testing.assert_allclose(today, recorded, rtol=0, atol=1e-9)
@@ -113,18 +114,18 @@ def test_a_spec_saved_before_the_rod_fields_is_the_earlier_rod_with_its_fingerpr
     from dlocli.resume import saved_spec
 
     saved = BenchSpec().model_dump(mode="json")
-    for name in ROD_LEGACY_VALUES:  # a bench job made before the clamp and damping fields
+    for name in LEGACY_VALUES["rod"]:  # a bench job made before the clamp and damping fields
         del saved["backend"]["rod"][name]
     del saved["backend"]["gravity"]
     path = tmp_path / "spec.json"
     path.write_text(json.dumps(saved))
     earlier = BenchSpec.model_validate(saved_spec(path))
-    assert earlier.backend.rod == RodSpec(**ROD_LEGACY_VALUES)
+    assert earlier.backend.rod == RodSpec(**LEGACY_VALUES["rod"])
     # its fingerprint is the one it was saved with; today's default rod is another
-    legacy = BenchSpec(backend=BackendSpec(rod=RodSpec(**ROD_LEGACY_VALUES)))
+    legacy = BenchSpec(backend=BackendSpec(rod=RodSpec(**LEGACY_VALUES["rod"])))
     assert fingerprint(earlier) == fingerprint(legacy) != fingerprint(BenchSpec())
     damped = legacy.model_copy(
-        update={"backend": BackendSpec(rod=RodSpec(**{**ROD_LEGACY_VALUES, "air_damping": 5.0}))}
+        update={"backend": BackendSpec(rod=RodSpec(**{**LEGACY_VALUES["rod"], "air_damping": 5.0}))}
     )
     assert fingerprint(damped) != fingerprint(legacy)
 
@@ -135,7 +136,7 @@ def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod() -> None:
 
     run = Path(__file__).parents[1] / "examples" / "bench_paper"
     spec = BenchSpec.model_validate(saved_spec(run / "spec.json"))
-    assert spec.backend.rod == RodSpec(**ROD_LEGACY_VALUES)
+    assert spec.backend.rod == RodSpec(**LEGACY_VALUES["rod"])
     today = spec.model_copy(update={"backend": spec.backend.model_copy(update={"rod": RodSpec()})})
     for path in sorted((run / "jobs").glob("*.json")):
         job = json.loads(path.read_text())

@@ -10,8 +10,9 @@ import torch
 from typer.testing import CliRunner
 
 from dlocli.data import load_dataset
-from dlocli.models.base import ModelSpec, build_model, load_model, read_checkpoint
+from dlocli.models.base import build_model, load_model, read_checkpoint
 from dlocli.models.evaluation import evaluate_model
+from dlocli.models.fitting import Validated
 from dlocli.models.training import (
     FitSpec,
     split_episodes,
@@ -19,8 +20,9 @@ from dlocli.models.training import (
     transition_tensors,
     validation_loss,
 )
+from dlocli.registry import models
 
-TINY = {"hidden": 24, "mlp_hidden": 32, "mlp_layers": 2}
+TINY = {"hidden": 24}
 FAST_FIT = {"lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu"}
 EVAL_KEYS = {
     "one_step_mm", "rollout5_mm", "rollout50_mm",
@@ -38,7 +40,7 @@ def cli(*args: str):
 
 def fresh(name: str, data, seed: int = 0):
     torch.manual_seed(seed)
-    return build_model(ModelSpec(name=name, **TINY), data.n_segments)
+    return build_model({"name": name, **TINY}, data.n_segments)
 
 
 def test_split_is_by_trajectory_and_stable_as_data_grows():
@@ -49,7 +51,7 @@ def test_split_is_by_trajectory_and_stable_as_data_grows():
     assert 4 <= len(bigger_val) <= 12
 
 
-@pytest.mark.parametrize("name", ["in-bilstm", "mlp"])
+@pytest.mark.parametrize("name", models.names())
 def test_training_reduces_validation_loss(small_dataset_dir, name):
     data = load_dataset(small_dataset_dir)
     model = fresh(name, data)
@@ -60,9 +62,9 @@ def test_training_reduces_validation_loss(small_dataset_dir, name):
     val = transition_tensors(data, val_eps, torch.device("cpu"))
     before = validation_loss(model, val)
     result = train_model(model, data, fit)
-    assert [r["epoch"] for r in result.history] == [1, 2, 3, 4]
+    assert [(r.unit, r.count) for r in result.history] == [("epoch", n) for n in (1, 2, 3, 4)]
     assert result.val_loss < 0.85 * before, (before, result.history)
-    assert result.history[-1]["train_loss"] < result.history[0]["train_loss"]
+    assert result.history[-1].train_loss < result.history[0].train_loss
     assert result.optimizer_state["state"], "Adam moments to continue from"
 
 
@@ -80,7 +82,7 @@ def test_training_is_reproducible_and_continues(small_dataset_dir):
     assert more.optimizer_state["state"][0]["step"] == 2 * first.optimizer_state["state"][0]["step"]
 
 
-@pytest.mark.parametrize("name", ["in-bilstm", "mlp"])
+@pytest.mark.parametrize("name", models.names())
 def test_evaluation_keys(small_dataset_dir, name):
     data = load_dataset(small_dataset_dir)
     model = fresh(name, data)
@@ -172,13 +174,13 @@ def test_stopped_training_resumes_to_the_same_model(small_dataset_dir, tmp_path)
     from dlocli.models.spec import TrainSpec
     from dlocli.models.training import resumed_spec, run_training
 
-    spec = TrainSpec(data=small_dataset_dir, model=ModelSpec(**TINY), epochs=3, **FAST_FIT)
+    spec = TrainSpec(data=small_dataset_dir, model=TINY, epochs=3, **FAST_FIT)
     whole = run_training(spec.model_copy(update={"out": tmp_path / "whole"}))
 
     def stop_after_epoch_2(event):
-        if event.get("epoch") == 2 and "val_loss" in event:
+        if event.count == 2 and isinstance(event, Validated):
             raise KeyboardInterrupt  # the user's Ctrl-C, after epoch 2 is done
-        if event.get("epoch") == 3:
+        if event.count == 3:
             pytest.fail("epoch 3 started before the stop")
 
     stopped = tmp_path / "stopped"
@@ -197,3 +199,22 @@ def test_stopped_training_resumes_to_the_same_model(small_dataset_dir, tmp_path)
     assert res.exit_code == 2 and "conflicts" in res.output, res.output
     res = cli("train", "--resume", str(tmp_path))
     assert res.exit_code == 2 and "not a training run" in res.output, res.output
+
+
+def test_hidden_is_the_width_of_every_model(small_dataset_dir, tmp_path):
+    """`dlo train --model mlp --hidden 16` builds a smaller model than `--hidden 150`; so
+    does every registered model."""
+    parameters = {}
+    for hidden in (16, 150):
+        out = tmp_path / f"mlp-{hidden}"
+        res = cli("train", "--data", str(small_dataset_dir), "--model", "mlp", "--hidden",
+                  str(hidden), "--epochs", "1", "--batch-size", "64", "--device", "cpu",
+                  "--out", str(out), "--json")  # fmt: skip
+        assert res.exit_code == 0, res.output
+        parameters[hidden] = json.loads(res.stdout.strip().splitlines()[-1])["parameters"]
+        assert load_model(out).spec.hidden == hidden
+    assert parameters[16] < parameters[150]
+    for name in models.names():
+        count = [sum(p.numel() for p in build_model({"name": name, "hidden": h}, 20).parameters())
+                 for h in (16, 150)]  # fmt: skip
+        assert count[0] < count[1], name

@@ -9,15 +9,15 @@ import json
 import numpy as np
 import pytest
 import torch
+from pydantic import ValidationError
 from typer.testing import CliRunner
 
 from dlocli.cli import app
 from dlocli.data import load_dataset
-from dlocli.errors import BadInput
-from dlocli.models.base import ModelSpec, build_model, read_checkpoint
-from dlocli.models.spec import FIT_LEGACY_VALUES, FitSpec, TrainSpec
+from dlocli.migrations import LEGACY_VALUES
+from dlocli.models.base import build_model, read_checkpoint
+from dlocli.models.spec import TrainSpec, UpdateSpec
 from dlocli.models.training import (
-    run_training,
     split_episodes,
     transition_tensors,
     validation_loss,
@@ -30,7 +30,7 @@ STEPS = {"schedule": "steps", "lr": 3e-3, "batch_size": 16, "val_fraction": 0.2,
 
 def fresh(data, seed: int = 0):
     torch.manual_seed(seed)
-    return build_model(ModelSpec(hidden=16), data.n_segments)
+    return build_model({"hidden": 16}, data.n_segments)
 
 
 def weights(model) -> list[torch.Tensor]:
@@ -53,9 +53,9 @@ def data(small_dataset_dir):
 
 
 def test_defaults_leave_the_papers_schedule_and_old_fingerprints():
-    fit = FitSpec()
+    fit = UpdateSpec()
     assert fit.schedule == "epochs"
-    changed = {k for k, v in FIT_LEGACY_VALUES.items() if getattr(fit, k) != v}
+    changed = {k for k, v in LEGACY_VALUES["fit"].items() if getattr(fit, k) != v}
     assert changed == {"mirror"}  # on by default since the bimanual transfer measurements
     help_text = runner.invoke(app, ["online", "--help"], env={"COLUMNS": "250"}).output
     assert "--schedule" in help_text and "--update-steps" in help_text
@@ -63,10 +63,10 @@ def test_defaults_leave_the_papers_schedule_and_old_fingerprints():
 
 
 def test_takes_exactly_update_steps_without_early_stopping(data):
-    fit = FitSpec(**STEPS, update_steps=30, eval_every=10, patience=0)
+    fit = UpdateSpec(**STEPS, update_steps=30, eval_every=10, patience=0)
     result = train_steps(fresh(data), data, fit)
     assert result.steps == 30
-    assert [r["step"] for r in result.history] == [10, 20, 30]
+    assert [r.count for r in result.history] == [10, 20, 30]
     assert result.best_step in (0, 10, 20, 30)
     # Adam's step count is that of the weights kept (the best validation)
     assert result.optimizer_state["state"][0]["step"] == result.best_step
@@ -77,22 +77,23 @@ def test_early_stopping_stops_and_restores_the_best_weights(data):
     the starting weights: training stops after `patience` validations and keeps them."""
     model = fresh(data)
     before = weights(model)
-    fit = FitSpec(**{**STEPS, "lr": 1e-12}, update_steps=50, eval_every=2, patience=3)
-    events: list[dict] = []
+    fit = UpdateSpec(**{**STEPS, "lr": 1e-12}, update_steps=50, eval_every=2, patience=3)
+    events: list = []
     result = train_steps(model, data, fit, progress=events.append)
     assert result.steps == 6 < fit.update_steps
     # the progress bar ends full, at the steps taken, saying why
-    assert events[-1]["epoch"] == events[-1]["epochs"] == 6 and events[-1]["stopped_early"]
-    assert [r["step"] for r in result.history] == [2, 4, 6]
+    last = events[-1]
+    assert (last.unit, last.count, last.total, last.stopped_early) == ("step", 6, 6, True)
+    assert [r.count for r in result.history] == [2, 4, 6]
     assert result.best_step == 0
     for a, b in zip(before, weights(model), strict=True):
         assert torch.equal(a, b)
     # a learning rate that moves the weights: stopped or not, the kept weights are the best
-    fit = FitSpec(**STEPS, update_steps=40, eval_every=2, patience=2)
+    fit = UpdateSpec(**STEPS, update_steps=40, eval_every=2, patience=2)
     result = train_steps(model, data, fit)
-    assert result.steps <= 40 and result.history[-1]["step"] == result.steps
+    assert result.steps <= 40 and result.history[-1].count == result.steps
     val = transition_tensors(data, result.val_episodes, torch.device("cpu"))
-    assert result.best_val_loss == min(r["val_loss"] for r in result.history)
+    assert result.best_val_loss == min(r.val_loss for r in result.history)
     assert validation_loss(model, val) == pytest.approx(result.best_val_loss, rel=1e-6)
 
 
@@ -113,7 +114,7 @@ def counting(model) -> dict[str, int]:
 
 def test_cost_does_not_grow_with_the_data(data):
     """The same batches and validation rows on 4 episodes as on 24 (counted, not timed)."""
-    fit = FitSpec(**STEPS, update_steps=12, eval_every=4, patience=0, val_transitions=40)
+    fit = UpdateSpec(**STEPS, update_steps=12, eval_every=4, patience=0, val_transitions=40)
     counts = []
     for dataset in (data.subset(np.arange(4)), data.concat(data).concat(data).concat(data)):
         model = fresh(dataset)
@@ -125,7 +126,7 @@ def test_cost_does_not_grow_with_the_data(data):
 
 
 def test_same_seed_same_weights(data):
-    fit = FitSpec(**STEPS, update_steps=15, eval_every=5, seed=7)
+    fit = UpdateSpec(**STEPS, update_steps=15, eval_every=5, seed=7)
     runs = []
     for seed in (7, 7, 8):
         model = fresh(data)
@@ -148,7 +149,7 @@ def test_recent_rows_are_those_of_the_recent_episodes(data, mirror):
 
 
 def test_batches_weight_in_the_newest_episodes(data):
-    fit = FitSpec(**STEPS, recent_fraction=0.5)
+    fit = UpdateSpec(**STEPS, recent_fraction=0.5)
     gen = torch.Generator().manual_seed(0)
     recent = torch.arange(90, 100)
     batch = sample_batch(100, recent, fit, gen)
@@ -168,10 +169,23 @@ def test_batches_weight_in_the_newest_episodes(data):
     assert shares[0.5].recent_share == pytest.approx(0.5 + 0.5 * uniform, abs=0.06)
 
 
-def test_dlo_train_refuses_the_steps_schedule(small_dataset_dir, tmp_path):
-    spec = TrainSpec(data=small_dataset_dir, schedule="steps", out=tmp_path / "run")
-    with pytest.raises(BadInput, match="trains by epochs"):
-        run_training(spec)
+def test_dlo_train_offers_only_the_fields_it_uses(small_dataset_dir, tmp_path):
+    """`dlo train` has no schedule: its spec refuses the online loop's update fields, its
+    --help lists none, and the specs it saved when it held them (at the one schedule it
+    ran) still load."""
+    with pytest.raises(ValidationError, match="schedule"):
+        TrainSpec(data=small_dataset_dir, schedule="steps")
+    saved = {"schedule": "epochs", "recent_fraction": 0.5, "patience": 5, "val_transitions": 9}
+    assert TrainSpec.model_validate(saved) == TrainSpec()
+    help_text = runner.invoke(app, ["train", "--help"], env={"COLUMNS": "250"}).output
+    assert "--epochs" in help_text and "--update-steps" in help_text  # rod and marker data
+    for flag in ("--schedule", "--recent-fraction", "--patience", "--val-transitions"):
+        assert flag not in help_text, flag
+    spec = tmp_path / "steps.yaml"
+    spec.write_text("schedule: steps\n")
+    res = runner.invoke(app, ["train", "--data", str(small_dataset_dir), "--spec", str(spec),
+                              "--out", str(tmp_path / "run")])  # fmt: skip
+    assert res.exit_code == 2 and "unknown field 'schedule'" in res.output, res.output
     assert not (tmp_path / "run").exists()
 
 
@@ -218,10 +232,10 @@ def test_online_steps_schedule_resumes_exactly(tmp_path):
 def test_offline_model_trains_as_long_as_the_online_one(data, schedule):
     """Fig. 7's offline model after k updates: E·k epochs, or update_steps·k steps (the
     steps schedule keeps the offline comparison's cost bounded too)."""
-    fit = FitSpec(**{**STEPS, "schedule": schedule}, epochs=2, update_steps=6, eval_every=3,
-                  patience=0)  # fmt: skip
+    fit = UpdateSpec(**{**STEPS, "schedule": schedule}, epochs=2, update_steps=6, eval_every=3,
+                     patience=0)  # fmt: skip
     result = train_like_online(fresh(data), data, fit, updates=3)
     if schedule == "steps":
-        assert result.steps == 18 and [r["step"] for r in result.history][-1] == 18
+        assert result.steps == 18 and [r.count for r in result.history][-1] == 18
     else:
-        assert [r["epoch"] for r in result.history] == [1, 2, 3, 4, 5, 6]
+        assert [r.count for r in result.history] == [1, 2, 3, 4, 5, 6]

@@ -9,12 +9,18 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from pydantic import Field, model_validator
+from pydantic_core import to_json
 
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
-from dlocli.models.spec import FIT_LEGACY_VALUES, LEGACY_VALUES, FitSpec, ModelSpec
-from dlocli.specs import BACKEND_LEGACY_VALUES, ROD_LEGACY_VALUES, TASK_LEGACY_VALUES, EnvSpec
+from dlocli.migrations import (
+    fit_fingerprint_form,
+    model_fingerprint_form,
+    without_legacy_values,
+)
+from dlocli.models.spec import ModelField, UpdateSpec, model_field
+from dlocli.specs import EnvSpec
 
 #: fields that may change between runs of one directory: they do not change any result
 #: (``budgets`` enters the fingerprint of each job through that agent's own budget)
@@ -51,8 +57,10 @@ class BenchSpec(EnvSpec, ExecutorChoice):
         default_factory=dict,
         description="Options of the learning agents by name, e.g. {sac: {net_arch: [64, 64]}}.",
     )
-    model: ModelSpec = Field(default_factory=ModelSpec, description="Dynamics model of mpc.")
-    fit: FitSpec = Field(default_factory=FitSpec, description="mpc's model update per iteration.")
+    model: ModelField = model_field("Dynamics model of mpc.")
+    fit: UpdateSpec = Field(
+        default_factory=UpdateSpec, description="mpc's model update per iteration."
+    )
     mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC of mpc and mpc-offline.")
     noise_probability: float = Field(
         0.2, ge=0, le=1, description="Probability that an mpc training step gets action noise."
@@ -107,23 +115,8 @@ def eval_points(spec: BenchSpec, agent: str | None = None) -> list[int]:
 def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     """Hash of the fields that determine a job's result; with ``agent``, of that agent's job:
     its own budget and its own options, resolved (so a new default reruns its jobs only)."""
-    # fields at the value they had before they existed are left out, so the jobs of runs
-    # made before a field was added keep their fingerprint; so are fields without effect
-    legacy = {
-        "model": at_values(spec.model, LEGACY_VALUES),
-        "task": at_values(spec.task, TASK_LEGACY_VALUES) | spec.task.inert_fields(),
-        "fit": at_values(spec.fit, FIT_LEGACY_VALUES),
-        "mpc": at_values(spec.mpc, spec.mpc.legacy_values),
-        "backend": {
-            "rod": at_values(spec.backend.rod, ROD_LEGACY_VALUES),
-            **dict.fromkeys(at_values(spec.backend, BACKEND_LEGACY_VALUES), True),
-        },
-    }
-    exclude = {**dict.fromkeys(FREE_FIELDS, True), **legacy}
-    if agent is None:
-        text = spec.model_dump_json(exclude=exclude)
-    else:
-        text = spec.model_dump_json(exclude={**exclude, "options": True})
+    text = to_json(fingerprint_data(spec, with_options=agent is None)).decode()
+    if agent is not None:
         if agent in option_agents():
             options = fingerprinted_options(spec, agent)
             text += f"|options={json.dumps(options, sort_keys=True)}"
@@ -132,9 +125,21 @@ def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def at_values(spec: Any, values: dict[str, Any]) -> set[str]:
-    """The fields of ``spec`` that hold the value ``values`` gives them."""
-    return {k for k, v in values.items() if getattr(spec, k) == v}
+def fingerprint_data(spec: BenchSpec, with_options: bool = True) -> dict[str, Any]:
+    """The fields a fingerprint hashes, in the layout fingerprints were first computed in:
+    fields at the value they had before they existed are left out (:mod:`dlocli.migrations`),
+    so the jobs of runs made before a field was added keep their fingerprint; so are fields
+    without effect (the free ones, the task's inert ones)."""
+    free = FREE_FIELDS if with_options else {*FREE_FIELDS, "options"}
+    data = spec.model_dump(mode="json", exclude=free)
+    task = without_legacy_values("task", data["task"])
+    data["task"] = {k: v for k, v in task.items() if k not in spec.task.inert_fields()}
+    backend = without_legacy_values("backend", data["backend"])
+    data["backend"] = {**backend, "rod": without_legacy_values("rod", backend["rod"])}
+    data["model"] = model_fingerprint_form(data["model"], type(spec.model).moved)
+    data["fit"] = fit_fingerprint_form(data["fit"])
+    data["mpc"] = without_legacy_values("mpc", data["mpc"])
+    return data
 
 
 def option_agents() -> list[str]:
@@ -162,12 +167,8 @@ def resolved_options(spec: BenchSpec, agent: str) -> dict[str, Any] | None:
 
 def fingerprinted_options(spec: BenchSpec, agent: str) -> dict[str, Any]:
     """``agent``'s resolved options less those at the value they had before they existed
-    (the agent spec's ``legacy_values``): jobs that predate an option keep their fingerprint."""
-    from dlocli.registry import controllers
-
-    options = resolved_options(spec, agent) or {}
-    legacy = getattr(controllers.get(agent).spec_cls, "legacy_values", {})
-    return {k: v for k, v in options.items() if k not in legacy or v != legacy[k]}
+    (:mod:`dlocli.migrations`): jobs that predate an option keep their fingerprint."""
+    return without_legacy_values(agent, resolved_options(spec, agent) or {})
 
 
 def seeds_of(spec: BenchSpec) -> list[int]:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import functools
 import inspect
-import types
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,7 +24,9 @@ import yaml
 
 from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile
 from dlocli.errors import BadInput
-from dlocli.specs import Spec, field_info, resolve_spec
+from dlocli.specs import Spec, field_info, resolve_spec, strip_none
+
+MODEL = "model"  # the field of the run specs that holds the model spec
 
 #: the flags whose name is not their field's path; one table for every command
 ALIASES: dict[str, str] = {
@@ -36,8 +37,6 @@ ALIASES: dict[str, str] = {
     "task.episode_steps": "steps",
     "task.shapes": "shapes",
     "model.name": "model",
-    "model.hidden": "hidden",
-    "model.velocity_input": "velocity-input",
     "fit.schedule": "schedule",
     "fit.epochs": "epochs",
     "fit.update_steps": "update-steps",
@@ -49,8 +48,39 @@ ALIASES: dict[str, str] = {
 
 
 def flag_name(dotted: str) -> str:
-    """The flag of a spec field (without the leading dashes)."""
-    return ALIASES.get(dotted, dotted.replace(".", "-").replace("_", "-"))
+    """The flag of a spec field (without the leading dashes); a model's options are named
+    as they are (``model.hidden`` -> ``--hidden``)."""
+    if dotted in ALIASES:
+        return ALIASES[dotted]
+    if dotted.startswith(MODEL + "."):
+        dotted = dotted[len(MODEL) + 1 :]
+    return dotted.replace(".", "-").replace("_", "-")
+
+
+def model_flags() -> list[str]:
+    """The fields of every registered model's spec (``model.FIELD``), for the commands that
+    build a model: the common ones first, then each model's own."""
+    from dlocli.models.spec import model_spec_classes
+
+    fields = {name: None for cls in model_spec_classes().values() for name in cls.model_fields}
+    return [f"{MODEL}.{name}" for name in fields]
+
+
+def _model_help(dotted: str, info: Any) -> str:
+    """Help of a model option: which models have it, and their defaults."""
+    from dlocli.models.spec import ModelSpec, model_spec_classes
+
+    field = dotted.split(".")[-1]
+    owners = {n: c for n, c in model_spec_classes().items() if field in c.model_fields}
+    if field == "name":
+        return f"{info.description} One of: {', '.join(owners)}."
+    defaults = {n: c.model_fields[field].default for n, c in owners.items()}
+    if len(set(map(repr, defaults.values()))) == 1:
+        default = f"(spec default: {next(iter(defaults.values()))})"
+    else:
+        default = "(spec default: " + ", ".join(f"{n} {d}" for n, d in defaults.items()) + ")"
+    shared = field in ModelSpec.model_fields
+    return f"{'' if shared else ', '.join(owners) + ': '}{info.description} {default}"
 
 
 def _flag_type(annotation: Any) -> tuple[Any, str]:
@@ -69,8 +99,11 @@ def _option(spec_cls: type[Spec], dotted: str) -> tuple[str, Any]:
     """(parameter name, Annotated type) of the flag of ``dotted``."""
     name, info = flag_name(dotted), field_info(spec_cls, dotted)
     kind, note = _flag_type(info.annotation)
-    default = "" if info.default_factory is not None else f" (spec default: {info.default})"
-    text = f"{info.description}{note}{default}"
+    if dotted.startswith(MODEL + "."):
+        text = _model_help(dotted, info)
+    else:
+        default = "" if info.default_factory is not None else f" (spec default: {info.default})"
+        text = f"{info.description}{note}{default}"
     decls = [f"--{name}/--no-{name}"] if kind is bool else [f"--{name}"]
     return name.replace("-", "_"), Annotated[kind | None, typer.Option(*decls, help=text)]
 
@@ -81,12 +114,6 @@ def _value(spec_cls: type[Spec], dotted: str, value: Any) -> Any:
     if value is not None and get_origin(annotation) is list:
         return [part.strip() for part in str(value).split(",") if part.strip()]
     return value
-
-
-def strip_none(annotation: Any) -> Any:
-    if get_origin(annotation) in (typing.Union, types.UnionType):
-        return next(a for a in get_args(annotation) if a is not type(None))
-    return annotation
 
 
 @dataclass
@@ -132,6 +159,8 @@ def spec_flags(spec_cls: type[Spec], fields: list[str]) -> Callable[[Callable], 
 
     def decorate(fn: Callable) -> Callable:
         generated = dict(_option(spec_cls, dotted) for dotted in fields)
+        if len(generated) < len(fields):
+            raise TypeError(f"{fn.__name__}: two of the fields {fields} have one flag name")
         params = {name: dotted for name, dotted in zip(generated, fields, strict=True)}
         hints = typing.get_type_hints(fn, include_extras=True)  # resolved in fn's module
         own = [

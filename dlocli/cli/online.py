@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
-from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.flags import RunFlags, model_flags, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.runs.online import OnlineSpec as S
 
@@ -15,7 +15,7 @@ from dlocli.runs.online import OnlineSpec as S
     S,
     ["iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
      "initial_episodes", "mpc.horizon",
-     "fit.lr", "model.name", "model.hidden", "model.velocity_input", "task.goal", "task.name",
+     "fit.lr", *model_flags(), "task.goal", "task.name",
      "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
      "executor", "ray_address", "fit.mirror", "offline", "seed", "out"],
 )  # fmt: skip
@@ -65,10 +65,10 @@ class _OnlineProgress:
             bars.update("iteration", info["iteration"], info["total"])
         elif event == "update":
             bars.begin(info["unit"], info["total"])
-        elif event == "epoch" and "batch" not in info:
-            early = "stopped early, best " if info.get("stopped_early") else ""
-            loss = f"{early}val loss {info.get('val_loss', float('nan')):.4f}"
-            bars.update(info.get("unit", "epoch"), info["epoch"], info.get("epochs"), info=loss)
+        elif event == "validation":
+            early = "stopped early, best " if info["stopped_early"] else ""
+            loss = f"{early}val loss {info['val_loss']:.4f}"
+            bars.update(info["unit"], info["count"], info["total"], info=loss)
         elif event == "trials":
             bars.begin("trial", info["total"], done=info["done"])
         elif event == "trial":

@@ -10,7 +10,7 @@ from dlocli.cli.common import (
     emit_summary,
     handle_errors,
 )
-from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.flags import RunFlags, model_flags, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.models.spec import TrainSpec as S
 
@@ -18,9 +18,9 @@ from dlocli.models.spec import TrainSpec as S
 @handle_errors
 @spec_flags(
     S,
-    ["data", "model.name", "model.hidden", "model.velocity_input", "epochs", "lr", "batch_size",
-     "input_noise", "val_fraction", "mirror", "device", "seed", "init_from", "out",
-     "update_steps", "rollout_steps", "rollout_start", "eval_every"],
+    ["data", *model_flags(), "epochs", "lr", "batch_size", "input_noise", "val_fraction",
+     "mirror", "device", "seed", "init_from", "out", "update_steps", "rollout_steps",
+     "rollout_start", "eval_every"],
 )  # fmt: skip
 def train(
     run: RunFlags,
@@ -32,29 +32,28 @@ def train(
     A rod dataset (`dlo collect`) trains one step for --epochs. A marker dataset (`dlo
     import`, recorded cables) trains --update-steps gradient steps through open-loop
     rollouts of up to --rollout-steps steps, on its train split only."""
+    from dlocli.models.fitting import BatchDone, Validated
     from dlocli.models.training import resumed_spec, run_training
-    from dlocli.registry import models
 
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
-    models.check(spec.model.name)
     with Bars(run.json) as bars:
 
-        def show(event: dict[str, Any]) -> None:
-            if "step" in event:  # a marker dataset: gradient steps through rollouts
+        def show(event: BatchDone | Validated | dict[str, Any]) -> None:
+            if isinstance(event, dict):  # a marker dataset: gradient steps through rollouts
                 info = (f"k {event['k']}, rollout loss {event['train_loss']:.3g} cm, "
                         f"validation {event['val_score_cm']:.3g} cm")  # fmt: skip
                 bars.update("step", event["step"], event["steps"], info=info)
                 return
             if "epoch" not in bars.phases:  # training starts (after earlier epochs, resumed)
-                bars.begin("epoch", spec.epochs, done=event["epoch"] - 1)
+                bars.begin("epoch", spec.epochs, done=event.count - 1)
                 bars.begin("batch", None, every=None)  # a log gets the epochs only
-            if "val_loss" in event:  # an epoch finished
-                bars.update("epoch", event["epoch"], spec.epochs,
-                            info=f"val loss {event['val_loss']:.4g}")  # fmt: skip
+            if isinstance(event, Validated):  # an epoch finished
+                bars.update("epoch", event.count, spec.epochs,
+                            info=f"val loss {event.val_loss:.4g}")  # fmt: skip
             else:  # each epoch counts its batches afresh
-                bars.update("batch", event["batch"], event["batches"],
-                            info=f"loss {event['loss']:.4g}")  # fmt: skip
+                bars.update("batch", event.batch, event.batches,
+                            info=f"loss {event.loss:.4g}")  # fmt: skip
 
         summary = run_training(
             spec, run.overwrite, show, resume=resume is not None, accept_changes=accept_changes

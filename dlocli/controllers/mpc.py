@@ -59,9 +59,6 @@ GN_DAMPING = 1e-2  # Levenberg damping, relative to the mean diagonal of J^T J
 class MPCSpec(PlannerSpec):
     """Gradient MPC options (paper-like: optimizer adam, iterations 50, warm_start false)."""
 
-    #: fields added after bench jobs were first saved, at the value that reproduces them
-    legacy_values: ClassVar[dict[str, Any]] = {"refresh": "inline"}
-
     iterations: int = Field(1, ge=1, le=1000, description="Gradient steps per re-plan.")
     step_size: float = Field(
         0.2,

@@ -48,7 +48,7 @@ from dlocli.controllers.base import LearningAgent
 from dlocli.errors import BadInput
 from dlocli.io import read_json, write_bytes_atomic, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_TRANSITIONS, refuse_unless_fits
-from dlocli.specs import Spec, format_validation_error
+from dlocli.specs import Device, Spec, format_validation_error
 
 SpecT = TypeVar("SpecT", bound=Spec)
 
@@ -101,7 +101,7 @@ class SB3Spec(Spec):
     net_arch: list[Annotated[int, Field(gt=0, le=65536)]] = Field(
         default_factory=lambda: [400, 300], description="Hidden layer sizes of actor and critics."
     )
-    device: str = Field("auto", description="Torch device: 'auto', 'cpu' or 'cuda'.")
+    device: Device = "auto"
 
     def steps_per_update(self, episode_steps: int) -> int:
         """``train_freq`` in env steps for a task of ``episode_steps`` steps per episode."""

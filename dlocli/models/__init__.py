@@ -1,5 +1,6 @@
 """Learned dynamics models of the rod: one module per model, all implementing
-:class:`~dlocli.models.base.DynamicsModel` and registered in :data:`dlocli.registry.models`.
+:class:`~dlocli.models.base.DynamicsModel` and registered in :data:`dlocli.registry.models`;
+each declares its options as a :class:`~dlocli.models.spec.ModelSpec` subclass, ``spec_cls``.
 
 Names are imported lazily, so ``dlocli.models.spec`` stays usable without importing torch.
 """
@@ -11,6 +12,7 @@ from typing import Any
 
 _EXPORTS = {
     "ModelSpec": "dlocli.models.spec",
+    "model_spec": "dlocli.models.spec",
     "DynamicsModel": "dlocli.models.base",
     "build_model": "dlocli.models.base",
     "load_model": "dlocli.models.base",

@@ -26,7 +26,7 @@ import pickle
 import zipfile
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -37,7 +37,8 @@ from dlocli.backends.rotations import state_change
 from dlocli.errors import BadInput
 from dlocli.io import versions, write_bytes_atomic
 from dlocli.limits import refuse_unless_fits
-from dlocli.models.spec import ModelSpec, with_legacy_fields
+from dlocli.migrations import completed
+from dlocli.models.spec import ModelSpec, model_spec
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)
@@ -66,7 +67,8 @@ def mlp(sizes: list[int]) -> torch.nn.Sequential:
 
 
 class DynamicsModel(torch.nn.Module, ABC):
-    """A learned one-step model of the rod. Subclasses implement :meth:`predict_delta`.
+    """A learned one-step model of the rod. Subclasses implement :meth:`predict_delta` and
+    declare their options as a :class:`ModelSpec` subclass, ``spec_cls``.
 
     Buffers (saved with the weights): ``state_mean``/``state_std`` (7,) normalise the input
     state per feature over all segments; ``delta_mean``/``delta_std`` (7,) the predicted change;
@@ -74,6 +76,9 @@ class DynamicsModel(torch.nn.Module, ABC):
     ``relation_scale`` (7,) is the inverse RMS of the normalised difference between
     neighbouring segments' states (for models that compare neighbours).
     """
+
+    #: the options of this model: ModelSpec's fields and its own
+    spec_cls: ClassVar[type[ModelSpec]] = ModelSpec
 
     def __init__(self, spec: ModelSpec, n_segments: int) -> None:
         super().__init__()
@@ -224,13 +229,22 @@ def node_actions(action: Tensor, n_segments: int) -> Tensor:
 
 
 # ---------------------------------------------------------------------- building, devices
-def build_model(spec: ModelSpec, n_segments: int) -> DynamicsModel:
-    """A fresh (untrained) model of the registered kind ``spec.name``; BadInput if its
-    training would not fit in memory (:func:`refuse_oversized_model`)."""
+def build_model(spec: ModelSpec | dict[str, Any], n_segments: int) -> DynamicsModel:
+    """A fresh (untrained) model of the registered kind ``spec.name`` (a spec, or its fields
+    as a dict); BadInput if its training would not fit in memory."""
     from dlocli.registry import models
 
+    spec = valid_model_spec(spec)
     refuse_oversized_model(spec, n_segments)
     return models.get(spec.name)(spec, n_segments)
+
+
+def valid_model_spec(spec: ModelSpec | dict[str, Any], source: str = "model spec") -> ModelSpec:
+    """``spec`` as its model's own spec class; BadInput naming the bad field if it is not one."""
+    try:
+        return model_spec(spec)
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, source)) from exc
 
 
 def refuse_oversized_model(spec: ModelSpec, n_segments: int) -> None:
@@ -242,10 +256,9 @@ def refuse_oversized_model(spec: ModelSpec, n_segments: int) -> None:
     with torch.device("meta"):
         parameters = sum(p.numel() for p in models.get(spec.name)(spec, n_segments).parameters())
     refuse_unless_fits(
-        f"model {spec.name} (hidden {spec.hidden}, mlp_hidden {spec.mlp_hidden}: "
-        f"{parameters:,} parameters)",
+        f"model {spec.name} (hidden {spec.hidden}: {parameters:,} parameters)",
         16.0 * parameters,
-        "choose smaller hidden/mlp_hidden or fewer layers",
+        "choose a smaller --hidden or fewer layers",
     )
 
 
@@ -344,7 +357,7 @@ def load_model(
             "`dlo eval` on a marker dataset"
         )
     spec = checkpoint_spec(payload, path)
-    if expect is not None and expect != spec:
+    if expect is not None and valid_model_spec(expect) != spec:
         raise BadInput(
             f"checkpoint {path} holds model {spec.model_dump()} but {expect.model_dump()} "
             "was requested; pass the matching --model or another checkpoint"
@@ -355,11 +368,10 @@ def load_model(
 def checkpoint_spec(payload: dict[str, Any], path: Path) -> ModelSpec:
     """The model spec a checkpoint's payload holds (older ones' missing fields at their
     legacy values); BadInput if it is not one."""
-    spec_dict = with_legacy_fields(payload.get("model_spec"))  # older checkpoints' models
-    try:
-        return ModelSpec.model_validate(spec_dict)
-    except ValidationError as exc:
-        raise BadInput(format_validation_error(exc, f"checkpoint {path} model spec")) from exc
+    saved = payload.get("model_spec")
+    if not isinstance(saved, dict):
+        raise BadInput(f"checkpoint {path} holds no model spec; retrain it")
+    return valid_model_spec(completed("model", saved), f"checkpoint {path} model spec")
 
 
 def with_weights(

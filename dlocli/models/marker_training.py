@@ -14,7 +14,6 @@ steps; the best weights are kept.
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from collections.abc import Callable
@@ -26,6 +25,7 @@ import torch
 
 from dlocli.errors import DloError
 from dlocli.markers.dataset import MarkerDataset
+from dlocli.models.fitting import KeepBest
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
 from dlocli.processes import raise_if_stopped
@@ -158,7 +158,7 @@ def fit_markers(
         optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
     )
     history: list[dict[str, float]] = []
-    best = (math.inf, copy.deepcopy(model.state_dict()))
+    best = KeepBest(keep=True)
     start, running = time.perf_counter(), []
     for step in range(1, total + 1):
         raise_if_stopped()
@@ -185,11 +185,10 @@ def fit_markers(
             }
             history.append(record)
             running = []
-            if math.isnan(val_score) or val_score < best[0]:
-                best = (val_score, copy.deepcopy(model.state_dict()))
+            best.observe(step, val_score, model)
             if progress:
                 progress(record)
-    model.load_state_dict(best[1])
+    best.restore(total, model)
     model.eval()
     return history
 

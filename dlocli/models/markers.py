@@ -194,8 +194,7 @@ class MarkerMLP(MarkerModel):
 
     def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
         super().__init__(spec, n_markers, held)
-        self.net = mlp([n_markers * FEATURES] + [spec.mlp_hidden] * spec.mlp_layers
-                       + [n_markers * 3])  # fmt: skip
+        self.net = mlp([n_markers * FEATURES] + [spec.hidden] * spec.layers + [n_markers * 3])
 
     def predict(self, f: Tensor) -> Tensor:
         return self.net(f.reshape(len(f), -1)).view(len(f), self.n_segments, 3)
@@ -203,10 +202,12 @@ class MarkerMLP(MarkerModel):
 
 def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:
     """A fresh marker-form model of the registered kind ``spec.name``."""
+    from dlocli.models.base import valid_model_spec
     from dlocli.models.in_bilstm import INBiLSTM
     from dlocli.models.mlp import MLPDynamics
     from dlocli.registry import models
 
+    spec = valid_model_spec(spec)
     rod_model = models.get(spec.name)
     form = getattr(rod_model, "marker_form", None) or {
         INBiLSTM: MarkerINBiLSTM,

@@ -8,19 +8,36 @@ structure buys.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import torch
+from pydantic import Field
 from torch import Tensor
 
-from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, ModelSpec, mlp
+from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, mlp
+from dlocli.models.spec import ModelSpec
+
+
+class MLPSpec(ModelSpec):
+    """The baseline's sizes: ``layers`` hidden layers, ``hidden`` wide."""
+
+    #: its options' names when every model shared one spec
+    moved: ClassVar[dict[str, str]] = {"mlp_hidden": "hidden", "mlp_layers": "layers"}
+
+    hidden: int = Field(512, gt=0, le=65536, description=ModelSpec.field_of("hidden").description)
+    layers: int = Field(4, gt=0, le=64, description="Hidden layers of the MLP.")
 
 
 class MLPDynamics(DynamicsModel):
-    """Flattened state + action MLP baseline (``mlp_layers`` hidden layers, ``mlp_hidden`` wide)."""
+    """Flattened state + action MLP baseline (``layers`` hidden layers, ``hidden`` wide)."""
 
-    def __init__(self, spec: ModelSpec, n_segments: int) -> None:
+    spec_cls: ClassVar[type[ModelSpec]] = MLPSpec
+    spec: MLPSpec
+
+    def __init__(self, spec: MLPSpec, n_segments: int) -> None:
         super().__init__(spec, n_segments)
         n_in = n_segments * self.feature_dim + 2 * ACTION_DIM
-        widths = [spec.mlp_hidden] * spec.mlp_layers
+        widths = [spec.hidden] * spec.layers
         self.net = mlp([n_in, *widths, n_segments * STATE_DIM])
 
     def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:

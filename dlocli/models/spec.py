@@ -4,16 +4,18 @@ without importing torch)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import Field
+from pydantic import BeforeValidator, Field, SerializeAsAny, model_validator
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
-from dlocli.specs import Spec
+from dlocli.migrations import model_data, without_retired_train_fields
+from dlocli.specs import Device, Spec
 
 
 class ModelSpec(Spec):
-    """Which dynamics model, and its sizes (paper defaults)."""
+    """What every dynamics model has; a model's own options are the fields of its spec, a
+    subclass of this one (the model class's ``spec_cls``)."""
 
     name: str = Field("in-bilstm", description="Dynamics model (see `dlo list`).")
     velocity_input: bool = Field(
@@ -22,29 +24,7 @@ class ModelSpec(Spec):
         "(a finite-difference velocity): the rod has inertia, so position and orientation "
         "alone do not determine its next state.",
     )
-    absolute_position: bool = Field(
-        True,
-        description="in-bilstm: give f_e and f_v each segment's absolute position (the paper's "
-        "encoding). Off, the segments' own features are orientation and velocity, and "
-        "positions enter only as neighbour differences: the model is then exactly "
-        "translation-invariant, as a rod without contacts is.",
-    )
-    hidden: int = Field(
-        150, gt=0, le=8192, description="Width of every hidden layer and of the LSTM."
-    )
-    edge_layers: int = Field(
-        4, gt=0, le=64, description="Layers of the relation-centric network f_e."
-    )
-    node_layers: int = Field(
-        4, gt=0, le=64, description="Layers of the object-centric network f_v."
-    )
-    lstm_layers: int = Field(
-        2, gt=0, le=64, description="Layers of the bidirectional LSTM along the rod."
-    )
-    mlp_layers: int = Field(4, gt=0, le=64, description="Hidden layers of the `mlp` baseline.")
-    mlp_hidden: int = Field(
-        512, gt=0, le=65536, description="Width of the `mlp` baseline's hidden layers."
-    )
+    hidden: int = Field(150, gt=0, le=8192, description="Width of every hidden layer of the model.")
     length_projection: int = Field(
         0, ge=0, le=50,
         description="Marker form (recorded cables): sweeps projecting every predicted frame "
@@ -52,44 +32,84 @@ class ModelSpec(Spec):
         "cable does not stretch); 0: none.",
     )  # fmt: skip
 
+    @classmethod
+    def field_of(cls, name: str) -> Any:
+        """The field ``name`` of this spec, or else of the first registered model's spec
+        that has it (a flag of a model's own option)."""
+        if name in cls.model_fields:
+            return cls.model_fields[name]
+        for spec_cls in model_spec_classes().values():
+            if name in spec_cls.model_fields:
+                return spec_cls.model_fields[name]
+        raise KeyError(name)
+
+
+def model_spec_classes() -> dict[str, type[ModelSpec]]:
+    """The spec class of every registered model, by name."""
+    from dlocli.registry import models
+
+    return {name: model_spec_class(name) for name in models.names()}
+
+
+def model_spec_class(name: str) -> type[ModelSpec]:
+    """The spec class of the registered model ``name`` (UnknownName if there is none)."""
+    from dlocli.registry import models
+
+    return getattr(models.get(name), "spec_cls", ModelSpec)
+
+
+def model_spec(data: Any = None) -> ModelSpec:
+    """The spec of the model ``data`` names (a dict or spec; none: the default model), as
+    its own spec class: older layouts migrated, options validated (ValidationError)."""
+    if isinstance(data, ModelSpec):
+        if type(data) is model_spec_class(data.name):
+            return data
+        data = data.model_dump(exclude_unset=True) | {"name": data.name}
+    data = dict(data or {})
+    name = data.get("name", ModelSpec.model_fields["name"].default)
+    if not isinstance(name, str):
+        return ModelSpec.model_validate(data)  # the error names the field
+    cls = model_spec_class(name)
+    return cls.model_validate(model_data(data, set(cls.model_fields), cls.moved))
+
+
+def _as_model_spec(value: Any) -> Any:
+    # an unknown name is not a ValueError: it leaves validation as UnknownName, whole
+    return model_spec(value) if isinstance(value, dict | ModelSpec) else value
+
+
+#: a field holding a model spec: validated as the spec of the model it names, saved whole
+ModelField = Annotated[SerializeAsAny[ModelSpec], BeforeValidator(_as_model_spec)]
+
+
+def model_field(description: str) -> Any:
+    """The ``model`` field of a run spec (default: the default model at its defaults)."""
+    return Field(default_factory=model_spec, description=description)
+
 
 class FitSpec(Spec):
-    """How to fit a model (also used by the online loop to continue training)."""
+    """How to fit a model, by `dlo train` and by the online loop's updates."""
 
-    schedule: Literal["epochs", "steps"] = Field(
-        "epochs",
-        description='How a model update trains. "epochs" (the paper\'s): `epochs` passes over '
-        'all the data, so in the online loop each update costs more than the last. "steps": '
-        "`update_steps` gradient steps on mini-batches drawn from all the data, "
-        "`recent_fraction` of each from the episodes added since the previous update, "
-        "continuing from the previous weights and Adam state, stopped early on the validation "
-        "split (the best weights are kept): a fixed cost per update, whatever the data's size. "
-        "`dlo train` trains by epochs.",
-    )
     epochs: int = Field(
-        50, ge=0, le=MAX_COUNT, description='Passes over the training transitions (schedule "epochs").'
+        50,
+        ge=0,
+        le=MAX_COUNT,
+        description="Passes over the training transitions: of `dlo train` on a rod dataset, and of "
+        'each online update under schedule "epochs".',
     )
     update_steps: int = Field(
-        2000, gt=0, le=MAX_COUNT, description='Schedule "steps": most gradient steps per model update.'
+        2000,
+        gt=0,
+        le=MAX_COUNT,
+        description="Gradient steps: of `dlo train` on a marker dataset, and most of each online "
+        'update under schedule "steps".',
     )
-    recent_fraction: float = Field(
-        0.5, ge=0, le=1,
-        description="Schedule \"steps\": share of each mini-batch drawn from the transitions "
-        "added since the previous update (when there are any; the rest is drawn from all).",
-    )  # fmt: skip
     eval_every: int = Field(
-        100, gt=0, le=MAX_COUNT, description='Schedule "steps": gradient steps between validations.'
+        100,
+        gt=0,
+        le=MAX_COUNT,
+        description="Gradient steps between validations, when training counts steps.",
     )
-    patience: int = Field(
-        5, ge=0, le=MAX_COUNT,
-        description="Schedule \"steps\": stop after this many validations without a lower "
-        "validation loss, and keep the best weights (0: never stop early).",
-    )  # fmt: skip
-    val_transitions: int = Field(
-        4096, gt=0, le=MAX_COUNT,
-        description="Schedule \"steps\": most validation transitions per validation (a fixed "
-        "random subset per update), so validating costs the same as the data grows.",
-    )  # fmt: skip
     lr: float = Field(1e-4, gt=0, description="Adam learning rate.")
     batch_size: int = Field(64, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
     input_noise: float = Field(
@@ -101,7 +121,7 @@ class FitSpec(Spec):
     val_fraction: float = Field(
         0.1, ge=0, lt=1, description="Fraction of trajectories held out for validation."
     )
-    device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
+    device: Device = "auto"
     seed: int = Field(
         0, ge=0, le=MAX_SEED, description="Seed of initialisation, shuffling and noise."
     )
@@ -132,11 +152,55 @@ class FitSpec(Spec):
     )  # fmt: skip
 
 
+class UpdateSpec(FitSpec):
+    """How the online loop updates its model: a fit, and the schedule of each update."""
+
+    schedule: Literal["epochs", "steps"] = Field(
+        "epochs",
+        description='How a model update trains. "epochs" (the paper\'s): `epochs` passes over '
+        'all the data, so in the online loop each update costs more than the last. "steps": '
+        "`update_steps` gradient steps on mini-batches drawn from all the data, "
+        "`recent_fraction` of each from the episodes added since the previous update, "
+        "continuing from the previous weights and Adam state, stopped early on the validation "
+        "split (the best weights are kept): a fixed cost per update, whatever the data's size.",
+    )
+    recent_fraction: float = Field(
+        0.5, ge=0, le=1,
+        description="Schedule \"steps\": share of each mini-batch drawn from the transitions "
+        "added since the previous update (when there are any; the rest is drawn from all).",
+    )  # fmt: skip
+    patience: int = Field(
+        5, ge=0, le=MAX_COUNT,
+        description="Schedule \"steps\": stop after this many validations without a lower "
+        "validation loss, and keep the best weights (0: never stop early).",
+    )  # fmt: skip
+    val_transitions: int = Field(
+        4096, gt=0, le=MAX_COUNT,
+        description="Schedule \"steps\": most validation transitions per validation (a fixed "
+        "random subset per update), so validating costs the same as the data grows.",
+    )  # fmt: skip
+
+    @property
+    def unit(self) -> Literal["epoch", "step"]:
+        """What an update counts: epochs or gradient steps."""
+        return "step" if self.schedule == "steps" else "epoch"
+
+    @property
+    def length(self) -> int:
+        """Epochs or gradient steps per update."""
+        return self.update_steps if self.schedule == "steps" else self.epochs
+
+    def times(self, updates: int) -> UpdateSpec:
+        """This schedule, as long as ``updates`` updates."""
+        field = "update_steps" if self.schedule == "steps" else "epochs"
+        return self.model_copy(update={field: self.length * updates})
+
+
 class TrainSpec(FitSpec):
     """`dlo train`: fit a dynamics model to a dataset; write a run directory."""
 
     data: Path | None = Field(None, description="Dataset file or collect run directory.")
-    model: ModelSpec = Field(default_factory=ModelSpec, description="Model and sizes.")
+    model: ModelField = model_field("Model and sizes.")
     init_from: Path | None = Field(
         None, description="Checkpoint or run directory to continue training from."
     )
@@ -144,6 +208,11 @@ class TrainSpec(FitSpec):
     # smaller than the online loop's: at lr 1e-4 the deep f_e -> LSTM -> f_v path needs the
     # extra steps within 50 epochs (README, model accuracy)
     batch_size: int = Field(16, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _retired_fields(cls, data: Any) -> Any:
+        return without_retired_train_fields(data)
 
 
 class EvalSpec(Spec):
@@ -155,9 +224,12 @@ class EvalSpec(Spec):
     data: Path | None = Field(
         None, description="Dataset file or collect run directory; every episode is evaluated."
     )
-    device: str = Field("auto", description="Torch device: auto, cpu, cuda or cuda:K.")
+    device: Device = "auto"
     max_starts: int = Field(
-        512, gt=0, le=MAX_COUNT, description="Most start states per rollout horizon (evenly spread)."
+        512,
+        gt=0,
+        le=MAX_COUNT,
+        description="Most start states per rollout horizon (evenly spread).",
     )
     plot: Path | None = Field(
         None, description="Also write a PNG of the predicted vs true rod over a rollout of the "
@@ -166,33 +238,3 @@ class EvalSpec(Spec):
     out: Path | None = Field(
         None, description="Run directory for spec.json and summary.json (none: print only)."
     )
-
-
-#: ModelSpec fields added after models and runs were first saved, with the value that
-#: rebuilds what was saved before the field existed
-LEGACY_VALUES: dict[str, Any] = {
-    "velocity_input": False,
-    "absolute_position": True,
-    "length_projection": 0,
-}
-#: FitSpec fields added after runs were first saved, with the value that rebuilds what a saved
-#: run did before the field existed
-FIT_LEGACY_VALUES: dict[str, Any] = {
-    "mirror": False,
-    "schedule": "epochs",
-    "update_steps": 2000,
-    "recent_fraction": 0.5,
-    "eval_every": 100,
-    "patience": 5,
-    "val_transitions": 4096,
-    "rollout_steps": 1,
-    "rollout_start": 4,
-    "rollout_ramp": 0.5,
-}
-
-
-def with_legacy_fields(saved: Any) -> Any:
-    """A saved model spec (dict) with the fields it predates set to their legacy values."""
-    if not isinstance(saved, dict):
-        return saved
-    return {**{k: v for k, v in LEGACY_VALUES.items() if k not in saved}, **saved}

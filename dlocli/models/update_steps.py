@@ -1,9 +1,9 @@
-"""The online loop's fixed-cost model update (``FitSpec.schedule == "steps"``): a set number
-of gradient steps on mini-batches drawn from all the data with the newest episodes weighted
-in, stopped early on (a capped subset of) the validation split, the best weights kept. Its cost
+"""The online loop's model update. Schedule "steps" is a fixed-cost update: a set number of
+gradient steps on mini-batches drawn from all the data with the newest episodes weighted in,
+stopped early on (a capped subset of) the validation split, the best weights kept. Its cost
 does not grow with the dataset, unlike the paper's E epochs over all of it
-(:func:`dlocli.models.training.train_model`); both share the set-up, the gradient step and the
-validation of :mod:`dlocli.models.training`.
+(:func:`dlocli.models.training.train_model`). Both run :mod:`dlocli.models.fitting`'s loop;
+:func:`update_model` picks the schedule.
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,28 +20,84 @@ import torch
 
 from dlocli.data import Dataset
 from dlocli.models.base import DynamicsModel
-from dlocli.models.spec import FitSpec
-from dlocli.models.training import (
-    OnEpoch,
+from dlocli.models.fitting import (
+    KeepBest,
+    OnValidation,
     Progress,
+    Round,
     TrainResult,
-    _check_finite,
-    _gradient_step,
-    _set_up,
-    train_model,
+    fit_loop,
+    set_up,
     validation_loss,
 )
+from dlocli.models.spec import UpdateSpec
+from dlocli.models.training import train_model
+
+
+def update_model(
+    model: DynamicsModel,
+    dataset: Dataset,
+    fit: UpdateSpec,
+    *,
+    recent_episodes: np.ndarray | None = None,
+    **options: Any,
+) -> TrainResult:
+    """Train ``model`` in place as ``fit.schedule`` says: :func:`train_steps` ("steps", with
+    ``recent_episodes`` weighted in) or :func:`~dlocli.models.training.train_model`; the
+    ``options`` both take (``optimizer_state``, ``progress``, ``on_validation``)."""
+    if fit.schedule == "steps":
+        return train_steps(model, dataset, fit, recent_episodes=recent_episodes, **options)
+    return train_model(model, dataset, fit, **options)
+
+
+@dataclass
+class StepPlan:
+    """``fit.update_steps`` gradient steps in rounds of ``fit.eval_every``, each mini-batch
+    drawn from ``gen`` when the loop asks for it (:func:`sample_batch`); counts the rows
+    drawn from the recent episodes."""
+
+    fit: UpdateSpec
+    n_train: int
+    recent: torch.Tensor
+    val: dict[str, torch.Tensor]
+    gen: torch.Generator
+    device: torch.device
+    unit: str = "step"
+    kept: str = "the model it started from is kept"
+    hits: int = 0
+    steps: int = 0
+
+    def __post_init__(self) -> None:
+        self.is_recent = torch.zeros(self.n_train, dtype=torch.bool)
+        self.is_recent[self.recent] = True
+
+    @property
+    def total(self) -> int:
+        return self.fit.update_steps
+
+    def rounds(self) -> Iterator[Round]:
+        total, every = self.fit.update_steps, self.fit.eval_every
+        for first in range(0, total, every):
+            size = min(every, total - first)
+            yield Round(first + size, self._batches(size), size)
+
+    def _batches(self, size: int) -> Iterator[torch.Tensor]:
+        for _ in range(size):
+            idx = sample_batch(self.n_train, self.recent, self.fit, self.gen)
+            self.hits += int(self.is_recent[idx].sum())
+            self.steps += 1
+            yield idx.to(self.device)
 
 
 def train_steps(
     model: DynamicsModel,
     dataset: Dataset,
-    fit: FitSpec,
+    fit: UpdateSpec,
     *,
     recent_episodes: np.ndarray | None = None,
-    optimizer_state: dict[str, Any] | None = None,
+    optimizer_state: dict | None = None,
     progress: Progress | None = None,
-    on_eval: OnEpoch | None = None,
+    on_validation: OnValidation | None = None,
 ) -> TrainResult:
     """Train ``model`` in place for at most ``fit.update_steps`` Adam steps (schedule
     "steps"): a cost per call that does not grow with ``dataset``.
@@ -54,74 +112,42 @@ def train_steps(
     and their Adam state are restored. Without a validation split every step runs and the
     last weights are kept.
 
-    Set-up as :func:`train_model`. Every random draw comes from one generator seeded with
-    ``fit.seed``, so the result is a function of the seed, the data and the starting weights
-    and optimizer state. ``progress`` gets ``{"epoch": step, "epochs": fit.update_steps,
-    "val_loss", "unit": "step"}`` after each validation (epoch-like events: the online
-    command's bar counts steps); ``on_eval`` gets each validation's record ``{"step",
-    "train_loss", "val_loss", "seconds"}``, the optimizer and the generator.
+    Set-up as :func:`~dlocli.models.training.train_model`. Every random draw comes from one
+    generator seeded with ``fit.seed``, so the result is a function of the seed, the data and
+    the starting weights and optimizer state. ``progress`` gets a
+    :class:`~dlocli.models.fitting.Validated` (unit "step") after each validation;
+    ``on_validation`` each validation's :class:`~dlocli.models.fitting.FitRecord`, the optimizer
+    and the generator.
     """
-    setup = _set_up(model, dataset, fit, optimizer_state)
-    train, optimizer = setup.train, setup.optimizer
-    n_train = len(train["state"])
+    setup = set_up(model, dataset, fit, optimizer_state)
+    n_train = len(setup.train["state"])
     gen = torch.Generator(device="cpu").manual_seed(fit.seed)
     val = _val_subset(setup.val, fit.val_transitions, gen)
     has_val = len(val["state"]) > 0
     recent = recent_rows(dataset, setup.train_episodes, recent_episodes, setup.mirror)
-    is_recent = torch.zeros(n_train, dtype=torch.bool)
-    is_recent[recent] = True
-    result = TrainResult(train_episodes=setup.train_episodes, val_episodes=setup.val_episodes)
-    best = {"step": 0, "val_loss": validation_loss(model, val)}
-    if has_val:
-        best.update(_snapshot(model, optimizer))
-    device = train["state"].device
-    start = t0 = time.perf_counter()
-    total, hits, since, stale, step = torch.zeros((), device=device), 0, 0, 0, 0
-    model.train()
-    while step < fit.update_steps:
-        step += 1
-        idx = sample_batch(n_train, recent, fit, gen)
-        hits += int(is_recent[idx].sum())
-        total += _gradient_step(model, optimizer, train, idx.to(device), fit, gen)
-        since += 1
-        if step % fit.eval_every and step < fit.update_steps:
-            continue
-        train_loss = float(total) / since
-        _check_finite(train_loss, f"step {step}", fit, "the model it started from is kept")
-        record = {"step": step, "train_loss": train_loss, "val_loss": validation_loss(model, val),
-                  "seconds": time.perf_counter() - t0}  # fmt: skip
-        result.history.append(record)
-        if progress is not None:
-            progress({"epoch": step, "epochs": fit.update_steps, "val_loss": record["val_loss"],
-                      "unit": "step"})  # fmt: skip
-        if on_eval is not None:
-            on_eval(record, optimizer, gen)
-        total, since, t0 = torch.zeros((), device=device), 0, time.perf_counter()
-        if record["val_loss"] < best["val_loss"]:
-            best, stale = {"step": step, "val_loss": record["val_loss"]}, 0
-            best.update(_snapshot(model, optimizer))
-        elif has_val:
-            stale += 1
-            if fit.patience and stale >= fit.patience:
-                if progress is not None:  # the bar ends full, at the steps taken
-                    progress({"epoch": step, "epochs": step, "val_loss": best["val_loss"],
-                              "unit": "step", "stopped_early": True})  # fmt: skip
-                break
-    if has_val and best["step"] != step:
-        model.load_state_dict(best["model"])
-        optimizer.load_state_dict(best["optimizer"])
-    model.eval()
+    plan = StepPlan(fit, n_train, recent, val, gen, setup.train["state"].device)
+    best = KeepBest(validation_loss(model, val), patience=fit.patience, keep=has_val)
+    best.start(model, setup.optimizer)
+    start = time.perf_counter()
+    history, _ = fit_loop(model, setup, fit, plan, gen, best, progress, on_validation)
     elapsed = time.perf_counter() - start
-    result.optimizer_state = copy.deepcopy(optimizer.state_dict())
-    result.steps = step
-    if has_val:
-        result.best_step, result.best_val_loss = int(best["step"]), float(best["val_loss"])
-    result.recent_share = hits / (step * fit.batch_size) if step else math.nan
-    result.transitions_per_s = step * fit.batch_size / elapsed if elapsed > 0 else 0.0
-    return result
+    step = plan.steps
+    return TrainResult(
+        history=history,
+        optimizer_state=copy.deepcopy(setup.optimizer.state_dict()),
+        train_episodes=setup.train_episodes,
+        val_episodes=setup.val_episodes,
+        transitions_per_s=step * fit.batch_size / elapsed if elapsed > 0 else 0.0,
+        steps=step,
+        best_step=best.count if has_val else None,
+        best_val_loss=float(best.val_loss) if has_val else math.nan,
+        recent_share=plan.hits / (step * fit.batch_size) if step else math.nan,
+    )
 
 
-def sample_batch(n: int, recent: torch.Tensor, fit: FitSpec, gen: torch.Generator) -> torch.Tensor:
+def sample_batch(
+    n: int, recent: torch.Tensor, fit: UpdateSpec, gen: torch.Generator
+) -> torch.Tensor:
     """Row indices (CPU) of one mini-batch of ``fit.batch_size`` drawn with replacement:
     ``round(fit.recent_fraction * batch_size)`` of them from ``recent``, when it holds some but
     not all of the ``n`` rows, the rest from all ``n``."""
@@ -135,8 +161,9 @@ def sample_batch(n: int, recent: torch.Tensor, fit: FitSpec, gen: torch.Generato
 def recent_rows(
     dataset: Dataset, train_episodes: np.ndarray, recent: np.ndarray | None, mirror: bool
 ) -> torch.Tensor:
-    """The rows of :func:`transition_tensors` ``(dataset, train_episodes, mirror=mirror)``
-    that come from an episode in ``recent`` (with ``mirror``, their twins too)."""
+    """The rows of :func:`~dlocli.models.fitting.transition_tensors` ``(dataset,
+    train_episodes, mirror=mirror)`` that come from an episode in ``recent`` (with ``mirror``,
+    their twins too)."""
     if recent is None:
         return torch.zeros(0, dtype=torch.long)
     per_episode = np.maximum(dataset.episode_lengths[train_episodes].astype(np.int64) - 1, 0)
@@ -157,17 +184,10 @@ def _val_subset(
     return {k: v[keep] for k, v in val.items()}
 
 
-def _snapshot(model: DynamicsModel, optimizer: torch.optim.Optimizer) -> dict[str, Any]:
-    return {
-        "model": copy.deepcopy(model.state_dict()),
-        "optimizer": copy.deepcopy(optimizer.state_dict()),
-    }
-
-
 def train_like_online(
     model: DynamicsModel,
     dataset: Dataset,
-    fit: FitSpec,
+    fit: UpdateSpec,
     updates: int,
     progress: Progress | None = None,
 ) -> TrainResult:
@@ -175,8 +195,4 @@ def train_like_online(
     trained after ``updates`` updates under ``fit.schedule`` (paper Fig. 7's offline model):
     E·updates epochs ("epochs"), or update_steps·updates steps with nothing weighted ("steps",
     so the offline comparison stays affordable where the paper's schedule is not)."""
-    if fit.schedule == "steps":
-        fit = fit.model_copy(update={"update_steps": fit.update_steps * updates})
-        return train_steps(model, dataset, fit, progress=progress)
-    fit = fit.model_copy(update={"epochs": fit.epochs * updates})
-    return train_model(model, dataset, fit, progress=progress)
+    return update_model(model, dataset, fit.times(updates), progress=progress)

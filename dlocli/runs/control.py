@@ -42,7 +42,7 @@ from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, wr
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
 from dlocli.rundir import owned
-from dlocli.specs import EnvSpec
+from dlocli.specs import Device, EnvSpec
 from dlocli.threads import torch_threads, warn_if_oversubscribed
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
@@ -63,11 +63,14 @@ class ControlSpec(EnvSpec):
         description="A trained sac or td3 policy: the `policy` directory of a `dlo bench` job "
         "(OUT/work/.../sac-s0/policy). Its pickled parts are never loaded.",
     )
-    device: str = Field("auto", description="Torch device of the model: auto, cpu, cuda, cuda:N.")
+    device: Device = "auto"
     threads: int = Field(
-        1, ge=1, le=MAX_PROCESSES, description="Torch CPU threads while controlling (1 is fastest at the planners' "
+        1,
+        ge=1,
+        le=MAX_PROCESSES,
+        description="Torch CPU threads while controlling (1 is fastest at the planners' "
         "small batches and robust on a shared CPU).",
-    )  # fmt: skip
+    )
     controller: str = Field("mpc", description="Controller (see `dlo list`).")
     controller_options: dict[str, Any] = Field(
         default_factory=dict,

@@ -48,8 +48,9 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.shape_env import DLOShapeEnv, observation_space
 from dlocli.env.tasks import make_task
 from dlocli.errors import BadInput
+from dlocli.migrations import completed
 from dlocli.processes import raise_if_stopped
-from dlocli.specs import TASK_LEGACY_VALUES, BackendSpec, EnvSpec, TaskSpec, format_validation_error
+from dlocli.specs import BackendSpec, EnvSpec, TaskSpec, format_validation_error
 
 #: how to install the optional Minari dependency
 MINARI_EXTRA = "pip install 'dlocli[minari]'"
@@ -119,7 +120,7 @@ def dataset_env_spec(data: Dataset, source: Path) -> EnvSpec:
         )
     fields = {
         "backend": saved.get("backend", {}),
-        "task": {**TASK_LEGACY_VALUES, **saved.get("task", {})},
+        "task": completed("task", saved.get("task", {})),
         "seed": saved.get("seed", 0),
     }
     try:

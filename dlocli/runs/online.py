@@ -57,7 +57,7 @@ from dlocli.executors import (
 )
 from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, refuse_oversized_dataset
-from dlocli.models.spec import FitSpec, ModelSpec
+from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.runs.references import REFERENCES, ReferenceTable, reference_episode_scores
@@ -90,9 +90,9 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     noise_std: float = Field(
         0.3, ge=0, description="A_noise: std of the Gaussian noise added to the action."
     )
-    model: ModelSpec = Field(default_factory=ModelSpec, description="Dynamics model.")
-    fit: FitSpec = Field(
-        default_factory=FitSpec,
+    model: ModelField = model_field("Dynamics model.")
+    fit: UpdateSpec = Field(
+        default_factory=UpdateSpec,
         description="Model update per iteration: E = fit.epochs over all the data (the "
         "paper), or fit.update_steps gradient steps (fit.schedule=steps).",
     )
@@ -297,8 +297,8 @@ class OnlineRun:
             resolve_device,
             save_checkpoint,
         )
-        from dlocli.models.training import train_model
-        from dlocli.models.update_steps import train_steps
+        from dlocli.models.fitting import FitRecord
+        from dlocli.models.update_steps import update_model
 
         if self.paths.checkpoint(k).is_file():
             return
@@ -313,36 +313,24 @@ class OnlineRun:
         fit = self.spec.fit.model_copy(
             update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
         )
-        steps = fit.schedule == "steps"
-        per_update = fit.update_steps if steps else fit.epochs
         start = time.perf_counter()
-        self.progress("update", {"iteration": k, "unit": "step" if steps else "epoch",
-                                 "total": per_update})  # fmt: skip
+        self.progress("update", {"iteration": k, "unit": fit.unit, "total": fit.length})
 
-        def log(record: dict[str, float], *_: Any) -> None:
-            at = (k - 1) * per_update + record["step" if steps else "epoch"]  # over the run
-            self.scalars.add(at, "loss", train=record["train_loss"], val=record["val_loss"])
+        def log(record: FitRecord, *_: Any) -> None:
+            at = (k - 1) * fit.length + record.count  # over the run
+            self.scalars.add(at, "loss", train=record.train_loss, val=record.val_loss)
 
-        def progress(info: dict[str, Any]) -> None:
-            self.progress("epoch", {"iteration": k, **info})
-
-        if steps:
-            first_new = 0 if k == 1 else max(data.n_episodes - self.spec.trials, 0)
-            result = train_steps(
-                model,
-                data,
-                fit,
-                recent_episodes=np.arange(first_new, data.n_episodes),
-                optimizer_state=opt_state,
-                progress=progress,
-                on_eval=log,
-            )
-            extra = {"steps": result.steps, "best_step": result.best_step}
-        else:
-            result = train_model(
-                model, data, fit, optimizer_state=opt_state, progress=progress, on_epoch=log
-            )
-            extra = {}
+        first_new = 0 if k == 1 else max(data.n_episodes - self.spec.trials, 0)
+        result = update_model(
+            model,
+            data,
+            fit,
+            recent_episodes=np.arange(first_new, data.n_episodes),
+            optimizer_state=opt_state,
+            progress=self._validations(k),
+            on_validation=log,
+        )
+        extra = {"steps": result.steps, "best_step": result.best_step} if result.steps else {}
         save_checkpoint(
             model,
             self.paths.checkpoint(k),
@@ -354,6 +342,16 @@ class OnlineRun:
                 **extra,
             },
         )
+
+    def _validations(self, k: int) -> Callable[[Any], None]:
+        """A fit's progress callback that reports its validations as iteration k's."""
+        from dlocli.models.fitting import Validated
+
+        def report(event: Any) -> None:
+            if isinstance(event, Validated):
+                self.progress("validation", {"iteration": k, **event.as_dict()})
+
+        return report
 
     def run_trials(self, k: int, checkpoint: Path, offline: bool = False) -> None:
         """The N trials of iteration k; those whose files exist are kept, not rerun."""
@@ -419,7 +417,7 @@ class OnlineRun:
                 data,
                 fit,
                 k,
-                progress=lambda info: self.progress("epoch", {"iteration": k, **info}),
+                progress=self._validations(k),
             )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1})
         self.run_trials(k, ckpt, offline=True)

@@ -1,0 +1,130 @@
+"""Saved runs keep their meaning (dlocli.migrations): committed bench jobs are still finished
+for `dlo bench --resume`, saved model specs of every layout build the model they built, and a
+field added to a fingerprinted spec without a legacy value fails here."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from dlocli import migrations
+from dlocli.bench.run import BenchRun
+from dlocli.bench.spec import FREE_FIELDS, BenchSpec
+from dlocli.controllers.mpc import MPCSpec
+from dlocli.models.base import build_model, load_model, save_checkpoint
+from dlocli.models.spec import TrainSpec, UpdateSpec, model_spec_classes
+from dlocli.resume import saved_spec
+from dlocli.specs import BackendSpec, RodSpec, TaskSpec
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+#: committed benches whose jobs match the spec they were run with (bench_medium's jobs were
+#: run before earlier changes of the mpc defaults: no fingerprint of them matched before
+#: dlocli.migrations existed either)
+BENCHES = ["bench_paper", "bench_bimanual", "bench_paper_mirror"]
+
+#: the fields of each fingerprinted spec that have held since fingerprints were first
+#: computed; any other field needs a legacy value (dlocli.migrations.LEGACY_VALUES)
+ORIGINAL: dict[str, set[str]] = {
+    "bench": {"backend", "task", "seed", "budget", "evals", "eval_trials", "options", "model",
+              "fit", "mpc", "noise_probability", "noise_std", "transfer", "threads"},
+    "backend": {"name", "physics_dt", "held_ends", "rod"},
+    "rod": {"length", "n_segments", "radius", "density", "young_tension", "young_bending",
+            "poisson"},
+    "task": {"name", "goal", "goal_file", "episode_steps", "control_dt", "max_linear_velocity",
+             "max_angular_velocity", "max_separation", "min_separation", "workspace_low",
+             "workspace_high", "pose_offset_low", "pose_offset_high", "pose_max_rotation",
+             "reset_motion_steps", "reset_settle_steps"},
+    "fit": set(migrations.FIT_FIELD_ORDER) - set(migrations.LEGACY_VALUES["fit"]),
+    "mpc": {"horizon", "replan_every", "action_cost", "warm_start", "iterations", "step_size",
+            "optimizer", "max_step", "exact_gradient", "curvature_every", "restarts",
+            "tolerance"},
+    "pilco": {"n_keypoints", "action_repeat", "horizon", "initial_random_episodes",
+              "max_gp_points", "gp_iterations", "n_basis", "policy_iterations", "policy_lr",
+              "cost_width"},
+    "sac": {"batch_size", "buffer_size", "device", "ent_coef", "gamma", "gradient_steps",
+            "learning_rate", "learning_starts", "log_std_init", "net_arch", "sde_sample_freq",
+            "tau", "train_freq", "use_sde"},
+    "td3": {"action_noise", "batch_size", "buffer_size", "device", "gamma", "gradient_steps",
+            "learning_rate", "learning_starts", "net_arch", "policy_delay", "target_noise_clip",
+            "target_policy_noise", "tau", "train_freq"},
+}  # fmt: skip
+
+
+def fingerprinted_specs() -> dict[str, type]:
+    """Every spec whose fields enter a bench job's fingerprint, by its kind in
+    dlocli.migrations: the bench's own parts and the options of every agent that takes any."""
+    from dlocli.bench.spec import option_agents
+    from dlocli.registry import controllers
+
+    own = {"bench": BenchSpec, "backend": BackendSpec, "rod": RodSpec, "task": TaskSpec,
+           "fit": UpdateSpec, "mpc": MPCSpec}  # fmt: skip
+    return own | {agent: controllers.get(agent).spec_cls for agent in option_agents()}
+
+
+@pytest.mark.parametrize("bench", BENCHES)
+def test_committed_bench_jobs_are_still_finished(bench):
+    spec = BenchSpec.model_validate(saved_spec(EXAMPLES / bench / "spec.json"))
+    run = BenchRun(spec.model_copy(update={"out": EXAMPLES / bench}))
+    jobs = sorted((EXAMPLES / bench / "jobs").glob("*.json"))
+    assert jobs and run.jobs() == []  # --resume reruns none of them
+    for job in jobs:
+        saved = json.loads(job.read_text())
+        assert run.finished(saved["agent"], saved["seed"]) is not None, job.name
+
+
+@pytest.mark.parametrize("kind", sorted(fingerprinted_specs()))
+def test_a_fingerprinted_field_needs_a_legacy_value(kind):
+    fields = set(fingerprinted_specs()[kind].model_fields)
+    fields -= FREE_FIELDS if kind == "bench" else set()
+    missing = fields - ORIGINAL.get(kind, set()) - set(migrations.LEGACY_VALUES.get(kind, {}))
+    assert not missing, (
+        f"{kind} fields {sorted(missing)} enter bench fingerprints: give each the value that "
+        "does what runs did before it existed in dlocli/migrations.py LEGACY_VALUES"
+    )
+
+
+@pytest.mark.parametrize("name", sorted(model_spec_classes()))
+def test_a_model_option_needs_a_legacy_value(name):
+    """Model specs are fingerprinted in the flat layout of the one spec every model shared:
+    an option outside it (or its new name) is new."""
+    cls = model_spec_classes()[name]
+    known = {*migrations.FLAT_MODEL_FIELDS, *cls.moved.values(), *migrations.LEGACY_VALUES["model"]}
+    assert set(cls.model_fields) <= known, (name, set(cls.model_fields) - known)
+
+
+@pytest.mark.parametrize(
+    ("file", "expected"),
+    [
+        ("in-bilstm.yaml", {"hidden": 64, "lstm_layers": 1, "edge_layers": 2, "node_layers": 2}),
+        ("mlp.yaml", {"hidden": 256, "layers": 2}),
+    ],
+)
+def test_real_cable_specs_build_the_models_they_built(file, expected):
+    """The flat layout (`mlp_hidden`, `mlp_layers`, and the other models' fields) of the
+    spec files and of the committed runs' spec.json."""
+    import yaml
+
+    spec = TrainSpec.model_validate(yaml.safe_load((EXAMPLES / "real_cables" / file).read_text()))
+    assert {k: getattr(spec.model, k) for k in expected} == expected
+    assert spec.model.length_projection == 3
+    name = spec.model.name
+    for saved in sorted((EXAMPLES / "real_cables" / "runs").glob(f"*/{name}-s*/spec.json")):
+        assert TrainSpec.model_validate(saved_spec(saved)).model == spec.model, saved
+
+
+def test_a_checkpoint_of_the_flat_layout_loads(tmp_path):
+    """An mlp saved when every model shared one spec: its width was `mlp_hidden`."""
+    torch.manual_seed(0)
+    model = build_model({"name": "mlp", "hidden": 12, "layers": 2}, 6)
+    path = save_checkpoint(model, tmp_path / "m.pt")
+    payload = torch.load(path, weights_only=True)
+    flat = {**migrations.FLAT_MODEL_FIELDS, "name": "mlp", "mlp_hidden": 12, "mlp_layers": 2}
+    payload["model_spec"] = flat
+    torch.save(payload, path)
+    again = load_model(path)
+    assert again.spec == model.spec
+    weights = zip(model.state_dict().values(), again.state_dict().values(), strict=True)
+    assert all(torch.equal(a, b) for a, b in weights)
