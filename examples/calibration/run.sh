@@ -2,7 +2,18 @@
 # Calibrate the simulated rod to each DEFORM cable (MuJoCo; PyBullet on DLO3) and keep the
 # small reports here. Usage:
 #   DEFORM=/path/to/DEFORM/data_set examples/calibration/run.sh [runs/calibration]
-# One cable at a time, two replay workers each (a 2-core machine): 5-10 minutes per cable.
+# One cable at a time, two replay workers each. What was run for the committed results
+# (a 2-core machine shared with other jobs, 8-13 minutes per cable):
+#   examples/calibration/run.sh runs/calibration                       # DLO1-4, MuJoCo
+#   CABLES=DLO3 BACKENDS=pybullet GENERATIONS=3 examples/calibration/run.sh runs/calibration
+# (DLO4 was stopped after 2 generations and continued with
+#  `dlo calibrate --resume runs/calibration/DLO4-mujoco --generations 3`.)
+# Then sim-to-real on DLO3 and DLO4 (real runs from examples/real_cables/run.sh runs/real):
+#   for c in DLO3 DLO4; do python examples/calibration/sim_to_real.py \
+#     runs/calibration/$c-mujoco runs/real/$c/data runs/real/$c runs/sim_to_real/$c; done
+#   python examples/calibration/replay_choices.py $DEFORM/DLO3 0.998 0.0968 \
+#     examples/calibration/results/replay_choices_DLO3.json
+#   python examples/calibration/table.py > examples/calibration/results/summary.md
 set -euo pipefail
 DEFORM=${DEFORM:?set DEFORM to the folder holding DLO1 ... DLO4}
 RUNS=${1:-runs/calibration}
@@ -13,7 +24,8 @@ for b in $BACKENDS; do
   for c in $CABLES; do
     run="$RUNS/$c-$b"
     [ -f "$run/report.json" ] || dlo calibrate --spec "$HERE/$c.yaml" --source "$DEFORM/$c" \
-      --backend "$b" --workers 2 --out "$run" --overwrite --json > /dev/null
+      --backend "$b" --workers 2 ${GENERATIONS:+--generations "$GENERATIONS"} --out "$run" \
+      --overwrite --json > /dev/null
     mkdir -p "$HERE/results/$c-$b"
     cp "$run/report.json" "$run/report.md" "$run/calibrated.yaml" "$HERE/results/$c-$b/"
     python -c "import json;r=json.load(open('$run/report.json'));print('$c $b', r['eval_default_cm'], '->', r['eval_calibrated_cm'], 'cm in', r['fit_seconds'], 's')"

@@ -132,12 +132,11 @@ def plot(result: dict, path: Path, title: str) -> None:
     ax.plot(ks, [result["real_only_cm"][k] for k in ks], "o-", label="real data only")
     ax.plot(ks, [result["finetuned_cm"][k] for k in ks], "s-", label="simulation, then real")
     ax.plot(ks, [result["sim_only_cm"]] * len(ks), "--", label="simulation only (0 real)")
-    ax.axhline(result["freeze_cm"], color="grey", lw=0.8, label="freeze reference")
     ax.set_xscale("log")
     ax.set_xticks(ks, [str(k) for k in ks])
     ax.set_xlabel("real train trajectories")
     ax.set_ylabel("real eval error, DEFORM score (cm)")
-    ax.set_title(title)
+    ax.set_title(f"{title} (freeze reference: {result['freeze_cm']:.2f} cm)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -145,4 +144,4 @@ def plot(result: dict, path: Path, title: str) -> None:
 
 
 if __name__ == "__main__":
-    main(*(Path(a) for a in sys.argv[1:5]))
+    main(*(Path(a) for a in sys.argv[1:5]))  # re-running redraws from the finished runs
