@@ -32,8 +32,8 @@ Model (built from the :class:`~dlocli.specs.RodSpec`, compiled once per backend)
   Each pad is welded to a kinematic (mocap) body that follows the commanded gripper pose.
   A weld on the light end segment alone is far too soft at this stiffness; the pads'
   inertia makes the weld's rotational stiffness ``PAD_STIFFNESS_RATIO`` (25) times the
-  joint bending stiffness, so
-  the held segment stays within ~0.7 degrees and ~0.5 mm of a gripper moving at full speed.
+  joint bending stiffness, so the pad (with a rigid clamp, the held segment) stays within
+  ~0.7 degrees and ~0.5 mm of a gripper moving at full speed.
   Stiffer pads hold the ends so rigidly that a rod pulled taut kinks at its end joint and
   diverges (100x: 7 in 10 stress episodes, 40x: 2 in 40, 25x and 15x: none in 100).
 - The weld impedance *decreases* for violations beyond ~1 cm / 0.6 degrees (solimp dmin
