@@ -20,7 +20,8 @@ def notebook_snippet() -> str:
 
 
 def test_import_dlocli_loads_no_torch_or_simulator():
-    script = "import sys, dlocli\nprint([m for m in ('torch', 'mujoco', 'pybullet') if m in sys.modules])"
+    heavy = ("torch", "mujoco", "pybullet")
+    script = f"import sys, dlocli\nprint([m for m in {heavy!r} if m in sys.modules])"
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "[]"

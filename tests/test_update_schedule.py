@@ -37,14 +37,7 @@ def weights(model) -> list[torch.Tensor]:
     return [p.detach().clone() for p in model.parameters()]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """These tests compare runs within this module only: one thread is fastest on a busy
-    machine (small models, and two threads fight over the cores)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py
 
 
 @pytest.fixture(scope="module")
