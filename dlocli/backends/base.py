@@ -33,7 +33,7 @@ from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.specs import BackendSpec, segment_limit_error
 
 REST_HEIGHT = 0.8  # rod lengths: inside the length-scaled workspace (z from 0.3 to 1.4)
-INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (FINDINGS gotcha 1)
+INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (a taut one is torn apart)
 
 
 @dataclass

@@ -22,7 +22,7 @@ Model (built from the :class:`~dlocli.specs.RodSpec`, compiled once per backend)
   fingers): the first segment is a jointless child of pad 0, pad 1 (``held_ends="both"``
   only) a jointless child of the last segment. Each pad is welded to a kinematic (mocap)
   body that follows the commanded gripper pose. A weld on the light end segment alone is
-  far too soft at this stiffness (FINDINGS gotcha 2); the pads' inertia makes the weld's
+  far too soft at this stiffness; the pads' inertia makes the weld's
   rotational stiffness ``PAD_STIFFNESS_RATIO`` (25) times the joint bending stiffness, so
   the held segment stays within ~0.7 degrees and ~0.5 mm of a gripper moving at full speed.
   Stiffer pads hold the ends so rigidly that a rod pulled taut kinks at its end joint and
