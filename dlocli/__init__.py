@@ -1,11 +1,17 @@
 """dlocli: learn and control the 3D shape of deformable linear objects.
 
-Library entry points (the CLI `dlo` is a thin layer over these)::
+The library behind the `dlo` command, in one namespace (the README's notebook section runs
+these end to end)::
 
     import dlocli
+    data = dlocli.random_dataset(dlocli.CollectSpec(episodes=4))   # random actions, in memory
+    model = dlocli.build_model(dlocli.ModelSpec(hidden=32), data.n_segments)
+    dlocli.train_model(model, data, dlocli.FitSpec(epochs=5, lr=1e-3))
     env = dlocli.make_env(backend="mujoco", task="single", seed=0)
-    data = dlocli.load_dataset("runs/collect")
+    episode = dlocli.rollout(env, dlocli.make_controller("mpc", env, model=model), seed=1)
+    dlocli.episode_scores(episode, env.task_spec.episode_steps)   # plain floats, mm
 
+Every name is imported on first use, so ``import dlocli`` loads no torch or simulator.
 Importing dlocli registers the Gymnasium ids ``dlocli/<Backend><Task>-v0``;
 ``gym.make("dlocli:dlocli/MujocoSingle-v0")`` imports it on the way.
 """
@@ -16,12 +22,36 @@ from typing import Any
 
 __version__ = "0.1.0"
 
+#: public name -> "module:attribute", imported on first access
 _LAZY = {
+    # specs: every field validated and described (the CLI's flags come from them)
+    "BackendSpec": "dlocli.specs:BackendSpec",
+    "TaskSpec": "dlocli.specs:TaskSpec",
+    "CollectSpec": "dlocli.specs:CollectSpec",
+    "ModelSpec": "dlocli.models.spec:ModelSpec",
+    "FitSpec": "dlocli.models.spec:FitSpec",
+    "ControlSpec": "dlocli.runs.control:ControlSpec",
+    # the environment and data
     "make_env": "dlocli.env.shape_env:make_env",
     "DLOShapeEnv": "dlocli.env.shape_env:DLOShapeEnv",
     "load_dataset": "dlocli.data:load_dataset",
     "Dataset": "dlocli.data:Dataset",
+    "Episode": "dlocli.data:Episode",
+    "random_dataset": "dlocli.runs.collect:random_dataset",
+    # models
+    "build_model": "dlocli.models.base:build_model",
+    "load_model": "dlocli.models.base:load_model",
+    "save_checkpoint": "dlocli.models.base:save_checkpoint",
+    "train_model": "dlocli.models.training:train_model",
+    # control, episodes and their scores
+    "make_controller": "dlocli.controllers.base:make_controller",
+    "rollout": "dlocli.env.rollout:rollout",
+    "random_episode": "dlocli.env.rollout:random_episode",
+    "episode_scores": "dlocli.env.rollout:episode_scores",
+    "shape_error_mm": "dlocli.env.metrics:shape_error_mm",
+    "score": "dlocli.env.metrics:score",
 }
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str) -> Any:
@@ -31,7 +61,13 @@ def __getattr__(name: str) -> Any:
     import importlib
 
     module_name, _, attr = _LAZY[name].partition(":")
-    return getattr(importlib.import_module(module_name), attr)
+    value = getattr(importlib.import_module(module_name), attr)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
 
 
 def _register_gym_ids() -> None:

@@ -10,12 +10,26 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # one torch thread per test process: `-n 2` on 2 cores runs two of them, and more threads
+    # than cores only add synchronisation (the tests' models are small)
     try:
         import torch
 
-        torch.set_num_threads(min(2, os.cpu_count() or 1))
+        torch.set_num_threads(1)
     except ImportError:
         pass
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread for a module whose tests compare runs or time planners (batch-1..64
+    work where a second thread only adds synchronisation), whatever a test before set."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="session")

@@ -29,13 +29,7 @@ from tiny import TINY_AGENTS
 AGENTS = ["sac", "td3", "pilco"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Small nets and PILCO's many small ops stall with a second thread on a busy CPU."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py
 
 
 def small_env() -> Any:

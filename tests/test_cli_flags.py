@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import re
 import subprocess
 import sys
 from collections import defaultdict
@@ -121,3 +122,31 @@ def test_written_files_get_the_usual_permissions(tmp_path):
     finally:
         os.umask(before)
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+
+
+def help_of(*argv: str) -> str:
+    return " ".join(runner.invoke(app, [*argv, "--help"], env={"COLUMNS": "200"}).output.split())
+
+
+def test_help_tells_the_truth():
+    """-o lists every option of every controller spec; required inputs say so, defaults show
+    as Click shows them (factories' too); metavars are plain words; aliases are not listed."""
+    from dlocli.controllers.mpc import MPCSpec
+    from dlocli.controllers.mppi import MPPISpec
+
+    control = help_of("control")
+    for spec in (MPCSpec(), MPPISpec()):
+        for key, value in spec.model_dump(mode="json").items():
+            assert f"{key}={value}" in control, key
+    assert "--goal PATH Goal shape" in control and "[required]" in control
+    assert "[default: mpc]" in control
+    assert "[required]" in help_of("train").split("--model")[0], "--data is required"
+    assert "[default: zero,random," in help_of("bench"), "a factory default is shown"
+    for name, _ in COMMANDS:
+        text = help_of(name)
+        assert "spec default" not in text and "(default:" not in text, name
+        assert not re.search(r"-[\w-]+ <", text), f"{name}: a Python type as metavar"
+    assert "[default: True]" not in help_of("collect")
+    listing = help_of()
+    assert " bench " in listing and "benchmark" not in listing
+    assert runner.invoke(app, ["benchmark", "--help"]).exit_code == 0

@@ -56,7 +56,10 @@ def test_episode_reward_and_truncation(envs, backend, task):
         assert not terminated and -1.5 <= r <= 0.0
         expected = -min(np.linalg.norm(env.split_observation(obs)["positions"] - env.goal), 1.5)
         assert r == pytest.approx(expected, abs=1e-4)
-        assert info["shape_error_mm"] >= 0
+        positions = env.split_observation(obs)["positions"]
+        assert info["shape_error_mm"] == pytest.approx(
+            1000 * np.linalg.norm(positions - env.goal, axis=-1).mean(), rel=1e-4, abs=1e-3
+        )
         t += 1
     assert t == 20
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import dlocli
@@ -66,3 +67,60 @@ def test_no_import_circles():
 def test_the_walker_sees_circles():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert cycle_from(graph, "a") == ["a", "b", "c", "a"] and cycle_from(graph, "d") is None
+
+
+# ------------------------------------------------------------------ what the source cites
+#: a `dlocli.x.y` path, and a repository path (examples/..., benchmarks/..., tests/..., dlocli/...)
+DOTTED = re.compile(r"\bdlocli(?:\.[A-Za-z_]\w*)+")
+REPO_PATH = re.compile(r"(?<![\w/.])((?:examples|benchmarks|tests|dlocli)/[\w./-]*\w)")
+#: names shaped like these that are not citations: Gymnasium / Minari ids, a metadata key
+NOT_CITATIONS = re.compile(r"-v\d+$|^dlocli\.observation_layout$")
+#: files users do not have
+ABSENT = re.compile(r"\b(DESIGN\.md|FINDINGS(?:\.md)?)\b")
+
+
+def module_file(parts: list[str]) -> Path | None:
+    path = ROOT.parent.joinpath(*parts)
+    for candidate in (path.with_suffix(".py"), path / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def dotted_path_exists(dotted: str) -> bool:
+    """The longest module prefix exists, and the next name is defined in it (if any)."""
+    parts = dotted.split(".")
+    k = len(parts)
+    while k > 1 and module_file(parts[:k]) is None:
+        k -= 1
+    source = module_file(parts[:k]).read_text()  # dlocli itself always exists
+    rest = parts[k:]
+    defined = rf"(def|class)\s+{rest[0]}\b|^\s*{rest[0]}\s*[:=]|\"{rest[0]}\"" if rest else ""
+    return not rest or re.search(defined, source, re.M) is not None
+
+
+def broken_citations(path: Path) -> list[str]:
+    found = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        where = f"{path.relative_to(ROOT.parent)}:{number}"
+        dotted = [m.group(0) for m in DOTTED.finditer(line) if not NOT_CITATIONS.search(m.group(0))]
+        found += [f"{where} {name}" for name in dotted if not dotted_path_exists(name)]
+        found += [f"{where} {m.group(1)}" for m in REPO_PATH.finditer(line)
+                  if "*" not in m.group(1) and not NOT_CITATIONS.search(m.group(1))
+                  and not ROOT.parent.joinpath(m.group(1)).exists()
+                  and not ROOT.parent.joinpath(m.group(1) + ".py").exists()]  # fmt: skip
+        found += [f"{where} {m.group(1)}" for m in ABSENT.finditer(line)]
+    return found
+
+
+def test_the_package_cites_only_what_exists():
+    """Docstrings and comments name modules, attributes and files that exist, and no file
+    users lack (DESIGN.md, FINDINGS)."""
+    broken = [c for path in sorted(ROOT.rglob("*.py")) for c in broken_citations(path)]
+    assert not broken, broken
+
+
+def test_the_citation_check_sees_a_moved_path(tmp_path):
+    assert dotted_path_exists("dlocli.env.metrics.score")
+    assert not dotted_path_exists("dlocli.metrics.score")
+    assert not dotted_path_exists("dlocli.env.metrics.no_such_function")

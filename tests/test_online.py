@@ -47,7 +47,7 @@ def test_defaults_are_the_papers():
     assert spec.model.name == "in-bilstm" and spec.model.hidden == 150
     assert spec.task.goal == "fixed"
     help_text = runner.invoke(app, ["online", "--help"], env={"COLUMNS": "250"}).output
-    assert "spec default: 20" in help_text and "spec default: 50" in help_text
+    assert "[default: 20]" in help_text and "[default: 50]" in help_text
 
 
 def read_rows(run: Path) -> list[dict[str, str]]:

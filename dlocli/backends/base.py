@@ -43,7 +43,7 @@ END_LOAD = "end_load"  # set_end_load
 #: implicit joint damping: Kelvin-Voigt damping of any strength on the segments' real inertia
 KELVIN_VOIGT_REAL_INERTIA = "kelvin_voigt_real_inertia"
 REST_HEIGHT = 0.8  # rod lengths: inside the length-scaled workspace (z from 0.3 to 1.4)
-INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (FINDINGS gotcha 1)
+INITIAL_SEPARATION = 0.9  # fraction of the rod length: a slack rod (a taut one is torn apart)
 
 
 @dataclass

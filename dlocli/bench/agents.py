@@ -11,7 +11,7 @@ each of them (:meth:`BenchLearner.learn_to`) and hands out a controller for an e
   with their own training env for exactly the budget.
 - ``zero`` and ``random``: all-zero and uniform random actions, the references; they learn
   nothing (and step no training env).
-- ``mpc``: the paper's Algorithm 1 through :class:`dlocli.online.OnlineRun`: an initial random
+- ``mpc``: the paper's Algorithm 1 through :class:`dlocli.runs.online.OnlineRun`: an initial random
   dataset, then iterations of noisy MPC trials, each followed by a model update; it is
   evaluated with the model trained on all data so far (noise-free MPC).
 - ``mpc-offline``: at each of ``mpc``'s points, a model trained from scratch on as many random

@@ -8,14 +8,15 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
-from collections.abc import Iterator, Mapping
+import typing
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import click
 import typer
 import typer.main
-from typer.core import TyperGroup
+from typer.core import TyperCommand, TyperGroup, TyperOption
 
 # (command name, "module:function"); a command's module is imported only when that command
 # runs or shows its help, so `dlo --help` and `dlo --version` import no torch or simulator.
@@ -30,9 +31,42 @@ COMMANDS = [
     ("control", "dlocli.cli.control:control"),
     ("online", "dlocli.cli.online:online"),
     ("bench", "dlocli.cli.bench:bench"),
-    ("benchmark", "dlocli.cli.bench:bench"),
     ("export", "dlocli.cli.export:export"),
 ]
+#: other names of a command: they run it, --help lists only the command
+ALIASES = {"benchmark": "bench"}
+
+
+class _Command(TyperCommand):
+    """A command whose options' help may be written when --help is shown: the function's
+    ``lazy_help`` maps a parameter to a function of no arguments returning its help (text
+    that needs imports the command itself does not)."""
+
+    lazy_help: Mapping[str, Callable[[], str]] = {}
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        for param in self.params:
+            if param.name in self.lazy_help:
+                param.help = self.lazy_help[param.name]()
+        super().format_options(ctx, formatter)
+
+
+def _plain_metavars(command: click.Command) -> None:
+    """Click's metavars (PATH, INTEGER, ...) where an option sets none: Typer's would show
+    Python types (``<list[str]>``)."""
+    from enum import Enum
+
+    from dlocli.cli.flags import METAVARS, strip_none
+
+    for param in command.params:
+        if not isinstance(param, TyperOption) or param.metavar is not None or param.is_flag:
+            continue
+        kind = strip_none(param.type_descriptor.annotation)
+        kind = typing.get_args(kind)[0] if typing.get_origin(kind) is list else kind
+        if isinstance(kind, type) and issubclass(kind, Enum):
+            param.metavar = "|".join(str(member.value) for member in kind)
+        else:
+            param.metavar = METAVARS.get(kind) or "VALUE"
 
 
 class _LazyCommands(Mapping[str, click.Command]):
@@ -48,8 +82,11 @@ class _LazyCommands(Mapping[str, click.Command]):
             function = getattr(importlib.import_module(module_name), attr)
             one = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                               rich_markup_mode=None)  # fmt: skip
-            one.command(name)(function)
-            self.built[name] = typer.main.get_command(one)
+            one.command(name, cls=_Command)(function)
+            command = typer.main.get_command(one)
+            command.lazy_help = getattr(function, "lazy_help", {})
+            _plain_metavars(command)
+            self.built[name] = command
         return self.built[name]
 
     def __iter__(self) -> Iterator[str]:
@@ -76,7 +113,9 @@ class _LazyGroup(TyperGroup):
 
     def __init__(self, **attrs: Any) -> None:
         super().__init__(**attrs)
-        self.commands = _LazyCommands(dict(COMMANDS))
+        self.commands = _LazyCommands(
+            {**dict(COMMANDS), **{alias: dict(COMMANDS)[name] for alias, name in ALIASES.items()}}
+        )
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         limit = formatter.width - 6 - max(len(name) for name, _ in COMMANDS)

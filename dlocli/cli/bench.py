@@ -29,13 +29,17 @@ OPTION_HELP = (
 )  # fmt: skip
 def bench(
     run: RunFlags,
-    option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
+    option: Annotated[
+        list[str] | None,
+        typer.Option("--option", "-o", help=OPTION_HELP, metavar="AGENT.KEY=VALUE"),
+    ] = None,
     resume: ResumeFlag = None,
     report: Annotated[
         list[Path] | None,
         typer.Option(
+            metavar="RUN",
             help="Redraw figures and table from this run's results.csv (repeat to merge runs "
-            "into the first)."
+            "into the first).",
         ),
     ] = None,
 ) -> None:

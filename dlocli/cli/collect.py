@@ -29,9 +29,10 @@ def collect(
         bool,
         typer.Option(
             "--random",
-            help="Uniform random actions (the only policy here; use `dlo online` for MPC data).",
+            help="Held uniform random actions: the only policy of `dlo collect`, so the flag "
+            "may be left out (MPC data come from `dlo online`).",
         ),
-    ] = True,
+    ] = False,
     resume: ResumeFlag = None,
     accept_changes: AcceptChangesFlag = False,
 ) -> None:

@@ -11,11 +11,21 @@ from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.runs.control import ControlSpec
 
-OPTION_HELP = (
-    "Controller option KEY=VALUE, a field of the controller's spec; repeatable. mpc: horizon, "
-    "iterations, step_size, optimizer, restarts, warm_start, replan_every, tolerance; mppi: "
-    "horizon, samples, iterations, noise, temperature, warm_start, replan_every."
-)
+OPTION_HELP = "Controller option KEY=VALUE, a field of the --controller's spec; repeatable."
+
+
+def controller_options_help() -> str:
+    """The -o help: every registered controller's options and their defaults, from its spec
+    (it imports every controller, so only --help calls it)."""
+    from dlocli.registry import controllers
+
+    described = []
+    for name in controllers.names():
+        spec_cls = controllers.get(name).spec_cls
+        if spec_cls is not None:
+            fields = spec_cls().model_dump(mode="json")
+            described.append(f"{name}: " + ", ".join(f"{k}={v}" for k, v in fields.items()))
+    return f"{OPTION_HELP} {'; '.join(described)}."
 
 
 @handle_errors
@@ -23,10 +33,14 @@ OPTION_HELP = (
     ControlSpec,
     ["task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name", "task.name",
      "task.shapes", "task.episode_steps", "seed", "device", "threads", "video", "video_every"],
+    required=("task.goal_file",),
 )  # fmt: skip
 def control(
     run: RunFlags,
-    option: Annotated[list[str] | None, typer.Option("--option", "-o", help=OPTION_HELP)] = None,
+    option: Annotated[
+        list[str] | None,
+        typer.Option("--option", "-o", help=OPTION_HELP, metavar="KEY=VALUE"),
+    ] = None,
 ) -> None:
     """Drive the rod from a seeded random start to the --goal shape; write OUT/summary.json."""
     from dlocli.runs.control import run_control
@@ -45,3 +59,6 @@ def control(
         summary = run_control(spec, show, overwrite=run.overwrite)
     summary.pop("versions", None)
     emit_summary(summary, run.json, "dlo control")
+
+
+control.lazy_help = {"option": controller_options_help}  # type: ignore[attr-defined]

@@ -8,7 +8,11 @@ from dlocli.models.spec import EvalSpec
 
 
 @handle_errors
-@spec_flags(EvalSpec, ["checkpoint", "data", "device", "max_starts", "plot", "out"])
+@spec_flags(
+    EvalSpec,
+    ["checkpoint", "data", "device", "max_starts", "plot", "out"],
+    required=("checkpoint", "data"),
+)
 def evaluate(
     run: RunFlags,
 ) -> None:

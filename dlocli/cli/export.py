@@ -32,8 +32,8 @@ def export(
         str | None,
         typer.Option(
             "--name",
-            help="Minari dataset id, namespace/name-vN (default: "
-            "dlocli/<backend>-<task>-random-v0 from the dataset's spec).",
+            help="Minari dataset id, namespace/name-vN.  [default: "
+            "dlocli/BACKEND-TASK-random-v0, from the dataset's spec]",
         ),
     ] = None,
     root: Annotated[
@@ -41,8 +41,8 @@ def export(
         typer.Option(
             "--root",
             envvar="MINARI_DATASETS_PATH",
-            help="Minari datasets root (default: $MINARI_DATASETS_PATH, else "
-            "~/.minari/datasets); load with MINARI_DATASETS_PATH set to it.",
+            help="Minari datasets root; load with MINARI_DATASETS_PATH set to it.  "
+            "[default: $MINARI_DATASETS_PATH, else ~/.minari/datasets]",
             show_envvar=False,
         ),
     ] = None,
@@ -53,8 +53,8 @@ def export(
         bool,
         typer.Option(
             "--skip-diverged",
-            help="Leave out episodes whose simulation diverged (default: their finite steps "
-            "are exported, truncated after the last).",
+            help="Leave out episodes whose simulation diverged (without it their finite "
+            "steps are exported, truncated after the last).",
         ),
     ] = False,
     author: Annotated[

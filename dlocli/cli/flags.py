@@ -76,36 +76,60 @@ def _model_help(dotted: str, info: Any) -> str:
         return f"{info.description} One of: {', '.join(owners)}."
     defaults = {n: c.model_fields[field].default for n, c in owners.items()}
     if len(set(map(repr, defaults.values()))) == 1:
-        default = f"(spec default: {next(iter(defaults.values()))})"
+        default = f"[default: {next(iter(defaults.values()))}]"
     else:
-        default = "(spec default: " + ", ".join(f"{n} {d}" for n, d in defaults.items()) + ")"
+        default = "[default: " + ", ".join(f"{n} {d}" for n, d in defaults.items()) + "]"
     shared = field in ModelSpec.model_fields
-    return f"{'' if shared else ', '.join(owners) + ': '}{info.description} {default}"
+    return f"{'' if shared else ', '.join(owners) + ': '}{info.description}  {default}"
 
 
-def _flag_type(annotation: Any) -> tuple[Any, str]:
-    """(the Python type Typer parses, a note for --help) of a field's annotation."""
+#: the metavar of each plain flag type (Click's words, not Python's types)
+METAVARS: dict[Any, str] = {int: "INTEGER", float: "FLOAT", bool: "", str: "TEXT", Path: "PATH"}
+
+
+def _flag_type(annotation: Any) -> tuple[Any, str, str]:
+    """(the Python type Typer parses, its metavar, a note for --help) of a field's annotation."""
     annotation = strip_none(annotation)
     if get_origin(annotation) is Literal:
-        return str, " One of: " + ", ".join(str(a) for a in get_args(annotation)) + "."
+        return str, "|".join(str(a) for a in get_args(annotation)), ""
     if get_origin(annotation) is list:
-        return str, " Comma-separated."
-    if annotation in (int, float, bool, str, Path):
-        return annotation, ""
+        return str, "A,B,...", " Comma-separated."
+    if annotation in METAVARS:
+        return annotation, METAVARS[annotation], ""
     raise TypeError(f"no flag type for {annotation!r}; offer the field through --spec only")
 
 
-def _option(spec_cls: type[Spec], dotted: str) -> tuple[str, Any]:
+def shown_default(info: Any, flag: str, required: bool) -> str:
+    """What --help says after a field's description, in Click's own format: ``[required]``
+    for an input the run cannot do without, else ``[default: VALUE]`` (a factory's value
+    too; a bool as its flag); nothing for an optional input that is absent by default."""
+    if required:
+        return "  [required]"
+    value = info.default_factory() if info.default_factory is not None else info.default
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        value = flag if value else f"no-{flag}"
+    elif isinstance(value, (list, tuple)):
+        value = ",".join(str(v) for v in value)
+    elif isinstance(value, Spec):  # a nested spec: its fields are flags of their own
+        return ""
+    return f"  [default: {value}]"
+
+
+def _option(spec_cls: type[Spec], dotted: str, required: bool = False) -> tuple[str, Any]:
     """(parameter name, Annotated type) of the flag of ``dotted``."""
     name, info = flag_name(dotted), field_info(spec_cls, dotted)
-    kind, note = _flag_type(info.annotation)
+    kind, metavar, note = _flag_type(info.annotation)
     if dotted.startswith(MODEL + "."):
         text = _model_help(dotted, info)
     else:
-        default = "" if info.default_factory is not None else f" (spec default: {info.default})"
-        text = f"{info.description}{note}{default}"
-    decls = [f"--{name}/--no-{name}"] if kind is bool else [f"--{name}"]
-    return name.replace("-", "_"), Annotated[kind | None, typer.Option(*decls, help=text)]
+        text = f"{info.description}{note}{shown_default(info, name, required)}"
+    if kind is bool:
+        option = typer.Option(f"--{name}/--no-{name}", help=text)
+    else:
+        option = typer.Option(f"--{name}", help=text, metavar=metavar)
+    return name.replace("-", "_"), Annotated[kind | None, option]
 
 
 def _value(spec_cls: type[Spec], dotted: str, value: Any) -> Any:
@@ -153,12 +177,16 @@ COMMON: dict[str, Any] = {"spec_file": SpecFile, "overwrite": OverwriteFlag, "js
 COMMON_DEFAULTS = {"spec_file": None, "overwrite": False, "json_out": False}
 
 
-def spec_flags(spec_cls: type[Spec], fields: list[str]) -> Callable[[Callable], Callable]:
+def spec_flags(
+    spec_cls: type[Spec], fields: list[str], required: tuple[str, ...] = ()
+) -> Callable[[Callable], Callable]:
     """Decorate a command ``fn(run: RunFlags, **own_flags)``: add a flag per field of
-    ``fields``, and ``--spec``, ``--overwrite`` and ``--json``."""
+    ``fields``, and ``--spec``, ``--overwrite`` and ``--json``. The fields in ``required``
+    are inputs the run refuses to go without (from the flag or the spec file): --help says
+    so."""
 
     def decorate(fn: Callable) -> Callable:
-        generated = dict(_option(spec_cls, dotted) for dotted in fields)
+        generated = dict(_option(spec_cls, dotted, dotted in required) for dotted in fields)
         if len(generated) < len(fields):
             raise TypeError(f"{fn.__name__}: two of the fields {fields} have one flag name")
         params = {name: dotted for name, dotted in zip(generated, fields, strict=True)}

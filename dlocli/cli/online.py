@@ -26,10 +26,10 @@ def online(
 ) -> None:
     """Learn the dynamics model online with MPC (paper Algorithm 1); plot the learning curve.
 
-    With no flags this is the paper's setting (K=20, E=50, N=50, T=200, H=5, lr 1e-4); its 50
-    epochs over all the data per update take ~45 hours of training on a laptop CPU. With
-    `--schedule steps --workers 2` the same run took 1 h 48 min on 2 CPU cores
-    (examples/online_paper). For a CPU demo in minutes, see the README's first command.
+    With no flags this is the paper's setting (K=20, E=50, N=50, T=200, H=5, lr 1e-4), whose
+    50 epochs over all the data per update cost more each iteration; `--schedule steps
+    --workers 2` keeps each update's cost fixed (examples/online_paper; timings in the
+    README). For a CPU demo in minutes, see the README's first command.
     """
     from dlocli.runs.online import resume_online, start_online
 

@@ -21,6 +21,7 @@ from dlocli.models.spec import TrainSpec as S
     ["data", *model_flags(), "epochs", "lr", "batch_size", "input_noise", "val_fraction",
      "mirror", "device", "seed", "init_from", "out", "update_steps", "rollout_steps",
      "rollout_start", "eval_every"],
+    required=("data",),
 )  # fmt: skip
 def train(
     run: RunFlags,

@@ -33,7 +33,7 @@ def diverged_remainder(steps_run: int, episode_steps: int) -> float:
 def score(initial_error: float, final_error: float) -> float:
     """The fraction of the initial error closed, ``1 - final/initial``: 1 = on the goal,
     0 = no better than doing nothing, negative = worse."""
-    return 1.0 - final_error / initial_error if initial_error > 0 else 0.0
+    return float(1.0 - final_error / initial_error) if initial_error > 0 else 0.0
 
 
 def episode_result(

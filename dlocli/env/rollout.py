@@ -5,7 +5,7 @@ A *policy* is anything with ``reset(goal)`` and ``act(obs)``: every registered c
 policy's actions with random exploration noise). :func:`rollout` resets the env from a seed,
 then the policy with the env's goal, and steps until the episode is truncated or the
 simulation diverges; the diverged step is not recorded (its reward and the missing steps'
-count at the clip, :func:`dlocli.metrics.episode_result`).
+count at the clip, :func:`dlocli.env.metrics.episode_result`).
 
 Seeds: :func:`stream_seed` derives every independent stream (an episode's start, its actions,
 an iteration's trials) from the run's seed and integer keys.

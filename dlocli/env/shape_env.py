@@ -13,7 +13,7 @@ A diverged simulation does not end the episode early, so that blowing the simula
 scores better than trying: every remaining step returns the clip reward -1.5 and the last
 finite observation, with ``info["diverged"] = True``, until the episode is truncated after T
 steps. Loops that stop at divergence count the steps they skip at -1.5
-(:func:`dlocli.metrics.diverged_remainder`).
+(:func:`dlocli.env.metrics.diverged_remainder`).
 """
 
 from __future__ import annotations

@@ -347,7 +347,7 @@ def load_model(
     """A trained model from a checkpoint or run directory, in eval mode on ``device``.
 
     Its parameters are frozen (``requires_grad`` False), so a planner's backward pass
-    computes gradients for the actions only; :func:`~dlocli.training.train_model` unfreezes.
+    computes gradients for the actions only; :func:`~dlocli.models.training.train_model` unfreezes.
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
     payload = read_checkpoint(path)

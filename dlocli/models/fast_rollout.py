@@ -1,10 +1,10 @@
 """The in-bilstm's forward-only rollout for the planners' small batches on CPU.
 
 The default MPC rolls the model out H = 5 steps at batch 1 once per control step, with no
-gradient. Through plain PyTorch that rollout took 6.6 ms on the development VM (one thread):
-4.3 ms in the stock LSTM, whose 2 x N recurrent steps per layer cost about twice their bare
-matrix-vector products, 1.4 ms in about 100 small operations per model step, the rest in
-matrix products. Here the same mathematics runs as:
+gradient. Through plain PyTorch most of that rollout's time goes to the stock LSTM, whose
+2 x N recurrent steps per layer cost about twice their bare matrix-vector products, and to
+about 100 small operations per model step (``benchmarks/results/lstm_backward.md``). Here
+the same mathematics runs as:
 
 - the matrix products of many rows (f_e, the LSTM's input projections, f_v) as PyTorch
   ``addmm`` into preallocated buffers (oneDNN/MKL, one thread under ``dlo control``);
@@ -18,7 +18,7 @@ matrix products. Here the same mathematics runs as:
   6e-8 for the library's tanh): vectorisable, where the library's exp is not.
 
 Results equal :meth:`DynamicsModel.rollout`'s to float32 rounding (tested against float64).
-The same rollout takes 3.4-3.6 ms (1.8x faster; ``benchmarks/mpc_latency.py``). Used when no
+Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and the README. Used when no
 gradient is wanted, on CPU, up to :data:`MAX_BATCH`; otherwise the PyTorch path runs. The
 first call compiles the loops (about 5 s, cached on disk; later processes load them in
 0.5 s).

@@ -14,13 +14,10 @@ with frozen weights; oneDNN's backward pass always computes the weight gradients
 - both loops are compiled by TorchScript (measured 1.2-1.5x faster than the same Python);
 - the weights are repacked only when they change (cached on the module).
 
-Used only where it was measured faster: a backward pass with frozen weights at batches below
-:data:`LARGE_BATCH` on CPU. On the development VM of 2026-12-01 that backward pass was
-~1.5-2x faster than oneDNN's; on the AVX-512 VM of 2026-12-02 a horizon-5 rollout + backward
-at batch 1 took 18.5 ms against oneDNN's 20.3 (but 46 vs 40 ms at batch 4). Training
-(weights that want gradients) takes ``nn.LSTM``: this path was 1.5x slower there at
-``dlo train``'s batch 16 (36.6 vs 24.2 ms per step). Forward-only passes take ``nn.LSTM``
-too, or the whole rollout :mod:`dlocli.models.fast_rollout`.
+Used only where it was measured faster (``benchmarks/results/lstm_backward.md``): a backward
+pass with frozen weights at batches below :data:`LARGE_BATCH` on CPU. Training (weights that
+want gradients) takes ``nn.LSTM``, and so do forward-only passes, or the whole rollout
+:mod:`dlocli.models.fast_rollout`.
 
 Shapes: ``x`` (B, T, I) -> (B, T, 2H), forward direction's hidden state then the backward
 direction's, like ``nn.LSTM(batch_first=True, bidirectional=True)``.

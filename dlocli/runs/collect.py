@@ -2,7 +2,7 @@
 
 Every episode's randomness comes from ``(seed, episode index)`` only, so any number of
 workers produce the same dataset as one worker, and a resumed run the same dataset as an
-uninterrupted one. The episodes are :func:`dlocli.rollout.random_episode`.
+uninterrupted one. The episodes are :func:`dlocli.env.rollout.random_episode`.
 
 Run directory (every file written atomically)::
 
@@ -142,6 +142,15 @@ def collect_random(
         if resume:
             check_fingerprints(spec.out, spec, accept_changes)
         return _collect(spec, overwrite, on_episode, resume)
+
+
+def random_dataset(spec: CollectSpec) -> Dataset:
+    """The dataset `dlo collect --random` would write for ``spec``, held in memory (nothing is
+    written; ``spec.out`` is not read): ``spec.episodes`` random-action episodes, in
+    ``spec.workers`` processes."""
+    refuse_oversized_dataset(spec.episodes, spec.task.episode_steps, spec.backend.rod.n_segments)
+    episodes = [episode for _, episode in _episodes(spec, list(range(spec.episodes)))]
+    return Dataset.from_episodes(episodes, dataset_attrs(spec))
 
 
 def _collect(

@@ -6,8 +6,7 @@ nothing already ends near the goal. Every trial (k, j) starts from ``env.reset(s
 (seed, TRIAL, k, j))``; each reference controller runs one episode from the same reset, so its
 initial error is the trial's. The results live in one JSON file in the run directory, written
 atomically after each iteration, so they resume like the trials. They cost simulation only,
-two episodes per trial, shared among the trial workers: in examples/online_paper (run in
-the main process then) 1,540 s in all, where the MPC took 5,211 s.
+two episodes per trial, shared among the trial workers.
 """
 
 from __future__ import annotations
