@@ -59,7 +59,7 @@ class CalibrateSpec(Spec):
     parameters: list[str] = Field(
         ["young_bending", "bending_damping", "air_damping"],
         min_length=1,
-        description="Rod fields the optimiser fits (see `dlocli.calibration.fit.PARAMETERS`).",
+        description="Rod fields the optimiser fits (see `dlocli.calibration.parameters.PARAMETERS`).",
     )
     roll: Literal["transported", "level"] = Field(
         "transported",
