@@ -42,7 +42,9 @@ SETTINGS = ReplaySettings(approach_s=0.5, settle_s=0.5)
 
 def _rod(young: float) -> BackendSpec:
     density = MASS / LENGTH / (np.pi * RADIUS**2)
-    rod = RodSpec(length=LENGTH, n_segments=12, radius=RADIUS, density=density)
+    rod = RodSpec(
+        length=LENGTH, n_segments=12, radius=RADIUS, density=density, clamp_compliance="rigid"
+    )  # as a calibration's rod: grippers hold rigidly
     return BackendSpec(rod=rod.model_copy(update={"young_bending": young}))
 
 

@@ -19,6 +19,11 @@ class CableRodSpec(RodSpec):
         0.005, ge=1e-4, le=0.1, description="Rod cross-section radius in metres (1e-4 to 0.1)."
     )
     n_segments: int = Field(24, ge=4, le=200, description="Number of rigid segments.")
+    clamp_compliance: Literal["half-segment", "rigid"] = Field(
+        "rigid",
+        description="A gripper holds its recorded marker pair rigidly, and the replay steers "
+        "the gripper by that pair's direction: 'rigid' clamps, unlike a free rod's default.",
+    )
 
 
 class CableBackendSpec(BackendSpec):
@@ -59,7 +64,8 @@ class CalibrateSpec(Spec):
     parameters: list[str] = Field(
         ["young_bending", "bending_damping", "air_damping"],
         min_length=1,
-        description="Rod fields the optimiser fits (see `dlocli.calibration.parameters.PARAMETERS`).",
+        description="Rod fields the optimiser fits "
+        "(see `dlocli.calibration.parameters.PARAMETERS`).",
     )
     roll: Literal["transported", "level"] = Field(
         "transported",

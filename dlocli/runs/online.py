@@ -535,8 +535,8 @@ class OnlineRun:
         simulation = sum(r["trial_seconds"] for r in timed) - mpc
         return {
             "train_seconds": round(train, 1),
-            "mpc_seconds": round(mpc, 1) if timed else None,
-            "simulation_seconds": round(simulation, 1) if timed else None,
+            "mpc_seconds": round(mpc, 3) if timed else None,
+            "simulation_seconds": round(simulation, 3) if timed else None,
         }
 
     def write_results(self, wall: float, final: bool = False) -> dict[str, Any]:
