@@ -534,7 +534,7 @@ class OnlineRun:
         mpc = sum(r["mpc_seconds"] for r in timed)
         simulation = sum(r["trial_seconds"] for r in timed) - mpc
         return {
-            "train_seconds": round(train, 1),
+            "train_seconds": round(train, 3),
             "mpc_seconds": round(mpc, 3) if timed else None,
             "simulation_seconds": round(simulation, 3) if timed else None,
         }
