@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
@@ -178,9 +179,11 @@ def test_a_killed_calibration_resumes_where_it_stopped(cable: Path, tmp_path: Pa
     reference = tmp_path / "reference"
     assert _calibrate("--spec", str(spec), "--source", str(cable), "--out", str(reference)) == 0
     killed = tmp_path / "killed"
+    copied = tmp_path / "cable"
+    shutil.copytree(cable, copied)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
     cmd = [sys.executable, "-m", "dlocli", "calibrate", "--spec", str(spec), "--source",
-           str(cable), "--out", str(killed), "--json"]  # fmt: skip
+           str(copied), "--out", str(killed), "--json"]  # fmt: skip
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     history = killed / "history.json"
     deadline = time.monotonic() + 300
@@ -190,6 +193,14 @@ def test_a_killed_calibration_resumes_where_it_stopped(cable: Path, tmp_path: Pa
     proc.wait()
     done = json.loads(history.read_text())["generations"]
     assert 1 <= len(done) < 3 and not (killed / "report.json").exists()
+    recording = sorted((copied / "train").glob("*.pkl"))[0]
+    original = recording.read_bytes()
+    frames = np.array(pickle.loads(original))
+    recording.write_bytes(pickle.dumps((frames + 1e-3).tolist()))
+    kept = file_digests(killed)
+    assert _calibrate("--resume", str(killed)) == 2  # another cable's data: refused
+    assert file_digests(killed) == kept
+    recording.write_bytes(original)
     assert _calibrate("--resume", str(killed)) == 0
     resumed = json.loads(history.read_text())["generations"]
     expected = json.loads((reference / "history.json").read_text())["generations"]

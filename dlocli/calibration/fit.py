@@ -11,6 +11,7 @@ written as a backend spec (OUT/calibrated.yaml, for any command's --spec) and re
 
 from __future__ import annotations
 
+import hashlib
 import multiprocessing as mp
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -175,6 +176,17 @@ def mean_score(results: list[dict[str, Any]]) -> float:
     """The mean replay score (cm) over recordings; an unbuildable rod scores the penalty."""
     scores = [r["score_cm"] for r in results]
     return UNWORKABLE_SCORE_CM if None in scores else float(np.mean(scores))
+
+
+def recordings_digest(cable: Cable) -> str:
+    """A SHA-256 of every recording's name and frames: a resumed run checks its data is the
+    same as when it started."""
+    digest = hashlib.sha256()
+    for split, recordings in (("train", cable.train), ("eval", cable.eval)):
+        for name, frames in recordings:
+            digest.update(f"{split}/{name}{frames.shape}".encode())
+            digest.update(np.ascontiguousarray(frames, dtype=np.float64).tobytes())
+    return digest.hexdigest()
 
 
 def draw_train(cable: Cable, spec: CalibrateSpec) -> list[str]:

@@ -12,9 +12,8 @@ PUBLISHED_CM: dict[str, dict[str, float]] = {
 }
 
 
-def published_rows(source: str) -> dict[str, float]:
-    """DEFORM's published physics scores of the cable in folder ``source`` (none if unknown)."""
-    cable = Path(source).name
+def published_rows(cable: str | None) -> dict[str, float]:
+    """DEFORM's published physics scores of the cable (its folder name; none if unknown)."""
     return {method: row[cable] for method, row in PUBLISHED_CM.items() if cable in row}
 
 
@@ -26,7 +25,7 @@ def markdown(summary: dict[str, Any]) -> str:
         ("freeze (free markers stay at frame 1)", summary["eval_freeze_cm"]),
     ] + [(f"DEFORM's {m} (published)", v) for m, v in summary["published_cm"].items()]
     lines = [
-        f"# Calibration of {summary['source']} ({summary['backend']})",
+        f"# Calibration of {summary['cable']} ({summary['backend']})",
         "",
         "DEFORM protocol score on the eval recordings (cm, lower is better):",
         "",
@@ -56,6 +55,6 @@ def write_report(out: Path, summary: dict[str, Any]) -> None:
     """OUT/report.json and OUT/report.md (atomic)."""
     from dlocli.io import write_json_atomic, write_text_atomic
 
-    summary["published_cm"] = published_rows(summary["source"])
+    summary["published_cm"] = published_rows(summary["cable"])
     write_json_atomic(out / "report.json", summary)
     write_text_atomic(out / "report.md", markdown(summary))

@@ -20,6 +20,7 @@ from dlocli.calibration.fit import (
     freeze_reference_cm,
     load_cable,
     mean_score,
+    recordings_digest,
     rod_spec,
 )
 from dlocli.calibration.report import write_report
@@ -63,6 +64,15 @@ def replay_history(strategy: Any, history: list[Event], out: Path) -> None:
         strategy.tell(list(asked), generation["scores"])
 
 
+def check_same_recordings(state: Event, digest: str, spec: CalibrateSpec) -> None:
+    """BadInput when the recordings a resumed run started on have changed since."""
+    if state.get("recordings", digest) != digest:
+        raise BadInput(
+            f"--resume {spec.out}: the recordings under {spec.source} changed since this run "
+            "started; restore them, or start a new run with --overwrite"
+        )
+
+
 def run_calibration(
     spec: CalibrateSpec, overwrite: bool, show: Callable[[Event], None], resume: bool = False
 ) -> dict[str, Any]:
@@ -77,6 +87,8 @@ def run_calibration(
         out = Path(spec.out) if resume else prepare_run_dir(spec.out, overwrite)
         history_file = out / HISTORY_FILE
         state = read_json(history_file, dict) if resume and history_file.is_file() else {}
+        digest = recordings_digest(cable)
+        check_same_recordings(state, digest, spec)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         history: list[Event] = state.get("generations", [])
         elapsed = float(state.get("seconds", 0.0))
@@ -87,7 +99,9 @@ def run_calibration(
             for g in range(len(history), spec.generations):
                 history.append(_generation(strategy, replayer, cable, spec, names, g, show))
                 seconds = elapsed + time.perf_counter() - started
-                write_json_atomic(history_file, {"generations": history, "seconds": seconds})
+                write_json_atomic(
+                    history_file, {"generations": history, "seconds": seconds, "recordings": digest}
+                )
                 best_cm = min(min(h["scores"]) for h in history)
                 show({"generation": g + 1, "generations": spec.generations, "best_cm": best_cm})
             fit_seconds = elapsed + time.perf_counter() - started
@@ -104,6 +118,7 @@ def run_calibration(
             raise
         replayer.close()
         summary = _summary(spec, cable, names, history, best, before, after, fit_seconds)
+        summary["recordings_sha256"] = digest
         summary["calibrated"] = calibrated.model_dump(mode="json")
         write_text_atomic(out / CALIBRATED_SPEC, calibrated_yaml(calibrated))
         write_report(out, summary)
@@ -151,7 +166,7 @@ def _summary(
     start = params.encode(spec.parameters, cable.backend.rod, cable.backend.name)
     fitted = params.decode(spec.parameters, np.array(best["candidate"]), cable.backend.rod)
     return {
-        "source": str(spec.source),
+        "cable": Path(spec.source).name if spec.source else None,
         "backend": cable.backend.name,
         "rod_length_m": round(cable.backend.rod.length, 4),
         "density_kg_m3": round(cable.backend.rod.density, 2),

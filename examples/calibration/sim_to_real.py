@@ -112,7 +112,7 @@ def main(calibration: Path, real: Path, real_runs: Path, out: Path) -> None:
                  ["model_score_cm"] for s in range(3)]  # fmt: skip
     alone[COUNTS[-1]] = float(np.mean(recipe_56))
     freeze = json.loads((out / "sim-only-eval" / "summary.json").read_text())["freeze_score_cm"]
-    result = {"calibration": str(calibration), **info, "sim_only_cm": sim_only,
+    result = {"calibration": calibration.name, **info, "sim_only_cm": sim_only,
               "finetuned_cm": finetuned, "real_only_cm": alone, "real_only_56_seeds_cm": recipe_56,
               "freeze_cm": freeze,
               "steps": {"pretrain": PRETRAIN_STEPS, "finetune": FINETUNE_STEPS,
