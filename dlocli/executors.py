@@ -8,8 +8,9 @@ saves finished work and reports failures). ``share(value)`` makes a large argume
 calls take travel once (a Ray object; the value itself locally). Results travel back to the
 driver, which writes the files, so the nodes of a cluster need dlocli installed but no shared
 file system. The functions reseed everything they use, so the same seeds give the same
-results on either executor. A new executor is one class with ``connect``, ``share``, ``map``
-and ``close``, registered in :data:`EXECUTORS`.
+results on either executor. ``calls_device(device)`` says on which torch device the calls
+can run what the driver runs on ``device``. A new executor is one class with ``connect``,
+``share``, ``map``, ``calls_device`` and ``close``, registered in :data:`EXECUTORS`.
 
 Each call runs with ``threads`` threads (one CPU of Ray's scheduler per thread); the local
 pool's workers start with them, and with passive waiting (:mod:`dlocli.threads`).
@@ -98,6 +99,10 @@ class LocalExecutor:
     def share(self, value: Any) -> Any:
         return value
 
+    def calls_device(self, device: str) -> str:
+        """The driver's device: the pool's processes see the same GPUs."""
+        return device
+
     def map(self, fn: Callable[..., Any], calls: list[tuple]) -> Iterator[Outcome]:
         if min(self.workers, len(calls)) <= 1:
             for index, args in enumerate(calls):
@@ -165,7 +170,8 @@ class RayExecutor:
             "logging_level": logging.ERROR,
         }
         if self.address is None:
-            ray.init(num_cpus=self.workers or machine_cpus(), **options)
+            # a task asks for `threads` CPUs: fewer in all and it could never start
+            ray.init(num_cpus=max(self.workers or machine_cpus(), self.threads), **options)
             self._started = True
             return
         preset = WINDOW_VARIABLE in os.environ  # the user's own window wins
@@ -190,6 +196,11 @@ class RayExecutor:
 
             ray.shutdown()
             self._started = False
+
+    def calls_device(self, device: str) -> str:
+        """The CPU: Ray hides the GPUs from a task that asks for none (an empty
+        CUDA_VISIBLE_DEVICES), and these tasks ask for CPUs."""
+        return "cpu"
 
     def share(self, value: Any) -> Any:
         import ray
