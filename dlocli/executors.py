@@ -180,6 +180,12 @@ class RayExecutor:
             with _stderr_silenced():  # Ray's core logs every failed attempt
                 ray.init(address=self.address, **options)
         except ConnectionError as exc:
+            if _refused_for_token(exc):
+                raise BadInput(
+                    f"the Ray cluster at {self.address} wants its authentication token: set "
+                    "RAY_AUTH_MODE=token here, with the head's ~/.ray/auth_token (or "
+                    "RAY_AUTH_TOKEN) on this machine"
+                ) from exc
             raise BadInput(
                 f"Ray address {self.address} does not answer as a Ray cluster "
                 "(start it with `ray start --head`) or drop --ray-address"
@@ -234,6 +240,17 @@ class RayExecutor:
             return ray.get(ref)
         except ray.exceptions.RayTaskError as exc:  # the call's own error
             return exc
+
+
+def _refused_for_token(exc: BaseException) -> bool:
+    """Whether Ray's failure to connect is a cluster refusing a driver without its token
+    (recent Ray heads enable token authentication; a driver sends the token only when
+    RAY_AUTH_MODE=token)."""
+    causes = []
+    while exc is not None and len(causes) < 8:
+        causes.append(str(exc))
+        exc = exc.__cause__ or exc.__context__
+    return any("InvalidAuthToken" in text or "AuthenticationError" in text for text in causes)
 
 
 def _cancel(ray: Any, ref: Any) -> None:

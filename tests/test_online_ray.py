@@ -131,6 +131,22 @@ def test_an_address_that_does_not_answer_is_one_line_and_nothing_written(address
     assert not out.exists()
 
 
+def test_a_cluster_that_wants_its_token_is_one_line_naming_it(cluster, tmp_path):
+    """A driver started without the cluster's authentication token is refused by Ray; the
+    line says so (not "does not answer"), exit 2, nothing written."""
+    if os.environ.get("RAY_AUTH_MODE") != "token":
+        pytest.skip("this Ray's clusters take drivers without a token")
+    out = tmp_path / "run"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    command = [sys.executable, "-m", "dlocli", "online", *TINY, "--executor", "ray",
+               "--ray-address", cluster, "--out", str(out)]  # fmt: skip
+    res = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    line = res.stderr.strip()
+    assert line.count("\n") == 0 and cluster in line and "RAY_AUTH_MODE=token" in line, line
+    assert not out.exists()
+
+
 # ----------------------------------------------------------------------------- devices
 def test_ray_trials_plan_on_the_cpu_and_local_ones_on_the_updates_device():
     """A Ray task sees no GPU unless it asks for one: its trials get the CPU, whatever device
