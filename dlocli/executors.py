@@ -21,6 +21,8 @@ Ray is optional (``pip install 'dlocli[ray]'``) and imported only here, when use
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager, suppress
@@ -81,6 +83,8 @@ def _call(fn: Callable[..., Any], args: tuple) -> Any:
 class LocalExecutor:
     """A pool of ``workers`` processes (spawned once, kept until :meth:`close`), or this
     process for a single worker (or a single call)."""
+
+    run_dir: Any = None  # unused: nothing outlives this process
 
     def __init__(self, workers: int | None = None, threads: int = 1) -> None:
         self.workers = workers or machine_cpus()
@@ -151,6 +155,9 @@ class RayExecutor:
         self.address = address
         self.threads = threads
         self._started = False
+        #: the run directory a lost cluster's line names (set by :func:`open_executor`)
+        self.run_dir: Any = None
+        self._watch: subprocess.Popen | None = None
 
     @property
     def where(self) -> str:
@@ -194,9 +201,13 @@ class RayExecutor:
             if not preset:
                 os.environ.pop(WINDOW_VARIABLE, None)
         self._started = True
+        self._watch = _start_watch(self.address, self.run_dir)
 
     def close(self) -> None:
         """Disconnect (and stop a local instance) if :meth:`connect` started Ray."""
+        if self._watch is not None:
+            _end_watch(self._watch)
+            self._watch = None
         if self._started:
             import ray
 
@@ -240,6 +251,46 @@ class RayExecutor:
             return ray.get(ref)
         except ray.exceptions.RayTaskError as exc:  # the call's own error
             return exc
+
+
+# ----------------------------------------------------------------------------- a lost head
+# A driver on a cluster node shares that node's Ray processes; when they die, Ray's core ends
+# the driver outright (C++ exit: no Python handler, no line). A small process beside the
+# driver says the line instead when the driver ends without closing it and the address no
+# longer answers (a driver killed by the user while the cluster runs ends silently).
+_WATCH = "import sys; from dlocli.executors import watch_driver; watch_driver(*sys.argv[1:])"
+_CLOSED = b"closed"
+
+
+def _start_watch(address: str, run_dir: Any) -> subprocess.Popen:
+    where = [str(run_dir)] if run_dir is not None else []
+    return subprocess.Popen([sys.executable, "-c", _WATCH, address, *where],
+                            stdin=subprocess.PIPE)  # fmt: skip
+
+
+def _end_watch(watch: subprocess.Popen) -> None:
+    with suppress(OSError, subprocess.TimeoutExpired):
+        watch.communicate(_CLOSED, timeout=10)
+    if watch.poll() is None:
+        watch.kill()
+
+
+def watch_driver(address: str, run_dir: str | None = None) -> None:
+    """The watch's body: wait for the driver to close stdin; if it ended without saying
+    so and ``address`` no longer answers, print the lost cluster's line on stderr."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle
+    if sys.stdin.buffer.read() == _CLOSED:
+        return
+    try:
+        check_ray_address(address, timeout=2.0)
+        return  # the cluster answers: the driver ended for another reason
+    except BadInput:
+        pass
+    cause = ConnectionError("Ray ended the driver as the cluster went away")
+    line = ClusterLost(f"the Ray cluster at {address}", cause).line(run_dir)
+    sys.stderr.write(f"error: {line}\n")
 
 
 def _refused_for_token(exc: BaseException) -> bool:
@@ -321,6 +372,7 @@ def open_executor(spec: Any, threads: int = 1) -> Iterator[LocalExecutor | RayEx
     call with ``threads`` threads, connected (Ray) before the caller writes anything; closed
     after."""
     executor = EXECUTORS[spec.executor](spec.workers, spec.ray_address, threads)
+    executor.run_dir = spec.out
     executor.connect()
     try:
         yield executor

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -147,6 +148,55 @@ def test_a_cluster_that_wants_its_token_is_one_line_naming_it(cluster, tmp_path)
     assert not out.exists()
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_head_that_dies_midway_is_one_line_naming_it_and_trials_are_kept(local_run, tmp_path):
+    """A cluster (`ray start --head`, in its own session) killed once iteration 1's trials are
+    written, under a driver on its node: Ray's core ends the driver outright; the line names
+    the address and the --resume to run, exit 1, iteration 1's trials kept."""
+    import re
+    import tempfile
+
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    env |= {"OMP_NUM_THREADS": "1", "RAY_AUTH_MODE": "token"}  # older Rays ignore the mode
+    temp = tempfile.mkdtemp(prefix="dlo-ray-", dir="/tmp")  # Ray's socket paths must be short
+    head = subprocess.run(
+        ["ray", "start", "--head", "--port", str(_free_port()), "--num-cpus", "2",
+         "--include-dashboard", "false", "--ray-client-server-port", str(_free_port()),
+         "--dashboard-agent-listen-port", str(_free_port()), "--temp-dir", temp],
+        env=env, capture_output=True, text=True, timeout=120, start_new_session=True,
+    )  # fmt: skip
+    sid = _session_of(head) if head.returncode == 0 else None
+    try:
+        assert head.returncode == 0, head.stdout + head.stderr
+        address = re.search(r"--address='([^']+)'", head.stdout + head.stderr).group(1)
+        out, log = tmp_path / "run", tmp_path / "driver.log"
+        command = [sys.executable, "-m", "dlocli", "online", *TINY, "--executor", "ray",
+                   "--ray-address", address, "--out", str(out)]  # fmt: skip
+        with log.open("w") as sink:
+            driver = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=sink)
+        _wait_for([out / "data" / "iter_01" / f"trial_{j:03d}.h5" for j in (1, 2)], driver,
+                  log, timeout=300)  # fmt: skip
+        os.killpg(sid, signal.SIGKILL)
+        assert driver.wait(timeout=120) == 1
+        time.sleep(3)  # the watch's line follows the driver's end
+    finally:
+        for pid in _alive(_session(sid)) if sid is not None else ():
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(temp, ignore_errors=True)
+    errors = [line for line in log.read_text().splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, log.read_text()
+    assert f"the Ray cluster at {address} stopped answering" in errors[0]
+    assert f"--resume {out}" in errors[0]
+    assert_same_trials(out, local_run, [(1, 1), (1, 2)])
+
+
 # ----------------------------------------------------------------------------- devices
 def test_ray_trials_plan_on_the_cpu_and_local_ones_on_the_updates_device():
     """A Ray task sees no GPU unless it asks for one: its trials get the CPU, whatever device
@@ -186,6 +236,19 @@ def _session(sid: int) -> set[int]:
         if int(after_name[3]) == sid:  # state, ppid, pgrp, session
             pids.add(int(stat.parent.name))
     return pids
+
+
+def _session_of(head: subprocess.CompletedProcess) -> int:
+    """The session `ray start` left its processes in: its GCS server's."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+            command = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"gcs_server" in command and head.args[-1].encode() in command:
+            return int(text.rsplit(")", 1)[1].split()[3])
+    raise AssertionError("no GCS server of this head")
 
 
 def _alive(pids: set[int]) -> set[int]:
