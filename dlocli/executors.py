@@ -205,14 +205,14 @@ class RayExecutor:
 
     def close(self) -> None:
         """Disconnect (and stop a local instance) if :meth:`connect` started Ray."""
-        if self._watch is not None:
-            _end_watch(self._watch)
-            self._watch = None
         if self._started:
             import ray
 
-            ray.shutdown()
+            ray.shutdown()  # first: Ray may end this process here if the cluster is gone
             self._started = False
+        if self._watch is not None:
+            _end_watch(self._watch)
+            self._watch = None
 
     def calls_device(self, device: str) -> str:
         """The CPU: Ray hides the GPUs from a task that asks for none (an empty

@@ -23,10 +23,10 @@ so a resumed run reproduces an uninterrupted one with the same seed.
 
 Where trials run (:mod:`dlocli.executors`): in this process, a pool of local processes
 (``workers``), or Ray tasks on a cluster (``executor``, ``ray_address``). Each trial gets the
-model's checkpoint as bytes and one thread, and returns its episode: this process (the
-driver) writes every file and updates the model, so a cluster needs no shared file system,
-and the same seed gives the same trials on any executor. Executor and workers may change on
-resume.
+model's checkpoint as bytes and one thread (``threads``: more), and returns its episode: this
+process (the driver) writes every file and updates the model (on ``fit.device``; Ray's trials
+plan on their CPUs), so a cluster needs no shared file system, and the same seed gives the
+same trials on any executor. Executor and workers may change on resume.
 """
 
 from __future__ import annotations
