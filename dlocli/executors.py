@@ -8,8 +8,9 @@ saves finished work and reports failures). ``share(value)`` makes a large argume
 calls take travel once (a Ray object; the value itself locally). Results travel back to the
 driver, which writes the files, so the nodes of a cluster need dlocli installed but no shared
 file system. The functions reseed everything they use, so the same seeds give the same
-results on either executor. A new executor is one class with ``connect``, ``share``, ``map``
-and ``close``, registered in :data:`EXECUTORS`.
+results on either executor. ``calls_device(device)`` says on which torch device the calls
+can run what the driver runs on ``device``. A new executor is one class with ``connect``,
+``share``, ``map``, ``calls_device`` and ``close``, registered in :data:`EXECUTORS`.
 
 Each call runs with ``threads`` threads (one CPU of Ray's scheduler per thread); the local
 pool's workers start with them, and with passive waiting (:mod:`dlocli.threads`).
@@ -20,6 +21,8 @@ Ray is optional (``pip install 'dlocli[ray]'``) and imported only here, when use
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager, suppress
@@ -81,6 +84,8 @@ class LocalExecutor:
     """A pool of ``workers`` processes (spawned once, kept until :meth:`close`), or this
     process for a single worker (or a single call)."""
 
+    run_dir: Any = None  # unused: nothing outlives this process
+
     def __init__(self, workers: int | None = None, threads: int = 1) -> None:
         self.workers = workers or machine_cpus()
         self.threads = threads
@@ -97,6 +102,10 @@ class LocalExecutor:
 
     def share(self, value: Any) -> Any:
         return value
+
+    def calls_device(self, device: str) -> str:
+        """The driver's device: the pool's processes see the same GPUs."""
+        return device
 
     def map(self, fn: Callable[..., Any], calls: list[tuple]) -> Iterator[Outcome]:
         if min(self.workers, len(calls)) <= 1:
@@ -146,6 +155,9 @@ class RayExecutor:
         self.address = address
         self.threads = threads
         self._started = False
+        #: the run directory a lost cluster's line names (set by :func:`open_executor`)
+        self.run_dir: Any = None
+        self._watch: subprocess.Popen | None = None
 
     @property
     def where(self) -> str:
@@ -165,7 +177,8 @@ class RayExecutor:
             "logging_level": logging.ERROR,
         }
         if self.address is None:
-            ray.init(num_cpus=self.workers or machine_cpus(), **options)
+            # a task asks for `threads` CPUs: fewer in all and it could never start
+            ray.init(num_cpus=max(self.workers or machine_cpus(), self.threads), **options)
             self._started = True
             return
         preset = WINDOW_VARIABLE in os.environ  # the user's own window wins
@@ -174,6 +187,12 @@ class RayExecutor:
             with _stderr_silenced():  # Ray's core logs every failed attempt
                 ray.init(address=self.address, **options)
         except ConnectionError as exc:
+            if _refused_for_token(exc):
+                raise BadInput(
+                    f"the Ray cluster at {self.address} wants its authentication token: set "
+                    "RAY_AUTH_MODE=token here, with the head's ~/.ray/auth_token (or "
+                    "RAY_AUTH_TOKEN) on this machine"
+                ) from exc
             raise BadInput(
                 f"Ray address {self.address} does not answer as a Ray cluster "
                 "(start it with `ray start --head`) or drop --ray-address"
@@ -182,14 +201,23 @@ class RayExecutor:
             if not preset:
                 os.environ.pop(WINDOW_VARIABLE, None)
         self._started = True
+        self._watch = _start_watch(self.address, self.run_dir)
 
     def close(self) -> None:
         """Disconnect (and stop a local instance) if :meth:`connect` started Ray."""
         if self._started:
             import ray
 
-            ray.shutdown()
+            ray.shutdown()  # first: Ray may end this process here if the cluster is gone
             self._started = False
+        if self._watch is not None:
+            _end_watch(self._watch)
+            self._watch = None
+
+    def calls_device(self, device: str) -> str:
+        """The CPU: Ray hides the GPUs from a task that asks for none (an empty
+        CUDA_VISIBLE_DEVICES), and these tasks ask for CPUs."""
+        return "cpu"
 
     def share(self, value: Any) -> Any:
         import ray
@@ -223,6 +251,57 @@ class RayExecutor:
             return ray.get(ref)
         except ray.exceptions.RayTaskError as exc:  # the call's own error
             return exc
+
+
+# ----------------------------------------------------------------------------- a lost head
+# A driver on a cluster node shares that node's Ray processes; when they die, Ray's core ends
+# the driver outright (C++ exit: no Python handler, no line). A small process beside the
+# driver says the line instead when the driver ends without closing it and the address no
+# longer answers (a driver killed by the user while the cluster runs ends silently).
+_WATCH = "import sys; from dlocli.executors import watch_driver; watch_driver(*sys.argv[1:])"
+_CLOSED = b"closed"
+
+
+def _start_watch(address: str, run_dir: Any) -> subprocess.Popen:
+    where = [str(run_dir)] if run_dir is not None else []
+    return subprocess.Popen([sys.executable, "-c", _WATCH, address, *where],
+                            stdin=subprocess.PIPE)  # fmt: skip
+
+
+def _end_watch(watch: subprocess.Popen) -> None:
+    with suppress(OSError, subprocess.TimeoutExpired):
+        watch.communicate(_CLOSED, timeout=10)
+    if watch.poll() is None:
+        watch.kill()
+
+
+def watch_driver(address: str, run_dir: str | None = None) -> None:
+    """The watch's body: wait for the driver to close stdin; if it ended without saying
+    so and ``address`` no longer answers, print the lost cluster's line on stderr."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle
+    if sys.stdin.buffer.read() == _CLOSED:
+        return
+    try:
+        check_ray_address(address, timeout=2.0)
+        return  # the cluster answers: the driver ended for another reason
+    except BadInput:
+        pass
+    cause = ConnectionError("Ray ended the driver as the cluster went away")
+    line = ClusterLost(f"the Ray cluster at {address}", cause).line(run_dir)
+    sys.stderr.write(f"error: {line}\n")
+
+
+def _refused_for_token(exc: BaseException) -> bool:
+    """Whether Ray's failure to connect is a cluster refusing a driver without its token
+    (recent Ray heads enable token authentication; a driver sends the token only when
+    RAY_AUTH_MODE=token)."""
+    causes = []
+    while exc is not None and len(causes) < 8:
+        causes.append(str(exc))
+        exc = exc.__cause__ or exc.__context__
+    return any("InvalidAuthToken" in text or "AuthenticationError" in text for text in causes)
 
 
 def _cancel(ray: Any, ref: Any) -> None:
@@ -293,6 +372,7 @@ def open_executor(spec: Any, threads: int = 1) -> Iterator[LocalExecutor | RayEx
     call with ``threads`` threads, connected (Ray) before the caller writes anything; closed
     after."""
     executor = EXECUTORS[spec.executor](spec.workers, spec.ray_address, threads)
+    executor.run_dir = spec.out
     executor.connect()
     try:
         yield executor

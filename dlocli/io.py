@@ -147,6 +147,16 @@ def record_written(run_dir: Path, before: set[str]) -> None:
         write_json_atomic(Path(run_dir) / MANIFEST_FILE, sorted(written))
 
 
+def adopt_written(run_dir: Path, tops: set[str]) -> None:
+    """A resumed run takes over what it continues from: the entries of ``run_dir`` under the
+    top-level names ``tops`` (its own layout) join the manifest. A run killed outright
+    (SIGKILL, power loss) could not record them, and a later --overwrite would refuse them."""
+    listed = written_by_dlo(run_dir)
+    found = {e for e in run_dir_entries(run_dir) if Path(e).parts[0] in tops}
+    if not found <= listed:
+        write_json_atomic(Path(run_dir) / MANIFEST_FILE, sorted(listed | found))
+
+
 def check_writable(path: Path, flag: str, overwrite: bool) -> None:
     """BadInput unless a file could be written at ``path``, and replacing an existing one
     only with ``overwrite`` (checked before the work starts, so a long run does not end on an

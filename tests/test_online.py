@@ -130,6 +130,29 @@ def test_references_run_from_the_trials_starts(uninterrupted):
     assert summary["reference_seconds"] > 0
 
 
+def test_threads_override_reaches_the_workers_and_the_update_and_warns_once(
+    uninterrupted, tmp_path, monkeypatch
+):
+    """--threads 2 with 2 local workers: every trial (in a pool process) and the model update
+    ran with 2 torch threads, where the default gives a trial 1; on 2 CPUs that is 4 busy
+    threads: one warning, once."""
+    from dlocli import threads
+    from dlocli.models.base import read_checkpoint
+
+    first, _ = uninterrupted
+    assert {load_dataset(f).attrs["threads"] for f in (first / "data").glob("iter_*/*.h5")} == {1}
+    monkeypatch.setattr(threads, "_warned", False)
+    monkeypatch.setattr(threads, "machine_cpus", lambda: 2)
+    out = tmp_path / "run"
+    one_iteration = [*TINY[:1], "1", *TINY[2:]]
+    args = ["online", *one_iteration, "--workers", "2", "--threads", "2", "--out", str(out)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert res.output.count("warning: --threads 2 x 2 process(es) = 4 busy threads") == 1
+    assert [load_dataset(f).attrs["threads"] for f in (out / "data").glob("iter_*/*.h5")] == [2, 2]
+    assert read_checkpoint(out / "checkpoints" / "iter_01.pt")["threads"] == 2
+
+
 def test_references_shared_among_workers_match_the_serial_ones(uninterrupted, tmp_path):
     from dlocli.runs.online import OnlineRun
 

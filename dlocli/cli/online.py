@@ -17,7 +17,7 @@ from dlocli.runs.online import OnlineSpec as S
      "initial_episodes", "mpc.horizon",
      "fit.lr", *model_flags(), "task.goal", "task.name",
      "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
-     "executor", "ray_address", "fit.mirror", "offline", "seed", "out"],
+     "threads", "executor", "ray_address", "fit.mirror", "offline", "seed", "out"],
 )  # fmt: skip
 def online(
     run: RunFlags,

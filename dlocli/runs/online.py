@@ -23,10 +23,10 @@ so a resumed run reproduces an uninterrupted one with the same seed.
 
 Where trials run (:mod:`dlocli.executors`): in this process, a pool of local processes
 (``workers``), or Ray tasks on a cluster (``executor``, ``ray_address``). Each trial gets the
-model's checkpoint as bytes and one thread, and returns its episode: this process (the
-driver) writes every file and updates the model, so a cluster needs no shared file system,
-and the same seed gives the same trials on any executor. Executor and workers may change on
-resume.
+model's checkpoint as bytes and one thread (``threads``: more), and returns its episode: this
+process (the driver) writes every file and updates the model (on ``fit.device``; Ray's trials
+plan on their CPUs), so a cluster needs no shared file system, and the same seed gives the
+same trials on any executor. Executor and workers may change on resume.
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ import json
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -55,15 +56,15 @@ from dlocli.executors import (
     check_executor,
     open_executor,
 )
-from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.io import adopt_written, prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, refuse_oversized_dataset
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.resume import resumed_run_spec
-from dlocli.rundir import check_fingerprints, owned, record_fingerprints
+from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
 from dlocli.runs.references import REFERENCES, ReferenceTable, reference_episode_scores
 from dlocli.specs import EnvSpec
-from dlocli.tensorboard import Scalars
-from dlocli.threads import torch_threads
+from dlocli.tensorboard import TENSORBOARD_DIR, Scalars
+from dlocli.threads import torch_threads, warn_if_oversubscribed
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -102,6 +103,11 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
         description="Processes running an iteration's trials (at most one per CPU); with "
         "--executor ray and no --ray-address, the CPUs of the local Ray instance.",
     )  # fmt: skip
+    threads: int | None = Field(
+        None, gt=0, le=MAX_PROCESSES,
+        description="Torch threads per job (a trial, a share of reference episodes) and for "
+        "the model update; None = chosen from the CPUs: 1 per job, all for the update.",
+    )  # fmt: skip
     offline: bool = Field(
         False,
         description="Also train a model offline on as many random transitions as D holds "
@@ -114,9 +120,34 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
 
 #: fields that may change when a run resumes: they change where trials run, not the results
 FREE_FIELDS = frozenset({"executor", "ray_address", "workers"})
-#: torch threads of a trial, on every executor: the planner is fastest with one at these
-#: sizes, and the same number everywhere gives the same floats everywhere
+#: torch threads of a trial, on every executor, unless --threads says otherwise: the planner
+#: is fastest with one at these sizes, and the same number everywhere gives the same floats
 TRIAL_THREADS = 1
+
+
+def job_threads(spec: OnlineSpec) -> int:
+    """Torch threads of each trial and reference job."""
+    return spec.threads or TRIAL_THREADS
+
+
+@contextmanager
+def update_threads(spec: OnlineSpec) -> Iterator[None]:
+    """The model update's threads: --threads if given, else the ones this process chose
+    (:func:`dlocli.threads.fit_this_process`: the CPUs it may use)."""
+    if spec.threads is None:
+        yield
+        return
+    with torch_threads(spec.threads):
+        yield
+
+
+def warn_if_threads_oversubscribe(spec: OnlineSpec) -> None:
+    """One warning when --threads oversubscribes this machine: the local executor's workers,
+    or the update in this process."""
+    if spec.threads is not None:
+        local = spec.executor == "local"
+        warn_if_oversubscribed(spec.threads, min(spec.workers, spec.trials) if local else 1)
+
 
 # ----------------------------------------------------------------------------- seeds
 INITIAL, TRAIN, TRIAL, NOISE, OFFLINE, REFERENCE = 0, 1, 2, 3, 4, 5
@@ -155,6 +186,11 @@ class RunLayout:
     def state_dirs(self) -> list[Path]:
         """The folders whose files a resumed run takes as already done."""
         return [self.out / "data", self.out / "offline", self.out / "checkpoints"]
+
+    #: every top-level entry a run writes
+    TOPS = frozenset({"spec.json", FINGERPRINTS_FILE, "data", "offline", "checkpoints",
+                      "references.json", "metrics.csv", "offline_metrics.csv", "summary.json",
+                      "plots", TENSORBOARD_DIR})  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- trials
@@ -202,16 +238,20 @@ def _env_spec(spec: OnlineSpec) -> EnvSpec:
 def _run_trial(spec_json: str, checkpoint: bytes, k: int, j: int) -> tuple[Episode, dict[str, Any]]:
     """Trial j of iteration k through the model whose checkpoint file holds ``checkpoint``:
     its episode and scores (an executor's task; the driver writes the file)."""
+    import torch
+
     spec = OnlineSpec.model_validate_json(spec_json)
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="dlo-trial-") as tmp, torch_threads(TRIAL_THREADS):
+    with tempfile.TemporaryDirectory(prefix="dlo-trial-") as tmp, torch_threads(job_threads(spec)):
         model = Path(tmp) / "model.pt"
         model.write_bytes(checkpoint)
         episode, mpc_seconds = _trial_episode(spec, model, k, j)
+        threads = torch.get_num_threads()
     attrs = {
         **episode_scores(episode, spec.task.episode_steps),
         "trial_seconds": round(time.perf_counter() - start, 3),
         "mpc_seconds": round(mpc_seconds, 3),
+        "threads": threads,
     }
     return episode, attrs
 
@@ -248,7 +288,7 @@ class OnlineRun:
         self.paths = RunLayout(spec.out)
         self.progress = progress or (lambda event, info: None)
         self._own_executor = executor is None
-        self.executor = LocalExecutor(spec.workers, TRIAL_THREADS) if executor is None else executor
+        self.executor = executor or LocalExecutor(spec.workers, job_threads(spec))
         self.scalars = Scalars(None)
         self._train_seconds: dict[int, float] = {}
 
@@ -321,15 +361,17 @@ class OnlineRun:
             self.scalars.add(at, "loss", train=record.train_loss, val=record.val_loss)
 
         first_new = 0 if k == 1 else max(data.n_episodes - self.spec.trials, 0)
-        result = update_model(
-            model,
-            data,
-            fit,
-            recent_episodes=np.arange(first_new, data.n_episodes),
-            optimizer_state=opt_state,
-            progress=self._validations(k),
-            on_validation=log,
-        )
+        with update_threads(self.spec):
+            result = update_model(
+                model,
+                data,
+                fit,
+                recent_episodes=np.arange(first_new, data.n_episodes),
+                optimizer_state=opt_state,
+                progress=self._validations(k),
+                on_validation=log,
+            )
+            threads = torch.get_num_threads()
         extra = {"steps": result.steps, "best_step": result.best_step} if result.steps else {}
         save_checkpoint(
             model,
@@ -339,6 +381,8 @@ class OnlineRun:
                 "iteration": k,
                 "val_loss": result.val_loss,
                 "train_seconds": time.perf_counter() - start,
+                "threads": threads,
+                "device": str(device),
                 **extra,
             },
         )
@@ -364,7 +408,7 @@ class OnlineRun:
         self.progress("trials", {"iteration": k, "done": done, "total": self.spec.trials})
         if not todo:
             return
-        spec_json = self.spec.model_dump_json()
+        spec_json = self.trial_spec().model_dump_json()
         model = self.executor.share(Path(checkpoint).read_bytes())
         calls = [(spec_json, model, k, j) for j in todo]
         for index, result in self.executor.map(_run_trial, calls):
@@ -377,6 +421,16 @@ class OnlineRun:
             self.progress(
                 "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
             )
+
+    def trial_spec(self) -> OnlineSpec:
+        """The spec the trials get: the model on the device the executor's calls may use
+        (a Ray task sees no GPU: ``--device cuda`` updates the model on the driver's GPU,
+        and the trials plan on their CPUs)."""
+        device = self.executor.calls_device(self.spec.fit.device)
+        if device == self.spec.fit.device:
+            return self.spec
+        fit = self.spec.fit.model_copy(update={"device": device})
+        return self.spec.model_copy(update={"fit": fit})
 
     def run_references(self, k: int) -> None:
         """Doing nothing and random actions from the starts of iteration k's trials
@@ -412,13 +466,10 @@ class OnlineRun:
             fit = self.spec.fit.model_copy(
                 update={"seed": stream_seed(self.spec.seed, OFFLINE, k) % 2**31}
             )
-            train_like_online(  # as long as the online model had trained by iteration k
-                model,
-                data,
-                fit,
-                k,
-                progress=self._validations(k),
-            )
+            with update_threads(self.spec):
+                train_like_online(  # as long as the online model had trained by iteration k
+                    model, data, fit, k, progress=self._validations(k)
+                )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1})
         self.run_trials(k, ckpt, offline=True)
 
@@ -659,8 +710,9 @@ def start_online(
     models.check(spec.model.name)
     refuse_oversized_run(spec)
     check_executor(spec.executor, spec.ray_address)
+    warn_if_threads_oversubscribe(spec)
     # the executor connects first: an address that fails leaves the directory as it was
-    with open_executor(spec, TRIAL_THREADS) as executor, owned(spec.out):
+    with open_executor(spec, job_threads(spec)) as executor, owned(spec.out):
         out = prepare_run_dir(spec.out, overwrite)
         for state in RunLayout(out).state_dirs():
             shutil.rmtree(state, ignore_errors=True)
@@ -683,8 +735,10 @@ def resume_online(
     spec = resumed_run_spec(OnlineSpec, run_dir, overrides, "an online", "dlo online", FREE_FIELDS)
     refuse_oversized_run(spec)
     check_executor(spec.executor, spec.ray_address)
-    with open_executor(spec, TRIAL_THREADS) as executor, owned(run_dir):
+    warn_if_threads_oversubscribe(spec)
+    with open_executor(spec, job_threads(spec)) as executor, owned(run_dir):
         check_fingerprints(run_dir, spec, accept_changes)
+        adopt_written(run_dir, RunLayout.TOPS)  # a killed run's files are this run's
         if _changed_free_fields(run_dir, spec):  # the saved spec says where trials run now
             write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
             record_fingerprints(run_dir, spec)
