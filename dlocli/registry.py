@@ -16,6 +16,12 @@ from typing import Any
 from dlocli.errors import UnknownName
 
 
+def import_target(target: str) -> Any:
+    """The object a ``"module:attr"`` string names, its module imported."""
+    module_name, _, attr = target.partition(":")
+    return getattr(importlib.import_module(module_name), attr)
+
+
 class Registry:
     """Maps names to lazily imported factories of one plugin kind."""
 
@@ -57,8 +63,7 @@ class Registry:
         self.check(name)
         target = self._targets[name]
         if isinstance(target, str):
-            module_name, _, attr = target.partition(":")
-            target = getattr(importlib.import_module(module_name), attr)
+            target = import_target(target)
             self._targets[name] = target
         return target
 

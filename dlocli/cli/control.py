@@ -29,12 +29,7 @@ def controller_options_help() -> str:
 
 
 @handle_errors
-@spec_flags(
-    ControlSpec,
-    ["task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name", "task.name",
-     "task.shapes", "task.episode_steps", "seed", "device", "threads", "video", "video_every"],
-    required=("task.goal_file",),
-)  # fmt: skip
+@spec_flags(ControlSpec)
 def control(
     run: RunFlags,
     option: Annotated[

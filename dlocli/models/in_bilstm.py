@@ -61,6 +61,7 @@ class INBiLSTM(DynamicsModel):
     """Interaction Network + bi-LSTM along the rod (the paper's model)."""
 
     spec_cls: ClassVar[type[ModelSpec]] = INBiLSTMSpec
+    marker_form: ClassVar[str] = "dlocli.models.markers:MarkerINBiLSTM"
     spec: INBiLSTMSpec
 
     def __init__(self, spec: INBiLSTMSpec, n_segments: int) -> None:

@@ -32,6 +32,7 @@ class MLPDynamics(DynamicsModel):
     """Flattened state + action MLP baseline (``layers`` hidden layers, ``hidden`` wide)."""
 
     spec_cls: ClassVar[type[ModelSpec]] = MLPSpec
+    marker_form: ClassVar[str] = "dlocli.models.markers:MarkerMLP"
     spec: MLPSpec
 
     def __init__(self, spec: MLPSpec, n_segments: int) -> None:

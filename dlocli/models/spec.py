@@ -4,13 +4,13 @@ without importing torch)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BeforeValidator, Field, SerializeAsAny, model_validator
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import model_data, without_retired_train_fields
-from dlocli.specs import Device, Spec
+from dlocli.specs import MODEL_OPTIONS, Device, Spec
 
 
 class ModelSpec(Spec):
@@ -199,6 +199,13 @@ class UpdateSpec(FitSpec):
 class TrainSpec(FitSpec):
     """`dlo train`: fit a dynamics model to a dataset; write a run directory."""
 
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "data", MODEL_OPTIONS, "epochs", "lr", "batch_size", "input_noise", "val_fraction",
+        "mirror", "device", "seed", "init_from", "out", "update_steps", "rollout_steps",
+        "rollout_start", "eval_every",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("data",)
+
     data: Path | None = Field(None, description="Dataset file or collect run directory.")
     model: ModelField = model_field("Model and sizes.")
     init_from: Path | None = Field(
@@ -217,6 +224,11 @@ class TrainSpec(FitSpec):
 
 class EvalSpec(Spec):
     """`dlo eval`: a trained model's one-step and open-loop errors on a dataset."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "checkpoint", "data", "device", "max_starts", "plot", "out",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("checkpoint", "data")
 
     checkpoint: Path | None = Field(
         None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."
