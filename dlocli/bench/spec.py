@@ -11,7 +11,7 @@ from typing import Annotated, Any, ClassVar
 from pydantic import Field, model_validator
 from pydantic_core import to_json
 
-from dlocli.controllers.mpc import MPCSpec
+from dlocli.controllers.specs import MPCSpec
 from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
 from dlocli.migrations import (

@@ -44,6 +44,39 @@ class ModelSpec(Spec):
         raise KeyError(name)
 
 
+# the built-in models' own options (a plugin model may define its spec in its own module)
+class INBiLSTMSpec(ModelSpec):
+    """The sizes of the paper's model (its defaults); ``hidden`` is the width of f_e, f_v
+    and the LSTM."""
+
+    absolute_position: bool = Field(
+        True,
+        description="Give f_e and f_v each segment's absolute position (the paper's encoding). "
+        "Off, the segments' own features are orientation and velocity, and positions enter "
+        "only as neighbour differences: the model is then exactly translation-invariant, as a "
+        "rod without contacts is.",
+    )
+    edge_layers: int = Field(
+        4, gt=0, le=64, description="Layers of the relation-centric network f_e."
+    )
+    node_layers: int = Field(
+        4, gt=0, le=64, description="Layers of the object-centric network f_v."
+    )
+    lstm_layers: int = Field(
+        2, gt=0, le=64, description="Layers of the bidirectional LSTM along the rod."
+    )
+
+
+class MLPSpec(ModelSpec):
+    """The baseline's sizes: ``layers`` hidden layers, ``hidden`` wide."""
+
+    #: its options' names when every model shared one spec
+    moved: ClassVar[dict[str, str]] = {"mlp_hidden": "hidden", "mlp_layers": "layers"}
+
+    hidden: int = Field(512, gt=0, le=65536, description=ModelSpec.field_of("hidden").description)
+    layers: int = Field(4, gt=0, le=64, description="Hidden layers of the MLP.")
+
+
 def model_spec_classes() -> dict[str, type[ModelSpec]]:
     """The spec class of every registered model, by name."""
     from dlocli.registry import models
@@ -55,7 +88,7 @@ def model_spec_class(name: str) -> type[ModelSpec]:
     """The spec class of the registered model ``name`` (UnknownName if there is none)."""
     from dlocli.registry import models
 
-    return getattr(models.get(name), "spec_cls", ModelSpec)
+    return models.spec_cls(name) or ModelSpec
 
 
 def model_spec(data: Any = None) -> ModelSpec:

@@ -44,7 +44,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field
 
-from dlocli.controllers.mpc import MPCSpec
+from dlocli.controllers.specs import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.errors import DloError
