@@ -22,9 +22,17 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.fields import FieldInfo
 
 from dlocli.errors import BadInput
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
+
+
+def new_default(spec_cls: type[Spec], name: str, default: Any) -> Any:
+    """The field ``name`` of ``spec_cls`` with another default, its bounds and description
+    kept: a subclass's own value of an inherited option."""
+    return FieldInfo.merge_field_infos(spec_cls.model_fields[name], default=default)
+
 
 #: in a spec's ``cli_flags``: the options of every registered model (``model.FIELD``)
 MODEL_OPTIONS = "model.*"
