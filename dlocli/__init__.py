@@ -58,10 +58,9 @@ def __getattr__(name: str) -> Any:
     # lazy, so `import dlocli` does not import MuJoCo, PyBullet or torch
     if name not in _LAZY:
         raise AttributeError(f"module 'dlocli' has no attribute {name!r}")
-    import importlib
+    from dlocli.registry import import_target
 
-    module_name, _, attr = _LAZY[name].partition(":")
-    value = getattr(importlib.import_module(module_name), attr)
+    value = import_target(_LAZY[name])
     globals()[name] = value  # later look-ups skip this function
     return value
 

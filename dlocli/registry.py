@@ -16,6 +16,12 @@ from typing import Any
 from dlocli.errors import UnknownName
 
 
+def import_target(target: str) -> Any:
+    """The object a ``"module:attr"`` string names, its module imported."""
+    module_name, _, attr = target.partition(":")
+    return getattr(importlib.import_module(module_name), attr)
+
+
 class Registry:
     """Maps names to lazily imported factories of one plugin kind."""
 
@@ -23,12 +29,23 @@ class Registry:
         self.kind = kind
         self._targets: dict[str, str | Callable[..., Any]] = {}
         self._summaries: dict[str, str] = {}
+        self._specs: dict[str, str | type] = {}
         self._loaded_entry_points = False
 
-    def register(self, name: str, target: str | Callable[..., Any], summary: str = "") -> None:
-        """Register ``target`` (a ``"module:attr"`` string or a callable) under ``name``."""
+    def register(
+        self,
+        name: str,
+        target: str | Callable[..., Any],
+        summary: str = "",
+        spec: str | type | None = None,
+    ) -> None:
+        """Register ``target`` (a ``"module:attr"`` string or a callable) under ``name``;
+        ``spec`` names its options' spec class where importing ``target`` for its
+        ``spec_cls`` would cost (--help imports no torch)."""
         self._targets[name] = target
         self._summaries[name] = summary
+        if spec is not None:
+            self._specs[name] = spec
 
     def decorator(self, name: str, summary: str = "") -> Callable[[Any], Any]:
         """``@registry.decorator("name")`` registers a class or function where it is defined."""
@@ -57,10 +74,18 @@ class Registry:
         self.check(name)
         target = self._targets[name]
         if isinstance(target, str):
-            module_name, _, attr = target.partition(":")
-            target = getattr(importlib.import_module(module_name), attr)
+            target = import_target(target)
             self._targets[name] = target
         return target
+
+    def spec_cls(self, name: str) -> Any:
+        """The spec class of ``name``'s options: the one registered with it, else the entry's
+        own ``spec_cls`` attribute (None if it has none)."""
+        self.check(name)
+        spec = self._specs.get(name)
+        if isinstance(spec, str):
+            spec = self._specs[name] = import_target(spec)
+        return spec if spec is not None else getattr(self.get(name), "spec_cls", None)
 
     def check(self, name: str) -> None:
         """Raise :class:`UnknownName` listing the valid names if ``name`` is not registered."""
@@ -102,15 +127,25 @@ models.register(
     "in-bilstm",
     "dlocli.models.in_bilstm:INBiLSTM",
     "Interaction Network + bi-LSTM along the rod (the paper's model)",
+    spec="dlocli.models.spec:INBiLSTMSpec",
 )
-models.register("mlp", "dlocli.models.mlp:MLPDynamics", "flattened state + action MLP baseline")
+models.register(
+    "mlp",
+    "dlocli.models.mlp:MLPDynamics",
+    "flattened state + action MLP baseline",
+    spec="dlocli.models.spec:MLPSpec",
+)
 controllers.register(
     "mpc",
     "dlocli.controllers.mpc:GradientMPC",
     "gradient-based shooting MPC through the learned model (paper eqs. 8-10)",
+    spec="dlocli.controllers.specs:MPCSpec",
 )
 controllers.register(
-    "mppi", "dlocli.controllers.mppi:MPPI", "sampling MPC (MPPI) through the learned model"
+    "mppi",
+    "dlocli.controllers.mppi:MPPI",
+    "sampling MPC (MPPI) through the learned model",
+    spec="dlocli.controllers.specs:MPPISpec",
 )
 controllers.register("random", "dlocli.controllers.base:RandomController", "uniform random actions")
 controllers.register(
@@ -130,4 +165,5 @@ controllers.register(
     "pilco",
     "dlocli.controllers.pilco:PilcoAgent",
     "PILCO: GP dynamics, moment matching, RBF policy (Deisenroth 2011)",
+    spec="dlocli.controllers.specs:PilcoSpec",
 )

@@ -22,9 +22,20 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.fields import FieldInfo
 
 from dlocli.errors import BadInput
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
+
+
+def new_default(spec_cls: type[Spec], name: str, default: Any) -> Any:
+    """The field ``name`` of ``spec_cls`` with another default, its bounds and description
+    kept: a subclass's own value of an inherited option."""
+    return FieldInfo.merge_field_infos(spec_cls.model_fields[name], default=default)
+
+
+#: in a spec's ``cli_flags``: the options of every registered model (``model.FIELD``)
+MODEL_OPTIONS = "model.*"
 
 
 class Spec(BaseModel):
@@ -36,6 +47,11 @@ class Spec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
     moved: ClassVar[dict[str, str]] = {}
+    #: the fields the spec's command offers as flags, dotted, in --help order (every field is
+    #: reachable through --spec FILE); MODEL_OPTIONS stands for every registered model's options
+    cli_flags: ClassVar[tuple[str, ...]] = ()
+    #: the flagged fields the run cannot do without (--help says "required")
+    cli_required: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def field_of(cls, name: str) -> Any:
@@ -348,6 +364,10 @@ class EnvSpec(Spec):
 class GoalSpec(EnvSpec):
     """`dlo goal`: a reachable goal shape from moving the grippers and letting the rod settle."""
 
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "out", "backend.name", "task.name", "task.shapes", "seed",
+    )  # fmt: skip
+
     out: Path = Field(Path("goal.npy"), description="Output .npy file (N,3), metres.")
 
 
@@ -355,6 +375,10 @@ class CollectSpec(EnvSpec):
     """`dlo collect --random`: random-action trajectories into an HDF5 dataset."""
 
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "out", "backend.name", "task.name", "task.shapes", "task.goal", "episodes",
+        "task.episode_steps", "seed", "workers",
+    )  # fmt: skip
 
     episodes: int = Field(10, gt=0, le=MAX_COUNT, description="Number of episodes.")
     workers: int = Field(

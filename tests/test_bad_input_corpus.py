@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,31 +20,35 @@ import numpy as np
 import pytest
 import torch
 
-from tiny import file_digests, lock_held_elsewhere, run_dlo
+from tiny import built_once, file_digests, lock_held_elsewhere, run_dlo
 
 # ----------------------------------------------------------------------------- fixtures
 
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory, small_dataset_dir: Path) -> dict[str, Path]:
-    """Real inputs (dataset, trained model, goal, finished runs) and crafted bad files."""
-    root = tmp_path_factory.mktemp("corpus")
-    paths = {"data": small_dataset_dir, "root": root}
-    _dlo("train", "--data", str(small_dataset_dir), "--epochs", "1", "--hidden", "8",
+    """Real inputs (dataset, trained model, goal, finished runs) and crafted bad files: built
+    once per test session, each test process its own copy."""
+    root = built_once(tmp_path_factory, "corpus", lambda to: _build_world(to, small_dataset_dir))
+    names = {"data": "data", "train": "train", "goal": "goal.npy", "collect": "collect"}
+    return {"root": root} | {key: root / name for key, name in names.items()}
+
+
+def _build_world(root: Path, dataset: Path) -> None:
+    shutil.copytree(dataset, root / "data")
+    _dlo("train", "--data", str(root / "data"), "--epochs", "1", "--hidden", "8",
          "--out", str(root / "train"), "--json")  # fmt: skip
     _dlo("goal", "--out", str(root / "goal.npy"), "--shapes", "near-rest", "--json")
     _dlo("collect", "--episodes", "2", "--steps", "3", "--shapes", "near-rest",
          "--out", str(root / "collect"), "--json")  # fmt: skip
-    paths.update(train=root / "train", goal=root / "goal.npy", collect=root / "collect")
     bad = root / "bad"
     bad.mkdir()
     _write_bad_specs(bad)
     _write_bad_goals(bad)
-    _write_bad_datasets(bad, small_dataset_dir)
+    _write_bad_datasets(bad, dataset)
     _write_bad_checkpoints(bad, root / "train" / "checkpoints" / "final.pt")
     (root / "a_file").write_text("not a directory\n")
     (root / "edited").mkdir()
-    return paths
 
 
 def _dlo(*args: str) -> None:

@@ -87,6 +87,28 @@ def test_version_and_help_import_no_torch_or_simulator():
     assert "online" in help_text and "Learn the dynamics model online" in help_text
 
 
+def test_every_command_help_imports_no_torch_simulator_or_agents():
+    """`python -m dlocli COMMAND --help` (each in turn, in one interpreter) imports none of
+    the heavy libraries: flags, model options and controller options come from torch-free
+    specs."""
+    from dlocli.cli import ALIASES, COMMANDS
+
+    heavy = ["torch", "mujoco", "pybullet", "ray", "stable_baselines3"]
+    commands = [name for name, _ in COMMANDS] + list(ALIASES)
+    script = (
+        "import runpy, sys\n"
+        f"for command in {commands!r}:\n"
+        "    sys.argv = ['dlo', command, '--help']\n"
+        "    try:\n        runpy.run_module('dlocli', run_name='__main__')\n"
+        "    except SystemExit as exit:\n        assert exit.code in (0, None), command\n"
+        f"print([m for m in {heavy!r} if m in sys.modules])\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "--dataset-id" in res.stdout and "--hidden" in res.stdout  # the helps were shown
+    assert res.stdout.strip().splitlines()[-1] == "[]", res.stdout[-300:]
+
+
 def test_fields_that_moved_still_load():
     """Spec files and saved runs written before a field moved keep their meaning."""
     from dlocli.runs.control import ControlSpec

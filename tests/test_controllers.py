@@ -231,37 +231,45 @@ def easy_goal(tmp_path, seed: int) -> str:
     env.reset(seed=seed)
     for _ in range(20):
         env.step(np.array([0.8, 0.0, 0.6, 0.0, 0.0, 0.0], np.float32))
-    path = tmp_path / "easy.npy"
+    path = tmp_path / f"easy-{seed}.npy"
     np.save(path, env.backend.segment_positions())
     env.close()
     return str(path)
 
 
 def test_mpc_reduces_true_error_in_mujoco(tmp_path, checkpoint):
-    """Gradient MPC through the tiny learned model brings the simulated rod closer to an easy
-    goal; the run directory holds the summary, metrics, plot, resolved spec and a GIF."""
-    task = TaskSpec(goal_file=easy_goal(tmp_path, 3))
-    task = task.model_copy(update={"episode_steps": 30})
-    spec = ControlSpec(task=task, checkpoint=checkpoint, seed=3, out=tmp_path / "run",
-                       video=tmp_path / "run.gif", video_every=10)  # fmt: skip
-    records = []
-    summary = run_control(spec, records.append)
-    assert summary.keys() >= SUMMARY_KEYS and summary["steps"] == len(records) == 30
-    # the reference from the same start in the same run: doing nothing. Against it, not a
-    # fraction tuned on one CPU (Intel Xeon ended at 0.81 of the initial error, AMD EPYC
-    # below 0.8: float rounding differs, the tiny model's training with it)
-    nothing = run_control(
-        spec.model_copy(update={"controller": "zero", "checkpoint": None, "video": None,
-                                "out": tmp_path / "zero"})
-    )  # fmt: skip
-    assert nothing["initial_error_mm"] == summary["initial_error_mm"]
-    # measured: final 0.66 (AMD EPYC) and 0.81 (Intel Xeon) of doing nothing's; best 0.36
-    assert summary["final_error_mm"] < 0.9 * nothing["final_error_mm"]
-    assert summary["best_error_mm"] < 0.75 * nothing["best_error_mm"]
-    out = spec.out
+    """Gradient MPC through the tiny learned model brings the simulated rod closer to easy
+    goals than doing nothing from the same starts; the run directory holds the summary,
+    metrics, plot, resolved spec and a GIF."""
+    mpc, nothing = [], []
+    for seed in (0, 1, 2):
+        task = TaskSpec(goal_file=easy_goal(tmp_path, seed), episode_steps=30)
+        spec = ControlSpec(task=task, checkpoint=checkpoint, seed=seed,
+                           out=tmp_path / f"run-{seed}")  # fmt: skip
+        if seed == 0:
+            spec = spec.model_copy(update={"video": tmp_path / "run.gif", "video_every": 10})
+        records = []
+        mpc.append(run_control(spec, records.append))
+        assert mpc[-1].keys() >= SUMMARY_KEYS and mpc[-1]["steps"] == len(records) == 30
+        # the reference from the same start in the same run: doing nothing
+        nothing.append(run_control(
+            spec.model_copy(update={"controller": "zero", "checkpoint": None, "video": None,
+                                    "out": tmp_path / f"zero-{seed}"})
+        ))  # fmt: skip
+        assert nothing[-1]["initial_error_mm"] == mpc[-1]["initial_error_mm"]
+
+    def ratio(key: str) -> float:  # MPC's error over doing nothing's, mean over the starts
+        return float(np.mean([m[key] / z[key] for m, z in zip(mpc, nothing, strict=True)]))
+
+    # The tiny model differs between CPUs (float rounding in its training), so the margins
+    # come from the spread over 8 tiny models (training seeds 0-7, AMD EPYC): the 3-start mean
+    # of final/nothing ranged 0.15-0.69 (mean 0.43, sd 0.18; one start alone up to 1.05),
+    # of best/nothing 0.11-0.46 (mean 0.24, sd 0.11). Bounds: about 3 sd above the mean.
+    assert ratio("final_error_mm") < 1.0
+    assert ratio("best_error_mm") < 0.6
+    out = tmp_path / "run-0"
     assert (
-        json.loads((out / "summary.json").read_text())["final_error_mm"]
-        == summary["final_error_mm"]
+        json.loads((out / "summary.json").read_text())["final_error_mm"] == mpc[0]["final_error_mm"]
     )
     assert json.loads((out / "spec.json").read_text())["controller_options"]["horizon"] == 5
     assert (out / "metrics.csv").read_text().startswith("step,shape_error_mm,reward,latency_ms")

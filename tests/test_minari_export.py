@@ -96,16 +96,29 @@ def test_export_loads_iterates_and_matches_the_env(collected, minari_root):
 
 def test_existing_id_is_refused_unless_overwrite(collected, minari_root):
     name = "dlocli/tiny-v1"
-    assert run("export", str(collected), "--name", name, "--json").exit_code == 0
+    assert run("export", str(collected), "--dataset-id", name, "--json").exit_code == 0
     metadata = minari_root / name / "data" / "metadata.json"
     before = metadata.read_bytes()
-    res = run("export", str(collected), "--name", name)
+    res = run("export", str(collected), "--dataset-id", name)
     assert res.exit_code == 2 and "--overwrite" in _one_error_line(res)
     assert metadata.read_bytes() == before
-    res = run("export", str(collected), "--name", name, "--overwrite", "--json")
+    res = run("export", str(collected), "--dataset-id", name, "--overwrite", "--json")
     assert res.exit_code == 0, res.output
     assert minari.load_dataset(name).total_steps == 15
     assert [p.name for p in minari_root.iterdir()] == ["dlocli"], "no staging left behind"
+
+
+def test_the_earlier_flag_names_still_work_hidden(tmp_path, collected, minari_root):
+    """--name and --root were renamed --dataset-id and --out (the names of the other
+    commands); the old spellings still work but --help lists only the new ones."""
+    res = run("export", str(collected), "--name", "dlocli/old-v0", "--root", str(tmp_path / "r"))
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "r" / "dlocli/old-v0" / "data" / "metadata.json").is_file()
+    res = run("export", str(collected), "--dataset-id", "dlocli/a-v0", "--name", "dlocli/b-v0")
+    assert res.exit_code == 2 and "--dataset-id" in _one_error_line(res)
+    shown = run("export", "--help").output
+    assert "--dataset-id" in shown and "--out" in shown
+    assert "--name" not in shown and "--root" not in shown
 
 
 def test_bad_input_exits_2_with_one_line(tmp_path, collected, minari_root):
@@ -116,8 +129,8 @@ def test_bad_input_exits_2_with_one_line(tmp_path, collected, minari_root):
     res = run("export", str(tmp_path / "missing"))
     assert res.exit_code == 2 and "dlo collect" in _one_error_line(res)
     for name in ("bad id!", "no-version"):
-        res = run("export", str(collected), "--name", name)
-        assert res.exit_code == 2 and "--name" in _one_error_line(res)
+        res = run("export", str(collected), "--dataset-id", name)
+        assert res.exit_code == 2 and "--dataset-id" in _one_error_line(res)
     res = run("export", str(collected), "--format", "parquet")
     assert res.exit_code == 2
     assert not minari_root.exists() or not any(minari_root.iterdir())
@@ -165,9 +178,9 @@ def test_bimanual_with_a_non_default_rod_is_recovered(tmp_path, minari_root):
               "observe_velocity": False},
     )  # fmt: skip
     collect_random(spec)
-    res = run("export", str(tmp_path / "c"), "--root", str(tmp_path / "elsewhere"), "--json")
+    res = run("export", str(tmp_path / "c"), "--out", str(tmp_path / "elsewhere"), "--json")
     assert res.exit_code == 0, res.output
-    assert not minari_root.exists(), "--root, not $MINARI_DATASETS_PATH"
+    assert not minari_root.exists(), "--out, not $MINARI_DATASETS_PATH"
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["observation_dim"] == 6 * 10 + 14 and summary["action_dim"] == 12
     assert summary["env_id"] == "dlocli/MujocoBimanual-v0"

@@ -1,15 +1,16 @@
 """What the tests share: tiny settings, so every agent learns and every bench job runs in
 seconds (the defaults are the paper's sizes; budgets are 60 transitions of 20-step episodes),
-and a lock held by another process."""
+a lock held by another process, and inputs built once per test session."""
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -126,3 +127,26 @@ class Payload:
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (open, (self.marker, "w"))
+
+
+def built_once(factory: Any, name: str, build: Callable[[Path], None]) -> Path:
+    """This test process's own copy of what ``build(directory)`` writes, built once per test
+    session: under pytest-xdist the workers share their base temp directory's parent, and a
+    file lock lets the first build there while the others wait (pytest-xdist's documented
+    pattern). Each worker gets a copy, so no worker sees another's writes mid-test."""
+    from filelock import FileLock
+
+    own = factory.mktemp(name)
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:  # one process: build in place
+        build(own)
+        return own
+    shared = factory.getbasetemp().parent / name
+    built = shared / ".built"
+    with FileLock(f"{shared}.lock"):
+        if not built.is_file():
+            shutil.rmtree(shared, ignore_errors=True)  # a build that failed part-way
+            shared.mkdir()
+            build(shared)
+            built.touch()
+    shutil.copytree(shared, own, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".built"))
+    return own

@@ -6,12 +6,12 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 from pydantic import Field, model_validator
 from pydantic_core import to_json
 
-from dlocli.controllers.mpc import MPCSpec
+from dlocli.controllers.specs import MPCSpec
 from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
 from dlocli.migrations import (
@@ -20,7 +20,7 @@ from dlocli.migrations import (
     without_legacy_values,
 )
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
-from dlocli.specs import EnvSpec
+from dlocli.specs import MODEL_OPTIONS, EnvSpec
 
 #: fields that may change between runs of one directory: they do not change any result
 #: (``budgets`` enters the fingerprint of each job through that agent's own budget)
@@ -29,6 +29,12 @@ FREE_FIELDS = {"agents", "seeds", "executor", "workers", "ray_address", "out", "
 
 class BenchSpec(EnvSpec, ExecutorChoice):
     """`dlo bench`: every agent x seed learns under the same transition budget."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "agents", "budget", "seeds", "task.goal", "task.name", "task.shapes", "backend.name",
+        "task.episode_steps", "evals", "eval_trials", MODEL_OPTIONS, "fit.epochs", "transfer",
+        "executor", "ray_address", "workers", "threads", "seed", "out",
+    )  # fmt: skip
 
     agents: list[str] = Field(
         default_factory=lambda: ["zero", "random", "sac", "td3", "pilco", "mpc"],

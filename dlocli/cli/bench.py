@@ -11,7 +11,7 @@ import typer
 
 from dlocli.bench.spec import BenchSpec as S
 from dlocli.cli.common import ResumeFlag, handle_errors
-from dlocli.cli.flags import RunFlags, model_flags, parse_options, spec_flags
+from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
 
 OPTION_HELP = (
@@ -21,12 +21,7 @@ OPTION_HELP = (
 
 
 @handle_errors
-@spec_flags(
-    S,
-    ["agents", "budget", "seeds", "task.goal", "task.name", "task.shapes", "backend.name",
-     "task.episode_steps", "evals", "eval_trials", *model_flags(),
-     "fit.epochs", "transfer", "executor", "ray_address", "workers", "threads", "seed", "out"],
-)  # fmt: skip
+@spec_flags(S)
 def bench(
     run: RunFlags,
     option: Annotated[

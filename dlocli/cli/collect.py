@@ -18,11 +18,7 @@ from dlocli.specs import CollectSpec
 
 
 @handle_errors
-@spec_flags(
-    CollectSpec,
-    ["out", "backend.name", "task.name", "task.shapes", "task.goal", "episodes",
-     "task.episode_steps", "seed", "workers"],
-)  # fmt: skip
+@spec_flags(CollectSpec)
 def collect(
     run: RunFlags,
     random: Annotated[

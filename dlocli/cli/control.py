@@ -16,12 +16,12 @@ OPTION_HELP = "Controller option KEY=VALUE, a field of the --controller's spec; 
 
 def controller_options_help() -> str:
     """The -o help: every registered controller's options and their defaults, from its spec
-    (it imports every controller, so only --help calls it)."""
+    (a plugin's module is imported for it, so only --help calls it)."""
     from dlocli.registry import controllers
 
     described = []
     for name in controllers.names():
-        spec_cls = controllers.get(name).spec_cls
+        spec_cls = controllers.spec_cls(name)
         if spec_cls is not None:
             fields = spec_cls().model_dump(mode="json")
             described.append(f"{name}: " + ", ".join(f"{k}={v}" for k, v in fields.items()))
@@ -29,12 +29,7 @@ def controller_options_help() -> str:
 
 
 @handle_errors
-@spec_flags(
-    ControlSpec,
-    ["task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name", "task.name",
-     "task.shapes", "task.episode_steps", "seed", "device", "threads", "video", "video_every"],
-    required=("task.goal_file",),
-)  # fmt: skip
+@spec_flags(ControlSpec)
 def control(
     run: RunFlags,
     option: Annotated[

@@ -8,11 +8,7 @@ from dlocli.models.spec import EvalSpec
 
 
 @handle_errors
-@spec_flags(
-    EvalSpec,
-    ["checkpoint", "data", "device", "max_starts", "plot", "out"],
-    required=("checkpoint", "data"),
-)
+@spec_flags(EvalSpec)
 def evaluate(
     run: RunFlags,
 ) -> None:

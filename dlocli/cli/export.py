@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from dlocli.cli.common import JsonFlag, emit_summary, handle_errors
+from dlocli.errors import BadInput
 
 
 class ExportFormat(str, Enum):
@@ -28,24 +29,24 @@ def export(
     fmt: Annotated[
         ExportFormat, typer.Option("--format", help="Output format (Minari: offline RL).")
     ] = ExportFormat.minari,
-    name: Annotated[
+    dataset_id: Annotated[
         str | None,
         typer.Option(
-            "--name",
+            "--dataset-id",
             help="Minari dataset id, namespace/name-vN.  [default: "
             "dlocli/BACKEND-TASK-random-v0, from the dataset's spec]",
         ),
     ] = None,
-    root: Annotated[
+    out: Annotated[
         Path | None,
         typer.Option(
-            "--root",
-            envvar="MINARI_DATASETS_PATH",
-            help="Minari datasets root; load with MINARI_DATASETS_PATH set to it.  "
+            "--out",
+            help="Folder of Minari datasets (load with MINARI_DATASETS_PATH set to it).  "
             "[default: $MINARI_DATASETS_PATH, else ~/.minari/datasets]",
-            show_envvar=False,
         ),
     ] = None,
+    old_name: Annotated[str | None, typer.Option("--name", hidden=True)] = None,
+    old_root: Annotated[Path | None, typer.Option("--root", hidden=True)] = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing Minari dataset of this id.")
     ] = False,
@@ -79,8 +80,8 @@ def export(
 
     summary = export_minari(
         run_or_dataset,
-        dataset_id=name,
-        root=root,
+        dataset_id=_one_of(dataset_id, old_name, "--dataset-id", "--name"),
+        root=_one_of(out, old_root, "--out", "--root"),
         overwrite=overwrite,
         skip_diverged=skip_diverged,
         author=author,
@@ -88,3 +89,10 @@ def export(
         code_permalink=code_permalink,
     )
     emit_summary(summary, json_out, f"dlo export --format {fmt.value}")
+
+
+def _one_of(value: Any, old: Any, flag: str, old_flag: str) -> Any:
+    """A flag's value, given under its name or its earlier one (kept working, hidden)."""
+    if value is not None and old is not None and value != old:
+        raise BadInput(f"{flag} and {old_flag} (its earlier name) differ; pass only {flag}")
+    return value if value is not None else old

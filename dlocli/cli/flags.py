@@ -1,6 +1,7 @@
 """Command-line flags generated from the run specs: one name, one meaning, in every command.
 
-A command lists the spec fields it offers as flags (dotted paths); :func:`spec_flags` adds
+A run spec names the fields its command offers as flags (``cli_flags``, dotted paths);
+:func:`spec_flags` adds
 one Typer option per field to the command's signature — its name from :data:`ALIASES` or
 else the path itself (``fit.batch_size`` -> ``--fit-batch-size``), its type, and the field's
 description as help — and hands the command the given values as ``overrides``, a dict
@@ -24,7 +25,7 @@ import yaml
 
 from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile
 from dlocli.errors import BadInput
-from dlocli.specs import Spec, field_info, resolve_spec, strip_none
+from dlocli.specs import MODEL_OPTIONS, Spec, field_info, resolve_spec, strip_none
 
 MODEL = "model"  # the field of the run specs that holds the model spec
 
@@ -178,12 +179,20 @@ COMMON_DEFAULTS = {"spec_file": None, "overwrite": False, "json_out": False}
 
 
 def spec_flags(
-    spec_cls: type[Spec], fields: list[str], required: tuple[str, ...] = ()
+    spec_cls: type[Spec],
+    fields: tuple[str, ...] | None = None,
+    required: tuple[str, ...] | None = None,
 ) -> Callable[[Callable], Callable]:
     """Decorate a command ``fn(run: RunFlags, **own_flags)``: add a flag per field of
-    ``fields``, and ``--spec``, ``--overwrite`` and ``--json``. The fields in ``required``
-    are inputs the run refuses to go without (from the flag or the spec file): --help says
-    so."""
+    ``fields`` (default: the spec's ``cli_flags``), and ``--spec``, ``--overwrite`` and
+    ``--json``. The fields in ``required`` (default: the spec's ``cli_required``) are inputs
+    the run refuses to go without (from the flag or the spec file): --help says so."""
+    fields = [
+        expanded
+        for dotted in (spec_cls.cli_flags if fields is None else fields)
+        for expanded in (model_flags() if dotted == MODEL_OPTIONS else [dotted])
+    ]
+    required = spec_cls.cli_required if required is None else required
 
     def decorate(fn: Callable) -> Callable:
         generated = dict(_option(spec_cls, dotted, dotted in required) for dotted in fields)

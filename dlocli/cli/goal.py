@@ -10,7 +10,7 @@ from dlocli.specs import GoalSpec
 
 
 @handle_errors
-@spec_flags(GoalSpec, ["out", "backend.name", "task.name", "task.shapes", "seed"])
+@spec_flags(GoalSpec)
 def goal(
     run: RunFlags,
 ) -> None:

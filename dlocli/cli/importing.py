@@ -8,7 +8,7 @@ from dlocli.markers.spec import ImportSpec
 
 
 @handle_errors
-@spec_flags(ImportSpec, ["source", "rate_hz", "out"], required=("source",))
+@spec_flags(ImportSpec)
 def import_recordings(
     run: RunFlags,
 ) -> None:

@@ -5,20 +5,13 @@ from __future__ import annotations
 from typing import Any
 
 from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
-from dlocli.cli.flags import RunFlags, model_flags, spec_flags
+from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.runs.online import OnlineSpec as S
 
 
 @handle_errors
-@spec_flags(
-    S,
-    ["iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
-     "initial_episodes", "mpc.horizon",
-     "fit.lr", *model_flags(), "task.goal", "task.name",
-     "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
-     "threads", "executor", "ray_address", "fit.mirror", "offline", "seed", "out"],
-)  # fmt: skip
+@spec_flags(S)
 def online(
     run: RunFlags,
     resume: ResumeFlag = None,

@@ -10,19 +10,13 @@ from dlocli.cli.common import (
     emit_summary,
     handle_errors,
 )
-from dlocli.cli.flags import RunFlags, model_flags, spec_flags
+from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.models.spec import TrainSpec as S
 
 
 @handle_errors
-@spec_flags(
-    S,
-    ["data", *model_flags(), "epochs", "lr", "batch_size", "input_noise", "val_fraction",
-     "mirror", "device", "seed", "init_from", "out", "update_steps", "rollout_steps",
-     "rollout_start", "eval_every"],
-    required=("data",),
-)  # fmt: skip
+@spec_flags(S)
 def train(
     run: RunFlags,
     resume: ResumeFlag = None,

@@ -42,79 +42,18 @@ one batch; no host-device syncs inside the loop unless early stopping is on.
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from pydantic import Field
 
-from dlocli.controllers.planning import ModelPlanner, PlannerSpec
+from dlocli.controllers.planning import ModelPlanner
+from dlocli.controllers.specs import MPCSpec
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 FD_STEP = 0.05  # finite-difference step of the Gauss-Newton Jacobian, in action units
 GN_DAMPING = 1e-2  # Levenberg damping, relative to the mean diagonal of J^T J
-
-
-class MPCSpec(PlannerSpec):
-    """Gradient MPC options (paper-like: optimizer adam, iterations 50, warm_start false)."""
-
-    iterations: int = Field(1, ge=1, le=1000, description="Gradient steps per re-plan.")
-    step_size: float = Field(
-        0.2,
-        gt=0,
-        description="Optimiser step size: Adam's learning rate in action units "
-        "(SGD: per unit gradient).",
-    )
-    optimizer: Literal["gauss-newton", "adam", "sgd"] = Field(
-        "gauss-newton",
-        description="Update rule on the actions: gauss-newton (the cost is a sum of squares: "
-        "Gauss-Newton steps with the Jacobian refreshed every `curvature_every` re-plans, "
-        "clipped to max_step), adam, or sgd (step_size x gradient).",
-    )
-    max_step: float = Field(
-        0.7,
-        gt=0,
-        le=2,
-        description="gauss-newton: largest change of one action coordinate per iteration "
-        "(a trust region; the solution is clipped to it).",
-    )
-    exact_gradient: bool = Field(
-        False,
-        description="gauss-newton: back-propagate the exact gradient every iteration (about "
-        "2x the time) instead of J^T r with the residuals r of a forward rollout and the "
-        "Jacobian J of the latest refresh.",
-    )
-    curvature_every: int = Field(
-        25,
-        ge=1,
-        description="gauss-newton: re-plans between refreshes of the Gauss-Newton matrix "
-        "(one batched forward rollout of H*A+1 plans by finite differences).",
-    )
-    refresh: Literal["inline", "background"] = Field(
-        "inline",
-        description="gauss-newton: where the Jacobian refresh runs. inline: in the control "
-        "step that is due (one batched rollout of H*A+1 plans, ~70 ms for the paper's model "
-        "on one CPU thread, every `curvature_every`-th step). background: in a second "
-        "thread from the due step's state and plan, installed curvature_every-1 re-plans "
-        "later (it waits there if unfinished), so the steps keep their median latency where "
-        "a second core is free. Deterministic either way; background's Jacobian is that "
-        "many re-plans older.",
-    )
-    restarts: int = Field(
-        1,
-        ge=1,
-        le=256,
-        description="Plans optimised together in one batch: the warm start plus restarts-1 "
-        "uniform random ones; the one with the lowest predicted cost is executed.",
-    )
-    tolerance: float = Field(
-        0.0,
-        ge=0,
-        lt=1,
-        description="Stop early once an iteration lowers the predicted cost by less than this "
-        "fraction (0 = always run every iteration).",
-    )
 
 
 # ----------------------------------------------------------------------------- update rules

@@ -19,32 +19,9 @@ from __future__ import annotations
 from typing import ClassVar
 
 import torch
-from pydantic import Field
 
-from dlocli.controllers.planning import ModelPlanner, PlannerSpec
-
-
-class MPPISpec(PlannerSpec):
-    """MPPI options."""
-
-    samples: int = Field(
-        32,
-        ge=2,
-        le=4096,
-        description="Sampled action sequences per iteration (K), one batch of model rollouts "
-        "(at most 4096: each holds every segment's hidden features).",
-    )
-    iterations: int = Field(
-        1, ge=1, le=100, description="Sample-and-average iterations per re-plan."
-    )
-    noise: float = Field(
-        0.3, gt=0, description="Standard deviation of the action perturbations (action units)."
-    )
-    temperature: float = Field(
-        0.1,
-        gt=0,
-        description="Softmax temperature, as a fraction of the sampled costs' spread (max - min).",
-    )
+from dlocli.controllers.planning import ModelPlanner
+from dlocli.controllers.specs import MPPISpec
 
 
 class MPPI(ModelPlanner):

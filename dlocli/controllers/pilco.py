@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from pydantic import Field
 
 from dlocli.controllers.base import LearningAgent
 from dlocli.controllers.pilco_math import (
@@ -48,57 +47,8 @@ from dlocli.controllers.pilco_math import (
     expected_return_cost,
 )
 from dlocli.controllers.sb3_agents import resolve_agent_spec
+from dlocli.controllers.specs import PilcoSpec
 from dlocli.io import read_json, write_bytes_atomic, write_json_atomic
-from dlocli.limits import MAX_COUNT
-from dlocli.specs import Spec
-
-
-class PilcoSpec(Spec):
-    """PILCO hyperparameters (reduced state, GP data, policy, cost, optimisers)."""
-
-    n_keypoints: int = Field(
-        3, ge=1, le=200, description="Segments whose positions form the GP state."
-    )
-    action_repeat: int = Field(
-        10, ge=1, le=MAX_COUNT, description="Env steps each PILCO action is held for."
-    )
-    horizon: int | None = Field(
-        None, ge=1, le=MAX_COUNT, description="Planning horizon in PILCO steps; None = one episode."
-    )
-    initial_random_episodes: int = Field(
-        1,
-        ge=1,
-        le=MAX_COUNT,
-        description="Episodes of random actions before the first policy update.",
-    )
-    max_gp_points: int = Field(
-        100,
-        ge=2,
-        le=10_000,
-        description="GP training points (at most 10000: the GP holds their square), "
-        "subsampled at random from all data.",
-    )
-    gp_iterations: int = Field(
-        50, ge=1, le=MAX_COUNT, description="L-BFGS iterations of the GP evidence."
-    )
-    n_basis: int = Field(20, ge=1, le=10_000, description="RBF policy basis functions.")
-    policy_scale_floor: float = Field(
-        0.1,
-        gt=0,
-        description="Least input scale (m) of the RBF policy, per dimension: its initial "
-        "lengthscale. The scale is the spread of the states seen before the first update; "
-        "where episode starts lie many such spreads away, the basis functions vanish there, "
-        "the policy outputs zero and its gradient too. The default is the cost width (0.01 "
-        "before 2026-12-02: pilco then did nothing on the bimanual task, and ended 1.4-1.8x "
-        "further from the single task's goals).",
-    )
-    policy_iterations: int = Field(
-        30, ge=1, le=MAX_COUNT, description="Adam steps per policy update."
-    )
-    policy_lr: float = Field(0.05, gt=0, description="Adam learning rate of the policy.")
-    cost_width: float = Field(
-        0.1, gt=0, description="Width (m) of the saturating cost on the keypoint distance."
-    )
 
 
 def keypoint_indices(n_segments: int, n_keypoints: int) -> np.ndarray:

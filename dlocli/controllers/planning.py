@@ -18,36 +18,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from pydantic import Field
 
 from dlocli.controllers.base import Controller
-from dlocli.specs import Spec
-
-
-class PlannerSpec(Spec):
-    """Options every model-based planner shares."""
-
-    horizon: int = Field(
-        5, ge=1, le=100, description="Planning horizon H in control steps (paper: 5)."
-    )
-    replan_every: int = Field(
-        1,
-        ge=1,
-        le=100,
-        description="Re-optimise every k control steps; in between, execute the plan's next "
-        "actions.",
-    )
-    action_cost: float = Field(
-        1e-4,
-        ge=0,
-        description="Weight lambda of a control-effort term lambda * sum_k ||a_k||^2 added to "
-        "the shape cost (m^2 per unit action^2); 0 = the paper's objective exactly.",
-    )
-    warm_start: bool = Field(
-        True,
-        description="Start each re-plan from the previous plan shifted by the executed steps "
-        "(else from zeros).",
-    )
+from dlocli.controllers.specs import PlannerSpec
 
 
 def shift_plan(plan: torch.Tensor, steps: int) -> torch.Tensor:

@@ -48,7 +48,7 @@ from dlocli.controllers.base import LearningAgent
 from dlocli.errors import BadInput
 from dlocli.io import read_json, write_bytes_atomic, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_TRANSITIONS, refuse_unless_fits
-from dlocli.specs import Device, Spec, format_validation_error
+from dlocli.specs import Device, Spec, format_validation_error, new_default
 
 SpecT = TypeVar("SpecT", bound=Spec)
 
@@ -140,17 +140,10 @@ class SACSpec(SB3Spec):
     learning_rate: float = Field(
         7.3e-4, gt=0, description="Adam learning rate of actor, critics and entropy coefficient."
     )
-    buffer_size: int = Field(
-        300_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
-    )
-    tau: float = Field(0.02, gt=0, le=1, description="Polyak coefficient of the target networks.")
-    train_freq: TrainFreq = Field(8, description=TRAIN_FREQ_HELP)
-    gradient_steps: int = Field(
-        8,
-        ge=-1,
-        le=MAX_COUNT,
-        description="Gradient steps per update (-1: one per env step since the last).",
-    )
+    buffer_size: int = new_default(SB3Spec, "buffer_size", 300_000)
+    tau: float = new_default(SB3Spec, "tau", 0.02)
+    train_freq: TrainFreq = new_default(SB3Spec, "train_freq", 8)
+    gradient_steps: int = new_default(SB3Spec, "gradient_steps", 8)
     ent_coef: str | float = Field(
         "auto", description="Entropy coefficient, or 'auto' to learn it (target -|A|)."
     )
@@ -179,24 +172,9 @@ class TD3Spec(SB3Spec):
     """Twin Delayed DDPG at stable-baselines3's defaults, which the sweep on this task picked
     over the zoo's Bullet values (see the module docstring)."""
 
-    learning_rate: float = Field(1e-3, gt=0, description="Adam learning rate of actor and critics.")
-    buffer_size: int = Field(
-        1_000_000, gt=0, description="Replay buffer capacity (transitions; oldest dropped)."
-    )
-    learning_starts: int = Field(
-        100,
-        ge=0,
-        le=MAX_TRANSITIONS,
-        description="Uniform random transitions before the first gradient step.",
-    )
-    gamma: float = Field(0.99, gt=0, le=1, description="Discount factor.")
-    train_freq: TrainFreq = Field(1, description=TRAIN_FREQ_HELP)
-    gradient_steps: int = Field(
-        1,
-        ge=-1,
-        le=MAX_COUNT,
-        description="Gradient steps per update (-1: one per env step since the last).",
-    )
+    learning_rate: float = new_default(SB3Spec, "learning_rate", 1e-3)
+    learning_starts: int = new_default(SB3Spec, "learning_starts", 100)
+    gamma: float = new_default(SB3Spec, "gamma", 0.99)
     action_noise: float = Field(
         0.0,
         ge=0,

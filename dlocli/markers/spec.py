@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import ClassVar
 
 from pydantic import Field
 
@@ -11,6 +12,9 @@ from dlocli.specs import Spec
 
 class ImportSpec(Spec):
     """`dlo import`: recorded marker trajectories -> a marker dataset run directory."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = ("source", "rate_hz", "out")
+    cli_required: ClassVar[tuple[str, ...]] = ("source",)
 
     source: Path | None = Field(
         None,

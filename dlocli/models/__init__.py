@@ -7,8 +7,9 @@ Names are imported lazily, so ``dlocli.models.spec`` stays usable without import
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
+
+from dlocli.registry import import_target
 
 _EXPORTS = {
     "ModelSpec": "dlocli.models.spec",
@@ -25,4 +26,4 @@ __all__ = sorted(_EXPORTS)
 def __getattr__(name: str) -> Any:
     if name not in _EXPORTS:
         raise AttributeError(f"module 'dlocli.models' has no attribute '{name}'")
-    return getattr(importlib.import_module(_EXPORTS[name]), name)
+    return import_target(f"{_EXPORTS[name]}:{name}")

@@ -79,6 +79,9 @@ class DynamicsModel(torch.nn.Module, ABC):
 
     #: the options of this model: ModelSpec's fields and its own
     spec_cls: ClassVar[type[ModelSpec]] = ModelSpec
+    #: its form for recorded cables' markers (a MarkerModel class or "module:attr" of one,
+    #: imported on use); None: it has none
+    marker_form: ClassVar[Any] = None
 
     def __init__(self, spec: ModelSpec, n_segments: int) -> None:
         super().__init__()

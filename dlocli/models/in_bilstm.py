@@ -27,40 +27,18 @@ from __future__ import annotations
 from typing import ClassVar
 
 import torch
-from pydantic import Field
 from torch import Tensor
 
 from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, mlp, node_actions
 from dlocli.models.rnn import bilstm
-from dlocli.models.spec import ModelSpec
-
-
-class INBiLSTMSpec(ModelSpec):
-    """The sizes of the paper's model (its defaults); ``hidden`` is the width of f_e, f_v
-    and the LSTM."""
-
-    absolute_position: bool = Field(
-        True,
-        description="Give f_e and f_v each segment's absolute position (the paper's encoding). "
-        "Off, the segments' own features are orientation and velocity, and positions enter "
-        "only as neighbour differences: the model is then exactly translation-invariant, as a "
-        "rod without contacts is.",
-    )
-    edge_layers: int = Field(
-        4, gt=0, le=64, description="Layers of the relation-centric network f_e."
-    )
-    node_layers: int = Field(
-        4, gt=0, le=64, description="Layers of the object-centric network f_v."
-    )
-    lstm_layers: int = Field(
-        2, gt=0, le=64, description="Layers of the bidirectional LSTM along the rod."
-    )
+from dlocli.models.spec import INBiLSTMSpec, ModelSpec
 
 
 class INBiLSTM(DynamicsModel):
     """Interaction Network + bi-LSTM along the rod (the paper's model)."""
 
     spec_cls: ClassVar[type[ModelSpec]] = INBiLSTMSpec
+    marker_form: ClassVar[str] = "dlocli.models.markers:MarkerINBiLSTM"
     spec: INBiLSTMSpec
 
     def __init__(self, spec: INBiLSTMSpec, n_segments: int) -> None:

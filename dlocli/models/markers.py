@@ -12,8 +12,8 @@ to the held markers' centroid, velocity, the held marker's next displacement (ze
 ones) and a held flag, each divided by a scale fitted on the training data (buffers, so
 they travel with the checkpoint).
 
-Every registered model has a marker form: the built-in ones in :data:`MARKER_FORMS`, a
-plugin's in its class attribute ``marker_form``. Build one with :func:`build_marker_model`.
+A registered model names its marker form in its class attribute ``marker_form`` (a class,
+or ``"module:attr"`` of one). Build one with :func:`build_marker_model`.
 """
 
 from __future__ import annotations
@@ -203,19 +203,22 @@ class MarkerMLP(MarkerModel):
 def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:
     """A fresh marker-form model of the registered kind ``spec.name``."""
     from dlocli.models.base import valid_model_spec
-    from dlocli.models.in_bilstm import INBiLSTM
-    from dlocli.models.mlp import MLPDynamics
     from dlocli.registry import models
 
     spec = valid_model_spec(spec)
-    rod_model = models.get(spec.name)
-    form = getattr(rod_model, "marker_form", None) or {
-        INBiLSTM: MarkerINBiLSTM,
-        MLPDynamics: MarkerMLP,
-    }.get(rod_model)
+    form = _marker_form(models.get(spec.name))
     if form is None:
-        raise BadInput(f"model '{spec.name}' has no marker form; use in-bilstm or mlp")
+        having = [name for name in models.names() if _marker_form(models.get(name)) is not None]
+        raise BadInput(f"model '{spec.name}' has no marker form; use one of: {', '.join(having)}")
     return form(spec, n_markers, held)
+
+
+def _marker_form(rod_model: Any) -> type[MarkerModel] | None:
+    """The marker-form class a registered model names (imported if named as a string)."""
+    from dlocli.registry import import_target
+
+    form = getattr(rod_model, "marker_form", None)
+    return import_target(form) if isinstance(form, str) else form
 
 
 def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:

@@ -11,27 +11,17 @@ from __future__ import annotations
 from typing import ClassVar
 
 import torch
-from pydantic import Field
 from torch import Tensor
 
 from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, mlp
-from dlocli.models.spec import ModelSpec
-
-
-class MLPSpec(ModelSpec):
-    """The baseline's sizes: ``layers`` hidden layers, ``hidden`` wide."""
-
-    #: its options' names when every model shared one spec
-    moved: ClassVar[dict[str, str]] = {"mlp_hidden": "hidden", "mlp_layers": "layers"}
-
-    hidden: int = Field(512, gt=0, le=65536, description=ModelSpec.field_of("hidden").description)
-    layers: int = Field(4, gt=0, le=64, description="Hidden layers of the MLP.")
+from dlocli.models.spec import MLPSpec, ModelSpec
 
 
 class MLPDynamics(DynamicsModel):
     """Flattened state + action MLP baseline (``layers`` hidden layers, ``hidden`` wide)."""
 
     spec_cls: ClassVar[type[ModelSpec]] = MLPSpec
+    marker_form: ClassVar[str] = "dlocli.models.markers:MarkerMLP"
     spec: MLPSpec
 
     def __init__(self, spec: MLPSpec, n_segments: int) -> None:

@@ -4,13 +4,13 @@ without importing torch)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BeforeValidator, Field, SerializeAsAny, model_validator
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import model_data, without_retired_train_fields
-from dlocli.specs import Device, Spec
+from dlocli.specs import MODEL_OPTIONS, Device, Spec
 
 
 class ModelSpec(Spec):
@@ -44,6 +44,39 @@ class ModelSpec(Spec):
         raise KeyError(name)
 
 
+# the built-in models' own options (a plugin model may define its spec in its own module)
+class INBiLSTMSpec(ModelSpec):
+    """The sizes of the paper's model (its defaults); ``hidden`` is the width of f_e, f_v
+    and the LSTM."""
+
+    absolute_position: bool = Field(
+        True,
+        description="Give f_e and f_v each segment's absolute position (the paper's encoding). "
+        "Off, the segments' own features are orientation and velocity, and positions enter "
+        "only as neighbour differences: the model is then exactly translation-invariant, as a "
+        "rod without contacts is.",
+    )
+    edge_layers: int = Field(
+        4, gt=0, le=64, description="Layers of the relation-centric network f_e."
+    )
+    node_layers: int = Field(
+        4, gt=0, le=64, description="Layers of the object-centric network f_v."
+    )
+    lstm_layers: int = Field(
+        2, gt=0, le=64, description="Layers of the bidirectional LSTM along the rod."
+    )
+
+
+class MLPSpec(ModelSpec):
+    """The baseline's sizes: ``layers`` hidden layers, ``hidden`` wide."""
+
+    #: its options' names when every model shared one spec
+    moved: ClassVar[dict[str, str]] = {"mlp_hidden": "hidden", "mlp_layers": "layers"}
+
+    hidden: int = Field(512, gt=0, le=65536, description=ModelSpec.field_of("hidden").description)
+    layers: int = Field(4, gt=0, le=64, description="Hidden layers of the MLP.")
+
+
 def model_spec_classes() -> dict[str, type[ModelSpec]]:
     """The spec class of every registered model, by name."""
     from dlocli.registry import models
@@ -55,7 +88,7 @@ def model_spec_class(name: str) -> type[ModelSpec]:
     """The spec class of the registered model ``name`` (UnknownName if there is none)."""
     from dlocli.registry import models
 
-    return getattr(models.get(name), "spec_cls", ModelSpec)
+    return models.spec_cls(name) or ModelSpec
 
 
 def model_spec(data: Any = None) -> ModelSpec:
@@ -199,6 +232,13 @@ class UpdateSpec(FitSpec):
 class TrainSpec(FitSpec):
     """`dlo train`: fit a dynamics model to a dataset; write a run directory."""
 
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "data", MODEL_OPTIONS, "epochs", "lr", "batch_size", "input_noise", "val_fraction",
+        "mirror", "device", "seed", "init_from", "out", "update_steps", "rollout_steps",
+        "rollout_start", "eval_every",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("data",)
+
     data: Path | None = Field(None, description="Dataset file or collect run directory.")
     model: ModelField = model_field("Model and sizes.")
     init_from: Path | None = Field(
@@ -217,6 +257,11 @@ class TrainSpec(FitSpec):
 
 class EvalSpec(Spec):
     """`dlo eval`: a trained model's one-step and open-loop errors on a dataset."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "checkpoint", "data", "device", "max_starts", "plot", "out",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("checkpoint", "data")
 
     checkpoint: Path | None = Field(
         None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."

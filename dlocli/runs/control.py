@@ -54,6 +54,12 @@ class ControlSpec(EnvSpec):
     """`dlo control`: closed-loop control to a goal shape. The goal is ``task.goal_file``."""
 
     moved: ClassVar[dict[str, str]] = {"model": "checkpoint", "steps": "task.episode_steps"}
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name",
+        "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
+        "video_every",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
     checkpoint: Path | None = Field(
         None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."

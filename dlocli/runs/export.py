@@ -180,7 +180,7 @@ def check_dataset_id(dataset_id: str) -> None:
         parse_dataset_id(dataset_id)
     except (ValueError, TypeError) as exc:  # TypeError: Minari 0.5 on an id without -vN
         raise BadInput(
-            f"--name {dataset_id!r} is not a Minari dataset id; pass one like "
+            f"--dataset-id {dataset_id!r} is not a Minari dataset id; pass one like "
             "dlocli/mujoco-single-random-v0 (namespace/name-vN)"
         ) from exc
 
@@ -192,7 +192,7 @@ def minari_root(root: Path | None) -> Path:
 
     root = Path(root) if root is not None else Path(get_dataset_path())
     if root.exists() and not root.is_dir():
-        raise BadInput(f"--root {root} is a file; pass a directory for Minari datasets")
+        raise BadInput(f"--out {root} is a file; pass a directory for Minari datasets")
     root.mkdir(parents=True, exist_ok=True)
     return root
 
@@ -216,12 +216,12 @@ def _check_target(target: Path, dataset_id: str, root: Path, overwrite: bool) ->
         return
     if not (target / "data").is_dir():
         raise BadInput(
-            f"{target} exists and is not a Minari dataset (a namespace?); pass another --name"
+            f"{target} exists and is not a Minari dataset (a namespace?); pass another --dataset-id"
         )
     if not overwrite:
         raise BadInput(
             f"Minari dataset {dataset_id} already exists in {root}; pass --overwrite or "
-            "another --name"
+            "another --dataset-id"
         )
 
 

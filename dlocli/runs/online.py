@@ -45,7 +45,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field
 
-from dlocli.controllers.mpc import MPCSpec
+from dlocli.controllers.specs import MPCSpec
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.errors import DloError
@@ -62,7 +62,7 @@ from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
 from dlocli.runs.references import REFERENCES, ReferenceTable, reference_episode_scores
-from dlocli.specs import EnvSpec
+from dlocli.specs import MODEL_OPTIONS, EnvSpec
 from dlocli.tensorboard import TENSORBOARD_DIR, Scalars
 from dlocli.threads import torch_threads, warn_if_oversubscribed
 
@@ -74,6 +74,12 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     are the trials and reference episodes; the model update stays in this process."""
 
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
+        "initial_episodes", "mpc.horizon", "fit.lr", MODEL_OPTIONS, "task.goal", "task.name",
+        "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
+        "threads", "executor", "ray_address", "fit.mirror", "offline", "seed", "out",
+    )  # fmt: skip
 
     iters: int = Field(
         20, gt=0, le=MAX_COUNT, description="Iterations K of model update + MPC trials."

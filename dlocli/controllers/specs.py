@@ -1,0 +1,170 @@
+"""The options of the built-in controllers (torch-free: `dlo control --help` lists them
+without importing torch). Each controller class names its spec as ``spec_cls``; the
+registry names it too, so --help need not import the controller."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from dlocli.limits import MAX_COUNT
+from dlocli.specs import Spec
+
+
+class PlannerSpec(Spec):
+    """Options every model-based planner shares."""
+
+    horizon: int = Field(
+        5, ge=1, le=100, description="Planning horizon H in control steps (paper: 5)."
+    )
+    replan_every: int = Field(
+        1,
+        ge=1,
+        le=100,
+        description="Re-optimise every k control steps; in between, execute the plan's next "
+        "actions.",
+    )
+    action_cost: float = Field(
+        1e-4,
+        ge=0,
+        description="Weight lambda of a control-effort term lambda * sum_k ||a_k||^2 added to "
+        "the shape cost (m^2 per unit action^2); 0 = the paper's objective exactly.",
+    )
+    warm_start: bool = Field(
+        True,
+        description="Start each re-plan from the previous plan shifted by the executed steps "
+        "(else from zeros).",
+    )
+
+
+class MPCSpec(PlannerSpec):
+    """Gradient MPC options (paper-like: optimizer adam, iterations 50, warm_start false)."""
+
+    iterations: int = Field(1, ge=1, le=1000, description="Gradient steps per re-plan.")
+    step_size: float = Field(
+        0.2,
+        gt=0,
+        description="Optimiser step size: Adam's learning rate in action units "
+        "(SGD: per unit gradient).",
+    )
+    optimizer: Literal["gauss-newton", "adam", "sgd"] = Field(
+        "gauss-newton",
+        description="Update rule on the actions: gauss-newton (the cost is a sum of squares: "
+        "Gauss-Newton steps with the Jacobian refreshed every `curvature_every` re-plans, "
+        "clipped to max_step), adam, or sgd (step_size x gradient).",
+    )
+    max_step: float = Field(
+        0.7,
+        gt=0,
+        le=2,
+        description="gauss-newton: largest change of one action coordinate per iteration "
+        "(a trust region; the solution is clipped to it).",
+    )
+    exact_gradient: bool = Field(
+        False,
+        description="gauss-newton: back-propagate the exact gradient every iteration (about "
+        "2x the time) instead of J^T r with the residuals r of a forward rollout and the "
+        "Jacobian J of the latest refresh.",
+    )
+    curvature_every: int = Field(
+        25,
+        ge=1,
+        description="gauss-newton: re-plans between refreshes of the Gauss-Newton matrix "
+        "(one batched forward rollout of H*A+1 plans by finite differences).",
+    )
+    refresh: Literal["inline", "background"] = Field(
+        "inline",
+        description="gauss-newton: where the Jacobian refresh runs. inline: in the control "
+        "step that is due (one batched rollout of H*A+1 plans, ~70 ms for the paper's model "
+        "on one CPU thread, every `curvature_every`-th step). background: in a second "
+        "thread from the due step's state and plan, installed curvature_every-1 re-plans "
+        "later (it waits there if unfinished), so the steps keep their median latency where "
+        "a second core is free. Deterministic either way; background's Jacobian is that "
+        "many re-plans older.",
+    )
+    restarts: int = Field(
+        1,
+        ge=1,
+        le=256,
+        description="Plans optimised together in one batch: the warm start plus restarts-1 "
+        "uniform random ones; the one with the lowest predicted cost is executed.",
+    )
+    tolerance: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="Stop early once an iteration lowers the predicted cost by less than this "
+        "fraction (0 = always run every iteration).",
+    )
+
+
+class MPPISpec(PlannerSpec):
+    """MPPI options."""
+
+    samples: int = Field(
+        32,
+        ge=2,
+        le=4096,
+        description="Sampled action sequences per iteration (K), one batch of model rollouts "
+        "(at most 4096: each holds every segment's hidden features).",
+    )
+    iterations: int = Field(
+        1, ge=1, le=100, description="Sample-and-average iterations per re-plan."
+    )
+    noise: float = Field(
+        0.3, gt=0, description="Standard deviation of the action perturbations (action units)."
+    )
+    temperature: float = Field(
+        0.1,
+        gt=0,
+        description="Softmax temperature, as a fraction of the sampled costs' spread (max - min).",
+    )
+
+
+class PilcoSpec(Spec):
+    """PILCO hyperparameters (reduced state, GP data, policy, cost, optimisers)."""
+
+    n_keypoints: int = Field(
+        3, ge=1, le=200, description="Segments whose positions form the GP state."
+    )
+    action_repeat: int = Field(
+        10, ge=1, le=MAX_COUNT, description="Env steps each PILCO action is held for."
+    )
+    horizon: int | None = Field(
+        None, ge=1, le=MAX_COUNT, description="Planning horizon in PILCO steps; None = one episode."
+    )
+    initial_random_episodes: int = Field(
+        1,
+        ge=1,
+        le=MAX_COUNT,
+        description="Episodes of random actions before the first policy update.",
+    )
+    max_gp_points: int = Field(
+        100,
+        ge=2,
+        le=10_000,
+        description="GP training points (at most 10000: the GP holds their square), "
+        "subsampled at random from all data.",
+    )
+    gp_iterations: int = Field(
+        50, ge=1, le=MAX_COUNT, description="L-BFGS iterations of the GP evidence."
+    )
+    n_basis: int = Field(20, ge=1, le=10_000, description="RBF policy basis functions.")
+    policy_scale_floor: float = Field(
+        0.1,
+        gt=0,
+        description="Least input scale (m) of the RBF policy, per dimension: its initial "
+        "lengthscale. The scale is the spread of the states seen before the first update; "
+        "where episode starts lie many such spreads away, the basis functions vanish there, "
+        "the policy outputs zero and its gradient too. The default is the cost width (0.01 "
+        "before 2026-12-02: pilco then did nothing on the bimanual task, and ended 1.4-1.8x "
+        "further from the single task's goals).",
+    )
+    policy_iterations: int = Field(
+        30, ge=1, le=MAX_COUNT, description="Adam steps per policy update."
+    )
+    policy_lr: float = Field(0.05, gt=0, description="Adam learning rate of the policy.")
+    cost_width: float = Field(
+        0.1, gt=0, description="Width (m) of the saturating cost on the keypoint distance."
+    )
