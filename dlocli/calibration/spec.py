@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, field_validator
 
@@ -36,6 +36,11 @@ class CableBackendSpec(BackendSpec):
 
 class CalibrateSpec(Spec):
     """`dlo calibrate`: fit a simulated rod's material to a recorded cable's motion."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "source", "cable_length", "cable_mass", "rod_length", "backend.name", "parameters",
+        "roll", "train_trajectories", "generations", "population", "workers", "seed", "out",
+    )  # fmt: skip
 
     source: Path | None = Field(
         None,

@@ -10,24 +10,7 @@ from dlocli.cli.flags import RunFlags, spec_flags
 
 
 @handle_errors
-@spec_flags(
-    CalibrateSpec,
-    [
-        "source",
-        "cable_length",
-        "cable_mass",
-        "rod_length",
-        "backend.name",
-        "parameters",
-        "roll",
-        "train_trajectories",
-        "generations",
-        "population",
-        "workers",
-        "seed",
-        "out",
-    ],
-)
+@spec_flags(CalibrateSpec)
 def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     """Fit the rod's material (--parameters) to the --source cable's train recordings by
     CMA-ES on the DEFORM replay score; write OUT/calibrated.yaml (a backend spec for any
