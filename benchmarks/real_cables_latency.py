@@ -51,7 +51,7 @@ def main() -> None:
                 spec.model_copy(update={"length_projection": sweeps}), args.markers, held
             ).eval()
     times: dict[str, list[float]] = {name: [] for name in models}
-    for name, model in models.items():
+    for model in models.values():
         per_step_ms(model, args.markers, 20)  # warm-up
     for _ in range(args.repeats):
         for name, model in models.items():

@@ -23,6 +23,7 @@ import yaml
 from dlocli.calibration.fit import load_cable
 from dlocli.calibration.replay import ReplaySettings, replay
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.io import written_by_dlo
 from dlocli.markers import deform, protocol
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, RodSpec
@@ -202,6 +203,7 @@ def test_a_killed_calibration_resumes_where_it_stopped(cable: Path, tmp_path: Pa
     assert file_digests(killed) == kept
     recording.write_bytes(original)
     assert _calibrate("--resume", str(killed)) == 0
+    assert {"history.json", "spec.json"} <= written_by_dlo(killed)  # --overwrite may clear it
     resumed = json.loads(history.read_text())["generations"]
     expected = json.loads((reference / "history.json").read_text())["generations"]
     assert resumed[: len(done)] == done  # finished generations kept, not re-run

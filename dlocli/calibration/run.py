@@ -77,7 +77,13 @@ def run_calibration(
     spec: CalibrateSpec, overwrite: bool, show: Callable[[Event], None], resume: bool = False
 ) -> dict[str, Any]:
     """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary."""
-    from dlocli.io import prepare_run_dir, read_json, write_json_atomic, write_text_atomic
+    from dlocli.io import (
+        adopt_written,
+        prepare_run_dir,
+        read_json,
+        write_json_atomic,
+        write_text_atomic,
+    )
     from dlocli.rundir import owned
 
     cable = load_cable(spec)  # every input checked before OUT is touched
@@ -89,6 +95,8 @@ def run_calibration(
         state = read_json(history_file, dict) if resume and history_file.is_file() else {}
         digest = recordings_digest(cable)
         check_same_recordings(state, digest, spec)
+        if resume:  # a run killed outright could not record its files as dlo's
+            adopt_written(out, {HISTORY_FILE, "spec.json"})
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         history: list[Event] = state.get("generations", [])
         elapsed = float(state.get("seconds", 0.0))

@@ -8,8 +8,8 @@
 #   CABLES=DLO3 BACKENDS=pybullet GENERATIONS=3 examples/calibration/run.sh runs/calibration
 # (DLO4 was stopped after 2 generations and continued with
 #  `dlo calibrate --resume runs/calibration/DLO4-mujoco --generations 3`.)
-# Then sim-to-real on DLO3 and DLO4 (real runs from examples/real_cables/run.sh runs/real):
-#   for c in DLO3 DLO4; do python examples/calibration/sim_to_real.py \
+# Then sim-to-real on each cable (real runs from examples/real_cables/run.sh runs/real):
+#   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
 #     runs/calibration/$c-mujoco runs/real/$c/data runs/real/$c runs/sim_to_real/$c; done
 #   python examples/calibration/replay_choices.py $DEFORM/DLO3 0.998 0.0968 \
 #     examples/calibration/results/replay_choices_DLO3.json

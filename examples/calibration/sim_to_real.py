@@ -7,7 +7,8 @@ rod); REAL_DATA: the cable's `dlo import` run; REAL_RUNS: the folder of the real
 mlp runs on all 56 train recordings (mlp-s0-eval, ...: examples/real_cables/run.sh); OUT: a
 folder for the runs. It simulates 56 trajectories of the calibrated rod
 (`dlocli.calibration.simulate`), trains the mlp recipe on them alone, fine-tunes that model on
-1, 4, 16 and 56 real train recordings (nested seeded draws), trains the recipe on 1, 4 and 16
+1, 4, 16 and 56 real train recordings (nested seeded draws) and once more on 16 and
+56 for as many steps as the real-only recipe on 56, trains the recipe on 1, 4 and 16
 real recordings alone, scores everything on the real eval recordings (`dlo eval`), and
 writes OUT/sim_to_real.json and OUT/sim_to_real.png. Step counts (fewer than the recipe's
 1000 for fine-tuning and for the small real-only runs) are set below.
@@ -38,7 +39,8 @@ HERE = Path(__file__).parent
 RECIPE = HERE.parent / "real_cables" / "mlp.yaml"
 SIMULATED = 56
 COUNTS = (1, 4, 16, 56)
-PRETRAIN_STEPS, FINETUNE_STEPS, SMALL_REAL_STEPS = 1000, 200, 300
+LONG_COUNTS = (16, 56)
+PRETRAIN_STEPS, FINETUNE_STEPS, SMALL_REAL_STEPS, RECIPE_STEPS = 1000, 200, 300, 1000
 
 
 def dlo(*argv: str) -> dict:
@@ -98,14 +100,19 @@ def train_and_score(name: str, data: Path, real: Path, out: Path, steps: int,
 
 def main(calibration: Path, real: Path, real_runs: Path, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    info = {}
-    if not (out / "sim" / "dataset.h5").is_file():
+    if not (out / "sim" / "info.json").is_file():
         info = simulated_dataset(calibration, out)
+        (out / "sim" / "info.json").write_text(json.dumps(info) + "\n")
+    info = json.loads((out / "sim" / "info.json").read_text())
     if not (out / f"real-{COUNTS[-1]}" / "dataset.h5").is_file():
         real_subsets(real, out)
     sim_only = train_and_score("sim-only", out / "sim", real, out, PRETRAIN_STEPS)
     finetuned = {k: train_and_score(f"finetuned-{k}", out / f"real-{k}", real, out,
                                     FINETUNE_STEPS, out / "sim-only") for k in COUNTS}  # fmt: skip
+    # the 56 real-only row trains 1000 steps: fine-tune as long for like-for-like points
+    finetuned_long = {k: train_and_score(f"finetuned-{k}-long", out / f"real-{k}", real, out,
+                                         RECIPE_STEPS, out / "sim-only")
+                      for k in LONG_COUNTS}  # fmt: skip
     alone = {k: train_and_score(f"real-only-{k}", out / f"real-{k}", real, out,
                                 SMALL_REAL_STEPS) for k in COUNTS[:-1]}  # fmt: skip
     recipe_56 = [json.loads((real_runs / f"mlp-s{s}-eval" / "summary.json").read_text())
@@ -113,10 +120,12 @@ def main(calibration: Path, real: Path, real_runs: Path, out: Path) -> None:
     alone[COUNTS[-1]] = float(np.mean(recipe_56))
     freeze = json.loads((out / "sim-only-eval" / "summary.json").read_text())["freeze_score_cm"]
     result = {"calibration": calibration.name, **info, "sim_only_cm": sim_only,
-              "finetuned_cm": finetuned, "real_only_cm": alone, "real_only_56_seeds_cm": recipe_56,
+              "finetuned_cm": finetuned, "finetuned_long_cm": finetuned_long,
+              "real_only_cm": alone, "real_only_56_seeds_cm": recipe_56,
               "freeze_cm": freeze,
               "steps": {"pretrain": PRETRAIN_STEPS, "finetune": FINETUNE_STEPS,
-                        "real_only_small": SMALL_REAL_STEPS, "real_only_56": 1000}}  # fmt: skip
+                        "real_only_small": SMALL_REAL_STEPS, "real_only_56": RECIPE_STEPS,
+                        "finetune_long": RECIPE_STEPS}}  # fmt: skip
     (out / "sim_to_real.json").write_text(json.dumps(result, indent=1) + "\n")
     plot(result, out / "sim_to_real.png", calibration.name)
 
@@ -129,9 +138,16 @@ def plot(result: dict, path: Path, title: str) -> None:
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     ks = list(COUNTS)
-    ax.plot(ks, [result["real_only_cm"][k] for k in ks], "o-", label="real data only")
-    ax.plot(ks, [result["finetuned_cm"][k] for k in ks], "s-", label="simulation, then real")
+    steps = result["steps"]
+    ax.plot(ks, [result["real_only_cm"][k] for k in ks], "o-",
+            label=f"real data only ({steps['real_only_small']} steps; "
+                  f"{steps['real_only_56']} on 56, 3 seeds)")  # fmt: skip
+    ax.plot(ks, [result["finetuned_cm"][k] for k in ks], "s-",
+            label=f"simulation, then real ({steps['finetune']} steps)")  # fmt: skip
     ax.plot(ks, [result["sim_only_cm"]] * len(ks), "--", label="simulation only (0 real)")
+    long = result["finetuned_long_cm"]
+    ax.plot(list(long), list(long.values()), "*", markersize=11,
+            label=f"simulation, then real ({steps['finetune_long']} steps)")  # fmt: skip
     ax.set_xscale("log")
     ax.set_xticks(ks, [str(k) for k in ks])
     ax.set_xlabel("real train trajectories")
