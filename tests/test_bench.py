@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from dlocli.cli import app
 from dlocli.errors import BadInput
+from dlocli.io import MANIFEST_FILE, written_by_dlo
 
 from tiny import TINY_BENCH, lock_held_elsewhere
 
@@ -108,11 +109,13 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
 
     # resume: a lost job is rerun (same result), a new agent added; kept jobs are not rerun
     (run / "jobs" / "random-s0.json").unlink()
+    (run / MANIFEST_FILE).unlink()  # as a run killed outright leaves it: its files unrecorded
     kept = {p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir()}
     res = bench(
         "--resume", str(run), "--agents", "zero,random,sac,pilco,mpc,mpc-offline", "--workers", "2"
     )
     assert "2 job(s) to run, 4 finished job(s) kept" in res.output
+    assert {"spec.json", "jobs/sac-s0.json", "summary.md"} <= written_by_dlo(run)  # adopted
     assert {
         p.name: p.stat().st_mtime_ns for p in (run / "jobs").iterdir() if p.name in kept
     } == kept

@@ -16,6 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 from dlocli.cli import app
+from dlocli.io import written_by_dlo
 from dlocli.runs.collect import PARTS_DIR, collect_random, part_path
 from dlocli.specs import CollectSpec
 
@@ -87,6 +88,7 @@ def test_sigkill_then_resume_is_bit_identical(tmp_path, spec_file, reference):
     assert not (out / PARTS_DIR).exists()
     assert_same_data(out, reference)
     assert json.loads((out / "summary.json").read_text()) == summary
+    assert {"spec.json", "dataset.h5", "summary.json"} <= written_by_dlo(out)  # adopted
 
 
 def test_interrupt_keeps_parts_and_resume_reassembles(tmp_path, reference, monkeypatch):

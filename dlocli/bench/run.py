@@ -56,10 +56,15 @@ from dlocli.bench.spec import (
     seeds_of,
 )
 from dlocli.errors import BadInput, DloError
-from dlocli.io import prepare_run_dir, read_json, write_json_atomic
+from dlocli.io import adopt_written, prepare_run_dir, read_json, write_json_atomic
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import InUse, owned
 from dlocli.threads import machine_cpus, warn_if_oversubscribed
+
+#: the top-level entries of a bench run (the layout above)
+LAYOUT_TOPS = frozenset(
+    {"spec.json", "jobs", "work", "results.csv", "summary.md", "summary.json", "plots"}
+)
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -309,6 +314,7 @@ def resume_bench(
     spec = load_bench_spec(run_dir, overrides)
     check_spec(spec)
     with open_executor(spec, spec.threads) as executor, owned(run_dir, shared=True):
+        adopt_written(Path(run_dir), LAYOUT_TOPS)  # a run killed outright could not record them
         write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
         return BenchRun(spec, progress).run(executor)
 

@@ -41,10 +41,10 @@ from dlocli.data import DATASET_FILE, Dataset, Episode, load_dataset
 from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
-from dlocli.io import prepare_run_dir, versions, write_json_atomic
+from dlocli.io import adopt_written, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
 from dlocli.processes import raise_if_stopped, start_worker
-from dlocli.rundir import check_fingerprints, owned, record_fingerprints
+from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
 from dlocli.specs import CollectSpec, EnvSpec
 
 PARTS_DIR = "episodes"
@@ -159,6 +159,8 @@ def _collect(
     out = Path(spec.out)
     parts = out / PARTS_DIR
     if resume:
+        # a run killed outright could not record its files as dlo's (--overwrite clears them)
+        adopt_written(out, {"spec.json", FINGERPRINTS_FILE, PARTS_DIR, DATASET_FILE, SUMMARY_FILE})
         finished = _finished_summary(out)
         if finished is not None:
             return finished
