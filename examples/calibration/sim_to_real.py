@@ -40,6 +40,7 @@ RECIPE = HERE.parent / "real_cables" / "mlp.yaml"
 SIMULATED = 56
 COUNTS = (1, 4, 16, 56)
 LONG_COUNTS = (16, 56)
+LONG_SEEDS = 3
 PRETRAIN_STEPS, FINETUNE_STEPS, SMALL_REAL_STEPS, RECIPE_STEPS = 1000, 200, 300, 1000
 
 
@@ -85,12 +86,12 @@ def real_subsets(real: Path, out: Path) -> None:
 
 
 def train_and_score(name: str, data: Path, real: Path, out: Path, steps: int,
-                    init: Path | None = None) -> float:  # fmt: skip
+                    init: Path | None = None, seed: int = 0) -> float:  # fmt: skip
     run = out / name
     if not (out / f"{name}-eval" / "summary.json").is_file():
         extra = ["--init-from", str(init)] if init else []
         dlo("train", "--spec", str(RECIPE), "--data", str(data), "--update-steps", str(steps),
-            "--seed", "0", "--out", str(run), "--overwrite", *extra)  # fmt: skip
+            "--seed", str(seed), "--out", str(run), "--overwrite", *extra)  # fmt: skip
         dlo("eval", "--checkpoint", str(run), "--data", str(real), "--out",
             str(out / f"{name}-eval"), "--overwrite")  # fmt: skip
     score = json.loads((out / f"{name}-eval" / "summary.json").read_text())["model_score_cm"]
@@ -110,9 +111,12 @@ def main(calibration: Path, real: Path, real_runs: Path, out: Path) -> None:
     finetuned = {k: train_and_score(f"finetuned-{k}", out / f"real-{k}", real, out,
                                     FINETUNE_STEPS, out / "sim-only") for k in COUNTS}  # fmt: skip
     # the 56 real-only row trains 1000 steps: fine-tune as long for like-for-like points
-    finetuned_long = {k: train_and_score(f"finetuned-{k}-long", out / f"real-{k}", real, out,
-                                         RECIPE_STEPS, out / "sim-only")
-                      for k in LONG_COUNTS}  # fmt: skip
+    # (3 training seeds on the same draw, as the real-only runs on 56)
+    long_seeds = {k: [train_and_score(f"finetuned-{k}-long" + (f"-s{s}" if s else ""),
+                                      out / f"real-{k}", real, out, RECIPE_STEPS,
+                                      out / "sim-only", s) for s in range(LONG_SEEDS)]
+                  for k in LONG_COUNTS}  # fmt: skip
+    finetuned_long = {k: float(np.mean(v)) for k, v in long_seeds.items()}
     alone = {k: train_and_score(f"real-only-{k}", out / f"real-{k}", real, out,
                                 SMALL_REAL_STEPS) for k in COUNTS[:-1]}  # fmt: skip
     recipe_56 = [json.loads((real_runs / f"mlp-s{s}-eval" / "summary.json").read_text())
@@ -121,6 +125,7 @@ def main(calibration: Path, real: Path, real_runs: Path, out: Path) -> None:
     freeze = json.loads((out / "sim-only-eval" / "summary.json").read_text())["freeze_score_cm"]
     result = {"calibration": calibration.name, **info, "sim_only_cm": sim_only,
               "finetuned_cm": finetuned, "finetuned_long_cm": finetuned_long,
+              "finetuned_long_seeds_cm": long_seeds,
               "real_only_cm": alone, "real_only_56_seeds_cm": recipe_56,
               "freeze_cm": freeze,
               "steps": {"pretrain": PRETRAIN_STEPS, "finetune": FINETUNE_STEPS,
@@ -145,9 +150,13 @@ def plot(result: dict, path: Path, title: str) -> None:
     ax.plot(ks, [result["finetuned_cm"][k] for k in ks], "s-",
             label=f"simulation, then real ({steps['finetune']} steps)")  # fmt: skip
     ax.plot(ks, [result["sim_only_cm"]] * len(ks), "--", label="simulation only (0 real)")
-    long = result["finetuned_long_cm"]
-    ax.plot(list(long), list(long.values()), "*", markersize=11,
-            label=f"simulation, then real ({steps['finetune_long']} steps)")  # fmt: skip
+    long, spread = result["finetuned_long_cm"], result["finetuned_long_seeds_cm"]
+    label = f"simulation, then real ({steps['finetune_long']} steps, 3 seeds)"
+    ax.errorbar(list(long), list(long.values()), fmt="*", markersize=11, label=label,
+                yerr=[[long[k] - min(spread[k]) for k in long],
+                      [max(spread[k]) - long[k] for k in long]])  # fmt: skip
+    seeds_56 = result["real_only_56_seeds_cm"]
+    ax.vlines(ks[-1], min(seeds_56), max(seeds_56), color="C0")  # the real-only seeds' range
     ax.set_xscale("log")
     ax.set_xticks(ks, [str(k) for k in ks])
     ax.set_xlabel("real train trajectories")

@@ -1,4 +1,5 @@
-"""The calibration results as one markdown table (from results/*/report.json).
+"""The calibration results (results/*/report.json) and the sim-to-real results
+(results/sim_to_real_*.json) as markdown tables.
 
 python examples/calibration/table.py > examples/calibration/results/summary.md
 """
@@ -27,6 +28,37 @@ def main() -> None:
             f"{pub.get('DER', float('nan')):.2f} | {pub.get('XPBD', float('nan')):.2f} | "
             f"{r['eval_freeze_cm']:.2f} | {p['young_bending']:.3g} | {p['bending_damping']:.3g} | "
             f"{p['air_damping']:.3g} | {r['fit_seconds'] / 60:.0f} min ({r['generations']} gen.) |"
+        )
+    print()
+    sim_to_real_table()
+
+
+def _seeds(values: list[float]) -> str:
+    """Mean (min–max) of a few seeds' scores."""
+    return f"{sum(values) / len(values):.2f} ({min(values):.2f}–{max(values):.2f})"
+
+
+def sim_to_real_table() -> None:
+    """Real eval score (cm) against the number of real train trajectories, per cable."""
+    print("| cable | model | 0 real | 1 | 4 | 16 | 56 |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    for path in sorted(RESULTS.glob("sim_to_real_*.json")):
+        r = json.loads(path.read_text())
+        cable, steps = path.stem.removeprefix("sim_to_real_"), r["steps"]
+        alone, tuned = r["real_only_cm"], r["finetuned_cm"]
+        seeds = r["finetuned_long_seeds_cm"]
+        print(
+            f"| {cable} | real only ({steps['real_only_small']} steps; "
+            f"{steps['real_only_56']} on 56) | – | {alone['1']:.2f} | {alone['4']:.2f} | "
+            f"{alone['16']:.2f} | {_seeds(r['real_only_56_seeds_cm'])} |"
+        )
+        print(
+            f"| | simulation, then real, {steps['finetune']} steps | {r['sim_only_cm']:.2f} | "
+            f"{tuned['1']:.2f} | {tuned['4']:.2f} | {tuned['16']:.2f} | {tuned['56']:.2f} |"
+        )
+        print(
+            f"| | simulation, then real, {steps['finetune_long']} steps | | | | "
+            f"{_seeds(seeds['16'])} | {_seeds(seeds['56'])} |"
         )
 
 
