@@ -178,21 +178,17 @@ COMMON: dict[str, Any] = {"spec_file": SpecFile, "overwrite": OverwriteFlag, "js
 COMMON_DEFAULTS = {"spec_file": None, "overwrite": False, "json_out": False}
 
 
-def spec_flags(
-    spec_cls: type[Spec],
-    fields: tuple[str, ...] | None = None,
-    required: tuple[str, ...] | None = None,
-) -> Callable[[Callable], Callable]:
-    """Decorate a command ``fn(run: RunFlags, **own_flags)``: add a flag per field of
-    ``fields`` (default: the spec's ``cli_flags``), and ``--spec``, ``--overwrite`` and
-    ``--json``. The fields in ``required`` (default: the spec's ``cli_required``) are inputs
-    the run refuses to go without (from the flag or the spec file): --help says so."""
+def spec_flags(spec_cls: type[Spec]) -> Callable[[Callable], Callable]:
+    """Decorate a command ``fn(run: RunFlags, **own_flags)``: add a flag per field of the
+    spec's ``cli_flags``, and ``--spec``, ``--overwrite`` and ``--json``. The fields in its
+    ``cli_required`` are inputs the run refuses to go without (from the flag or the spec
+    file): --help says so."""
     fields = [
         expanded
-        for dotted in (spec_cls.cli_flags if fields is None else fields)
+        for dotted in spec_cls.cli_flags
         for expanded in (model_flags() if dotted == MODEL_OPTIONS else [dotted])
     ]
-    required = spec_cls.cli_required if required is None else required
+    required = spec_cls.cli_required
 
     def decorate(fn: Callable) -> Callable:
         generated = dict(_option(spec_cls, dotted, dotted in required) for dotted in fields)

@@ -37,8 +37,8 @@ import json
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -136,15 +136,10 @@ def job_threads(spec: OnlineSpec) -> int:
     return spec.threads or TRIAL_THREADS
 
 
-@contextmanager
-def update_threads(spec: OnlineSpec) -> Iterator[None]:
+def update_threads(spec: OnlineSpec) -> AbstractContextManager[None]:
     """The model update's threads: --threads if given, else the ones this process chose
     (:func:`dlocli.threads.fit_this_process`: the CPUs it may use)."""
-    if spec.threads is None:
-        yield
-        return
-    with torch_threads(spec.threads):
-        yield
+    return nullcontext() if spec.threads is None else torch_threads(spec.threads)
 
 
 def warn_if_threads_oversubscribe(spec: OnlineSpec) -> None:
