@@ -31,6 +31,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from dlocli.errors import BadInput, DloError
+from dlocli.extras import require
 from dlocli.processes import pool_initializer
 from dlocli.specs import Spec
 from dlocli.threads import machine_cpus, set_worker_threads
@@ -337,13 +338,7 @@ def check_executor(executor: str, ray_address: str | None) -> None:
         if ray_address is not None:
             raise BadInput("--ray-address needs --executor ray")
         return
-    try:
-        import ray  # noqa: F401
-    except ImportError as exc:
-        raise BadInput(
-            "--executor ray: Ray is not installed; pip install 'dlocli[ray]' "
-            "or use --executor local"
-        ) from exc
+    require("ray", "--executor ray", "use --executor local")
     if ray_address is not None:
         check_ray_address(ray_address)
 

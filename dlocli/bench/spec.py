@@ -8,8 +8,7 @@ import json
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
-from pydantic import Field, model_validator
-from pydantic_core import to_json
+from pydantic import Field, TypeAdapter, model_validator
 
 from dlocli.controllers.specs import MPCSpec
 from dlocli.executors import ExecutorChoice
@@ -21,6 +20,9 @@ from dlocli.migrations import (
 )
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.specs import MODEL_OPTIONS, EnvSpec
+
+#: compact JSON, the bytes fingerprints have always hashed
+_JSON = TypeAdapter(Any)
 
 #: fields that may change between runs of one directory: they do not change any result
 #: (``budgets`` enters the fingerprint of each job through that agent's own budget)
@@ -121,7 +123,7 @@ def eval_points(spec: BenchSpec, agent: str | None = None) -> list[int]:
 def fingerprint(spec: BenchSpec, agent: str | None = None) -> str:
     """Hash of the fields that determine a job's result; with ``agent``, of that agent's job:
     its own budget and its own options, resolved (so a new default reruns its jobs only)."""
-    text = to_json(fingerprint_data(spec, with_options=agent is None)).decode()
+    text = _JSON.dump_json(fingerprint_data(spec, with_options=agent is None)).decode()
     if agent is not None:
         if agent in option_agents():
             options = fingerprinted_options(spec, agent)

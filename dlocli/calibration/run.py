@@ -26,18 +26,14 @@ from dlocli.calibration.fit import (
 from dlocli.calibration.report import write_report
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.errors import BadInput
+from dlocli.extras import require
 
 Event = dict[str, Any]
 
 
 def new_strategy(spec: CalibrateSpec, cable: Cable) -> Any:
     """A CMA-ES over [0, 1]^n started at the spec's material."""
-    try:
-        import cma
-    except ImportError:
-        raise BadInput(
-            "dlo calibrate needs pycma; install it with: pip install 'dlocli[calibrate]'"
-        ) from None
+    import cma
 
     x0 = params.encode(spec.parameters, cable.backend.rod, cable.backend.name)
     # pycma refuses a start exactly on a bound
@@ -86,6 +82,7 @@ def run_calibration(
     )
     from dlocli.rundir import owned
 
+    require("calibrate", "dlo calibrate (CMA-ES from pycma)")
     cable = load_cable(spec)  # every input checked before OUT is touched
     names = draw_train(cable, spec)
     strategy = new_strategy(spec, cable)

@@ -11,12 +11,14 @@ import importlib.util
 import typing
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import click
 import typer
 import typer.main
 from typer.core import TyperCommand, TyperGroup, TyperOption
+
+if TYPE_CHECKING:  # Typer carries its own Click; these names are for annotations only
+    from typer._click import Context, HelpFormatter
 
 # (command name, "module:function"); a command's module is imported only when that command
 # runs or shows its help, so `dlo --help` and `dlo --version` import no torch or simulator.
@@ -44,14 +46,14 @@ class _Command(TyperCommand):
 
     lazy_help: Mapping[str, Callable[[], str]] = {}
 
-    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+    def format_options(self, ctx: Context, formatter: HelpFormatter) -> None:
         for param in self.params:
             if param.name in self.lazy_help:
                 param.help = self.lazy_help[param.name]()
         super().format_options(ctx, formatter)
 
 
-def _plain_metavars(command: click.Command) -> None:
+def _plain_metavars(command: TyperCommand) -> None:
     """Click's metavars (PATH, INTEGER, ...) where an option sets none: Typer's would show
     Python types (``<list[str]>``)."""
     from enum import Enum
@@ -69,14 +71,14 @@ def _plain_metavars(command: click.Command) -> None:
             param.metavar = METAVARS.get(kind) or "VALUE"
 
 
-class _LazyCommands(Mapping[str, click.Command]):
+class _LazyCommands(Mapping[str, TyperCommand]):
     """The commands by name, each built from its module on first use."""
 
     def __init__(self, targets: dict[str, str]) -> None:
         self.targets = targets
-        self.built: dict[str, click.Command] = {}
+        self.built: dict[str, TyperCommand] = {}
 
-    def __getitem__(self, name: str) -> click.Command:
+    def __getitem__(self, name: str) -> TyperCommand:
         if name not in self.built:
             module_name, _, attr = self.targets[name].partition(":")
             function = getattr(importlib.import_module(module_name), attr)
@@ -108,6 +110,22 @@ def _first_docstring_line(target: str) -> str:
     return (ast.get_docstring(function) or "").strip().splitlines()[0]
 
 
+def _short_help(text: str, limit: int) -> str:
+    """The first sentence of ``text``, cut at a word boundary to ``limit`` characters with
+    "..." (the listing's short help, as Click writes it)."""
+    words = text.split()
+    sentence: list[str] = []
+    for word in words:
+        sentence.append(word)
+        if word.endswith("."):
+            break
+    if len(" ".join(sentence)) <= limit:
+        return " ".join(sentence)
+    while sentence and len(" ".join(sentence)) + len("...") > limit:
+        sentence.pop()
+    return " ".join(sentence) + "..."
+
+
 class _LazyGroup(TyperGroup):
     """The root group: commands load on first use; its help lists them from their sources."""
 
@@ -117,11 +135,10 @@ class _LazyGroup(TyperGroup):
             {**dict(COMMANDS), **{alias: dict(COMMANDS)[name] for alias, name in ALIASES.items()}}
         )
 
-    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+    def format_commands(self, ctx: Context, formatter: HelpFormatter) -> None:
         limit = formatter.width - 6 - max(len(name) for name, _ in COMMANDS)
         rows = [
-            (name, click.utils.make_default_short_help(_first_docstring_line(target), limit))
-            for name, target in COMMANDS
+            (name, _short_help(_first_docstring_line(target), limit)) for name, target in COMMANDS
         ]
         with formatter.section("Commands"):
             formatter.write_dl(rows)

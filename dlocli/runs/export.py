@@ -48,12 +48,11 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.shape_env import DLOShapeEnv, observation_space
 from dlocli.env.tasks import make_task
 from dlocli.errors import BadInput
+from dlocli.extras import require
 from dlocli.migrations import completed
 from dlocli.processes import raise_if_stopped
 from dlocli.specs import BackendSpec, EnvSpec, TaskSpec, format_validation_error
 
-#: how to install the optional Minari dependency
-MINARI_EXTRA = "pip install 'dlocli[minari]'"
 #: the Minari data format written (h5py is a dlocli dependency already)
 DATA_FORMAT = "hdf5"
 #: environment variable that sets Minari's datasets root
@@ -298,11 +297,9 @@ def export_minari(
     An existing dataset of that id is refused unless ``overwrite``. See the module docstring
     for the mapping.
     """
-    try:
-        import minari
-    except ImportError as exc:
-        raise BadInput(f"--format minari needs Minari; {MINARI_EXTRA}") from exc
+    require("minari", "--format minari")
     import gymnasium as gym
+    import minari
 
     source = Path(source)
     data = load_dataset(source)
