@@ -17,6 +17,7 @@ EXTRAS = {
     "minari": "minari",
     "tensorboard": "tensorboard",
     "calibrate": "cma",
+    "bridge": "zmq",
 }
 
 

@@ -233,13 +233,17 @@ class Backend(ABC):
         velocities = np.asarray(velocities, dtype=np.float64).reshape(2, 6)
         if not np.all(np.isfinite(velocities)):
             raise ValueError("gripper velocities must be finite")
+        self._move(velocities)
+        return not self.diverged
+
+    def _move(self, velocities: np.ndarray) -> None:
+        """One control period of the grippers at (2,6) ``velocities`` inside the limits."""
         start = self._gripper_poses
         end = integrate_gripper_poses(start, velocities, self.control_dt, self.limits, self.moving)
         self._gripper_poses = end
         ok = self._advance(start, end)
         if not ok or not self._state_is_sane():
             self.diverged = True
-        return not self.diverged
 
     def gripper_poses(self) -> np.ndarray:
         """(2,7) gripper poses (position, quaternion w x y z)."""

@@ -34,6 +34,7 @@ COMMANDS = [
     ("online", "dlocli.cli.online:online"),
     ("bench", "dlocli.cli.bench:bench"),
     ("export", "dlocli.cli.export:export"),
+    ("serve", "dlocli.cli.serve:serve"),
 ]
 #: other names of a command: they run it, --help lists only the command
 ALIASES = {"benchmark": "bench"}

@@ -29,11 +29,13 @@ from pydantic import ValidationError
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
+from dlocli.bridge.spec import CellChoice
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shapes import make_shape, max_twist
 from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput, BadOption, UnknownOption, UnworkablePhysics
+from dlocli.extras import require
 from dlocli.io import atomic_path
 from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
@@ -41,8 +43,16 @@ from dlocli.registry import tasks as task_registry
 from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec, format_validation_error
 
 
-def make_backend(spec: BackendSpec, control_dt: float = 0.02) -> Backend:
-    """Build the registered backend named by ``spec.name``."""
+def make_backend(
+    spec: BackendSpec, control_dt: float = 0.02, cell: CellChoice | None = None
+) -> Backend:
+    """Build the registered backend named by ``spec.name``, or, with ``cell.cell`` set, the
+    rod of ``spec`` stepped by the cell at that address (:mod:`dlocli.bridge`)."""
+    if cell is not None and cell.cell is not None:
+        require("bridge", "--cell", "drop --cell to simulate in this process")
+        from dlocli.bridge.remote import RemoteCell
+
+        return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s)
     cls = backend_registry.get(spec.name)
     return cls(spec, control_dt=control_dt)
 
@@ -195,6 +205,8 @@ class DLOShapeEnv(gym.Env):
         goal: a goal shape ((N, 3) array or .npy path), or the goal mode "fixed" / "random".
         seed: seed of the goal and of the episodes until ``reset(seed=...)`` is given one.
         render_mode: None (``render()`` returns None) or "rgb_array".
+        cell: the address of a cell that steps the rod (``dlo serve``, or a robot speaking
+            the dlocli-cell protocol) or a CellChoice; default: a simulator in this process.
         **task_options: TaskSpec fields (``episode_steps=50``, ``shapes="near-rest"``, ...);
             an unknown name raises UnknownOption (a TypeError) listing the valid ones, a bad
             value BadOption (a ValueError).
@@ -209,18 +221,21 @@ class DLOShapeEnv(gym.Env):
         goal: np.ndarray | Path | str | None = None,
         seed: int = 0,
         render_mode: str | None = None,
+        cell: str | CellChoice | None = None,
         **task_options: Any,
     ) -> None:
         self.backend_spec, self.task_spec, goal = resolve_env_options(
             backend, task, goal, task_options
         )
+        if isinstance(cell, str):
+            cell = CellChoice(cell=cell)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise BadOption(f"DLOShapeEnv: seed must be an integer >= 0, got {seed!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             modes = ", ".join(["None", *self.metadata["render_modes"]])
             raise BadOption(f"DLOShapeEnv: render_mode must be one of {modes}, got {render_mode!r}")
         self.task: Task = make_task(self.task_spec.name)
-        self.backend = make_backend(self.backend_spec, self.task_spec.control_dt)
+        self.backend = make_backend(self.backend_spec, self.task_spec.control_dt, cell)
         self._apply_limits()
         self.n_segments = self.backend.n_segments
         self.render_mode = render_mode
@@ -411,12 +426,14 @@ def make_env(
     goal: np.ndarray | Path | str | None = None,
     seed: int = 0,
     render_mode: str | None = "rgb_array",
+    cell: str | CellChoice | None = None,
     **task_overrides: Any,
 ) -> DLOShapeEnv:
     """Build a shape-control environment; ``task_overrides`` set TaskSpec fields. ``goal`` is
-    a goal shape (array or .npy path) or the goal mode, "fixed" or "random". Unlike
+    a goal shape (array or .npy path) or the goal mode, "fixed" or "random"; ``cell`` the
+    address of a cell that steps the rod (default: a simulator in this process). Unlike
     DLOShapeEnv and ``gym.make``, it renders frames by default (``dlo control --video``)."""
-    return DLOShapeEnv(backend, task, goal, seed, render_mode, **task_overrides)
+    return DLOShapeEnv(backend, task, goal, seed, render_mode, cell, **task_overrides)
 
 
 def make_env_from_spec(spec: EnvSpec, goal: np.ndarray | Path | str | None = None) -> DLOShapeEnv:

@@ -22,12 +22,15 @@ import csv
 import importlib.util
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
 
+from dlocli.bridge.remote import CellLost, RemoteCell
+from dlocli.bridge.spec import CellChoice
 from dlocli.controllers.base import (
     Controller,
     LearningAgent,
@@ -50,14 +53,14 @@ VIDEO_SUFFIXES = (".gif", ".mp4")
 Progress = Callable[[dict[str, float]], None]
 
 
-class ControlSpec(EnvSpec):
+class ControlSpec(EnvSpec, CellChoice):
     """`dlo control`: closed-loop control to a goal shape. The goal is ``task.goal_file``."""
 
     moved: ClassVar[dict[str, str]] = {"model": "checkpoint", "steps": "task.episode_steps"}
     cli_flags: ClassVar[tuple[str, ...]] = (
         "task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name",
         "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
-        "video_every",
+        "video_every", "cell", "cell_timeout_s",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
@@ -155,10 +158,12 @@ def prepare(
             "(make one with `dlo goal`)"
         )
     check_video_path(spec.video, overwrite)
+    if spec.video is not None and spec.cell is not None:
+        raise BadInput("--video needs the simulator in this process: drop --video or --cell")
     options = controller_spec(spec.controller, spec.controller_options)
     goal = load_goal(spec.task.goal_file, spec.backend.rod.n_segments)
     check_inputs_used(spec)
-    env = make_env(spec.backend, spec.task, goal=goal, seed=spec.seed)
+    env = make_env(spec.backend, spec.task, goal=goal, seed=spec.seed, cell=spec)
     try:
         model = load_control_model(spec, env.n_segments)
         controller = make_controller(
@@ -202,27 +207,52 @@ def _run_closed_loop(
         start = time.perf_counter()
         warn_if_oversubscribed(spec.threads, processes=1)
         with torch_threads(spec.threads):
-            records, initial_error, frames, diverged = closed_loop(env, controller, spec, progress)
+            loop = closed_loop(env, controller, spec, progress)
         wall = time.perf_counter() - start
+        cell = cell_counts(env)
     finally:
         env.close()
-    summary = summarise(records, initial_error, spec, diverged, wall)
-    write_metrics(out / "metrics.csv", records)
-    plot_errors(out / "plots" / "error.png", records, initial_error, spec.controller)
+    if not loop.records:  # the cell was lost before the first step: nothing to keep
+        raise loop.lost
+    summary = summarise(loop.records, loop.initial_error, spec, loop.diverged, wall) | cell
+    write_metrics(out / "metrics.csv", loop.records)
+    plot_errors(out / "plots" / "error.png", loop.records, loop.initial_error, spec.controller)
     if spec.video is not None:
-        write_video(spec.video, frames, fps=env.metadata["render_fps"] / spec.video_every)
+        write_video(spec.video, loop.frames, fps=env.metadata["render_fps"] / spec.video_every)
         summary["video"] = str(spec.video)
+    if loop.lost is not None:
+        summary["stopped"] = str(loop.lost)
     write_json_atomic(out / "summary.json", summary)
+    if loop.lost is not None:
+        raise loop.lost
     return summary
+
+
+def cell_counts(env: DLOShapeEnv) -> dict[str, int]:
+    """What a cell (``--cell``) counted: periods stepped with the held command because the
+    command came late, and commands lost; nothing for a simulator in this process."""
+    state = getattr(env.backend, "state", None) if isinstance(env.backend, RemoteCell) else None
+    if not state:
+        return {}
+    return {"cell_late_steps": state["late"], "cell_dropped_commands": state["dropped"]}
+
+
+@dataclass
+class Loop:
+    """A closed loop's per-step records, initial shape error (mm), video frames, whether the
+    rod diverged, and the error that ended it early (a lost cell), if any."""
+
+    records: list[dict[str, float]]
+    initial_error: float
+    frames: list[np.ndarray]
+    diverged: bool
+    lost: CellLost | None = None
 
 
 def closed_loop(
     env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Progress | None
-) -> tuple[list[dict[str, float]], float, list[np.ndarray], bool]:
-    """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.env.rollout`).
-
-    Returns per-step records, the initial shape error (mm), video frames, diverged flag.
-    """
+) -> Loop:
+    """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.env.rollout`)."""
     timed = _Recorded(controller, env, spec)
 
     def on_step(step: int, reward: float, info: dict[str, Any]) -> None:
@@ -240,9 +270,12 @@ def closed_loop(
         if progress is not None:
             progress(record)
 
-    episode = rollout(env, timed, spec.seed, on_step)
+    try:
+        episode = rollout(env, timed, spec.seed, on_step)
+    except CellLost as lost:
+        return Loop(timed.records, timed.initial_error, timed.frames, False, lost)
     initial_error = float(shape_error_mm(episode.positions[0], episode.goal))
-    return timed.records, initial_error, timed.frames, episode.diverged
+    return Loop(timed.records, initial_error, timed.frames, episode.diverged)
 
 
 class _Recorded:
@@ -254,8 +287,10 @@ class _Recorded:
         self.records: list[dict[str, float]] = []
         self.frames: list[np.ndarray] = []
         self.cpu_ms = 0.0
+        self.initial_error = float("nan")
 
     def reset(self, goal: np.ndarray) -> None:
+        self.initial_error = float(shape_error_mm(self.env.backend.segment_positions(), goal))
         self.controller.reset(goal)
         if self.spec.video is not None:
             self.frames.append(self.env.render())
@@ -289,6 +324,8 @@ def summarise(
         "cumulative_reward": round(result["cumulative_reward"], 4),
         "latency_ms_median": round(float(np.median(latency)), 3),
         "latency_ms_p95": round(float(np.percentile(latency, 95)), 3),
+        # steps whose command took longer than a control period to compute
+        "late_steps": int(np.sum(latency > 1000.0 * spec.task.control_dt)),
         "cpu_ms_median": round(float(np.median([r["cpu_ms"] for r in records])), 3),
         "steps": len(records),
         "diverged": diverged,

@@ -1,0 +1,89 @@
+"""Specs of the bridge: a served cell (`dlo serve`) and a run's choice of one."""
+
+from __future__ import annotations
+
+import re
+from typing import ClassVar
+
+from pydantic import Field, field_validator
+
+from dlocli.specs import EnvSpec, Spec
+
+#: ZeroMQ endpoints the bridge takes: tcp://host:port or ipc://path
+ADDRESS = re.compile(r"(tcp://[^\s:]+:(\d+|\*)|ipc://\S+)")
+
+
+def check_address(address: str) -> str:
+    if not ADDRESS.fullmatch(address):
+        raise ValueError(
+            f"{address!r} is not a cell address: pass tcp://HOST:PORT (e.g. "
+            "tcp://127.0.0.1:5555) or ipc://PATH"
+        )
+    return address
+
+
+class ServeSpec(EnvSpec):
+    """`dlo serve`: a simulator served as a cell, for controllers that speak the dlocli-cell
+    protocol (README, "A robot bridge")."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "address", "backend.name", "backend.rod.n_segments", "task.control_dt", "realtime",
+        "delay_ms", "drop_probability", "hold_s", "seed",
+    )  # fmt: skip
+
+    address: str = Field(
+        "tcp://127.0.0.1:5555", description="Where the cell listens: tcp://HOST:PORT or ipc://PATH."
+    )
+    realtime: bool = Field(
+        False,
+        description="Keep the cell's own clock at the control rate: a command that comes after "
+        "its period's tick is late (the held command acts). Without it the rod steps when a "
+        "command comes (lockstep: a bridged run equals an in-process one).",
+    )
+    delay_ms: float = Field(
+        0.0,
+        ge=0.0,
+        le=10_000.0,
+        description="Hold every reply back this long (a tracker's latency).",
+    )
+    drop_probability: float = Field(
+        0.0, ge=0.0, lt=1.0, description="Probability that a command is lost (the held one acts)."
+    )
+    hold_s: float = Field(
+        0.5,
+        gt=0.0,
+        le=60.0,
+        description="Real time: with no command for this long the cell stops the grippers.",
+    )
+
+    _address = field_validator("address")(classmethod(lambda cls, v: check_address(v)))
+
+    @property
+    def delay_s(self) -> float:
+        return self.delay_ms / 1000.0
+
+    @property
+    def control_dt(self) -> float:
+        return self.task.control_dt
+
+
+class CellChoice(Spec):
+    """A run stepped through a cell (a served simulator or a robot) instead of a simulator in
+    this process."""
+
+    cell: str | None = Field(
+        None,
+        description="Address of a cell (`dlo serve`, or a robot speaking the dlocli-cell "
+        "protocol): tcp://HOST:PORT or ipc://PATH. Default: the simulator runs in this process.",
+    )
+    cell_timeout_s: float = Field(
+        2.0,
+        gt=0.0,
+        le=600.0,
+        description="A cell that does not answer a request within this time ends the run "
+        "(the steps done are kept).",
+    )
+
+    _cell = field_validator("cell")(
+        classmethod(lambda cls, v: v if v is None else check_address(v))
+    )

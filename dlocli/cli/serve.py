@@ -1,0 +1,33 @@
+"""`dlo serve`: a simulator served as a cell over the dlocli-cell protocol."""
+
+from __future__ import annotations
+
+from dlocli.bridge.spec import ServeSpec
+from dlocli.cli.common import handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
+
+
+@handle_errors
+@spec_flags(ServeSpec)
+def serve(
+    run: RunFlags,
+) -> None:
+    """Serve a simulator as a cell at --address until stopped (Ctrl-C): controllers step it
+    with `dlo control --cell ADDRESS`, as they would a robot."""
+    import typer
+
+    from dlocli.bridge.cell import serve as serve_cell
+    from dlocli.extras import require
+
+    spec = run.spec()
+    require("bridge", "dlo serve")
+
+    def ready(address: str) -> None:
+        mode = "real time" if spec.realtime else "lockstep"
+        typer.echo(
+            f"serving {spec.backend.name} ({spec.backend.rod.n_segments} segments, "
+            f"{spec.control_dt:g} s period, {mode}) at {address}; Ctrl-C stops",
+            err=True,
+        )
+
+    serve_cell(spec, ready)

@@ -1,0 +1,202 @@
+"""The robot bridge: `dlo control --cell` against a simulator served by `dlo serve` in another
+process, over the dlocli-cell protocol (real ZeroMQ sockets, the real MuJoCo rod)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+from tiny import control_with_policy, run_dlo
+
+pytest.importorskip("zmq")
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@contextmanager
+def example_cell() -> Iterator[str]:
+    """examples/bridge/robot_cell.py, the robot side a user writes, serving on a free port."""
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    script = Path(__file__).resolve().parents[1] / "examples" / "bridge" / "robot_cell.py"
+    cell = subprocess.Popen([sys.executable, str(script), "--address", address])
+    try:
+        yield address
+    finally:
+        cell.kill()
+        cell.wait(timeout=30)
+
+
+@contextmanager
+def served(*flags: str, kill: bool = False) -> Iterator[str]:
+    """A `dlo serve` process on a free port; yields its address, stops it after (Ctrl-C, or
+    SIGKILL with ``kill``)."""
+    cell = subprocess.Popen(
+        [sys.executable, "-m", "dlocli.cli", "serve", "--address", "tcp://127.0.0.1:*", *flags],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert cell.stderr is not None
+        line = cell.stderr.readline()
+        found = re.search(r" at (tcp://\S+);", line)
+        assert found, f"dlo serve did not start: {line}{cell.stderr.read()}"
+        yield found.group(1)
+    finally:
+        if cell.poll() is None:
+            cell.send_signal(signal.SIGKILL if kill else signal.SIGINT)
+            cell.wait(timeout=30)
+
+
+def _control(goal: Path, policy: Path, out: Path, *flags: str) -> list[str]:
+    """Twelve steps of the SAC policy towards the goal, with ``flags``."""
+    argv = control_with_policy(goal, policy, out)
+    argv[argv.index("--steps") + 1] = "12"
+    return [*argv, "--json", *flags]
+
+
+def _errors(out: Path) -> list[str]:
+    with open(out / "metrics.csv", newline="") as f:
+        return [row["shape_error_mm"] for row in csv.DictReader(f)]
+
+
+def _summary(out: Path) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+def test_a_bridged_run_equals_the_in_process_one(near_rest_goal, sac_policy, tmp_path):
+    here, there = tmp_path / "here", tmp_path / "there"
+    assert run_dlo(_control(near_rest_goal, sac_policy, here)) == 0
+    with served() as address:
+        assert run_dlo(_control(near_rest_goal, sac_policy, there, "--cell", address)) == 0
+    assert _errors(there) == _errors(here)  # the CSV's decimal text: every digit
+    assert len(_errors(here)) == 12
+    for key in ("initial_error_mm", "final_error_mm", "cumulative_reward"):
+        assert _summary(there)[key] == _summary(here)[key]
+    assert _summary(there)["cell_late_steps"] == 0
+    assert _summary(there)["cell_dropped_commands"] == 0
+    assert "cell_late_steps" not in _summary(here)
+
+
+def test_the_example_robot_cell_speaks_the_protocol(near_rest_goal, sac_policy, tmp_path):
+    """The README's robot script, its robot calls left as shipped (dlocli's rod), equals an
+    in-process run too."""
+    here, there = tmp_path / "here", tmp_path / "there"
+    assert run_dlo(_control(near_rest_goal, sac_policy, here)) == 0
+    with example_cell() as address:
+        flags = ("--cell", address, "--cell-timeout-s", "20")  # the script starts Python
+        assert run_dlo(_control(near_rest_goal, sac_policy, there, *flags)) == 0
+    assert _errors(there) == _errors(here)
+
+
+def test_a_delayed_cell_counts_its_late_steps_and_the_run_finishes(
+    near_rest_goal, sac_policy, tmp_path
+):
+    """20 ms of delay at 50 Hz: every reply comes after the next tick."""
+    out = tmp_path / "run"
+    with served("--realtime", "--delay-ms", "20") as address:
+        assert run_dlo(_control(near_rest_goal, sac_policy, out, "--cell", address)) == 0
+    summary = _summary(out)
+    assert summary["steps"] == 12
+    assert summary["cell_late_steps"] >= 6, summary
+
+
+def test_dropped_commands_are_counted_and_the_run_finishes(near_rest_goal, sac_policy, tmp_path):
+    out = tmp_path / "run"
+    with served("--drop-probability", "0.5", "--seed", "3") as address:
+        assert run_dlo(_control(near_rest_goal, sac_policy, out, "--cell", address)) == 0
+    summary = _summary(out)
+    assert summary["steps"] == 12
+    # counted since the reset: the start shape's motion goes through the cell too
+    assert summary["cell_dropped_commands"] >= 1, summary
+
+
+def test_a_killed_cell_ends_the_run_in_one_line_with_its_steps_kept(
+    near_rest_goal, sac_policy, tmp_path
+):
+    out = tmp_path / "run"
+    argv = _control(near_rest_goal, sac_policy, out, "--cell-timeout-s", "1")
+    argv[argv.index("--steps") + 1] = "200"
+    argv.remove("--json")  # its progress lines say when the steps have begun
+    with served("--delay-ms", "20", kill=True) as address:  # ~25 ms a step: outlives the cell
+        control = subprocess.Popen(
+            [sys.executable, "-m", "dlocli.cli", *argv, "--cell", address],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert control.stdout is not None
+        progress = control.stdout.readline()
+        assert progress.startswith("step"), progress
+    _, stderr = control.communicate(timeout=60)
+    assert control.returncode == 1, stderr
+    assert "Traceback" not in stderr
+    last = stderr.strip().splitlines()[-1]
+    assert "stopped answering" in last and "1 s" in last, stderr
+    summary = _summary(out)
+    assert 1 <= summary["steps"] < 200 and "stopped answering" in summary["stopped"]
+    assert len(_errors(out)) == summary["steps"]
+
+
+def test_no_cell_at_the_address_is_one_line_naming_the_timeout(
+    near_rest_goal, sac_policy, tmp_path
+):
+    out = tmp_path / "run"
+    argv = _control(near_rest_goal, sac_policy, out, "--cell", "tcp://127.0.0.1:9",
+                    "--cell-timeout-s", "0.3")  # fmt: skip
+    result = subprocess.run(
+        [sys.executable, "-m", "dlocli.cli", *argv], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "0.3 s" in lines[0] and "--cell-timeout-s" in lines[0]
+    assert not out.exists()
+
+
+def test_a_cell_of_another_rod_refuses_the_controller(near_rest_goal, sac_policy, tmp_path):
+    out = tmp_path / "run"
+    with served("--backend-rod-n-segments", "10") as address:
+        argv = _control(near_rest_goal, sac_policy, out, "--cell", address)
+        assert run_dlo(argv) == 2
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "flags, problem",
+    [(["--cell", "localhost:5555"], "tcp://HOST:PORT"),
+     (["--cell", "tcp://127.0.0.1:1", "--cell-timeout-s", "0"], "cell_timeout_s")],
+)  # fmt: skip
+def test_bad_cell_flags_are_one_line(near_rest_goal, sac_policy, tmp_path, flags, problem, capsys):
+    out = tmp_path / "run"
+    assert run_dlo(_control(near_rest_goal, sac_policy, out, *flags)) == 2
+    assert problem in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_the_cell_answers_a_bad_request_and_serves_on(tmp_path):
+    import zmq
+
+    from dlocli.bridge import protocol
+
+    with served() as address:
+        context = zmq.Context()
+        socket = context.socket(zmq.REQ)
+        socket.setsockopt(zmq.RCVTIMEO, 10_000)
+        socket.connect(address)
+        for request, expected in [(b"not json", "error"), (protocol.encode("fly"), "error"),
+                                  (protocol.encode("hello", protocol="x", version=9), "error"),
+                                  (protocol.encode("bye"), "bye")]:  # fmt: skip
+            socket.send(request)
+            assert protocol.decode(socket.recv())["type"] == expected
+        socket.close()
+        context.term()
