@@ -28,7 +28,20 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "rollout_start": 4,
         "rollout_ramp": 0.5,
     },
-    "task": {"shapes": "near-rest", "observe_velocity": False},
+    "task": {
+        "shapes": "near-rest",
+        "observe_velocity": False,
+        "envelope": {
+            "max_linear_speed": None,
+            "max_angular_speed": None,
+            "max_linear_acceleration": None,
+            "max_angular_acceleration": None,
+            "left_low": None,
+            "left_high": None,
+            "right_low": None,
+            "right_high": None,
+        },
+    },
     "rod": {
         "clamp_compliance": "rigid",
         "bending_damping": None,

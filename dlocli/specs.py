@@ -254,6 +254,42 @@ class BackendSpec(Spec):
         return self
 
 
+Box = tuple[float, float, float]
+
+
+class EnvelopeSpec(Spec):
+    """Limits on the grippers' commands beyond the task's (None: no such limit)."""
+
+    max_linear_speed: float | None = Field(
+        None, gt=0.0, le=2.0, description="Largest linear speed of a gripper (m/s, its norm)."
+    )
+    max_angular_speed: float | None = Field(
+        None, gt=0.0, le=10.0, description="Largest angular speed of a gripper (rad/s, norm)."
+    )
+    max_linear_acceleration: float | None = Field(
+        None, gt=0.0, le=100.0,
+        description="Largest change of a gripper's linear velocity per second (m/s^2, norm).",
+    )  # fmt: skip
+    max_angular_acceleration: float | None = Field(
+        None, gt=0.0, le=1000.0,
+        description="Largest change of a gripper's angular velocity per second (rad/s^2, norm).",
+    )  # fmt: skip
+    left_low: Box | None = Field(None, description="Left gripper's box, low corner (metres).")
+    left_high: Box | None = Field(None, description="Left gripper's box, high corner (metres).")
+    right_low: Box | None = Field(None, description="Right gripper's box, low corner (metres).")
+    right_high: Box | None = Field(None, description="Right gripper's box, high corner (metres).")
+
+    @model_validator(mode="after")
+    def _boxes_whole(self) -> EnvelopeSpec:
+        for side in ("left", "right"):
+            low, high = getattr(self, f"{side}_low"), getattr(self, f"{side}_high")
+            if (low is None) != (high is None):
+                raise ValueError(f"envelope: give both {side}_low and {side}_high, or neither")
+            if low is not None and any(lo >= hi for lo, hi in zip(low, high, strict=True)):
+                raise ValueError(f"envelope: {side}_low must lie below {side}_high on every axis")
+        return self
+
+
 class TaskSpec(Spec):
     """The shape-control task on top of a backend (DLOShapeEnv)."""
 
@@ -330,6 +366,10 @@ class TaskSpec(Spec):
         description="Append each segment's velocity (its position and quaternion change over "
         "the last control step, divided by the step) to the observation: the information the "
         "learned model's velocity input gets, for every agent.",
+    )
+    envelope: EnvelopeSpec = Field(
+        default_factory=EnvelopeSpec,
+        description="Safety envelope every command passes through (limits beyond the task's).",
     )
 
     def inert_fields(self) -> set[str]:

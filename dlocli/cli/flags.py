@@ -45,6 +45,10 @@ ALIASES: dict[str, str] = {
     "fit.device": "device",
     "fit.mirror": "mirror",
     "mpc.horizon": "horizon",
+    "task.envelope.max_linear_speed": "max-linear-speed",
+    "task.envelope.max_angular_speed": "max-angular-speed",
+    "task.envelope.max_linear_acceleration": "max-linear-acceleration",
+    "task.envelope.max_angular_acceleration": "max-angular-acceleration",
 }
 
 

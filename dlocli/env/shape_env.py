@@ -30,6 +30,7 @@ from pydantic import ValidationError
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
 from dlocli.bridge.spec import CellChoice
+from dlocli.env.envelope import Envelope
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shapes import make_shape, max_twist
@@ -237,6 +238,10 @@ class DLOShapeEnv(gym.Env):
         self.task: Task = make_task(self.task_spec.name)
         self.backend = make_backend(self.backend_spec, self.task_spec.control_dt, cell)
         self._apply_limits()
+        self.envelope = Envelope(
+            self.task_spec.envelope, self.backend.limits, self.task.moving,
+            self.task_spec.control_dt,
+        )  # fmt: skip
         self.n_segments = self.backend.n_segments
         self.render_mode = render_mode
         self.seed_value = int(seed)
@@ -326,6 +331,8 @@ class DLOShapeEnv(gym.Env):
         if self.task_spec.goal == "random" and not self._goal_given:
             self.goal = self.sample_goal(self.np_random)
         self._random_shape(self.np_random, self.task_spec.reset_motion_steps)
+        self.envelope.reset()
+        self.envelope.check_start(self.backend.gripper_poses())
         self._t = 0
         self._previous = None  # settled: counted at rest
         self._last_observation = None
@@ -336,7 +343,11 @@ class DLOShapeEnv(gym.Env):
         raise_if_stopped()  # a Ctrl-C swallowed by a destructor still stops the run
         commands = self.task.to_grippers(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
         self._previous = self.segment_state()
-        ok = self.backend.step(commands * self._scale)
+        velocities = commands * self._scale
+        sent = self.envelope.apply(velocities, self.backend.gripper_poses())
+        if sent is not velocities:  # clipped: what the grippers did is what is recorded
+            commands = sent / self._scale
+        ok = self.backend.step(sent)
         self._t += 1
         reward = -REWARD_CLIP if not ok else float(shape_reward(self._positions(), self.goal))
         truncated = self._t >= self.task_spec.episode_steps

@@ -60,7 +60,9 @@ class ControlSpec(EnvSpec, CellChoice):
     cli_flags: ClassVar[tuple[str, ...]] = (
         "task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name",
         "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
-        "video_every", "cell", "cell_timeout_s",
+        "video_every", "cell", "cell_timeout_s", "task.envelope.max_linear_speed",
+        "task.envelope.max_angular_speed", "task.envelope.max_linear_acceleration",
+        "task.envelope.max_angular_acceleration",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
@@ -209,12 +211,12 @@ def _run_closed_loop(
         with torch_threads(spec.threads):
             loop = closed_loop(env, controller, spec, progress)
         wall = time.perf_counter() - start
-        cell = cell_counts(env)
+        counts = cell_counts(env) | env.envelope.summary()
     finally:
         env.close()
     if not loop.records:  # the cell was lost before the first step: nothing to keep
         raise loop.lost
-    summary = summarise(loop.records, loop.initial_error, spec, loop.diverged, wall) | cell
+    summary = summarise(loop.records, loop.initial_error, spec, loop.diverged, wall) | counts
     write_metrics(out / "metrics.csv", loop.records)
     plot_errors(out / "plots" / "error.png", loop.records, loop.initial_error, spec.controller)
     if spec.video is not None:
