@@ -68,10 +68,14 @@ def lock_held_elsewhere(lock_file: Path) -> Iterator[subprocess.Popen]:
 
 
 def run_dlo(argv: list[str]) -> int:
-    """Run the `dlo` entry point itself (``dlocli.cli.main``) in this process; its exit code."""
+    """Run the `dlo` entry point itself (``dlocli.cli.main``) in this process; its exit code.
+
+    The entry point sizes the process's thread pools through environment variables; they are
+    put back after, so a later test's subprocesses get the threads they would have (floats
+    differ with the thread count)."""
     from dlocli.cli import main
 
-    old = sys.argv
+    old, environment = sys.argv, dict(os.environ)
     sys.argv = ["dlo", *argv]
     try:
         main()
@@ -79,6 +83,8 @@ def run_dlo(argv: list[str]) -> int:
         return exc.code if isinstance(exc.code, int) else 0
     finally:
         sys.argv = old
+        os.environ.clear()
+        os.environ.update(environment)
     return 0
 
 
