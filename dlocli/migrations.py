@@ -36,6 +36,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
             "max_angular_speed": None,
             "max_linear_acceleration": None,
             "max_angular_acceleration": None,
+            "stop_after_lost_s": None,
             "left_low": None,
             "left_high": None,
             "right_low": None,

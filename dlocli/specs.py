@@ -274,6 +274,11 @@ class EnvelopeSpec(Spec):
         None, gt=0.0, le=1000.0,
         description="Largest change of a gripper's angular velocity per second (rad/s^2, norm).",
     )  # fmt: skip
+    stop_after_lost_s: float | None = Field(
+        None, gt=0.0, le=60.0,
+        description="With the cable's tracking lost for longer than this (s), the grippers "
+        "stop (zero velocity) and hold until it returns.",
+    )  # fmt: skip
     left_low: Box | None = Field(None, description="Left gripper's box, low corner (metres).")
     left_high: Box | None = Field(None, description="Left gripper's box, high corner (metres).")
     right_low: Box | None = Field(None, description="Right gripper's box, low corner (metres).")

@@ -123,6 +123,16 @@ def test_dropped_commands_are_counted_and_the_run_finishes(near_rest_goal, sac_p
     assert summary["cell_dropped_commands"] >= 1, summary
 
 
+def test_a_cell_that_loses_tracking_stops_the_grippers(near_rest_goal, sac_policy, tmp_path):
+    out = tmp_path / "run"
+    argv = _control(near_rest_goal, sac_policy, out, "--stop-after-lost-s", "0.03")
+    argv[argv.index("--steps") + 1] = "40"
+    with served("--frame-loss-probability", "0.6", "--seed", "1") as address:
+        assert run_dlo([*argv, "--cell", address]) == 0
+    summary = _summary(out)
+    assert summary["steps"] == 40 and 1 <= summary["clipped_tracking_lost"] < 40, summary
+
+
 def test_a_killed_cell_ends_the_run_in_one_line_with_its_steps_kept(
     near_rest_goal, sac_policy, tmp_path
 ):

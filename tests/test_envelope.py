@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 import dlocli
+from dlocli.backends.base import GripperLimits
+from dlocli.env.envelope import Envelope
 from dlocli.errors import BadInput
 from dlocli.specs import EnvelopeSpec
 
@@ -112,3 +114,17 @@ def test_an_envelope_that_excludes_the_start_is_refused():
 def test_bad_envelopes_are_refused(fields, problem):
     with pytest.raises(ValueError, match=problem):
         EnvelopeSpec(**fields)
+
+
+def test_lost_tracking_stops_the_grippers_after_the_stated_time():
+    envelope = Envelope(EnvelopeSpec(stop_after_lost_s=0.05), GripperLimits.default(1.0),
+                        np.array([False, True]), DT)  # fmt: skip
+    poses = np.zeros((2, 7))
+    poses[:, 2], poses[:, 3], poses[1, 0] = 0.8, 1.0, 0.45
+    command = np.tile([0.05, 0.0, 0.0, 0.0, 0.0, 0.1], (2, 1))
+    sent = [envelope.apply(command, poses, tracked) for tracked in
+            [True, False, False, False, True, False]]  # fmt: skip
+    moving = [bool(np.any(twist)) for twist in sent]
+    # lost for 0.02, 0.04, 0.06 s: the third is past 0.05 s; tracked again, it moves at once
+    assert moving == [True, True, True, False, True, True]
+    assert envelope.summary()["clipped_tracking_lost"] == 1

@@ -171,6 +171,8 @@ class Backend(ABC):
     name: str = ""
     #: optional abilities a physics check may need ("end_load": :meth:`set_end_load`)
     capabilities: frozenset[str] = frozenset()
+    #: whether the last state saw the cable (a simulator always does; a cell's tracker may not)
+    tracked: bool = True
 
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
         self.spec = spec or BackendSpec(name=self.name)

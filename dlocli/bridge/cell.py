@@ -35,6 +35,7 @@ class Cell:
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
         self.clock_start = time.monotonic()
+        self.seen: dict[str, np.ndarray] = {}  # the cable as the tracker last saw it
 
     # ------------------------------------------------------------------ requests
     def handle(self, request: dict[str, Any]) -> bytes:
@@ -71,7 +72,7 @@ class Cell:
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
         self.clock_start = time.monotonic()
-        return self._state()
+        return self._state(reset=True)
 
     def _on_step(self, request: dict[str, Any]) -> bytes:
         velocities = protocol.array(request, "velocities", (2, 6))
@@ -142,16 +143,22 @@ class Cell:
             self.step_count += 1
             self.late += 1
 
-    def _state(self) -> bytes:
+    def _state(self, reset: bool = False) -> bytes:
         if self.spec.delay_s > 0:
             time.sleep(self.spec.delay_s)
+        tracked = reset or self.rng.random() >= self.spec.frame_loss_probability
+        if tracked:
+            self.seen = {
+                "positions": self.backend.segment_positions(),
+                "quaternions": self.backend.segment_quaternions(),
+            }
         return protocol.encode(
             "state",
             step=self.step_count,
             time=self.step_count * self.backend.control_dt,
             diverged=self.backend.diverged,
-            positions=self.backend.segment_positions(),
-            quaternions=self.backend.segment_quaternions(),
+            tracked=tracked,
+            **self.seen,
             grippers=self.backend.gripper_poses(),
             late=self.late,
             dropped=self.dropped,

@@ -21,10 +21,12 @@ Requests (``type``) and their replies:
   (simulated cells only; a real cell replies ``error``).
 - ``bye`` {} -> ``bye``.
 
-``state`` = {step, time, diverged, positions (N x 3), quaternions (N x 4), grippers
+``state`` = {step, time, diverged, tracked, positions (N x 3), quaternions (N x 4), grippers
 (2 x 7: x y z qw qx qy qz), late, dropped}: ``step`` counts the cell's control periods since
-the reset, ``late`` those it stepped with the held command because none had come in time,
-``dropped`` the commands it lost. Any request may get ``error`` {message}.
+the reset, ``tracked`` is false when the tracker lost the cable (positions and quaternions are
+then the last ones it saw), ``late`` counts the periods the cell stepped with the held command
+because none had come in time, ``dropped`` the commands it lost. Any request may get
+``error`` {message}.
 """
 
 from __future__ import annotations

@@ -115,6 +115,7 @@ class RemoteCell(Backend):
             "step": int(reply.get("step", 0)),
         }
         self.diverged = bool(reply.get("diverged", False))
+        self.tracked = bool(reply.get("tracked", True))
         self._gripper_poses = self.state["grippers"]
 
     # ------------------------------------------------------------------ the backend

@@ -28,7 +28,7 @@ class ServeSpec(EnvSpec):
 
     cli_flags: ClassVar[tuple[str, ...]] = (
         "address", "backend.name", "backend.rod.n_segments", "task.control_dt", "realtime",
-        "delay_ms", "drop_probability", "hold_s", "seed",
+        "delay_ms", "drop_probability", "frame_loss_probability", "hold_s", "seed",
     )  # fmt: skip
 
     address: str = Field(
@@ -49,6 +49,11 @@ class ServeSpec(EnvSpec):
     drop_probability: float = Field(
         0.0, ge=0.0, lt=1.0, description="Probability that a command is lost (the held one acts)."
     )
+    frame_loss_probability: float = Field(
+        0.0, ge=0.0, lt=1.0,
+        description="Probability that the tracker loses a frame: the reply repeats the last "
+        "tracked shape, marked tracked: false (the grippers' poses stay current).",
+    )  # fmt: skip
     hold_s: float = Field(
         0.5,
         gt=0.0,

@@ -49,6 +49,7 @@ ALIASES: dict[str, str] = {
     "task.envelope.max_angular_speed": "max-angular-speed",
     "task.envelope.max_linear_acceleration": "max-linear-acceleration",
     "task.envelope.max_angular_acceleration": "max-angular-acceleration",
+    "task.envelope.stop_after_lost_s": "stop-after-lost-s",
 }
 
 

@@ -19,7 +19,7 @@ from dlocli.specs import EnvelopeSpec
 
 LINEAR, ANGULAR = slice(0, 3), slice(3, 6)
 #: the envelope's limits, in the order they are applied; the counts' keys
-LIMITS = ("speed", "acceleration", "gripper_workspace", "workspace", "separation")
+LIMITS = ("tracking_lost", "speed", "acceleration", "gripper_workspace", "workspace", "separation")
 
 
 class Envelope:
@@ -37,11 +37,13 @@ class Envelope:
         ]  # fmt: skip
         self.counts: Counter[str] = Counter()
         self.previous = np.zeros((2, 6))
+        self.lost_s = 0.0  # how long the cable's tracking has been lost
         self.active = any(value is not None for value in spec.model_dump().values())
 
     def reset(self) -> None:
         """A new episode: the grippers start at rest."""
         self.previous = np.zeros((2, 6))
+        self.lost_s = 0.0
 
     def check_start(self, poses: np.ndarray) -> None:
         """BadInput if a moving gripper starts outside its own box."""
@@ -56,10 +58,12 @@ class Envelope:
                     f"its envelope box {box[0].tolist()}..{box[1].tolist()}: widen the box"
                 )
 
-    def apply(self, velocities: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """The twists to send: ``velocities`` itself when no limit is broken."""
+    def apply(self, velocities: np.ndarray, poses: np.ndarray, tracked: bool = True) -> np.ndarray:
+        """The twists to send: ``velocities`` itself when no limit is broken. ``tracked``:
+        whether the observation the command was computed from saw the cable."""
         if self.active:
             clipped = velocities.copy()
+            self._stop_when_lost(clipped, tracked)
             self._limit_speed(clipped)
             self._limit_acceleration(clipped)
             self._keep_in_boxes(clipped, poses)
@@ -70,6 +74,13 @@ class Envelope:
         return velocities
 
     # ------------------------------------------------------------------ the limits
+    def _stop_when_lost(self, twist: np.ndarray, tracked: bool) -> None:
+        self.lost_s = 0.0 if tracked else self.lost_s + self.dt
+        limit = self.spec.stop_after_lost_s
+        if limit is not None and self.lost_s > limit:
+            twist[:] = 0.0  # the limits below see a stop, which breaks none of them
+            self.counts["tracking_lost"] += 1
+
     def _limit_speed(self, twist: np.ndarray) -> None:
         clipped = False
         for part, limit in ((LINEAR, self.spec.max_linear_speed),

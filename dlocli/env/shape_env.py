@@ -344,7 +344,8 @@ class DLOShapeEnv(gym.Env):
         commands = self.task.to_grippers(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
         self._previous = self.segment_state()
         velocities = commands * self._scale
-        sent = self.envelope.apply(velocities, self.backend.gripper_poses())
+        poses = self.backend.gripper_poses()
+        sent = self.envelope.apply(velocities, poses, self.backend.tracked)
         if sent is not velocities:  # clipped: what the grippers did is what is recorded
             commands = sent / self._scale
         ok = self.backend.step(sent)
@@ -376,7 +377,10 @@ class DLOShapeEnv(gym.Env):
 
     def _info(self, diverged: bool) -> dict[str, Any]:
         error = float(shape_error_mm(self._positions(), self.goal))
-        return {"shape_error_mm": error, "diverged": diverged, "t": self._t}
+        return {
+            "shape_error_mm": error, "diverged": diverged, "t": self._t,
+            "tracked": self.backend.tracked,
+        }  # fmt: skip
 
     def segment_state(self) -> np.ndarray:
         """(N, 7) segment positions and quaternions."""

@@ -62,7 +62,7 @@ class ControlSpec(EnvSpec, CellChoice):
         "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
         "video_every", "cell", "cell_timeout_s", "task.envelope.max_linear_speed",
         "task.envelope.max_angular_speed", "task.envelope.max_linear_acceleration",
-        "task.envelope.max_angular_acceleration",
+        "task.envelope.max_angular_acceleration", "task.envelope.stop_after_lost_s",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
