@@ -116,7 +116,14 @@ def _goal_claiming_terabytes(path: Path) -> None:
         )
 
 
-@pytest.mark.parametrize("write", [_goal_npz, _goal_claiming_terabytes])
+def _goal_of_huge_numbers(path: Path) -> None:
+    """Finite, but their differences overflow to inf."""
+    goal = np.full((20, 3), 1e308)
+    goal[::2] *= -1
+    np.save(path, goal)
+
+
+@pytest.mark.parametrize("write", [_goal_npz, _goal_claiming_terabytes, _goal_of_huge_numbers])
 def test_a_goal_that_is_not_one_small_array_is_refused(write, tmp_path, capsys):
     goal = tmp_path / "goal.npy"
     write(goal)
@@ -269,3 +276,27 @@ def test_an_input_error_has_no_blank_line_before_it(argv, tmp_path, capsys):
     out, err = capsys.readouterr()
     assert code == 2 and out == "", out
     assert err.startswith("error: ") and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize(
+    "action, words",
+    [(np.zeros(6, dtype=complex), "real numbers"), (np.array([object()] * 6), "real numbers"),
+     (np.array(list("abcdef")), "real numbers"), (np.zeros(12), "shape"),
+     (np.zeros((1, 6)), "shape"), (np.full(6, np.nan), "NaN")],
+    ids=["complex", "object", "text", "too-long", "batched", "nan"],
+)  # fmt: skip
+def test_the_env_refuses_an_action_that_is_not_one(action, words):
+    import dlocli
+    from dlocli.errors import BadOption
+
+    env = dlocli.make_env("mujoco", "single", seed=0, render_mode=None, episode_steps=5,
+                          shapes="near-rest")  # fmt: skip
+    env.reset()
+    with pytest.raises(BadOption, match=words):
+        env.step(action)
+    env.step(np.zeros(6))  # the env is still good
+    env.close()
+    env.close()  # twice is fine
+    for call in (lambda: env.step(np.zeros(6)), env.reset):
+        with pytest.raises(BadOption, match="after close"):
+            call()

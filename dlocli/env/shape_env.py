@@ -81,22 +81,26 @@ def load_goal(path: Path, n_segments: int) -> np.ndarray:
     return goal.astype(np.float64)
 
 
-def check_goal_reachable(goal: np.ndarray, backend: Backend, limits_margin: float = 0.2) -> None:
-    """Refuse goals the rod cannot take: segments too far apart or outside the workspace."""
+def check_goal_reachable(
+    goal: np.ndarray, backend: Backend, limits_margin: float = 0.2, name: str = "goal"
+) -> None:
+    """Refuse goals the rod cannot take: segments too far apart or outside the workspace;
+    ``name`` says which goal in the message (its file)."""
     length = backend.rod.length
-    seg = length / backend.n_segments
-    gaps = np.linalg.norm(np.diff(goal, axis=0), axis=1)
-    if np.any(gaps > 1.5 * seg) or np.any(gaps < 0.5 * seg):
-        raise BadInput(
-            f"goal segments are {gaps.min():.3f}-{gaps.max():.3f} m apart but the rod's segments "
-            f"are {seg:.3f} m long; the rod cannot take this shape (make one with `dlo goal`)"
-        )
+    # the reach first: a goal inside it has gaps that cannot overflow
     low = backend.limits.low - limits_margin - length
     high = backend.limits.high + limits_margin
     if np.any(goal < low) or np.any(goal > high):
         low_m = np.round(backend.limits.low, 2).tolist()
         high_m = np.round(backend.limits.high, 2).tolist()
-        raise BadInput(f"goal lies outside the grippers' reach (workspace {low_m}..{high_m} m)")
+        raise BadInput(f"{name} lies outside the grippers' reach (workspace {low_m}..{high_m} m)")
+    seg = length / backend.n_segments
+    gaps = np.linalg.norm(np.diff(goal, axis=0), axis=1)
+    if np.any(gaps > 1.5 * seg) or np.any(gaps < 0.5 * seg):
+        raise BadInput(
+            f"{name}: segments {gaps.min():.3f}-{gaps.max():.3f} m apart but the rod's segments "
+            f"are {seg:.3f} m long; the rod cannot take this shape (make one with `dlo goal`)"
+        )
 
 
 #: bound of every position in the observation (metres); a diverged rod is clipped to it
@@ -214,6 +218,7 @@ class DLOShapeEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    _closed = False
 
     def __init__(
         self,
@@ -283,7 +288,9 @@ class DLOShapeEnv(gym.Env):
     def _initial_goal(self, goal: np.ndarray | Path | str | None) -> np.ndarray | None:
         if goal is None and self.task_spec.goal_file is not None:
             goal = self.task_spec.goal_file
+        name = "goal"
         if isinstance(goal, (str, Path)):
+            name = f"goal {goal}"
             goal = load_goal(Path(goal), self.n_segments)
         if goal is not None:
             goal = np.asarray(goal, dtype=np.float64)
@@ -291,7 +298,7 @@ class DLOShapeEnv(gym.Env):
                 raise BadInput(
                     f"goal must be a finite ({self.n_segments}, 3) array, got {goal.shape}"
                 )
-            check_goal_reachable(goal, self.backend)
+            check_goal_reachable(goal, self.backend, name=name)
             return goal
         if self.task_spec.goal == "fixed":
             return self.sample_goal(self._goal_rng)
@@ -323,6 +330,7 @@ class DLOShapeEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
+        self._check_open("reset")
         if seed is None and not self._seeded:
             seed = self.seed_value  # make_env(seed=...) alone makes episodes reproducible
         self._seeded = True
@@ -341,7 +349,8 @@ class DLOShapeEnv(gym.Env):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         raise_if_stopped()  # a Ctrl-C swallowed by a destructor still stops the run
-        commands = self.task.to_grippers(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
+        self._check_open("step")
+        commands = self.task.to_grippers(np.clip(self._checked(action), -1.0, 1.0))
         self._previous = self.segment_state()
         velocities = commands * self._scale
         poses = self.backend.gripper_poses()
@@ -424,7 +433,29 @@ class DLOShapeEnv(gym.Env):
         return self.backend.render(goal=self.goal)
 
     def close(self) -> None:
-        self.backend.close()
+        if not self._closed:
+            self.backend.close()
+            self._closed = True
+
+    def _check_open(self, call: str) -> None:
+        if self._closed:
+            raise BadOption(f"DLOShapeEnv.{call}() after close(): make a new env")
+
+    def _checked(self, action: Any) -> np.ndarray:
+        """``action`` as float64 of the action space's shape; BadOption (a ValueError) for
+        anything else: complex, objects, text, the wrong size, NaN."""
+        array = np.asarray(action)
+        shape = self.action_space.shape
+        if array.dtype.kind not in "biuf":
+            raise BadOption(f"DLOShapeEnv.step: the action must be real numbers, not {array.dtype}")
+        if array.shape != shape:
+            raise BadOption(
+                f"DLOShapeEnv.step: the action must have shape {shape}, not {array.shape}"
+            )
+        array = array.astype(np.float64)
+        if not np.all(np.isfinite(array)):
+            raise BadOption("DLOShapeEnv.step: the action holds NaN or inf")
+        return array
 
     # ------------------------------------------------------------------ state for planners
     def get_state(self) -> np.ndarray:

@@ -163,9 +163,9 @@ def prepare(
     if spec.video is not None and spec.cell is not None:
         raise BadInput("--video needs the simulator in this process: drop --video or --cell")
     options = controller_spec(spec.controller, spec.controller_options)
-    goal = load_goal(spec.task.goal_file, spec.backend.rod.n_segments)
+    load_goal(spec.task.goal_file, spec.backend.rod.n_segments)  # refused before anything
     check_inputs_used(spec)
-    env = make_env(spec.backend, spec.task, goal=goal, seed=spec.seed, cell=spec)
+    env = make_env(spec.backend, spec.task, goal=spec.task.goal_file, seed=spec.seed, cell=spec)
     try:
         model = load_control_model(spec, env.n_segments)
         controller = make_controller(
