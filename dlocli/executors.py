@@ -353,12 +353,41 @@ def check_ray_address(address: str, timeout: float = 3.0) -> None:
     if not sep or not host or not port.isdigit():
         raise BadInput(f"--ray-address {address!r} is not host:port, ray://host:port or auto")
     try:
-        socket.create_connection((host, int(port)), timeout=timeout).close()
+        connection = socket.create_connection((host, int(port)), timeout=timeout)
     except OSError as exc:
         raise BadInput(
             f"Ray address {address} does not answer ({exc.strerror or exc}); start "
             "the cluster (`ray start --head`) or drop --ray-address"
         ) from exc
+    with connection:
+        if not _speaks_grpc(connection, timeout):
+            raise BadInput(
+                f"Ray address {address} listens but does not answer as a Ray cluster within "
+                f"{timeout:g} s (Ray speaks gRPC there); give the head's address or drop "
+                "--ray-address"
+            )
+
+
+#: an HTTP/2 client's first bytes: the connection preface, then an empty SETTINGS frame
+_HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_SETTINGS = 4
+
+
+def _speaks_grpc(connection: Any, timeout: float) -> bool:
+    """Whether the server answers an HTTP/2 preface with its SETTINGS frame, as every gRPC
+    server (Ray's GCS, its client server) must first; anything else would make Ray wait."""
+    connection.settimeout(timeout)
+    try:
+        connection.sendall(_HTTP2_HELLO)
+        header = b""
+        while len(header) < 9:
+            chunk = connection.recv(9 - len(header))
+            if not chunk:
+                return False
+            header += chunk
+    except OSError:  # a timeout included
+        return False
+    return header[3] == _SETTINGS
 
 
 @contextmanager

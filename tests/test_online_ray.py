@@ -132,6 +132,38 @@ def test_an_address_that_does_not_answer_is_one_line_and_nothing_written(address
     assert not out.exists()
 
 
+@pytest.mark.parametrize("reply", [b"", b"HTTP/1.1 400 Bad Request\r\n\r\n"],
+                         ids=["silent", "http1"])  # fmt: skip
+def test_an_address_that_listens_but_is_not_ray_is_one_line_within_its_timeout(reply, tmp_path):
+    """A server that accepts and stays silent (or speaks another protocol) used to hang the
+    run until killed."""
+    import socket
+    import threading
+    import time
+
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+
+    def serve() -> None:
+        connection, _ = server.accept()
+        accepted.append(connection)
+        if reply:
+            connection.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    address = f"127.0.0.1:{server.getsockname()[1]}"
+    out = tmp_path / "run"
+    start = time.monotonic()
+    res = runner.invoke(app, ["online", *TINY, "--executor", "ray", "--ray-address", address,
+                              "--out", str(out)])  # fmt: skip
+    assert time.monotonic() - start < 20
+    assert res.exit_code == 2, res.output
+    line = res.output.strip()
+    assert line.count("\n") == 0 and address in line and "within 3 s" in line
+    assert not out.exists()
+    server.close()
+
+
 def test_a_cluster_that_wants_its_token_is_one_line_naming_it(cluster, tmp_path):
     """A driver started without the cluster's authentication token is refused by Ray; the
     line says so (not "does not answer"), exit 2, nothing written."""
