@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import resource
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -31,6 +33,7 @@ def atomic_path(path: Path) -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from the group
     try:
         yield tmp_path
+        _check_not_cut(tmp_path)
         _fsync(tmp_path)  # ENOSPC on delayed allocation surfaces here, not after the rename
         os.replace(tmp_path, path)
     except OSError as exc:
@@ -40,6 +43,16 @@ def atomic_path(path: Path) -> Iterator[Path]:
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def _check_not_cut(path: Path) -> None:
+    """OSError (EFBIG) if the file reached the process's file-size limit (``ulimit -f``): a
+    write cut there can return without an error, leaving the file short."""
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and path.stat().st_size >= limit:
+        raise OSError(
+            errno.EFBIG, f"the file size limit ({limit} bytes, ulimit -f) cut the file short"
+        )
 
 
 def _fsync(path: Path) -> None:

@@ -129,3 +129,26 @@ def test_a_size_beyond_memory_is_refused_under_a_memory_limit(case, argv, words,
     assert len(lines) == 1 and words in lines[0] and "memory" in lines[0], done.stderr[-2000:]
     assert seconds < 20, seconds  # Python, torch and the simulators start in the subprocess
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv", ["goal --out {out}/goal.npy",
+                                  "collect --episodes 2 --steps 20 --out {out}/run"])  # fmt: skip
+def test_a_file_size_limit_is_one_line_and_no_short_file(argv, tmp_path):
+    """Under `ulimit -f` a write is cut without an error; the file is refused, not kept."""
+    out = tmp_path / "out"
+    out.mkdir()
+    program = (
+        "import resource, sys\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (300, 300))\n"
+        "from dlocli.cli import main\n"
+        f"sys.argv = ['dlo', *{argv.format(out=out).split()!r}]\n"
+        "main()\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    done = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, timeout=120, env=env
+    )
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert len(lines) == 1 and "file size limit" in lines[0], done.stderr[-2000:]
+    assert not [p for p in out.rglob("*") if p.suffix in (".npy", ".h5")]
