@@ -50,9 +50,7 @@ def _check_not_cut(path: Path) -> None:
     write cut there can return without an error, leaving the file short."""
     limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
     if limit != resource.RLIM_INFINITY and path.stat().st_size >= limit:
-        raise OSError(
-            errno.EFBIG, f"the file size limit ({limit} bytes, ulimit -f) cut the file short"
-        )
+        raise OSError(errno.EFBIG, os.strerror(errno.EFBIG))  # cut at ``limit`` bytes
 
 
 def _fsync(path: Path) -> None:

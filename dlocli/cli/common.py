@@ -111,7 +111,7 @@ def os_error_line(exc: OSError) -> str:
     if is_path_error(exc):
         return f"cannot use{where}: {what}; pass a path you can write to (or read from)"
     if exc.errno == errno.EFBIG:
-        return f"{where.strip()}: the file size limit cut it short; raise `ulimit -f` and run again"
+        return f"{what}{where}: the file size limit stops it; raise `ulimit -f` and run again"
     return f"{what}{where}; free space or fix the file system and run again"
 
 
