@@ -185,12 +185,26 @@ def input_files(spec: Any) -> dict[str, Path]:
     return found
 
 
+def resolved(path: Path, field: str) -> Path:
+    """``path`` made absolute with its links followed; BadInput naming ``field`` (the spec's
+    dotted field) if the links loop (Python raises RuntimeError or OSError ELOOP, by version)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as exc:
+        if isinstance(exc, OSError) and exc.errno != errno.ELOOP:
+            raise
+        raise BadInput(
+            f"{field} {path}: its symbolic links loop; pass a path that resolves"
+        ) from None
+
+
 def refuse_outputs_in_inputs(spec: Any) -> None:
     """BadInput if something ``spec`` writes would land in the run directory of something it
-    reads (``dlo train --data D --out D``): that run's results would be replaced."""
-    runs = {name: run for name, path in _path_fields(spec) if (run := _run_of(path))}
+    reads (``dlo train --data D --out D``): that run's results would be replaced; or if a path
+    of the spec's runs into a loop of links."""
+    runs = {name: run for name, path in _path_fields(spec) if (run := _run_of(path, name))}
     for output, path in _path_fields(spec, outputs=True):
-        target = path.resolve()
+        target = resolved(path, output)
         for name, run in runs.items():
             if target == run or run in target.parents:
                 raise BadInput(
@@ -199,9 +213,9 @@ def refuse_outputs_in_inputs(spec: Any) -> None:
                 )
 
 
-def _run_of(path: Path) -> Path | None:
+def _run_of(path: Path, field: str) -> Path | None:
     """The run directory ``path`` is or lies in (one holding a spec.json), if any."""
-    path = path.resolve()
+    path = resolved(path, field)
     for folder in (path, *path.parents) if path.is_dir() else path.parents:
         if (folder / "spec.json").is_file():
             return folder

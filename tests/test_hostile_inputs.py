@@ -300,3 +300,19 @@ def test_the_env_refuses_an_action_that_is_not_one(action, words):
     for call in (lambda: env.step(np.zeros(6)), env.reset):
         with pytest.raises(BadOption, match="after close"):
             call()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["control", "--goal", "{loop}/goal.npy", "--controller", "zero", "--out", "{tmp}/out"],
+     ["collect", "--episodes", "1", "--steps", "5", "--out", "{loop}/run"],
+     ["train", "--data", "{loop}", "--out", "{tmp}/out"]],
+    ids=["goal", "out", "data"],
+)  # fmt: skip
+def test_a_path_into_a_loop_of_links_is_one_line(argv, tmp_path, capsys):
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    args = [a.format(loop=tmp_path / "a", tmp=tmp_path) for a in argv]
+    line = _one_line(args, capsys, [tmp_path])
+    assert "links loop" in line and str(tmp_path / "a") in line
+    assert not (tmp_path / "out").exists()
