@@ -316,3 +316,15 @@ def test_a_path_into_a_loop_of_links_is_one_line(argv, tmp_path, capsys):
     line = _one_line(args, capsys, [tmp_path])
     assert "links loop" in line and str(tmp_path / "a") in line
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["control", "eval"])
+def test_a_text_file_as_checkpoint_is_one_line(command, near_rest_goal, small_dataset_dir,
+                                               tmp_path, capsys):  # fmt: skip
+    text = tmp_path / "model.pt"
+    text.write_text("hello\n")
+    argv = {"control": ["control", "--goal", str(near_rest_goal)],
+            "eval": ["eval", "--data", str(small_dataset_dir)]}[command]  # fmt: skip
+    line = _one_line([*argv, "--checkpoint", str(text), "--out", str(tmp_path / "out")],
+                     capsys, [tmp_path])  # fmt: skip
+    assert str(text) in line and "checkpoint" in line

@@ -327,6 +327,8 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
     it is not a dlocli checkpoint."""
     path = checkpoint_path(path)
     try:
+        if not zipfile.is_zipfile(path):  # what torch.save writes; a text file fed to torch's
+            raise zipfile.BadZipFile  # loader for older checkpoints fails in unforeseen ways
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, pickle.UnpicklingError, EOFError, OSError, ValueError,
             zipfile.BadZipFile) as exc:  # fmt: skip
