@@ -101,35 +101,35 @@ def test_the_example_robot_cell_speaks_the_protocol(near_rest_goal, sac_policy, 
     assert _errors(there) == _errors(here)
 
 
+def _through_cell(cell_flags: list[str], argv: list[str]) -> dict:
+    """The summary of `dlo` ``argv`` run against a cell served with ``cell_flags``."""
+    with served(*cell_flags) as address:
+        assert run_dlo([*argv, "--cell", address]) == 0
+    return _summary(Path(argv[argv.index("--out") + 1]))
+
+
 def test_a_delayed_cell_counts_its_late_steps_and_the_run_finishes(
     near_rest_goal, sac_policy, tmp_path
 ):
     """20 ms of delay at 50 Hz: every reply comes after the next tick."""
-    out = tmp_path / "run"
-    with served("--realtime", "--delay-ms", "20") as address:
-        assert run_dlo(_control(near_rest_goal, sac_policy, out, "--cell", address)) == 0
-    summary = _summary(out)
+    argv = _control(near_rest_goal, sac_policy, tmp_path / "run")
+    summary = _through_cell(["--realtime", "--delay-ms", "20"], argv)
     assert summary["steps"] == 12
     assert summary["cell_late_steps"] >= 6, summary
 
 
 def test_dropped_commands_are_counted_and_the_run_finishes(near_rest_goal, sac_policy, tmp_path):
-    out = tmp_path / "run"
-    with served("--drop-probability", "0.5", "--seed", "3") as address:
-        assert run_dlo(_control(near_rest_goal, sac_policy, out, "--cell", address)) == 0
-    summary = _summary(out)
+    argv = _control(near_rest_goal, sac_policy, tmp_path / "run")
+    summary = _through_cell(["--drop-probability", "0.5", "--seed", "3"], argv)
     assert summary["steps"] == 12
     # counted since the reset: the start shape's motion goes through the cell too
     assert summary["cell_dropped_commands"] >= 1, summary
 
 
 def test_a_cell_that_loses_tracking_stops_the_grippers(near_rest_goal, sac_policy, tmp_path):
-    out = tmp_path / "run"
-    argv = _control(near_rest_goal, sac_policy, out, "--stop-after-lost-s", "0.03")
+    argv = _control(near_rest_goal, sac_policy, tmp_path / "run", "--stop-after-lost-s", "0.03")
     argv[argv.index("--steps") + 1] = "40"
-    with served("--frame-loss-probability", "0.6", "--seed", "1") as address:
-        assert run_dlo([*argv, "--cell", address]) == 0
-    summary = _summary(out)
+    summary = _through_cell(["--frame-loss-probability", "0.6", "--seed", "1"], argv)
     assert summary["steps"] == 40 and 1 <= summary["clipped_tracking_lost"] < 40, summary
 
 
