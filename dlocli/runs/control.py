@@ -214,7 +214,7 @@ def _run_closed_loop(
         counts = cell_counts(env) | env.envelope.summary()
     finally:
         env.close()
-    if not loop.records:  # the cell was lost before the first step: nothing to keep
+    if loop.lost is not None and not loop.records:  # lost before the first step: nothing kept
         raise loop.lost
     summary = summarise(loop.records, loop.initial_error, spec, loop.diverged, wall) | counts
     write_metrics(out / "metrics.csv", loop.records)
@@ -233,9 +233,9 @@ def _run_closed_loop(
 def cell_counts(env: DLOShapeEnv) -> dict[str, int]:
     """What a cell (``--cell``) counted: periods stepped with the held command because the
     command came late, and commands lost; nothing for a simulator in this process."""
-    state = getattr(env.backend, "state", None) if isinstance(env.backend, RemoteCell) else None
-    if not state:
+    if not isinstance(env.backend, RemoteCell) or not env.backend.state:
         return {}
+    state = env.backend.state
     return {"cell_late_steps": state["late"], "cell_dropped_commands": state["dropped"]}
 
 
