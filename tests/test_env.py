@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import dlocli
+from dlocli.backends import runnable_backends
 from dlocli.errors import BadInput, UnknownName
-from dlocli.registry import backends
 
-CASES = [(b, t) for b in backends.names() for t in ("single", "bimanual")]
+CASES = [(b, t) for b in runnable_backends() for t in ("single", "bimanual")]
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +65,7 @@ def test_episode_reward_and_truncation(envs, backend, task):
 
 
 def test_single_task_keeps_left_gripper_static(envs):
-    env = get_env(envs, backends.names()[0], "single")
+    env = get_env(envs, runnable_backends()[0], "single")
     env.reset(seed=1)
     left = env.backend.gripper_poses()[0].copy()
     for _ in range(10):
@@ -74,7 +74,7 @@ def test_single_task_keeps_left_gripper_static(envs):
 
 
 def test_reset_distribution_is_seeded_and_varied(envs):
-    env = get_env(envs, backends.names()[0], "single")
+    env = get_env(envs, runnable_backends()[0], "single")
     a, _ = env.reset(seed=5)
     b, _ = env.reset(seed=5)
     c, _ = env.reset(seed=6)
@@ -101,7 +101,7 @@ def test_gym_ids_are_registered():
 
 
 def test_bad_names_and_goals(tmp_path):
-    with pytest.raises(UnknownName, match="valid backends: mujoco, pybullet"):
+    with pytest.raises(UnknownName, match="valid backends: mujoco, mujoco-flex, pybullet"):
         dlocli.make_env(backend="mujoko")
     bad = tmp_path / "goal.npy"
     np.save(bad, np.zeros((5, 3)))

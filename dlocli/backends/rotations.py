@@ -62,3 +62,43 @@ def state_change(state: Any, next_state: Any) -> Any:
     import torch
 
     return torch.cat([position, quat], -1)
+
+
+def quat_from_frames(x_axes: np.ndarray, y_axes: np.ndarray) -> np.ndarray:
+    """(M,4) unit quaternions (w >= 0) of the frames with these orthonormal (M,3) x and y axes
+    (world frame), by Shepperd's method: the largest of w, x, y, z is found from the matrix
+    trace, the others from it, so no frame loses precision."""
+    z_axes = np.cross(x_axes, y_axes)
+    m = np.stack([x_axes, y_axes, z_axes], axis=-1)  # columns are the frame's axes
+    trace = np.stack([m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2], m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]])
+    pick = np.argmax(trace, axis=0)
+    quats = np.empty((len(m), 4))
+    for choice in range(4):
+        rows = pick == choice
+        if rows.any():
+            quats[rows] = _shepperd(m[rows], choice)
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    return np.where(quats[:, :1] < 0, -quats, quats)
+
+
+def _shepperd(m: np.ndarray, choice: int) -> np.ndarray:
+    """Quaternions of rotation matrices ``m`` (K,3,3) from their largest component ``choice``
+    (0: w, 1: x, 2: y, 3: z)."""
+    diag = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    if choice == 0:
+        s = 2.0 * np.sqrt(1.0 + diag[0] + diag[1] + diag[2])
+        parts = (0.25 * s, (m[:, 2, 1] - m[:, 1, 2]) / s, (m[:, 0, 2] - m[:, 2, 0]) / s,
+                 (m[:, 1, 0] - m[:, 0, 1]) / s)  # fmt: skip
+    elif choice == 1:
+        s = 2.0 * np.sqrt(1.0 + diag[0] - diag[1] - diag[2])
+        parts = ((m[:, 2, 1] - m[:, 1, 2]) / s, 0.25 * s, (m[:, 0, 1] + m[:, 1, 0]) / s,
+                 (m[:, 0, 2] + m[:, 2, 0]) / s)  # fmt: skip
+    elif choice == 2:
+        s = 2.0 * np.sqrt(1.0 - diag[0] + diag[1] - diag[2])
+        parts = ((m[:, 0, 2] - m[:, 2, 0]) / s, (m[:, 0, 1] + m[:, 1, 0]) / s, 0.25 * s,
+                 (m[:, 1, 2] + m[:, 2, 1]) / s)  # fmt: skip
+    else:
+        s = 2.0 * np.sqrt(1.0 - diag[0] - diag[1] + diag[2])
+        parts = ((m[:, 1, 0] - m[:, 0, 1]) / s, (m[:, 0, 2] + m[:, 2, 0]) / s,
+                 (m[:, 1, 2] + m[:, 2, 1]) / s, 0.25 * s)  # fmt: skip
+    return np.stack(parts, axis=-1)
