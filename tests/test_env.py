@@ -8,7 +8,12 @@ import pytest
 
 import dlocli
 from dlocli.backends import runnable_backends
+from dlocli.env.registration import gym_id
 from dlocli.errors import BadInput, UnknownName
+from dlocli.specs import default_backend
+
+#: the Gymnasium id of the MuJoCo rod the installed MuJoCo runs, single gripper
+DEFAULT_ID = gym_id(default_backend(), "single")
 
 CASES = [(b, t) for b in runnable_backends() for t in ("single", "bimanual")]
 
@@ -94,8 +99,8 @@ def test_random_goals_change_per_episode():
 
 
 def test_gym_ids_are_registered():
-    assert "dlocli/MujocoSingle-v0" in gym.registry
-    env = gym.make("dlocli/MujocoSingle-v0", episode_steps=5)
+    assert DEFAULT_ID in gym.registry
+    env = gym.make(DEFAULT_ID, episode_steps=5)
     env.reset(seed=0)
     env.close()
 

@@ -9,9 +9,13 @@ import pytest
 import dlocli
 from dlocli.backends import runnable_backends
 from dlocli.controllers.base import Controller, ZeroController
+from dlocli.env.registration import gym_id
 from dlocli.env.shapes import draw_gripper_targets, rotation_between
 from dlocli.registry import controllers
-from dlocli.specs import TaskSpec
+from dlocli.specs import TaskSpec, default_backend
+
+#: the Gymnasium id of the MuJoCo rod the installed MuJoCo runs, single gripper
+DEFAULT_ID = gym_id(default_backend(), "single")
 
 #: mm the shape error may move in 5 steps of doing nothing after the reset's settling. The
 #: flex rod's sideways swing keeps its material damping (ratio about 0.1, decaying twofold a
@@ -178,7 +182,7 @@ def test_make_env_refuses_misspelt_fields_and_takes_the_goal_mode():
 
     with pytest.raises(BadInput, match="unexpected keyword argument 'episode_step'"):
         dlocli.make_env(episode_step=50)
-    env = gym.make("dlocli/MujocoSingle-v0", goal="random", episode_steps=5)
+    env = gym.make(DEFAULT_ID, goal="random", episode_steps=5)
     try:
         assert env.unwrapped.task_spec.goal == "random"
         assert env.unwrapped.task_spec.episode_steps == 5
@@ -193,7 +197,7 @@ def test_gym_make_with_the_module_in_the_id():
 
     code = (
         "import gymnasium as gym; "
-        "env = gym.make('dlocli:dlocli/MujocoSingle-v0', goal='random', episode_steps=5); "
+        f"env = gym.make('dlocli:{DEFAULT_ID}', goal='random', episode_steps=5); "
         "print(env.unwrapped.task_spec.goal)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
