@@ -2,11 +2,13 @@
 
 Runs every check of ``dlocli.backends.conformance`` (the same ones
 tests/test_physics_conformance.py asserts: references computed there, closed forms and the
-elastica solved with scipy's ``solve_bvp``) on every registered backend, the earlier rod's
+elastica solved with scipy's ``solve_bvp``) on every backend that runs here (MuJoCo 3 runs
+the composite cable "mujoco", MuJoCo 4 the flex rod "mujoco-flex"), the earlier rod's
 self-weight (``clamp_compliance="rigid"``) for comparison, both backends on the same 2 s
 motion, and what PyBullet adds to the segments' rotary inertia at its default step.
 
-    python benchmarks/rod_physics.py > benchmarks/results/rod_physics.txt
+    python benchmarks/rod_physics.py > benchmarks/results/rod_physics.txt           # MuJoCo 3
+    python benchmarks/rod_physics.py > benchmarks/results/rod_physics_mujoco4.txt   # MuJoCo 4
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from datetime import date
 
 import numpy as np
 
-from dlocli.backends import conformance
+from dlocli.backends import conformance, runnable_backends
 from dlocli.backends.base import material_physics_dt
 from dlocli.env.shape_env import make_backend
 from dlocli.registry import backends
@@ -64,9 +66,12 @@ def added_inertia(rod: RodSpec) -> str:
 
 
 def main() -> None:
-    names = backends.names()
+    import mujoco
+
+    names = runnable_backends()
     print(
-        f"# python benchmarks/rod_physics.py, {date.today()}, on {commit()}; "
+        f"# python benchmarks/rod_physics.py, {date.today()}, on {commit()}, MuJoCo "
+        f"{mujoco.__version__}; "
         "simulated / reference (! = outside the tolerance)"
     )
     print(

@@ -16,15 +16,21 @@ Layout (built from the :class:`~dlocli.specs.RodSpec` and the rest gripper poses
   clamp joint of stiffness 2 E I / l and 2 G J / l that ``clamp_compliance="half-segment"``
   asks for (with the real rod stopping at the gripper).
 - Twist: MuJoCo 4 gives an edge a twist angle when a body named ``<flex>_twist_<edge>``
-  with one hinge exists; its inertia about the hinge is the segment's polar inertia
-  ``m r^2 / 2``. Edges inside a pad have none: their material frame is the pad's.
+  (the flex's last edge: ``<flex>_twist``) with one hinge exists; its inertia about the
+  hinge is the segment's polar inertia ``m r^2 / 2``. Edges inside a pad have none: their
+  material frame is the pad's.
+- The model is compiled straight (MuJoCo takes the compiled shape as stress-free) and the
+  backend moves it to the sagging rest shape before settling.
 - Edge lengths are held by the flex equality constraint at the stiffest time constant MuJoCo
-  accepts (two steps): ``young_tension`` is not used, as on the other backends.
+  accepts (two steps) and an impedance of 0.9999 at any violation (the default, 0.9 to
+  0.95, lets the task's pulls stretch edges by several percent): ``young_tension`` is not
+  used, as on the other backends.
 - Damping: ``<elasticity damping>`` is stiffness-proportional (Kelvin-Voigt) on bending and
   twist alike, a time in seconds, integrated implicitly with the elasticity by MuJoCo's
-  ``discrete`` integrator. MuJoCo refuses elasticity damping on a flex pinned to mocap
-  bodies, hence the pads: gravity-compensated free bodies welded to the mocap grippers as in
-  the composite cable (dlocli.backends.mujoco_cable).
+  ``discrete`` integrator; tendons add what it leaves out (dlocli.backends.flex_damping).
+  MuJoCo refuses elasticity damping on a flex pinned to mocap bodies, hence the pads:
+  gravity-compensated free bodies welded to the mocap grippers as in the composite cable
+  (dlocli.backends.mujoco_welded).
 - No contacts: the rod hangs in the air and may pass through itself.
 """
 
@@ -38,8 +44,9 @@ from dlocli.backends.mujoco_common import LIGHT_XML, SCENE_XML, fmt_numbers, res
 from dlocli.backends.mujoco_welded import PAD_MASS_RATIO, PAD_STIFFNESS_RATIO, WELD_SOLIMP
 from dlocli.specs import RodSpec
 
-#: the edge-length constraint: near-hard at any violation, so loads stretch edges little
-EDGE_SOLIMP = (0.99, 0.99, 0.001, 0.5, 2.0)
+#: the edge-length constraint: near-hard at any violation, so that the task's pulls stretch
+#: edges little (benchmarks/results/backend_stability_mujoco_rods.txt)
+EDGE_SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 
 
 def _pad_xml(index: int, pose: np.ndarray, mass: float, inertia: float, sites: str) -> str:

@@ -26,7 +26,7 @@ from dlocli.backends.flex_layout import FlexLayout, twist_body, vertex_body
 from dlocli.backends.flex_model import flex_points, flex_xml
 from dlocli.backends.mujoco_common import MUJOCO_MAJOR, mujoco
 from dlocli.backends.mujoco_welded import WeldedMujocoRod
-from dlocli.backends.rotations import quat_from_frames
+from dlocli.backends.rotations import cross3, quat_from_frames
 from dlocli.specs import DEFAULT_DAMPING_TIME, BackendSpec
 
 
@@ -101,6 +101,7 @@ class MujocoFlex(WeldedMujocoRod):
     # ----------------------------------------------------------------- indices and views
     def _bind_indices(self) -> None:
         """Cache what the hot path reads: vertex, twist and plastic addresses into mjData."""
+        self._quaternions: np.ndarray | None = None  # of the current state, once asked
         m, layout = self.model, self.layout
         self._vertices = m.flex_vertadr[0] + np.arange(layout.n_vertices)[layout.rod_vertices]
         edges = np.arange(layout.n_vertices - 1)[layout.rod_edges]
@@ -184,6 +185,7 @@ class MujocoFlex(WeldedMujocoRod):
         state before its last integration)."""
         mujoco.mj_kinematics(self.model, self.data)
         mujoco.mj_flex(self.model, self.data)
+        self._quaternions = None
 
     def _state_is_sane(self) -> bool:
         points = self.data.flexvert_xpos[self._vertices]
@@ -191,11 +193,24 @@ class MujocoFlex(WeldedMujocoRod):
         return bool(reach < 3.0 * self.rod.length)
 
     # ----------------------------------------------------------------- observations
+    def edge_stretch(self) -> np.ndarray:
+        """(N,) each segment's length over its rest length, minus one (the flex's edges are
+        held by a stiff constraint, not rigid)."""
+        points = self.data.flexvert_xpos[self._vertices]
+        lengths = np.linalg.norm(points[1:] - points[:-1], axis=1)
+        return lengths / self.rod.segment_length - 1.0
+
     def segment_positions(self) -> np.ndarray:
         points = self.data.flexvert_xpos[self._vertices]
         return 0.5 * (points[1:] + points[:-1])
 
     def segment_quaternions(self) -> np.ndarray:
+        # computed once per state: the env reads them for the observation and the velocity
+        if self._quaternions is None:
+            self._quaternions = self._material_frames()
+        return self._quaternions.copy()
+
+    def _material_frames(self) -> np.ndarray:
         points = self.data.flexvert_xpos[self._vertices]
         edges = points[1:] - points[:-1]
         tangent = edges / np.linalg.norm(edges, axis=1, keepdims=True)
@@ -203,7 +218,7 @@ class MujocoFlex(WeldedMujocoRod):
         stored = plastic[self._plastic_tangent]
         director = parallel_transport(plastic[self._plastic_director], stored, tangent)
         angle = np.where(self._twisting, self.data.qpos[self._twist_qpos], 0.0)[:, None]
-        binormal = np.cross(tangent, director)
+        binormal = cross3(tangent, director)
         material = np.cos(angle) * director + np.sin(angle) * binormal
         return quat_from_frames(tangent, material)
 
@@ -211,9 +226,9 @@ class MujocoFlex(WeldedMujocoRod):
 def parallel_transport(vectors: np.ndarray, before: np.ndarray, after: np.ndarray) -> np.ndarray:
     """(M,3) unit vectors normal to the unit tangents ``before`` turned by the smallest
     rotations that take ``before`` to ``after``, and re-made normal to ``after``."""
-    axis = np.cross(before, after)
+    axis = cross3(before, after)
     cos = np.einsum("ij,ij->i", before, after)[:, None]
     dot = np.einsum("ij,ij->i", axis, vectors)[:, None]
-    turned = cos * vectors + np.cross(axis, vectors) + dot * axis / (1.0 + cos)
+    turned = cos * vectors + cross3(axis, vectors) + dot * axis / (1.0 + cos)
     turned -= np.einsum("ij,ij->i", turned, after)[:, None] * after
     return turned / np.linalg.norm(turned, axis=1, keepdims=True)
