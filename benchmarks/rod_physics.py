@@ -81,19 +81,19 @@ def main() -> None:
         f"({material_physics_dt(conformance.paper_rod()) * 1e3:.3f} ms for the 1 m rod, "
         f"{material_physics_dt(conformance.short_rod()) * 1e6:.0f} us for the 0.2 m rod)"
     )
-    print(f"{'check':40s}{'tolerance':>10s}" + "".join(f"{n:>10s}" for n in names))
+    print(f"{'check':40s}{'tolerance':>10s}" + "".join(f"{n:>12s}" for n in names))
     for check in conformance.CHECKS:
         start = time.perf_counter()
         cells = [ratio_cell(check, n) for n in names]
         print(
-            f"{check.name:40s}{check.tolerance:>10.0%}" + "".join(f"{c:>10s}" for c in cells),
+            f"{check.name:40s}{check.tolerance:>10.0%}" + "".join(f"{c:>12s}" for c in cells),
             f"  ({time.perf_counter() - start:.0f} s)",
         )
         sys.stdout.flush()
     cells = [earlier_rod_self_weight(n) for n in names]
     print(
         f"{'earlier rod (rigid clamp), self-weight':40s}{'':>10s}"
-        + "".join(f"{c:>10s}" for c in cells)
+        + "".join(f"{c:>12s}" for c in cells)
     )
     paths = {n: conformance.same_motion(n) for n in names}
     for a, b in itertools.combinations(names, 2):

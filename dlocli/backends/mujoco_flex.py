@@ -26,7 +26,7 @@ from dlocli.backends.flex_layout import FlexLayout, twist_body, vertex_body
 from dlocli.backends.flex_model import flex_points, flex_xml
 from dlocli.backends.mujoco_common import MUJOCO_MAJOR, mujoco
 from dlocli.backends.mujoco_welded import WeldedMujocoRod
-from dlocli.backends.rotations import cross3, quat_from_frames
+from dlocli.backends.rotations import cross3
 from dlocli.specs import DEFAULT_DAMPING_TIME, BackendSpec
 
 
@@ -220,7 +220,7 @@ class MujocoFlex(WeldedMujocoRod):
         angle = np.where(self._twisting, self.data.qpos[self._twist_qpos], 0.0)[:, None]
         binormal = cross3(tangent, director)
         material = np.cos(angle) * director + np.sin(angle) * binormal
-        return quat_from_frames(tangent, material)
+        return frames_to_quaternions(tangent, material)
 
 
 def parallel_transport(vectors: np.ndarray, before: np.ndarray, after: np.ndarray) -> np.ndarray:
@@ -232,3 +232,13 @@ def parallel_transport(vectors: np.ndarray, before: np.ndarray, after: np.ndarra
     turned = cos * vectors + cross3(axis, vectors) + dot * axis / (1.0 + cos)
     turned -= np.einsum("ij,ij->i", turned, after)[:, None] * after
     return turned / np.linalg.norm(turned, axis=1, keepdims=True)
+
+
+def frames_to_quaternions(x_axes: np.ndarray, y_axes: np.ndarray) -> np.ndarray:
+    """(M,4) unit quaternions (w x y z, w >= 0) of the frames with these orthonormal (M,3)
+    x and y axes (MuJoCo's conversion, a quarter of the cost of numpy's on 20 frames)."""
+    matrices = np.stack([x_axes, y_axes, cross3(x_axes, y_axes)], axis=-1).reshape(-1, 9)
+    quats = np.empty((len(matrices), 4))
+    for quat, matrix in zip(quats, matrices, strict=True):
+        mujoco.mju_mat2Quat(quat, matrix)
+    return quats * np.copysign(1.0, quats[:, :1])

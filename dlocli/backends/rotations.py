@@ -68,33 +68,3 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross products of (M,3) arrays (np.cross costs several times more on the
     small arrays of one rod)."""
     return a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
-
-
-def quat_from_frames(x_axes: np.ndarray, y_axes: np.ndarray) -> np.ndarray:
-    """(M,4) unit quaternions (w >= 0) of the frames with these orthonormal (M,3) x and y axes
-    (world frame), by Shepperd's method: each row's largest of |w|, |x|, |y|, |z| is found
-    from the matrix diagonal and the others divided by it, so no frame loses precision."""
-    z_axes = cross3(x_axes, y_axes)
-    xx, yy, zz = x_axes[:, 0], y_axes[:, 1], z_axes[:, 2]
-    # 4 q_k^2 for k = w, x, y, z, from the diagonal
-    squares = np.stack([1 + xx + yy + zz, 1 + xx - yy - zz, 1 - xx + yy - zz, 1 - xx - yy + zz])
-    pick = np.argmax(squares, axis=0)
-    big = 0.5 * np.sqrt(np.maximum(squares[pick, np.arange(len(pick))], 1e-300))  # |q_pick|
-    # off-diagonal sums and differences: 4 q_i q_j for every pair
-    zy, yz = y_axes[:, 2], z_axes[:, 1]  # m[2,1] and m[1,2]
-    xz, zx = z_axes[:, 0], x_axes[:, 2]  # m[0,2] and m[2,0]
-    yx, xy = x_axes[:, 1], y_axes[:, 0]  # m[1,0] and m[0,1]
-    wx, wy, wz = zy - yz, xz - zx, yx - xy
-    xy_, xz_, yz_ = yx + xy, xz + zx, zy + yz
-    products = np.stack(
-        [
-            np.stack([squares[0], wx, wy, wz]),
-            np.stack([wx, squares[1], xy_, xz_]),
-            np.stack([wy, xy_, squares[2], yz_]),
-            np.stack([wz, xz_, yz_, squares[3]]),
-        ]
-    )  # (4 picks, 4 components, M): 4 q_pick q_component
-    rows = products[pick, :, np.arange(len(pick))]  # (M, 4)
-    quats = rows / (2.0 * big[:, None])
-    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-    return np.where(quats[:, :1] < 0, -quats, quats)
