@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import runpy
 import statistics
 import subprocess
-import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -26,9 +26,10 @@ TASKS = ("single", "bimanual")
 
 def measure(steps: int) -> dict[str, object]:
     """Env and raw physics steps/s of this venv's MuJoCo rod, per task."""
-    sys.path.insert(0, str(HERE))
     import mujoco
-    from sim_throughput import time_env
+
+    # the same measurement as benchmarks/sim_throughput.py (a script, not a module)
+    time_env = runpy.run_path(str(HERE / "sim_throughput.py"))["time_env"]
 
     from dlocli.specs import BackendSpec
 
