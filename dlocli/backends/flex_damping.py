@@ -2,9 +2,9 @@
 integrates tendon damping implicitly).
 
 MuJoCo's flex damping (``<elasticity damping>``, set to the bending time) damps bending and
-twist, but on a curved rod only the growth of each vertex's curvature, not its turning
-(measured: the sideways swing of the sagging rod, the rod bending sideways at its clamps,
-was as undamped with four times the damping). Two kinds of tendons add what is missing:
+twist, but on a curved rod only the growth of each vertex's curvature, not its turning: the
+sagging rod's sideways swing, which bends it sideways at its clamps, escapes it. Two kinds
+of tendons add what is missing:
 
 - At each clamp (the pad vertex next to the free rod), two spatial tendons from pad sites
   one segment beside the clamp, along the pad's y and z axes, to the first free vertex damp

@@ -22,9 +22,8 @@ Layout (built from the :class:`~dlocli.specs.RodSpec` and the rest gripper poses
 - The model is compiled straight (MuJoCo takes the compiled shape as stress-free) and the
   backend moves it to the sagging rest shape before settling.
 - Edge lengths are held by the flex equality constraint at the stiffest time constant MuJoCo
-  accepts (two steps) and an impedance of 0.9999 at any violation (the default, 0.9 to
-  0.95, lets the task's pulls stretch edges by several percent): ``young_tension`` is not
-  used, as on the other backends.
+  accepts (two steps) and an impedance near 1 at any violation, so that the task's pulls
+  stretch edges little: ``young_tension`` is not used, as on the other backends.
 - Damping: ``<elasticity damping>`` is stiffness-proportional (Kelvin-Voigt) on bending and
   twist alike, a time in seconds, integrated implicitly with the elasticity by MuJoCo's
   ``discrete`` integrator; tendons add what it leaves out (dlocli.backends.flex_damping).
