@@ -1,6 +1,6 @@
 """Backend stability and grip accuracy under gripper motion, for every registered backend.
 
-    python benchmarks/backend_stability.py [--backends mujoco,pybullet] [--episodes 10]
+    python benchmarks/backend_stability.py [--backends mujoco-flex,pybullet] [--episodes 10]
                                            [--steps 200] [--motion smooth|constant|sign]
 
 Each episode starts from the rest state and moves both grippers (max 0.1 m/s, 0.5 rad/s):
@@ -9,7 +9,9 @@ steps, saturating at the limits); ``constant`` holds one random velocity for the
 episode; ``sign`` holds full speed on every axis with random signs (the harshest: grippers
 rotate ~2 rad and pull apart to the separation limit, so the rod is pulled taut).
 Reported per backend: diverged episodes, and the held ends' errors against the grippers:
-orientation of the end segments (degrees) and position of the rod end points (mm).
+orientation of the end segments (degrees) and position of the rod end points (mm); for a rod
+whose segments are not rigid (the flex rod's edges are held by a stiff constraint), their
+stretch too (length / rest length - 1, over every segment and control step).
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ import time
 
 import numpy as np
 
+from dlocli.backends import runnable_backends
 from dlocli.backends.rotations import quat_multiply, quat_rotate
 from dlocli.env.shape_env import make_backend
-from dlocli.registry import backends
 from dlocli.specs import BackendSpec
 
 MAX_TWIST = np.array([0.1] * 3 + [0.5] * 3)  # m/s, rad/s
@@ -57,7 +59,8 @@ def grip_errors(backend) -> tuple[np.ndarray, np.ndarray]:
 def run(name: str, motion: str, episodes: int, steps: int, seed: int) -> str:
     backend = make_backend(BackendSpec(name=name))
     rng = np.random.default_rng(seed)
-    diverged, angles, offsets = 0, [], []
+    diverged, angles, offsets, stretch = 0, [], [], []
+    stretches = hasattr(backend, "edge_stretch")
     start = time.perf_counter()
     for _ in range(episodes):
         backend.reset(0)
@@ -68,12 +71,21 @@ def run(name: str, motion: str, episodes: int, steps: int, seed: int) -> str:
             angle, offset = grip_errors(backend)
             angles.append(angle)
             offsets.append(offset)
+            if stretches:
+                stretch.append(backend.edge_stretch())
     backend.close()
     angles, offsets = np.concatenate(angles), np.concatenate(offsets)
+    edges = ""
+    if stretches:
+        pct = 100 * np.concatenate(stretch)
+        edges = (
+            f"edge stretch median {np.median(pct):.3f} 99th {np.percentile(pct, 99):.3f} "
+            f"max {pct.max():.3f} %  "
+        )
     return (
-        f"{name:9} {motion:8} diverged {diverged}/{episodes}  "
+        f"{name:11} {motion:8} diverged {diverged}/{episodes}  "
         f"end orientation median {np.median(angles):.2f} max {angles.max():.2f} deg  "
-        f"end position median {np.median(offsets):.2f} max {offsets.max():.2f} mm  "
+        f"end position median {np.median(offsets):.2f} max {offsets.max():.2f} mm  {edges}"
         f"({time.perf_counter() - start:.0f} s)"
     )
 
@@ -82,7 +94,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
-    parser.add_argument("--backends", default=",".join(backends.names()))
+    parser.add_argument("--backends", default=",".join(runnable_backends()))
     parser.add_argument("--motion", default="smooth", choices=["smooth", "constant", "sign"])
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--steps", type=int, default=200)

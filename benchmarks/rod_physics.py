@@ -2,11 +2,13 @@
 
 Runs every check of ``dlocli.backends.conformance`` (the same ones
 tests/test_physics_conformance.py asserts: references computed there, closed forms and the
-elastica solved with scipy's ``solve_bvp``) on every registered backend, the earlier rod's
+elastica solved with scipy's ``solve_bvp``) on every backend that runs here (MuJoCo 3 runs
+the composite cable "mujoco", MuJoCo 4 the flex rod "mujoco-flex"), the earlier rod's
 self-weight (``clamp_compliance="rigid"``) for comparison, both backends on the same 2 s
 motion, and what PyBullet adds to the segments' rotary inertia at its default step.
 
-    python benchmarks/rod_physics.py > benchmarks/results/rod_physics.txt
+    python benchmarks/rod_physics.py > benchmarks/results/rod_physics.txt           # MuJoCo 3
+    python benchmarks/rod_physics.py > benchmarks/results/rod_physics_mujoco4.txt   # MuJoCo 4
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from datetime import date
 
 import numpy as np
 
-from dlocli.backends import conformance
+from dlocli.backends import conformance, runnable_backends
 from dlocli.backends.base import material_physics_dt
 from dlocli.env.shape_env import make_backend
 from dlocli.registry import backends
@@ -64,9 +66,12 @@ def added_inertia(rod: RodSpec) -> str:
 
 
 def main() -> None:
-    names = backends.names()
+    import mujoco
+
+    names = runnable_backends()
     print(
-        f"# python benchmarks/rod_physics.py, {date.today()}, on {commit()}; "
+        f"# python benchmarks/rod_physics.py, {date.today()}, on {commit()}, MuJoCo "
+        f"{mujoco.__version__}; "
         "simulated / reference (! = outside the tolerance)"
     )
     print(
@@ -76,19 +81,19 @@ def main() -> None:
         f"({material_physics_dt(conformance.paper_rod()) * 1e3:.3f} ms for the 1 m rod, "
         f"{material_physics_dt(conformance.short_rod()) * 1e6:.0f} us for the 0.2 m rod)"
     )
-    print(f"{'check':40s}{'tolerance':>10s}" + "".join(f"{n:>10s}" for n in names))
+    print(f"{'check':40s}{'tolerance':>10s}" + "".join(f"{n:>12s}" for n in names))
     for check in conformance.CHECKS:
         start = time.perf_counter()
         cells = [ratio_cell(check, n) for n in names]
         print(
-            f"{check.name:40s}{check.tolerance:>10.0%}" + "".join(f"{c:>10s}" for c in cells),
+            f"{check.name:40s}{check.tolerance:>10.0%}" + "".join(f"{c:>12s}" for c in cells),
             f"  ({time.perf_counter() - start:.0f} s)",
         )
         sys.stdout.flush()
     cells = [earlier_rod_self_weight(n) for n in names]
     print(
         f"{'earlier rod (rigid clamp), self-weight':40s}{'':>10s}"
-        + "".join(f"{c:>10s}" for c in cells)
+        + "".join(f"{c:>12s}" for c in cells)
     )
     paths = {n: conformance.same_motion(n) for n in names}
     for a, b in itertools.combinations(names, 2):

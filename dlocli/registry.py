@@ -117,6 +117,11 @@ backends.register(
     "MuJoCo 3.x composite cable (elasticity plugin), grippers as mocap bodies",
 )
 backends.register(
+    "mujoco-flex",
+    "dlocli.backends.mujoco_flex:MujocoFlex",
+    "MuJoCo 4 flex rod (1D flex, discrete elastic rod with twist), grippers as welded pads",
+)
+backends.register(
     "pybullet",
     "dlocli.backends.pybullet_chain:PybulletChain",
     "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l",

@@ -111,6 +111,19 @@ INEXTENSIBLE_YOUNG_TENSION = 1e8  # Pa, the paper's; the only value a spec may g
 MAX_SEGMENTS: dict[str, int] = {"pybullet": 31}
 
 
+def default_backend() -> str:
+    """The MuJoCo rod that the installed MuJoCo runs: the composite cable ("mujoco") on 3.x,
+    the flex rod ("mujoco-flex") from 4.0 on, which removed the cable. Read from the installed
+    package's metadata, so choosing it imports no MuJoCo."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        major = int(version("mujoco").split(".")[0])
+    except (PackageNotFoundError, ValueError):
+        return "mujoco"
+    return "mujoco" if major < 4 else "mujoco-flex"
+
+
 def segment_limit_error(backend: str, n_segments: int) -> str | None:
     """Why ``backend`` cannot simulate ``n_segments`` segments, or None if it can."""
     limit = MAX_SEGMENTS.get(backend)
@@ -224,7 +237,11 @@ class RodSpec(Spec):
 class BackendSpec(Spec):
     """Which simulator holds the rod, and how finely it integrates."""
 
-    name: str = Field("mujoco", description="Simulator backend (see `dlo list`).")
+    name: str = Field(
+        default_factory=default_backend,
+        description="Simulator backend (see `dlo list`); default: the MuJoCo rod of the "
+        "installed MuJoCo, 'mujoco' (composite cable) on 3.x, 'mujoco-flex' on 4.x.",
+    )
     physics_dt: float | None = Field(
         None,
         ge=1e-5,

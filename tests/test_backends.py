@@ -5,12 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dlocli.backends.rotations import quat_rotate
+from dlocli.backends import runnable_backends
+from dlocli.backends.rotations import (
+    quat_normalize,
+    quat_rotate,
+    quat_to_matrix,
+)
 from dlocli.env.shape_env import make_backend
+from dlocli.errors import BadInput
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec
 
-BACKENDS = backends.names()
+BACKENDS = runnable_backends()
 
 
 @pytest.fixture(params=BACKENDS)
@@ -127,3 +133,31 @@ def test_render_returns_image(backend):
     img = backend.render(width=96, height=64, goal=backend.segment_positions() + 0.05)
     assert img.shape == (64, 96, 3) and img.dtype == np.uint8
     assert img.std() > 1.0, "the image must show something"
+
+
+def test_a_backend_the_installed_simulator_cannot_run_refuses_in_one_line():
+    """MuJoCo 4 removed the composite cable; MuJoCo 3's 1D flex has no twist: each MuJoCo
+    rod refuses the other version with one line naming the other rod and the pin."""
+    refused = [name for name in backends.names() if name not in runnable_backends()]
+    assert refused, "one of the two MuJoCo rods needs the other MuJoCo major version"
+    for name in refused:
+        with pytest.raises(BadInput) as raised:
+            make_backend(BackendSpec(name=name))
+        message = str(raised.value)
+        assert "\n" not in message and "--backend mujoco" in message and "pip install" in message
+
+
+def test_the_default_backend_is_the_mujoco_rod_the_installed_mujoco_runs():
+    assert BackendSpec().name in runnable_backends()
+    assert BackendSpec().name.startswith("mujoco")
+
+
+def test_segment_frames_round_trip_through_quaternions():
+    from dlocli.backends.mujoco_flex import frames_to_quaternions
+
+    rng = np.random.default_rng(0)
+    quats = quat_normalize(rng.normal(size=(500, 4)))  # frames of every orientation
+    matrices = quat_to_matrix(quats)
+    np.testing.assert_allclose(
+        frames_to_quaternions(matrices[..., 0], matrices[..., 1]), quats, atol=1e-12
+    )

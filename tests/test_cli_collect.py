@@ -80,7 +80,7 @@ def test_list():
 @pytest.mark.parametrize(
     "args,needle",
     [
-        (["--backend", "mujoko"], "valid backends: mujoco, pybullet"),
+        (["--backend", "mujoko"], "valid backends: mujoco, mujoco-flex, pybullet"),
         (["--task", "tri"], "valid tasks"),
         (["--episodes", "0"], "episodes"),
         (["--steps", "-3"], "steps"),

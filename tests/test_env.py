@@ -7,10 +7,15 @@ import numpy as np
 import pytest
 
 import dlocli
+from dlocli.backends import runnable_backends
+from dlocli.env.registration import gym_id
 from dlocli.errors import BadInput, UnknownName
-from dlocli.registry import backends
+from dlocli.specs import default_backend
 
-CASES = [(b, t) for b in backends.names() for t in ("single", "bimanual")]
+#: the Gymnasium id of the MuJoCo rod the installed MuJoCo runs, single gripper
+DEFAULT_ID = gym_id(default_backend(), "single")
+
+CASES = [(b, t) for b in runnable_backends() for t in ("single", "bimanual")]
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +70,7 @@ def test_episode_reward_and_truncation(envs, backend, task):
 
 
 def test_single_task_keeps_left_gripper_static(envs):
-    env = get_env(envs, backends.names()[0], "single")
+    env = get_env(envs, runnable_backends()[0], "single")
     env.reset(seed=1)
     left = env.backend.gripper_poses()[0].copy()
     for _ in range(10):
@@ -74,7 +79,7 @@ def test_single_task_keeps_left_gripper_static(envs):
 
 
 def test_reset_distribution_is_seeded_and_varied(envs):
-    env = get_env(envs, backends.names()[0], "single")
+    env = get_env(envs, runnable_backends()[0], "single")
     a, _ = env.reset(seed=5)
     b, _ = env.reset(seed=5)
     c, _ = env.reset(seed=6)
@@ -94,14 +99,14 @@ def test_random_goals_change_per_episode():
 
 
 def test_gym_ids_are_registered():
-    assert "dlocli/MujocoSingle-v0" in gym.registry
-    env = gym.make("dlocli/MujocoSingle-v0", episode_steps=5)
+    assert DEFAULT_ID in gym.registry
+    env = gym.make(DEFAULT_ID, episode_steps=5)
     env.reset(seed=0)
     env.close()
 
 
 def test_bad_names_and_goals(tmp_path):
-    with pytest.raises(UnknownName, match="valid backends: mujoco, pybullet"):
+    with pytest.raises(UnknownName, match="valid backends: mujoco, mujoco-flex, pybullet"):
         dlocli.make_env(backend="mujoko")
     bad = tmp_path / "goal.npy"
     np.save(bad, np.zeros((5, 3)))

@@ -14,10 +14,9 @@ import itertools
 import numpy as np
 import pytest
 
-from dlocli.backends import conformance
-from dlocli.registry import backends
+from dlocli.backends import conformance, runnable_backends
 
-NAMES = backends.names()
+NAMES = runnable_backends()
 MOTION_MEAN_DISTANCE = 1e-3  # m, between two backends' segments on the same motion
 
 

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from dlocli.backends import runnable_backends
 from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
 from dlocli.migrations import LEGACY_VALUES
-from dlocli.registry import backends
 from dlocli.specs import BackendSpec, CollectSpec, RodSpec, resolve_spec
 
-BACKENDS = backends.names()
+BACKENDS = runnable_backends()
 #: positions every 5th step of MOTION at the default spec, recorded at commit 7473c21 (before
 #: the damping fields existed) on an AMD EPYC; bit-identical there with today's code
 BEFORE_DAMPING_FIELDS = Path(__file__).parent / "data" / "rod_motion_7473c21.npz"
@@ -71,7 +71,10 @@ def test_every_material_field_changes_the_motion(name: str) -> None:
 
 @pytest.mark.parametrize("name", BACKENDS)
 def test_damping_defaults_are_the_earlier_rod_and_zero_damping_changes_it(name: str) -> None:
-    recorded = np.load(BEFORE_DAMPING_FIELDS)[name]
+    archive = np.load(BEFORE_DAMPING_FIELDS)
+    if name not in archive.files:
+        pytest.skip(f"the {name} backend came after the damping fields: it has no earlier rod")
+    recorded = archive[name]
     earlier = RodSpec(**LEGACY_VALUES["rod"])  # the rod of runs saved before these fields
     today = run_motion(BackendSpec(name=name, rod=earlier), steps=30)[4::5, :, :3]
     # bit for bit on the machine that recorded it; other CPUs round differently

@@ -7,13 +7,23 @@ import numpy as np
 import pytest
 
 import dlocli
+from dlocli.backends import runnable_backends
 from dlocli.controllers.base import Controller, ZeroController
+from dlocli.env.registration import gym_id
 from dlocli.env.shapes import draw_gripper_targets, rotation_between
-from dlocli.registry import backends, controllers
-from dlocli.specs import TaskSpec
+from dlocli.registry import controllers
+from dlocli.specs import TaskSpec, default_backend
+
+#: the Gymnasium id of the MuJoCo rod the installed MuJoCo runs, single gripper
+DEFAULT_ID = gym_id(default_backend(), "single")
+
+#: mm the shape error may move in 5 steps of doing nothing after the reset's settling. The
+#: flex rod's sideways swing keeps its material damping (ratio about 0.1, decaying twofold a
+#: second); the composite cable's clamps damp it within a second.
+STILL_DRIFT_MM = {"mujoco-flex": 5.0}
 
 
-@pytest.mark.parametrize("backend", backends.names())
+@pytest.mark.parametrize("backend", runnable_backends())
 @pytest.mark.parametrize("task", ["single", "bimanual"])
 def test_random_pose_starts_are_far_from_their_goals(backend, task):
     """Doing nothing keeps the initial error; at the paper's scale it is many centimetres."""
@@ -26,7 +36,8 @@ def test_random_pose_starts_are_far_from_their_goals(backend, task):
             for _ in range(5):
                 *_, info = env.step(np.zeros(env.action_space.shape))
             assert not info["diverged"]
-            assert info["shape_error_mm"] == pytest.approx(initial[-1], abs=2.0)
+            drift = STILL_DRIFT_MM.get(backend, 2.0)
+            assert info["shape_error_mm"] == pytest.approx(initial[-1], abs=drift)
         assert min(initial) > 30.0 and np.mean(initial) > 60.0, initial
     finally:
         env.close()
@@ -81,7 +92,7 @@ def test_goal_is_where_the_grippers_were_driven():
         env.close()
 
 
-@pytest.mark.parametrize("backend", backends.names())
+@pytest.mark.parametrize("backend", runnable_backends())
 def test_velocity_observation_is_the_finite_difference(backend):
     env = dlocli.make_env(backend, "single", seed=0)
     try:
@@ -171,7 +182,7 @@ def test_make_env_refuses_misspelt_fields_and_takes_the_goal_mode():
 
     with pytest.raises(BadInput, match="unexpected keyword argument 'episode_step'"):
         dlocli.make_env(episode_step=50)
-    env = gym.make("dlocli/MujocoSingle-v0", goal="random", episode_steps=5)
+    env = gym.make(DEFAULT_ID, goal="random", episode_steps=5)
     try:
         assert env.unwrapped.task_spec.goal == "random"
         assert env.unwrapped.task_spec.episode_steps == 5
@@ -186,7 +197,7 @@ def test_gym_make_with_the_module_in_the_id():
 
     code = (
         "import gymnasium as gym; "
-        "env = gym.make('dlocli:dlocli/MujocoSingle-v0', goal='random', episode_steps=5); "
+        f"env = gym.make('dlocli:{DEFAULT_ID}', goal='random', episode_steps=5); "
         "print(env.unwrapped.task_spec.goal)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -174,7 +174,16 @@ class Backend(ABC):
     #: whether the last state saw the cable (a simulator always does; a cell's tracker may not)
     tracked: bool = True
 
+    @classmethod
+    def unavailable(cls) -> str | None:
+        """Why this backend cannot run with the installed simulator (one line naming the
+        fix), or None if it can."""
+        return None
+
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
+        reason = self.unavailable()
+        if reason:
+            raise BadInput(reason)
         self.spec = spec or BackendSpec(name=self.name)
         # a spec changed by model_copy(update=...) skips the spec's own validation
         error = segment_limit_error(self.name, self.spec.rod.n_segments)

@@ -45,106 +45,36 @@ Model (built from the :class:`~dlocli.specs.RodSpec`, compiled once per backend)
 
 from __future__ import annotations
 
-import contextlib
-import ctypes.util
-import math
-import os
-import sys
-import time
-import warnings
-import weakref
-
 import numpy as np
 
-from dlocli.backends.base import END_LOAD, KELVIN_VOIGT_REAL_INERTIA, Backend
-from dlocli.backends.render import finite_points, render_rod
+from dlocli.backends.base import END_LOAD, KELVIN_VOIGT_REAL_INERTIA
+from dlocli.backends.mujoco_common import (
+    LIGHT_XML,
+    MUJOCO_MAJOR,
+    SCENE_XML,
+    mujoco,
+    rest_polyline,
+)
+from dlocli.backends.mujoco_common import (
+    fmt_numbers as _fmt,
+)
+from dlocli.backends.mujoco_welded import (
+    PAD_MASS_RATIO,
+    PAD_STIFFNESS_RATIO,
+    WELD_SOLIMP,
+    WeldedMujocoRod,
+)
 from dlocli.backends.rotations import quat_multiply, quat_normalize
 from dlocli.specs import BackendSpec, RodSpec
-
-
-def _choose_headless_gl() -> str | None:
-    """Without a display, ask MuJoCo for EGL (or OSMesa) if its libraries are present.
-
-    MuJoCo reads MUJOCO_GL once, when it is imported. Returns the choice made, if any.
-    """
-    if "MUJOCO_GL" in os.environ or os.environ.get("DISPLAY"):
-        return None
-    find = ctypes.util.find_library
-    if find("EGL") and (find("OpenGL") or find("GL")):
-        os.environ["MUJOCO_GL"] = "egl"
-    elif find("OSMesa"):
-        os.environ["MUJOCO_GL"] = "osmesa"
-    return os.environ.get("MUJOCO_GL")
-
-
-def _forget_gl_imports(had_pyopengl_platform: bool) -> None:
-    """Undo a failed ``import mujoco`` with our GL choice, so it can be imported without GL."""
-    for name in [n for n in sys.modules if n.split(".")[0] in ("mujoco", "OpenGL")]:
-        del sys.modules[name]
-    if not had_pyopengl_platform:
-        os.environ.pop("PYOPENGL_PLATFORM", None)  # MuJoCo's GL modules set it
-    os.environ["MUJOCO_GL"] = "disable"
-
-
-_had_pyopengl_platform = "PYOPENGL_PLATFORM" in os.environ
-_gl_choice = _choose_headless_gl()
-try:
-    import mujoco
-except Exception:  # a broken GL stack must not take the physics down: render() falls back
-    if _gl_choice is None:
-        raise
-    _forget_gl_imports(_had_pyopengl_platform)
-    import mujoco
 
 #: segment lengths of the clamp stub behind a gripper: the plugin gives the joint that
 #: follows a body the stiffness E I / (that body's length), so a half-segment stub makes the
 #: joint at the gripper 2 E I / l, the compliance of the rod's half segment at its end
 STUB_LENGTH = 0.5
 RAYLEIGH_BETA = 0.05  # s; joint damping = beta * bending stiffness EI/l
-PAD_MASS_RATIO = 3.0  # pad mass as a multiple of the rod mass
-PAD_STIFFNESS_RATIO = 25.0  # weld rotational stiffness / joint bending stiffness
-WELD_SOLIMP = (0.99, 0.8, 0.01, 0.5, 2.0)  # stiff near zero violation, yields beyond ~1 cm
-SETTLE_MAX_TIME = 20.0  # s of simulated time to reach the rest state
-SETTLE_TOLERANCE = 1e-6  # m/s, rad/s: largest generalized velocity counted as "at rest"
-_STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads, warmstart too
-
-
-def _keep_warnings_counted_only(message: str) -> None:
-    """MuJoCo's warnings (an unstable simulation, ...) are counted in ``MjData.warning``,
-    which the backend checks; printed, they would come before the one-line error, and MuJoCo
-    would append them to a MUJOCO_LOG.TXT in the working directory."""
-    del message
-
-
-mujoco.set_mju_user_warning(_keep_warnings_counted_only)
-_GL_BROKEN = False  # set once per process when no GL context can be made: no retry noise
 
 
 # --------------------------------------------------------------------------- model building
-def rest_polyline(n_segments: int, length: float, chord: float) -> np.ndarray:
-    """(N+1,3) vertices (m) of a rod of equal segments from the origin to (chord, 0, 0).
-
-    The first and last segments lie along +x (so both grippers have identity orientation)
-    and the rod sags in the xz-plane with the profile of the first clamped buckling mode:
-    segment angles ``-A sin(2 pi i / (N-1))``, A found by bisection to match the chord. A
-    chord of at least the length gives a straight rod.
-    """
-    seg = length / n_segments
-    if chord >= length * (1.0 - 1e-9):
-        angles = np.zeros(n_segments)
-    else:
-        profile = np.sin(2.0 * np.pi * np.arange(n_segments) / (n_segments - 1))
-        low, high = 0.0, 0.5 * np.pi
-        for _ in range(60):  # chord(A) decreases monotonically on [0, pi/2]
-            mid = 0.5 * (low + high)
-            low, high = (mid, high) if seg * np.cos(mid * profile).sum() > chord else (low, mid)
-        angles = -0.5 * (low + high) * profile
-    steps = seg * np.stack([np.cos(angles), np.zeros(n_segments), np.sin(angles)], axis=1)
-    return np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
-
-
-def _fmt(values: np.ndarray | tuple[float, ...] | list[float]) -> str:
-    return " ".join(f"{float(v):.12g}" for v in np.ravel(values))
 
 
 def _cable_xml(
@@ -177,13 +107,9 @@ def _cable_xml(
   <option timestep="{dt:.12g}" integrator="implicitfast" gravity="0 0 {-gravity:.12g}">
     <flag contact="disable" autoreset="disable"/>
   </option>
-  <visual><global offwidth="1920" offheight="1440"/></visual>
-  <asset>
-    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.95 0.95 0.97"
-             rgb2="0.75 0.8 0.88" width="64" height="64"/>
-  </asset>
+  {SCENE_XML}
   <worldbody>
-    <light pos="0 -1 3" dir="0 0.3 -1" directional="true"/>
+    {LIGHT_XML}
     <body name="grip0" mocap="true" pos="{_fmt(grippers[0, :3])}" quat="{_fmt(grippers[0, 3:])}">
       <geom type="box" size="{marker}" rgba="0.2 0.4 0.9 0.6" contype="0" conaffinity="0"/>
     </body>
@@ -292,6 +218,15 @@ def _make_stub(body: mujoco.MjsBody, radius: float) -> None:
     geom.size[0] = radius
 
 
+def composite_cable_removed() -> str:
+    """The one line for a user who asks for the composite cable on MuJoCo 4 or later."""
+    return (
+        f"the mujoco backend is MuJoCo 3's composite cable, which MuJoCo {mujoco.__version__} "
+        "no longer has; use --backend mujoco-flex (the flex rod), or pip install "
+        "'mujoco==3.17.0' to bring the cable back"
+    )
+
+
 # --------------------------------------------------------------------------- small helpers
 def _right_multiplier(c: np.ndarray) -> np.ndarray:
     """4x4 matrix B with ``q @ B == q * c`` (quaternion product), for vectorised frame fixes."""
@@ -299,7 +234,7 @@ def _right_multiplier(c: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- backend
-class MujocoCable(Backend):
+class MujocoCable(WeldedMujocoRod):
     """MuJoCo 3.x composite cable (elasticity plugin), grippers as welded mocap bodies.
 
     ``model``/``data`` are the compiled MuJoCo model and its state; each control period runs
@@ -315,53 +250,34 @@ class MujocoCable(Backend):
     # the rod taut diverge in 0/100 episodes at 4 ms, 2/40 at 5 ms, 7/10 at 10 ms.
     default_physics_dt = 0.004
 
+    @classmethod
+    def unavailable(cls) -> str | None:
+        return composite_cable_removed() if MUJOCO_MAJOR >= 4 else None
+
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:
         super().__init__(spec, control_dt)
-        # an integer number of substeps per control period, none longer than physics_dt
-        self.n_substeps = max(1, math.ceil(control_dt / self.physics_dt - 1e-9))
-        dt = control_dt / self.n_substeps
+        dt = self._substep(control_dt)
         rest = self.rest_gripper_poses()
-        try:
-            self.model, frame_fix = build_model(
+        frame_fix = None
+
+        def build() -> mujoco.MjModel:
+            nonlocal frame_fix
+            model, frame_fix = build_model(
                 self.rod, rest, self.spec.held_ends == "both", dt, self.spec.gravity
             )
-        except ValueError as exc:  # MuJoCo's compiler refuses, e.g., a too light segment
-            reason = str(exc).strip().splitlines()[0][:160]
-            raise self.unworkable_rod(f"MuJoCo cannot build this rod ({reason})") from exc
-        self.data = mujoco.MjData(self.model)
+            return model
+
+        self._compile(build)
         self._frame_fix = _right_multiplier(frame_fix)
         self._half_segment = 0.5 * self.rod.segment_length
         self._bind_views()
-        # substep fractions of the control period, shifted ahead by the steady-state weld lag
-        # 2 dmax/d0 * timeconst * velocity (from MuJoCo's reference acceleration)
-        lead = 2.0 * WELD_SOLIMP[1] / WELD_SOLIMP[0] * (2.0 * dt) / control_dt
-        fractions = np.arange(1, self.n_substeps + 1) / self.n_substeps + lead
-        self._led_fractions = fractions[:, None, None]
-        self._state_size = mujoco.mj_stateSize(self.model, _STATE_SPEC)
-        self._renderer: mujoco.Renderer | None = None
-        self._renderer_finalizer: weakref.finalize | None = None
+        self._start(control_dt)
         self._rest_state = self._settle(rest)
         self._set_joint_damping()
         self._air_damping = self.rod.air_damping or 0.0
         self.reset()
 
     # ----------------------------------------------------------------- physics hooks
-    def _settle(self, grippers: np.ndarray) -> np.ndarray:
-        """Simulate the grippers held still until the rod is at rest; return that state."""
-        m, d = self.model, self.data
-        mujoco.mj_resetData(m, d)
-        d.mocap_pos[:] = grippers[:, :3]
-        d.mocap_quat[:] = grippers[:, 3:]
-        chunk = max(1, round(0.25 / m.opt.timestep))
-        for _ in range(max(1, math.ceil(SETTLE_MAX_TIME / (chunk * m.opt.timestep)))):
-            mujoco.mj_step(m, d, nstep=chunk)
-            if np.max(np.abs(d.qvel)) < SETTLE_TOLERANCE or not np.all(np.isfinite(d.qvel)):
-                break
-        if not np.all(np.isfinite(d.qpos)) or d.warning.number.any():
-            raise self.unworkable_rod("the rod's rest state diverged")
-        d.time = 0.0
-        return self._get_physics_state()
-
     def _set_joint_damping(self) -> None:
         """The rod spec's bending and twist damping, where it sets them (the compiled model
         holds the default, ``RAYLEIGH_BETA`` times the bending stiffness, on every axis)."""
@@ -377,7 +293,10 @@ class MujocoCable(Backend):
         # a clamp joint is stiffer, so its damping is too (the same material)
         self.model.dof_damping[self._rod_dofs] = (dofs * scale[:, None]).ravel()
 
-    def _apply_segment_forces(self) -> None:
+    def _forced(self) -> bool:
+        return bool(self._air_damping) or self._end_load is not None
+
+    def _apply_forces(self) -> None:
         """Air damping and the end load as applied forces, from the state mj_step1 left."""
         if self._air_damping:
             self._apply_air_damping()
@@ -406,10 +325,6 @@ class MujocoCable(Backend):
         spin_rate = self._air_damping * (1.0 + np.linalg.norm(spin, axis=1, keepdims=True))
         d.xfrc_applied[rod, 3:] = -spin_rate * np.einsum("nij,nj->ni", frames, local)
 
-    def _reset_physics(self, seed: int | None) -> None:
-        del seed  # no backend-internal noise: the rest state is deterministic
-        self._set_physics_state(self._rest_state)
-
     def _bind_views(self) -> None:
         """Cache numpy views into mjData: the hot path then pays no attribute lookups.
 
@@ -435,59 +350,12 @@ class MujocoCable(Backend):
         self._rod_origins = d.xpos[rod]  # segment start points
         self._rod_axes = d.xmat[rod, 0::3]  # x axis (first xmat column) of each segment
         self._rod_quats = d.xquat[rod]
-        self._mocap_pos = d.mocap_pos
-        self._mocap_quat = d.mocap_quat
-        self._warnings = d.warning.number
-
-    def _advance(self, start: np.ndarray, end: np.ndarray) -> bool:
-        m, d = self.model, self.data
-        delta = end - start
-        # the end rotation on the start's hemisphere, so that interpolation takes the short way
-        for i, (q0, q1) in enumerate(zip(start[:, 3:].tolist(), end[:, 3:].tolist(), strict=True)):
-            if sum(a * b for a, b in zip(q0, q1, strict=True)) < 0.0:
-                delta[i, 3:] = -end[i, 3:] - start[i, 3:]
-        # (n,2,7) substep targets, each led by the weld lag. Rotations are at most 0.02 rad per
-        # control period, where nlerp and slerp agree to ~1e-7 rad; MuJoCo normalises mocap
-        # quaternions itself.
-        targets = start + self._led_fractions * delta
-        for position, quat in zip(targets[:, :, :3], targets[:, :, 3:], strict=True):
-            self._mocap_pos[:] = position
-            self._mocap_quat[:] = quat
-            if self._air_damping or self._end_load is not None:
-                mujoco.mj_step1(m, d)
-                self._apply_segment_forces()
-                mujoco.mj_step2(m, d)
-            else:
-                mujoco.mj_step(m, d)
-        # mj_step leaves body poses of the state before its last integration: refresh them
-        mujoco.mj_kinematics(m, d)
-        return not self._warnings.any()
 
     def _state_is_sane(self) -> bool:
         # NaN and huge values already fail _advance through MuJoCo's warnings; what is left
         # to catch is an exploded but finite rod (NaN also fails the comparison)
         reach = np.abs(self._rod_origins - self._gripper_poses[0, :3]).max()
         return bool(reach < 3.0 * self.rod.length)
-
-    def _time_raw_physics(self, control_steps: int) -> float:
-        start = time.perf_counter()
-        mujoco.mj_step(self.model, self.data, nstep=control_steps * self.n_substeps)
-        return (time.perf_counter() - start) / control_steps
-
-    def _get_physics_state(self) -> np.ndarray:
-        state = np.empty(self._state_size)
-        mujoco.mj_getState(self.model, self.data, state, _STATE_SPEC)
-        return state
-
-    def _set_physics_state(self, state: np.ndarray) -> None:
-        state = np.ascontiguousarray(state, dtype=np.float64)
-        if state.shape != (self._state_size,):
-            raise ValueError(
-                f"MuJoCo cable state must have {self._state_size} values, got {state.shape}"
-            )
-        mujoco.mj_setState(self.model, self.data, state, _STATE_SPEC)
-        self.data.warning.number[:] = 0
-        mujoco.mj_kinematics(self.model, self.data)
 
     # ----------------------------------------------------------------- observations
     def segment_positions(self) -> np.ndarray:
@@ -497,104 +365,3 @@ class MujocoCable(Backend):
     def segment_quaternions(self) -> np.ndarray:
         quats = self._rod_quats @ self._frame_fix
         return quats * np.copysign(1.0, quats[:, :1])  # canonical sign, w >= 0
-
-    # ----------------------------------------------------------------- rendering
-    def render(
-        self, width: int = 480, height: int = 360, goal: np.ndarray | None = None
-    ) -> np.ndarray:
-        """Offscreen MuJoCo image if a GL context can be made, else the matplotlib fallback.
-
-        A goal that is not a finite (M,3) array is not drawn.
-        """
-        goal_points = finite_points(goal)
-        try:
-            image = self._render_gl(width, height, goal_points)
-        except Exception as exc:  # any GL failure means "no GL here": fall back, never crash
-            _mark_gl_broken(exc)
-            image = None
-        if image is not None:
-            return image
-        try:
-            return render_rod(
-                self.segment_positions(),
-                self.gripper_poses(),
-                goal_points,
-                width,
-                height,
-                rod_length=self.rod.length,
-            )
-        except Exception as exc:  # a blank frame beats a crashed episode or video
-            warnings.warn(
-                f"rod rendering failed ({exc!r}); returning a blank image",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-            return np.full((max(1, int(height)), max(1, int(width)), 3), 255, dtype=np.uint8)
-
-    def _render_gl(self, width: int, height: int, goal: np.ndarray | None) -> np.ndarray | None:
-        if _GL_BROKEN or not hasattr(mujoco, "Renderer"):
-            return None
-        offscreen = self.model.vis.global_
-        if width > offscreen.offwidth or height > offscreen.offheight:
-            return None
-        renderer = self._renderer
-        if renderer is None or (renderer.width, renderer.height) != (width, height):
-            self._close_renderer()
-            renderer = self._renderer = mujoco.Renderer(self.model, height, width)
-            # close it before interpreter exit: MuJoCo's EGL atexit hook (registered earlier,
-            # so run later) would otherwise leave GLContext.__del__ failing noisily
-            self._renderer_finalizer = weakref.finalize(self, _close_quietly, renderer)
-        renderer.update_scene(self.data, camera=self._camera())
-        if goal is not None:
-            self._add_goal(renderer.scene, goal)
-        return renderer.render().copy()
-
-    def _camera(self) -> mujoco.MjvCamera:
-        """A fixed free camera in front of the workspace (looking along +y, x to the right)."""
-        camera = mujoco.MjvCamera()
-        camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-        camera.lookat[:] = (0.0, 0.0, 0.7 * self.rod.length)
-        camera.distance = 1.8 * self.rod.length  # the 45 degree view spans the workspace
-        camera.azimuth = 90.0
-        camera.elevation = -10.0
-        return camera
-
-    def _add_goal(self, scene: mujoco.MjvScene, goal: np.ndarray) -> None:
-        """Goal segment centres (M,3) as small green spheres (scene user geoms)."""
-        size = np.array([1.5 * self.rod.radius, 0.0, 0.0])
-        rgba = np.array([0.1, 0.8, 0.2, 0.7], dtype=np.float32)
-        eye = np.eye(3).ravel()
-        for point in goal[: max(0, scene.maxgeom - scene.ngeom)]:
-            mujoco.mjv_initGeom(
-                scene.geoms[scene.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, size, point, eye, rgba
-            )
-            scene.ngeom += 1
-
-    def _close_renderer(self) -> None:
-        if self._renderer_finalizer is not None:
-            self._renderer_finalizer.detach()
-            self._renderer_finalizer = None
-        if self._renderer is not None:
-            renderer, self._renderer = self._renderer, None
-            _close_quietly(renderer)
-
-    def close(self) -> None:
-        self._close_renderer()
-
-
-def _close_quietly(renderer: mujoco.Renderer) -> None:
-    # a half-made or already torn-down GL context has nothing left to release
-    with contextlib.suppress(Exception):
-        renderer.close()
-
-
-def _mark_gl_broken(exc: Exception) -> None:
-    global _GL_BROKEN
-    if not _GL_BROKEN:
-        warnings.warn(
-            f"MuJoCo offscreen rendering unavailable ({type(exc).__name__}); "
-            "using the matplotlib renderer",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-    _GL_BROKEN = True

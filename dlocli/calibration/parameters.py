@@ -40,13 +40,19 @@ PARAMETERS: dict[str, Parameter] = {
     "poisson": Parameter(0.0, 0.49, log=False),
     # below ~1.5 physics steps MuJoCo's explicit elasticity is unstable at its default step
     "bending_damping": Parameter(
-        0.005, 1.0, log=True, backend_default={"mujoco": 0.05, "pybullet": 0.004}
+        0.005,
+        1.0,
+        log=True,
+        backend_default={"mujoco": 0.05, "mujoco-flex": 0.05, "pybullet": 0.004},
     ),
     "twist_damping": Parameter(
-        0.005, 1.0, log=True, backend_default={"mujoco": 0.066, "pybullet": 0.004}
+        0.005,
+        1.0,
+        log=True,
+        backend_default={"mujoco": 0.066, "mujoco-flex": 0.05, "pybullet": 0.004},
     ),
     "air_damping": Parameter(
-        0.01, 20.0, log=True, backend_default={"mujoco": 0.0, "pybullet": 5.0}
+        0.01, 20.0, log=True, backend_default={"mujoco": 0.0, "mujoco-flex": 0.0, "pybullet": 5.0}
     ),
 }
 

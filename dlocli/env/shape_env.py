@@ -155,7 +155,7 @@ def env_keywords() -> list[str]:
 
 
 def resolve_env_options(
-    backend: BackendSpec | str,
+    backend: BackendSpec | str | None,
     task: TaskSpec | str,
     goal: np.ndarray | Path | str | None,
     task_options: dict[str, Any],
@@ -181,7 +181,10 @@ def resolve_env_options(
             f".npy file{_did_you_mean(goal, modes)}; pass a mode, an (N, 3) array or a .npy path"
         )
     try:  # validated as a whole: a bad value is refused, not silently dropped
-        backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
+        if backend is None:  # the MuJoCo rod of the installed MuJoCo
+            backend_spec = BackendSpec()
+        else:
+            backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
         backend_spec = BackendSpec.model_validate(backend_spec)
         task_spec = TaskSpec(name=task) if isinstance(task, str) else task
         task_spec = TaskSpec.model_validate(
@@ -205,7 +208,7 @@ class DLOShapeEnv(gym.Env):
     """Drive a rod held by grippers to a goal shape. See the module docstring.
 
     Args:
-        backend: backend name or BackendSpec.
+        backend: backend name or BackendSpec; None: the MuJoCo rod of the installed MuJoCo.
         task: task name or TaskSpec.
         goal: a goal shape ((N, 3) array or .npy path), or the goal mode "fixed" / "random".
         seed: seed of the goal and of the episodes until ``reset(seed=...)`` is given one.
@@ -222,7 +225,7 @@ class DLOShapeEnv(gym.Env):
 
     def __init__(
         self,
-        backend: BackendSpec | str = "mujoco",
+        backend: BackendSpec | str | None = None,
         task: TaskSpec | str = "single",
         goal: np.ndarray | Path | str | None = None,
         seed: int = 0,
@@ -467,7 +470,7 @@ class DLOShapeEnv(gym.Env):
 
 
 def make_env(
-    backend: str | BackendSpec = "mujoco",
+    backend: str | BackendSpec | None = None,
     task: str | TaskSpec = "single",
     goal: np.ndarray | Path | str | None = None,
     seed: int = 0,
