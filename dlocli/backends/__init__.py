@@ -1,5 +1,34 @@
-"""Simulator backends: one module per simulator, all implementing :class:`Backend`."""
+"""Simulator backends: one module per simulator, all implementing :class:`Backend`.
 
-from dlocli.backends.base import Backend, GripperLimits
+The built-ins register here; each names its facts class (``dlocli.backends.facts``), so
+specs and ``--help`` learn its limits without importing the simulator. Names are imported
+lazily: importing this package imports no simulator.
+"""
 
-__all__ = ["Backend", "GripperLimits"]
+from __future__ import annotations
+
+from typing import Any
+
+from dlocli.registry import backends, import_target
+
+backends.register(
+    "mujoco",
+    "dlocli.backends.mujoco_cable:MujocoCable",
+    "MuJoCo 3.x composite cable (elasticity plugin), grippers as mocap bodies",
+    facts="dlocli.backends.facts:MujocoFacts",
+)
+backends.register(
+    "pybullet",
+    "dlocli.backends.pybullet_chain:PybulletChain",
+    "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l",
+    facts="dlocli.backends.facts:PybulletFacts",
+)
+
+_EXPORTS = {"Backend": "dlocli.backends.base", "GripperLimits": "dlocli.backends.base"}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'dlocli.backends' has no attribute '{name}'")
+    return import_target(f"{_EXPORTS[name]}:{name}")

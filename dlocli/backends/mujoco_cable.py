@@ -57,6 +57,7 @@ import weakref
 import numpy as np
 
 from dlocli.backends.base import END_LOAD, KELVIN_VOIGT_REAL_INERTIA, Backend
+from dlocli.backends.facts import MujocoFacts
 from dlocli.backends.render import finite_points, render_rod
 from dlocli.backends.rotations import quat_multiply, quat_normalize
 from dlocli.specs import BackendSpec, RodSpec
@@ -299,7 +300,7 @@ def _right_multiplier(c: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- backend
-class MujocoCable(Backend):
+class MujocoCable(MujocoFacts, Backend):
     """MuJoCo 3.x composite cable (elasticity plugin), grippers as welded mocap bodies.
 
     ``model``/``data`` are the compiled MuJoCo model and its state; each control period runs

@@ -45,7 +45,13 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field
 
-from dlocli.controllers.specs import MPCSpec
+from dlocli.controllers.base import references
+from dlocli.controllers.specs import (
+    PlannerName,
+    PlannerOptions,
+    planner_name_field,
+    planner_options_field,
+)
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.errors import DloError
@@ -61,7 +67,7 @@ from dlocli.limits import MAX_COUNT, MAX_PROCESSES, refuse_oversized_dataset
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
-from dlocli.runs.references import REFERENCES, ReferenceTable, reference_episode_scores
+from dlocli.runs.references import ReferenceTable, reference_episode_scores
 from dlocli.specs import MODEL_OPTIONS, EnvSpec
 from dlocli.tensorboard import TENSORBOARD_DIR, Scalars
 from dlocli.threads import torch_threads, warn_if_oversubscribed
@@ -76,9 +82,10 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
     cli_flags: ClassVar[tuple[str, ...]] = (
         "iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
-        "initial_episodes", "mpc.horizon", "fit.lr", MODEL_OPTIONS, "task.goal", "task.name",
-        "task.shapes", "backend.name", "fit.device", "noise_probability", "noise_std", "workers",
-        "threads", "executor", "ray_address", "fit.mirror", "offline", "seed", "out",
+        "initial_episodes", "planner", "mpc.horizon", "fit.lr", MODEL_OPTIONS, "task.goal",
+        "task.name", "task.shapes", "backend.name", "fit.device", "noise_probability",
+        "noise_std", "workers", "threads", "executor", "ray_address", "fit.mirror", "offline",
+        "seed", "out",
     )  # fmt: skip
 
     iters: int = Field(
@@ -103,7 +110,8 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
         description="Model update per iteration: E = fit.epochs over all the data (the "
         "paper), or fit.update_steps gradient steps (fit.schedule=steps).",
     )
-    mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC that explores.")
+    planner: PlannerName = planner_name_field()
+    mpc: PlannerOptions = planner_options_field("Options of the planner that explores.")
     workers: int = Field(
         1, gt=0, le=MAX_PROCESSES,
         description="Processes running an iteration's trials (at most one per CPU); with "
@@ -214,17 +222,18 @@ class _TimedController:
 
 
 def _trial_episode(spec: OnlineSpec, checkpoint: Path, k: int, j: int) -> tuple[Episode, float]:
-    """One MPC trial through the model in ``checkpoint`` (seeds from (seed, k, j)), and the
-    seconds the MPC took in it."""
-    from dlocli.controllers.mpc import GradientMPC
+    """One trial of the spec's planner through the model in ``checkpoint`` (seeds from
+    (seed, k, j)), and the seconds the planner took in it."""
+    from dlocli.controllers.base import make_controller
     from dlocli.env.shape_env import make_env_from_spec
     from dlocli.models.base import load_model
 
     env = make_env_from_spec(_env_spec(spec))
     try:
         model = load_model(checkpoint, spec.fit.device)
-        mpc = GradientMPC(env, model, spec.mpc, seed=stream_seed(spec.seed, TRIAL, k, j))
-        timed = _TimedController(mpc)
+        seed = stream_seed(spec.seed, TRIAL, k, j)
+        planner = make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=model)
+        timed = _TimedController(planner)
         noise_rng = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
         policy = NoisyPolicy(timed, noise_rng, spec.noise_probability, spec.noise_std)
         return rollout(env, policy, stream_seed(spec.seed, TRIAL, k, j)), timed.seconds
@@ -600,10 +609,10 @@ class OnlineRun:
         if offline_rows:
             _write_csv(self.spec.out / "offline_metrics.csv", offline_rows)
         curve = iteration_curve(rows)
-        references = ReferenceTable(self.paths.references())
+        table = ReferenceTable(self.paths.references())
         for point in curve:
-            for name in REFERENCES:
-                point.update(references.iteration(name, point["iteration"], self.spec.trials) or {})
+            for name in references():
+                point.update(table.iteration(name, point["iteration"], self.spec.trials) or {})
         last = curve[-1] if curve else {}
         summary: dict[str, Any] = {
             "iterations_done": len(curve),
@@ -618,7 +627,7 @@ class OnlineRun:
             "random_final_error_mm": last.get("random_final_error_mm_mean"),
             "seconds": round(wall, 1),
             **self.time_shares(rows),
-            "reference_seconds": round(references.seconds(), 1),
+            "reference_seconds": round(table.seconds(), 1),
             "out": str(self.spec.out),
         }
         if offline_rows:
