@@ -291,7 +291,7 @@ class OnlineMPCLearner(MPCLearner):
         if self.updates == 0:
             return []
         initial = dataset_returns(self.run.initial_dataset(), self.spec.task.episode_steps)
-        return initial + [row["cumulative_reward"] for row in self.run.rows()]
+        return initial + [row["cumulative_reward"] for row in self.run.results.rows()]
 
 
 class OfflineMPCLearner(MPCLearner):
