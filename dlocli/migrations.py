@@ -15,6 +15,7 @@ from typing import Any
 #: per spec kind (the bench spec's field, or an agent's name for its options), the fields
 #: added after runs were first saved, with the value that rebuilds what a saved run did before
 LEGACY_VALUES: dict[str, dict[str, Any]] = {
+    "bench": {"planner": "mpc"},
     "model": {"velocity_input": False, "absolute_position": True, "length_projection": 0},
     "fit": {
         "mirror": False,

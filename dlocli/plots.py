@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.controllers.base import references
 from dlocli.io import atomic_path
 
 
@@ -38,18 +39,19 @@ def save_figure(fig: Any, path: Path) -> Path:
 
 
 #: one colour per agent in every figure (matplotlib's cycle colours by name, so an agent keeps
-#: its colour whichever agents a figure shows); the references are black and grey
+#: its colour whichever agents a figure shows); the references bring their own
 AGENT_COLOURS = {"mpc": "C0", "mpc-offline": "C1", "sac": "C2", "td3": "C3", "pilco": "C4",
-                 "mppi": "C5", "zero": "black", "random": "0.45"}  # fmt: skip
-#: the references' line styles: doing nothing dashed, random actions dotted with crosses (the
-#: two often coincide: the crosses keep random visible on the dashes)
-REFERENCE_STYLES = {"zero": "--", "random": ":x"}
+                 "mppi": "C5"}  # fmt: skip
 
 
 def agent_colour(name: str) -> str:
-    """The agent's colour; an agent not in :data:`AGENT_COLOURS` gets one from its name."""
+    """The agent's colour: a reference's own, else from :data:`AGENT_COLOURS`, else one from
+    its name."""
     import zlib
 
+    reference = references().get(name)
+    if reference is not None:
+        return reference.colour
     return AGENT_COLOURS.get(name) or f"C{6 + zlib.crc32(name.encode()) % 4}"
 
 
@@ -104,12 +106,11 @@ def plot_learning_curve(
 
 
 def _reference_lines(ax: Any, ax_mm: Any, curve: list[dict[str, Any]], xs: list[int]) -> None:
-    from dlocli.runs.references import REFERENCES
-
     drawn = False
-    for name, style in REFERENCE_STYLES.items():
+    for name, reference in references().items():
+        style = reference.line
         if all(f"{name}_final_error_mm_mean" in c for c in curve):
-            label = f"{REFERENCES[name]}, same starts"
+            label = f"{reference.label}, same starts"
             look = {"color": agent_colour(name), "lw": 1, "label": label}
             errors = [c[f"{name}_final_error_mm_mean"] for c in curve]
             ax_mm.plot(xs, errors, style, **look)

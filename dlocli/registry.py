@@ -1,8 +1,14 @@
-"""One registry mechanism for every plugin kind (backends, models, controllers).
+"""One registry mechanism for every plugin kind (backends, models, controllers, tasks).
 
 Entries are lazy ``"module:attr"`` strings, so an optional dependency costs nothing until the
-entry is used. Third-party packages can add entries through the entry-point groups
-``dlocli.backends``, ``dlocli.models`` and ``dlocli.controllers``.
+entry is used. Each kind's built-ins register themselves in their own package (its
+``home``, imported on the registry's first use); third-party packages add entries through
+the entry-point groups ``dlocli.backends``, ``dlocli.models`` and ``dlocli.controllers``.
+
+An entry may name two light stand-ins that answer questions without importing it (``--help``
+imports no torch or simulator): ``spec``, the class of its options, and ``facts``, a base
+class of the entry whose class attributes are facts about it (a backend's segment limit, a
+controller being a reference or a planner). Without them the entry itself answers.
 """
 
 from __future__ import annotations
@@ -22,15 +28,26 @@ def import_target(target: str) -> Any:
     return getattr(importlib.import_module(module_name), attr)
 
 
+def _resolved(table: dict[str, Any], name: str) -> Any:
+    """``table[name]``, a ``"module:attr"`` string imported once and kept."""
+    value = table[name]
+    if isinstance(value, str):
+        value = table[name] = import_target(value)
+    return value
+
+
 class Registry:
     """Maps names to lazily imported factories of one plugin kind."""
 
-    def __init__(self, kind: str) -> None:
+    def __init__(self, kind: str, home: str) -> None:
+        """``home``: the module whose import registers the built-ins of this kind."""
         self.kind = kind
+        self.home = home
         self._targets: dict[str, str | Callable[..., Any]] = {}
         self._summaries: dict[str, str] = {}
         self._specs: dict[str, str | type] = {}
-        self._loaded_entry_points = False
+        self._facts: dict[str, str | type] = {}
+        self._loaded = False
 
     def register(
         self,
@@ -38,14 +55,16 @@ class Registry:
         target: str | Callable[..., Any],
         summary: str = "",
         spec: str | type | None = None,
+        facts: str | type | None = None,
     ) -> None:
         """Register ``target`` (a ``"module:attr"`` string or a callable) under ``name``;
-        ``spec`` names its options' spec class where importing ``target`` for its
-        ``spec_cls`` would cost (--help imports no torch)."""
+        ``spec`` and ``facts`` name its light stand-ins (see the module's docstring)."""
         self._targets[name] = target
         self._summaries[name] = summary
         if spec is not None:
             self._specs[name] = spec
+        if facts is not None:
+            self._facts[name] = facts
 
     def decorator(self, name: str, summary: str = "") -> Callable[[Any], Any]:
         """``@registry.decorator("name")`` registers a class or function where it is defined."""
@@ -57,7 +76,7 @@ class Registry:
         return wrap
 
     def names(self) -> list[str]:
-        self._load_entry_points()
+        self._load()
         return sorted(self._targets)
 
     def summary(self, name: str) -> str:
@@ -72,20 +91,21 @@ class Registry:
     def get(self, name: str) -> Any:
         """Return the factory registered under ``name``, importing it on first use."""
         self.check(name)
-        target = self._targets[name]
-        if isinstance(target, str):
-            target = import_target(target)
-            self._targets[name] = target
-        return target
+        return _resolved(self._targets, name)
 
     def spec_cls(self, name: str) -> Any:
         """The spec class of ``name``'s options: the one registered with it, else the entry's
         own ``spec_cls`` attribute (None if it has none)."""
         self.check(name)
-        spec = self._specs.get(name)
-        if isinstance(spec, str):
-            spec = self._specs[name] = import_target(spec)
-        return spec if spec is not None else getattr(self.get(name), "spec_cls", None)
+        if name in self._specs:
+            return _resolved(self._specs, name)
+        return getattr(self.get(name), "spec_cls", None)
+
+    def facts(self, name: str) -> Any:
+        """The class whose attributes are ``name``'s facts: its registered light base class,
+        else the entry itself."""
+        self.check(name)
+        return _resolved(self._facts, name) if name in self._facts else self.get(name)
 
     def check(self, name: str) -> None:
         """Raise :class:`UnknownName` listing the valid names if ``name`` is not registered."""
@@ -98,77 +118,18 @@ class Registry:
             f"unknown {self.kind} '{name}'; valid {self.kind}s: {', '.join(names)}.{hint}"
         )
 
-    def _load_entry_points(self) -> None:
-        if self._loaded_entry_points:
+    def _load(self) -> None:
+        """The built-ins (their home registers them on import), then the entry points;
+        a plugin does not replace a built-in of the same name."""
+        if self._loaded:
             return
-        self._loaded_entry_points = True
+        self._loaded = True  # first: the home's import registers through this registry
+        importlib.import_module(self.home)
         for ep in entry_points(group=f"dlocli.{self.kind}s"):
             self._targets.setdefault(ep.name, ep.value)
 
 
-backends = Registry("backend")
-models = Registry("model")
-controllers = Registry("controller")
-tasks = Registry("task")
-
-backends.register(
-    "mujoco",
-    "dlocli.backends.mujoco_cable:MujocoCable",
-    "MuJoCo 3.x composite cable (elasticity plugin), grippers as mocap bodies",
-)
-backends.register(
-    "mujoco-flex",
-    "dlocli.backends.mujoco_flex:MujocoFlex",
-    "MuJoCo 4 flex rod (1D flex, discrete elastic rod with twist), grippers as welded pads",
-)
-backends.register(
-    "pybullet",
-    "dlocli.backends.pybullet_chain:PybulletChain",
-    "PyBullet chain of capsules, joint stiffness from EI/l and GJ/l",
-)
-tasks.register("single", "dlocli.env.tasks:SingleGripperTask", "6-D action: right gripper moves")
-tasks.register("bimanual", "dlocli.env.tasks:BimanualTask", "12-D action: both grippers move")
-models.register(
-    "in-bilstm",
-    "dlocli.models.in_bilstm:INBiLSTM",
-    "Interaction Network + bi-LSTM along the rod (the paper's model)",
-    spec="dlocli.models.spec:INBiLSTMSpec",
-)
-models.register(
-    "mlp",
-    "dlocli.models.mlp:MLPDynamics",
-    "flattened state + action MLP baseline",
-    spec="dlocli.models.spec:MLPSpec",
-)
-controllers.register(
-    "mpc",
-    "dlocli.controllers.mpc:GradientMPC",
-    "gradient-based shooting MPC through the learned model (paper eqs. 8-10)",
-    spec="dlocli.controllers.specs:MPCSpec",
-)
-controllers.register(
-    "mppi",
-    "dlocli.controllers.mppi:MPPI",
-    "sampling MPC (MPPI) through the learned model",
-    spec="dlocli.controllers.specs:MPPISpec",
-)
-controllers.register("random", "dlocli.controllers.base:RandomController", "uniform random actions")
-controllers.register(
-    "zero", "dlocli.controllers.base:ZeroController", "all-zero actions: do nothing (reference)"
-)
-controllers.register(
-    "sac",
-    "dlocli.controllers.sb3_agents:SACAgent",
-    "Soft Actor-Critic (stable-baselines3) on the flat observation",
-)
-controllers.register(
-    "td3",
-    "dlocli.controllers.sb3_agents:TD3Agent",
-    "TD3 (stable-baselines3) with Gaussian exploration noise",
-)
-controllers.register(
-    "pilco",
-    "dlocli.controllers.pilco:PilcoAgent",
-    "PILCO: GP dynamics, moment matching, RBF policy (Deisenroth 2011)",
-    spec="dlocli.controllers.specs:PilcoSpec",
-)
+backends = Registry("backend", home="dlocli.backends")
+models = Registry("model", home="dlocli.models")
+controllers = Registry("controller", home="dlocli.controllers")
+tasks = Registry("task", home="dlocli.env.tasks")

@@ -26,6 +26,7 @@ from pydantic.fields import FieldInfo
 
 from dlocli.errors import BadInput
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
+from dlocli.registry import backends
 
 
 def new_default(spec_cls: type[Spec], name: str, default: Any) -> Any:
@@ -105,11 +106,6 @@ STANDARD_GRAVITY = 9.81  # m/s^2
 DEFAULT_DAMPING_TIME = 0.05
 INEXTENSIBLE_YOUNG_TENSION = 1e8  # Pa, the paper's; the only value a spec may give
 
-#: the most rod segments a backend can simulate, for backends with a limit below RodSpec's:
-#: PyBullet reports at most 128 joint coordinates, 7 for the floating base and 4 per
-#: spherical joint, so a chain of 32 segments would have its last joint locked
-MAX_SEGMENTS: dict[str, int] = {"pybullet": 31}
-
 
 def default_backend() -> str:
     """The MuJoCo rod that the installed MuJoCo runs: the composite cable ("mujoco") on 3.x,
@@ -124,9 +120,9 @@ def default_backend() -> str:
     return "mujoco" if major < 4 else "mujoco-flex"
 
 
-def segment_limit_error(backend: str, n_segments: int) -> str | None:
-    """Why ``backend`` cannot simulate ``n_segments`` segments, or None if it can."""
-    limit = MAX_SEGMENTS.get(backend)
+def segment_limit_error(backend: str, limit: int | None, n_segments: int) -> str | None:
+    """Why ``backend``, which simulates at most ``limit`` segments (None: no limit of its
+    own), cannot simulate ``n_segments`` segments, or None if it can."""
     if limit is None or n_segments <= limit:
         return None
     return (
@@ -265,7 +261,10 @@ class BackendSpec(Spec):
 
     @model_validator(mode="after")
     def _within_segment_limit(self) -> BackendSpec:
-        error = segment_limit_error(self.name, self.rod.n_segments)
+        if self.name not in backends:  # the run refuses it by name, with the valid ones
+            return self
+        limit = backends.facts(self.name).max_segments
+        error = segment_limit_error(self.name, limit, self.rod.n_segments)
         if error:
             raise ValueError(error)
         return self

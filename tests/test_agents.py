@@ -1,4 +1,5 @@
-"""Benchmark agents (SAC, TD3, PILCO) on the real MuJoCo env, and PILCO's math vs Monte Carlo."""
+"""Learning agents (SAC, TD3, PILCO and every other registered one) on the real MuJoCo env,
+and PILCO's math vs Monte Carlo."""
 
 from __future__ import annotations
 
@@ -26,7 +27,9 @@ from dlocli.registry import controllers
 
 from tiny import TINY_AGENTS
 
-AGENTS = ["sac", "td3", "pilco"]
+#: every registered learning agent: one is tested here the moment it registers (a plugin's
+#: too, when its package is installed), at its defaults unless TINY_AGENTS makes it smaller
+AGENTS = [n for n in controllers.names() if issubclass(controllers.facts(n), LearningAgent)]
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py
@@ -47,7 +50,7 @@ def small_env() -> Any:
 
 def train(name: str, seed: int = 0) -> tuple[LearningAgent, Any]:
     env = small_env()
-    agent = controllers.get(name)(env, seed=seed, **TINY_AGENTS[name])
+    agent = controllers.get(name)(env, seed=seed, **TINY_AGENTS.get(name, {}))
     agent.learn(25)  # cuts an episode: the next call carries on with it
     agent.learn(35)
     return agent, env
@@ -85,7 +88,7 @@ def test_agent_uses_exact_budget_and_acts_deterministically(name: str, probe_obs
 def test_agent_acts_on_the_bimanual_task(name: str):
     env = dlocli.make_env(backend="mujoco", task="bimanual", seed=0, episode_steps=20)
     obs, _ = env.reset()
-    agent = controllers.get(name)(env, seed=0, **TINY_AGENTS[name])
+    agent = controllers.get(name)(env, seed=0, **TINY_AGENTS.get(name, {}))
     agent.reset(env.goal)
     action = agent.act(obs)
     assert action.shape == (12,) and np.all(np.abs(action) <= 1.0)

@@ -1,7 +1,7 @@
 """A dynamics model from outside the package, registered through the ``dlocli.models``
 entry-point group, brings its own option: `dlo train --help` offers it as a flag and its
-value reaches the model. The plugin is installed as a package is (a dist-info with its entry
-point) in a directory on the path of a fresh process."""
+value reaches the model. The plugin (tests/plugin) is installed as a package is (a dist-info
+with its entry points) in a directory on the path of a fresh process."""
 
 from __future__ import annotations
 
@@ -14,45 +14,11 @@ from pathlib import Path
 
 import pytest
 
-PLUGIN = '''
-from typing import ClassVar
-
-import torch
-from pydantic import Field
-
-from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, mlp, node_actions
-from dlocli.models.spec import ModelSpec
-
-
-class ChainSpec(ModelSpec):
-    depth: int = Field(1, gt=0, le=8, description="Hidden layers of the per-segment network.")
-
-
-class ChainModel(DynamicsModel):
-    """Each segment on its own: one MLP from its features and its gripper's command."""
-
-    spec_cls: ClassVar[type[ModelSpec]] = ChainSpec
-
-    def __init__(self, spec, n_segments):
-        super().__init__(spec, n_segments)
-        sizes = [self.feature_dim + ACTION_DIM] + [spec.hidden] * spec.depth + [STATE_DIM]
-        self.net = mlp(sizes)
-
-    def predict_delta(self, state_n, action_n):
-        actions = node_actions(action_n, self.n_segments)
-        return self.net(torch.cat([state_n, actions], -1))
-'''
-
 
 @pytest.fixture(scope="module")
-def plugin_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("plugin")
-    (root / "chain_plugin.py").write_text(PLUGIN)
-    info = root / "chain_plugin-0.1.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: chain-plugin\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[dlocli.models]\nchain = chain_plugin:ChainModel\n")
-    return root
+def plugin_path() -> Path:
+    """The plugin package of tests/plugin: its model ``chain`` has the option ``depth``."""
+    return Path(__file__).resolve().parent / "plugin"
 
 
 def dlo(plugin_path: Path, *args: str) -> subprocess.CompletedProcess:

@@ -87,11 +87,11 @@ def test_ray_trials_equal_the_local_executors(cluster, local_run, tmp_path):
 
 def _lose_the_cluster_in_iteration_2(spec_json: str, model: object, k: int, j: int) -> object:
     """A trial that takes its Ray worker down in iteration 2 (as a node that dies would)."""
-    from dlocli.runs import online as module
+    from dlocli.runs.online import trials
 
     if k == 2:
         os._exit(1)
-    return module._run_trial(spec_json, model, k, j)
+    return trials.run_trial(spec_json, model, k, j)
 
 
 def test_a_cluster_lost_midway_keeps_finished_trials_and_resume_ends_the_same(
@@ -99,10 +99,10 @@ def test_a_cluster_lost_midway_keeps_finished_trials_and_resume_ends_the_same(
 ):
     from ray import cloudpickle
 
-    from dlocli.runs import online as module
+    from dlocli.runs.online import trials
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers lack tests/
-    monkeypatch.setattr(module, "_run_trial", _lose_the_cluster_in_iteration_2)
+    monkeypatch.setattr(trials, "run_trial", _lose_the_cluster_in_iteration_2)
     out = tmp_path / "run"
     output = online("--executor", "ray", "--workers", "2", "--out", str(out), code=1)
     # Ray's own "(raylet) A worker died" notice may come too: ours is the one error line

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dlocli.backends.facts import BackendFacts
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.specs import BackendSpec, RodSpec, segment_limit_error
 
@@ -164,8 +165,9 @@ def material_physics_dt(rod: RodSpec) -> float:
     return COURANT / math.sqrt(chain_modes_squared(rod, *segment_inertia(rod)).max())
 
 
-class Backend(ABC):
-    """A simulated rod held by grippers. Subclasses implement the physics hooks (``_*``)."""
+class Backend(BackendFacts, ABC):
+    """A simulated rod held by grippers. Subclasses implement the physics hooks (``_*``)
+    and set their facts (:class:`~dlocli.backends.facts.BackendFacts`)."""
 
     #: registry name, set by subclasses
     name: str = ""
@@ -186,7 +188,7 @@ class Backend(ABC):
             raise BadInput(reason)
         self.spec = spec or BackendSpec(name=self.name)
         # a spec changed by model_copy(update=...) skips the spec's own validation
-        error = segment_limit_error(self.name, self.spec.rod.n_segments)
+        error = segment_limit_error(self.name, self.max_segments, self.spec.rod.n_segments)
         if error:
             raise BadInput(error)
         self.rod = self.spec.rod

@@ -48,6 +48,7 @@ from __future__ import annotations
 import numpy as np
 
 from dlocli.backends.base import END_LOAD, KELVIN_VOIGT_REAL_INERTIA
+from dlocli.backends.facts import MujocoFacts
 from dlocli.backends.mujoco_common import (
     LIGHT_XML,
     MUJOCO_MAJOR,
@@ -234,7 +235,7 @@ def _right_multiplier(c: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- backend
-class MujocoCable(WeldedMujocoRod):
+class MujocoCable(MujocoFacts, WeldedMujocoRod):
     """MuJoCo 3.x composite cable (elasticity plugin), grippers as welded mocap bodies.
 
     ``model``/``data`` are the compiled MuJoCo model and its state; each control period runs

@@ -21,6 +21,7 @@ import warnings
 import numpy as np
 
 from dlocli.backends.base import END_LOAD, KELVIN_VOIGT_REAL_INERTIA
+from dlocli.backends.facts import FlexFacts
 from dlocli.backends.flex_damping import CLAMP
 from dlocli.backends.flex_layout import FlexLayout, twist_body, vertex_body
 from dlocli.backends.flex_model import flex_points, flex_xml
@@ -30,7 +31,7 @@ from dlocli.backends.rotations import cross3
 from dlocli.specs import DEFAULT_DAMPING_TIME, BackendSpec
 
 
-class MujocoFlex(WeldedMujocoRod):
+class MujocoFlex(FlexFacts, WeldedMujocoRod):
     """MuJoCo 4 flex rod (discrete elastic rod with twist), grippers as welded mocap pads;
     ``layout`` says which flex vertex and edge is what."""
 

@@ -43,7 +43,7 @@ Model (SI units throughout)
   differed by up to 44 mm.) ``held_ends == "left"`` omits the right one (a free cantilever
   end).
 - Limits: PyBullet reports at most 128 joint coordinates, i.e. 30 spherical joints: the
-  chain has at most 31 segments (``dlocli.specs.MAX_SEGMENTS``, checked by the spec).
+  chain has at most 31 segments (``dlocli.backends.facts.PybulletFacts``, checked by the spec).
 """
 
 from __future__ import annotations
@@ -64,6 +64,7 @@ from dlocli.backends.base import (
     Backend,
     segment_inertia,
 )
+from dlocli.backends.facts import PybulletFacts
 from dlocli.backends.rotations import quat_normalize, quat_rotate
 from dlocli.specs import BackendSpec, RodSpec
 
@@ -180,7 +181,7 @@ class ChainModel:
         )
 
 
-class PybulletChain(Backend):
+class PybulletChain(PybulletFacts, Backend):
     """PyBullet chain of capsules, joint stiffness from EI/l and GJ/l (see module docstring)."""
 
     name = "pybullet"

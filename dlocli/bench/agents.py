@@ -12,8 +12,9 @@ each of them (:meth:`BenchLearner.learn_to`) and hands out a controller for an e
 - ``zero`` and ``random``: all-zero and uniform random actions, the references; they learn
   nothing (and step no training env).
 - ``mpc``: the paper's Algorithm 1 through :class:`dlocli.runs.online.OnlineRun`: an initial random
-  dataset, then iterations of noisy MPC trials, each followed by a model update; it is
-  evaluated with the model trained on all data so far (noise-free MPC).
+  dataset, then iterations of noisy trials of the spec's planner (gradient MPC unless
+  ``planner`` names another), each followed by a model update; it is evaluated with the
+  model trained on all data so far (the planner without noise).
 - ``mpc-offline``: at each of ``mpc``'s points, a model trained from scratch on as many random
   transitions, trained as long as the online model had (its epochs, or its gradient steps
   under the steps schedule; paper Fig. 7).
@@ -44,8 +45,8 @@ if TYPE_CHECKING:
 
 #: seed stream of the controllers used in evaluation (random actions, MPC restarts)
 EVAL_CONTROLLER = 7
-#: the planner whose model the online loop (paper Algorithm 1) learns
-ONLINE_PLANNER = "mpc"
+#: the agent that learns its model online (paper Algorithm 1), planning with the spec's planner
+ONLINE_AGENT = "mpc"
 
 
 # ----------------------------------------------------------------------------- envs
@@ -88,19 +89,18 @@ OFFLINE = "-offline"
 
 def learner_class(name: str) -> type[BenchLearner]:
     """How the registered controller ``name`` learns in the bench, from what it is: a
-    LearningAgent (sac, td3, pilco, ...) learns by itself; the planner ``mpc`` learns its
-    model online (paper Algorithm 1), ``mpc-offline`` from as much random data; a controller
-    that needs nothing (zero, random, ...) does not learn."""
+    LearningAgent (sac, td3, pilco, ...) learns by itself; ``mpc`` learns its model online
+    (paper Algorithm 1), ``mpc-offline`` from as much random data, both planning with the
+    spec's planner; a controller that needs nothing (zero, random, ...) does not learn."""
     from dlocli.controllers.base import LearningAgent
     from dlocli.registry import controllers
 
     check_agent(name)
     if name.endswith(OFFLINE):
         return OfflineMPCLearner
-    cls = controllers.get(name)
-    if issubclass(cls, LearningAgent):
+    if issubclass(controllers.facts(name), LearningAgent):
         return AgentLearner
-    return OnlineMPCLearner if name == ONLINE_PLANNER else FixedLearner
+    return OnlineMPCLearner if name == ONLINE_AGENT else FixedLearner
 
 
 def is_reference(name: str) -> bool:
@@ -119,10 +119,10 @@ def agent_names() -> list[str]:
 
     names = []
     for name in controllers.names():
-        cls = controllers.get(name)
-        if issubclass(cls, LearningAgent) or not cls.needs or name == ONLINE_PLANNER:
+        cls = controllers.facts(name)
+        if issubclass(cls, LearningAgent) or not cls.needs or name == ONLINE_AGENT:
             names.append(name)
-    return sorted([*names, ONLINE_PLANNER + OFFLINE])
+    return sorted([*names, ONLINE_AGENT + OFFLINE])
 
 
 def check_agent(name: str) -> None:
@@ -235,7 +235,7 @@ class AgentLearner(BenchLearner):
 
 # ----------------------------------------------------------------------------- MPC agents
 class MPCLearner(BenchLearner):
-    """Base of the model-based agents: evaluated with gradient MPC through ``model()``."""
+    """Base of the model-based agents: evaluated with the spec's planner through ``model()``."""
 
     def points(self) -> list[int]:
         return mpc_points(self.spec, self.name)
@@ -245,10 +245,11 @@ class MPCLearner(BenchLearner):
         """The current dynamics model."""
 
     def controller(self, env: DLOShapeEnv) -> Controller:
-        from dlocli.controllers.mpc import GradientMPC
+        from dlocli.controllers.base import make_controller
 
         seed = stream_seed(self.seed, EVAL_CONTROLLER)
-        return GradientMPC(env, self.model(), self.spec.mpc, seed=seed)
+        spec = self.spec
+        return make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=self.model())
 
 
 class OnlineMPCLearner(MPCLearner):
@@ -290,7 +291,7 @@ class OnlineMPCLearner(MPCLearner):
         if self.updates == 0:
             return []
         initial = dataset_returns(self.run.initial_dataset(), self.spec.task.episode_steps)
-        return initial + [row["cumulative_reward"] for row in self.run.rows()]
+        return initial + [row["cumulative_reward"] for row in self.run.results.rows()]
 
 
 class OfflineMPCLearner(MPCLearner):
@@ -379,6 +380,7 @@ def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
         noise_std=spec.noise_std,
         model=spec.model,
         fit=spec.fit,
+        planner=spec.planner,
         mpc=spec.mpc,
         workers=1,
         out=Path(work) / "online",

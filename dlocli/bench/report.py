@@ -28,10 +28,10 @@ from typing import Any
 import numpy as np
 
 from dlocli.bench.agents import is_reference
+from dlocli.controllers.base import references
 from dlocli.errors import BadInput
 from dlocli.io import write_json_atomic, write_text_atomic
 from dlocli.plots import (
-    REFERENCE_STYLES,
     agent_colour,
     figure,
     integer_ticks,
@@ -42,7 +42,6 @@ from dlocli.plots import (
 Row = dict[str, Any]
 GOALS = {"fixed": "fixed goal", "random": "random goals"}
 SETTING = ("agent", "train_task", "train_goals", "eval_task", "eval_goals")
-REFERENCE = "zero"
 HALF = 0.5  # the score at which an agent has closed half the initial error
 
 
@@ -178,8 +177,9 @@ def summary_table(rows: list[Row]) -> list[Row]:
 
 
 def _rank(row: Row) -> tuple[int, str]:
-    """The references (zero, then random) first, then the agents by name."""
-    return ({REFERENCE: 0, "random": 1}.get(row["agent"], 2), row["agent"])
+    """The references first, in their rank order, then the agents by name."""
+    reference = references().get(row["agent"])
+    return (reference.rank if reference else len(references()), row["agent"])
 
 
 def half_closed_at(rows: list[Row]) -> int | None:
@@ -261,10 +261,10 @@ def plot_curves(
         xs, means, stds = curve(group, key)
         if not xs:
             continue
-        if agent in REFERENCE_STYLES:  # a thin line without band, under the agents' curves
-            what = " (do nothing)" if agent == REFERENCE else ""
-            ax.plot(xs, means, REFERENCE_STYLES[agent], color=agent_colour(agent), lw=1.5,
-                    label=label + what, zorder=1)  # fmt: skip
+        reference = references().get(agent)
+        if reference:  # a thin line without band, under the agents' curves
+            ax.plot(xs, means, reference.line, color=reference.colour, lw=1.5,
+                    label=f"{label} ({reference.label})", zorder=1)  # fmt: skip
         else:
             style = ["-", "--", "-.", ":"][settings.index((task, goals)) % 4]
             shaded_curve(ax, xs, means, stds, label, agent_colour(agent), style)

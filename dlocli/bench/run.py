@@ -59,6 +59,7 @@ from dlocli.errors import BadInput, DloError
 from dlocli.io import adopt_written, prepare_run_dir, read_json, write_json_atomic
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import InUse, owned
+from dlocli.runs.checks import check_registered
 from dlocli.threads import machine_cpus, warn_if_oversubscribed
 
 #: the top-level entries of a bench run (the layout above)
@@ -74,10 +75,8 @@ def check_spec(spec: BenchSpec) -> None:
     """Refuse what cannot run, with one line naming the fix (BadInput)."""
     from dlocli.controllers.base import controller_spec
     from dlocli.executors import check_executor
-    from dlocli.registry import backends, tasks
 
-    backends.check(spec.backend.name)
-    tasks.check(spec.task.name)
+    check_registered(spec)
     if not spec.agents:
         raise BadInput(f"--agents is empty; pass some of {', '.join(agent_names())}")
     for name in spec.agents:

@@ -10,7 +10,12 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import Field, TypeAdapter, model_validator
 
-from dlocli.controllers.specs import MPCSpec
+from dlocli.controllers.specs import (
+    PlannerName,
+    PlannerOptions,
+    planner_name_field,
+    planner_options_field,
+)
 from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
 from dlocli.migrations import (
@@ -34,8 +39,8 @@ class BenchSpec(EnvSpec, ExecutorChoice):
 
     cli_flags: ClassVar[tuple[str, ...]] = (
         "agents", "budget", "seeds", "task.goal", "task.name", "task.shapes", "backend.name",
-        "task.episode_steps", "evals", "eval_trials", MODEL_OPTIONS, "fit.epochs", "transfer",
-        "executor", "ray_address", "workers", "threads", "seed", "out",
+        "task.episode_steps", "evals", "eval_trials", MODEL_OPTIONS, "fit.epochs", "planner",
+        "transfer", "executor", "ray_address", "workers", "threads", "seed", "out",
     )  # fmt: skip
 
     agents: list[str] = Field(
@@ -69,7 +74,8 @@ class BenchSpec(EnvSpec, ExecutorChoice):
     fit: UpdateSpec = Field(
         default_factory=UpdateSpec, description="mpc's model update per iteration."
     )
-    mpc: MPCSpec = Field(default_factory=MPCSpec, description="The MPC of mpc and mpc-offline.")
+    planner: PlannerName = planner_name_field()
+    mpc: PlannerOptions = planner_options_field("Options of the planner of mpc and mpc-offline.")
     noise_probability: float = Field(
         0.2, ge=0, le=1, description="Probability that an mpc training step gets action noise."
     )
@@ -139,7 +145,7 @@ def fingerprint_data(spec: BenchSpec, with_options: bool = True) -> dict[str, An
     so the jobs of runs made before a field was added keep their fingerprint; so are fields
     without effect (the free ones, the task's inert ones)."""
     free = FREE_FIELDS if with_options else {*FREE_FIELDS, "options"}
-    data = spec.model_dump(mode="json", exclude=free)
+    data = without_legacy_values("bench", spec.model_dump(mode="json", exclude=free))
     task = without_legacy_values("task", data["task"])
     data["task"] = {k: v for k, v in task.items() if k not in spec.task.inert_fields()}
     backend = without_legacy_values("backend", data["backend"])

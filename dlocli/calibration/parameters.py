@@ -9,18 +9,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dlocli.errors import BadInput
+from dlocli.registry import backends
 from dlocli.specs import RodSpec
 
 
 @dataclass(frozen=True)
 class Parameter:
-    """One fitted rod field: its range and the backend defaults its None stands for."""
+    """One fitted rod field: its range."""
 
     low: float
     high: float
     log: bool
-    #: the value a None field means, per backend (fields with a plain default have none)
-    backend_default: dict[str, float] | None = None
 
     def to_unit(self, value: float) -> float:
         value = min(max(value, self.low), self.high)
@@ -39,29 +39,23 @@ PARAMETERS: dict[str, Parameter] = {
     "young_bending": Parameter(1e4, 1e10, log=True),
     "poisson": Parameter(0.0, 0.49, log=False),
     # below ~1.5 physics steps MuJoCo's explicit elasticity is unstable at its default step
-    "bending_damping": Parameter(
-        0.005,
-        1.0,
-        log=True,
-        backend_default={"mujoco": 0.05, "mujoco-flex": 0.05, "pybullet": 0.004},
-    ),
-    "twist_damping": Parameter(
-        0.005,
-        1.0,
-        log=True,
-        backend_default={"mujoco": 0.066, "mujoco-flex": 0.05, "pybullet": 0.004},
-    ),
-    "air_damping": Parameter(
-        0.01, 20.0, log=True, backend_default={"mujoco": 0.0, "mujoco-flex": 0.0, "pybullet": 5.0}
-    ),
+    "bending_damping": Parameter(0.005, 1.0, log=True),
+    "twist_damping": Parameter(0.005, 1.0, log=True),
+    "air_damping": Parameter(0.01, 20.0, log=True),
 }
 
 
 def start_value(name: str, rod: RodSpec, backend: str) -> float:
-    """The rod's value of ``name`` (a None field: the backend's default)."""
+    """The rod's value of ``name`` (a None field: the value the backend says it stands for;
+    BadInput if the backend does not say)."""
     value = getattr(rod, name)
     if value is None:
-        value = (PARAMETERS[name].backend_default or {}).get(backend, PARAMETERS[name].low)
+        value = backends.facts(backend).unset_rod_values.get(name)
+    if value is None:
+        raise BadInput(
+            f"the {backend} backend does not say what rod.{name} None stands for; give "
+            f"rod.{name} a value to start the calibration from"
+        )
     return float(value)
 
 

@@ -18,11 +18,10 @@ def goal(
     goal drawn from the same distribution as the env's goals."""
     from dlocli.env.metrics import shape_error_mm
     from dlocli.env.shape_env import make_goal, save_goal
-    from dlocli.registry import backends, tasks
+    from dlocli.runs.checks import check_registered
 
     spec = run.spec()
-    backends.check(spec.backend.name)
-    tasks.check(spec.task.name)
+    check_registered(spec)
     if spec.out.suffix != ".npy":
         raise BadInput(f"--out {spec.out} must end in .npy (the goal format is a (N,3) .npy array)")
     check_writable(spec.out, "--out", run.overwrite)

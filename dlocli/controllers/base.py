@@ -8,13 +8,15 @@ that step (e.g. a planner's iterations and model time), empty if it has none.
 
 Build one by registry name with :func:`make_controller`: a class declares what it needs
 besides the env in ``needs`` (e.g. ``("model",)`` for planners through a learned model) and
-its options as a pydantic ``spec_cls``.
+its options as a pydantic ``spec_cls``. A reference (doing nothing, random actions) says so
+in ``reference``: every bench and online run shows its results beside the learners'.
 """
 
 from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -22,7 +24,22 @@ import numpy as np
 from pydantic import ValidationError
 
 from dlocli.errors import BadInput
+from dlocli.registry import controllers
 from dlocli.specs import Spec, format_validation_error
+
+
+@dataclass(frozen=True)
+class Reference:
+    """How results and plots show a reference controller."""
+
+    #: what it does, in words ("doing nothing")
+    label: str
+    #: its place among the references in tables and legends (0 first)
+    rank: int
+    #: its matplotlib line format in learning curves (a thin line, no band)
+    line: str
+    #: its matplotlib colour
+    colour: str
 
 
 class Controller(ABC):
@@ -33,6 +50,8 @@ class Controller(ABC):
     needs: ClassVar[tuple[str, ...]] = ()
     #: the options of this controller (passed as ``spec=``); None if it has none
     spec_cls: ClassVar[type[Spec] | None] = None
+    #: set on the references every result is read against (they learn nothing)
+    reference: ClassVar[Reference | None] = None
 
     def __init__(self, env: Any) -> None:
         self.env = env
@@ -61,6 +80,8 @@ class RandomController(Controller):
     """Uniform random actions (a floor every method must beat)."""
 
     name = "random"
+    # dotted with crosses: it often coincides with doing nothing, and stays visible on it
+    reference = Reference("random actions", rank=1, line=":x", colour="0.45")
 
     def __init__(self, env: Any, seed: int = 0, **_: Any) -> None:
         super().__init__(env)
@@ -74,12 +95,33 @@ class ZeroController(Controller):
     """All-zero actions: do nothing, the reference every result is scored against."""
 
     name = "zero"
+    reference = Reference("doing nothing", rank=0, line="--", colour="black")
 
     def __init__(self, env: Any, seed: int = 0, **_: Any) -> None:
         super().__init__(env)
 
     def _act(self, obs: np.ndarray) -> np.ndarray:
         return np.zeros(self.action_dim)
+
+
+class Planner(Controller):
+    """A controller that plans through a learned dynamics model (gradient MPC, MPPI, ...):
+    the online loop explores with one, and the bench's model-based agents act with it,
+    chosen by name (a run spec's ``planner``)."""
+
+    needs: ClassVar[tuple[str, ...]] = ("model",)
+
+
+def references() -> dict[str, Reference]:
+    """The registered references by name, in their rank order."""
+    found = {name: controllers.facts(name).reference for name in controllers.names()}
+    ranked = sorted((ref.rank, name) for name, ref in found.items() if ref is not None)
+    return {name: found[name] for _, name in ranked}
+
+
+def is_planner(name: str) -> bool:
+    """Whether the registered controller ``name`` plans through a learned model."""
+    return issubclass(controllers.facts(name), Planner)
 
 
 class LearningAgent(Controller):
@@ -126,16 +168,14 @@ class LearningAgent(Controller):
 
 
 def controller_spec(name: str, options: dict[str, Any] | None = None) -> Spec | None:
-    """Validate ``options`` against the registered controller's ``spec_cls`` (BadInput if wrong)."""
-    from dlocli.registry import controllers
-
-    cls = controllers.get(name)
-    if cls.spec_cls is None:
+    """Validate ``options`` against the registered controller's spec class (BadInput if wrong)."""
+    spec_cls = controllers.spec_cls(name)
+    if spec_cls is None:
         if options:
             raise BadInput(f"controller '{name}' takes no options; remove {sorted(options)}")
         return None
     try:
-        return cls.spec_cls.model_validate(options or {})
+        return spec_cls.model_validate(options or {})
     except ValidationError as exc:
         raise BadInput(format_validation_error(exc, f"controller '{name}' options")) from exc
 
@@ -153,8 +193,6 @@ def make_controller(
     ``options`` are its spec's fields (dict or spec instance); ``provided`` holds what
     controllers may need (``model=``); only the names in the class's ``needs`` are passed on.
     """
-    from dlocli.registry import controllers
-
     cls = controllers.get(name)
     missing = [need for need in cls.needs if provided.get(need) is None]
     if missing:

@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from dlocli.controllers.base import Controller
+from dlocli.controllers.base import Planner
 from dlocli.controllers.specs import PlannerSpec
 
 
@@ -37,10 +37,9 @@ def model_device(model: torch.nn.Module) -> torch.device:
     return param.device if param is not None else torch.device("cpu")
 
 
-class ModelPlanner(Controller):
+class ModelPlanner(Planner):
     """Receding-horizon planning through ``model.rollout``; subclasses optimise the plan."""
 
-    needs: ClassVar[tuple[str, ...]] = ("model",)
     spec_cls: ClassVar[type[PlannerSpec]] = PlannerSpec
 
     def __init__(

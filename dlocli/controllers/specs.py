@@ -1,14 +1,23 @@
 """The options of the built-in controllers (torch-free: `dlo control --help` lists them
 without importing torch). Each controller class names its spec as ``spec_cls``; the
-registry names it too, so --help need not import the controller."""
+registry names it too, so --help need not import the controller.
+
+A run spec that plans through its model (`dlo online`, `dlo bench`) names its planner in a
+``planner`` field and holds that planner's options in its ``mpc`` field
+(:func:`planner_name_field`, :func:`planner_options_field`).
+"""
 
 from __future__ import annotations
 
-from typing import Literal
+import difflib
+from typing import Annotated, Any, Literal
 
-from pydantic import Field
+from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo
 
+from dlocli.controllers.base import is_planner
+from dlocli.errors import UnknownName
 from dlocli.limits import MAX_COUNT
+from dlocli.registry import controllers
 from dlocli.specs import Spec
 
 
@@ -168,3 +177,59 @@ class PilcoSpec(Spec):
     cost_width: float = Field(
         0.1, gt=0, description="Width (m) of the saturating cost on the keypoint distance."
     )
+
+
+# ----------------------------------------------------------------------------- run specs
+#: the planner of a run spec unless it names another (paper Algorithm 1's)
+DEFAULT_PLANNER = "mpc"
+
+
+def planner_options(name: str, options: Any) -> PlannerSpec:
+    """``options`` (a dict or spec) as the spec of the registered planner ``name``;
+    UnknownName if ``name`` is no planner, ValidationError for wrong options."""
+    planners = [n for n in controllers.names() if is_planner(n)]
+    if name not in planners:
+        if name in controllers:
+            why = f"controller '{name}' does not plan through a model"
+        else:
+            close = difflib.get_close_matches(name, planners, n=1)
+            why = f"unknown planner '{name}'" + (f" (did you mean '{close[0]}'?)" if close else "")
+        raise UnknownName(f"{why}; planners: {', '.join(planners)}")
+    spec_cls = controllers.spec_cls(name)
+    if type(options) is spec_cls:
+        return options
+    if isinstance(options, Spec):  # another planner's: the options it was given
+        options = options.model_dump(exclude_unset=True)
+    return spec_cls.model_validate(options or {})
+
+
+def _as_planner_options(value: Any, info: ValidationInfo) -> Any:
+    planner = info.data.get("planner")
+    # a planner name that failed validation has its own error; these options wait for it
+    return value if planner is None else planner_options(planner, value)
+
+
+def _registered_planner(name: Any) -> Any:
+    if isinstance(name, str):
+        planner_options(name, None)  # UnknownName if it is no planner
+    return name
+
+
+def planner_name_field() -> Any:
+    """The ``planner`` field of a run spec (declare it before :func:`planner_options_field`)."""
+    return Field(
+        DEFAULT_PLANNER,
+        description="The planner through the model: a registered controller that plans "
+        "(mpc, mppi, or a plugin's); its options are the mpc fields.",
+    )
+
+
+def planner_options_field(description: str) -> Any:
+    """The ``mpc`` field of a run spec: the options of its ``planner``, saved whole."""
+    return Field(default_factory=MPCSpec, validate_default=True, description=description)
+
+
+#: a planner's name, checked against the registry
+PlannerName = Annotated[str, BeforeValidator(_registered_planner)]
+#: the options of the run's planner: validated as that planner's spec
+PlannerOptions = Annotated[SerializeAsAny[PlannerSpec], BeforeValidator(_as_planner_options)]

@@ -48,6 +48,7 @@ class Task:
         raise NotImplementedError
 
 
+@task_registry.decorator("single", "6-D action: right gripper moves")
 class SingleGripperTask(Task):
     """One gripper (the right) moves; 6-D action."""
 
@@ -62,6 +63,7 @@ class SingleGripperTask(Task):
         return commands[..., 1, :]
 
 
+@task_registry.decorator("bimanual", "12-D action: both grippers move")
 class BimanualTask(Task):
     """Both grippers move; 12-D action (left then right)."""
 

@@ -1,6 +1,8 @@
 """Learned dynamics models of the rod: one module per model, all implementing
-:class:`~dlocli.models.base.DynamicsModel` and registered in :data:`dlocli.registry.models`;
-each declares its options as a :class:`~dlocli.models.spec.ModelSpec` subclass, ``spec_cls``.
+:class:`~dlocli.models.base.DynamicsModel` and registered here in
+:data:`dlocli.registry.models`; each declares its options as a
+:class:`~dlocli.models.spec.ModelSpec` subclass, ``spec_cls`` (registered beside it, so
+``--help`` lists them without importing torch).
 
 Names are imported lazily, so ``dlocli.models.spec`` stays usable without importing torch.
 """
@@ -9,7 +11,20 @@ from __future__ import annotations
 
 from typing import Any
 
-from dlocli.registry import import_target
+from dlocli.registry import import_target, models
+
+models.register(
+    "in-bilstm",
+    "dlocli.models.in_bilstm:INBiLSTM",
+    "Interaction Network + bi-LSTM along the rod (the paper's model)",
+    spec="dlocli.models.spec:INBiLSTMSpec",
+)
+models.register(
+    "mlp",
+    "dlocli.models.mlp:MLPDynamics",
+    "flattened state + action MLP baseline",
+    spec="dlocli.models.spec:MLPSpec",
+)
 
 _EXPORTS = {
     "ModelSpec": "dlocli.models.spec",

@@ -326,10 +326,18 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
     """The checkpoint's payload (CPU tensors), loaded with ``weights_only=True``; BadInput if
     it is not a dlocli checkpoint."""
     path = checkpoint_path(path)
+    return _checked_payload(path, path)
+
+
+def _checked_payload(source: Path | io.BytesIO, path: Path | str) -> dict[str, Any]:
+    """The payload of the checkpoint in ``source`` (a file, or its bytes), named ``path`` in
+    errors."""
     try:
-        if not zipfile.is_zipfile(path):  # what torch.save writes; a text file fed to torch's
-            raise zipfile.BadZipFile  # loader for older checkpoints fails in unforeseen ways
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if not zipfile.is_zipfile(source):  # what torch.save writes; a text file fed to
+            raise zipfile.BadZipFile  # torch's loader for older checkpoints fails unforeseen
+        if isinstance(source, io.BytesIO):
+            source.seek(0)  # is_zipfile read it
+        payload = torch.load(source, map_location="cpu", weights_only=True)
     except (RuntimeError, pickle.UnpicklingError, EOFError, OSError, ValueError,
             zipfile.BadZipFile) as exc:  # fmt: skip
         # torch's text is pages long (a weights_only tutorial); ours says what to pass instead
@@ -355,7 +363,22 @@ def load_model(
     computes gradients for the actions only; :func:`~dlocli.models.training.train_model` unfreezes.
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
-    payload = read_checkpoint(path)
+    return _model_from_payload(read_checkpoint(path), path, device, expect)
+
+
+def load_model_bytes(checkpoint: bytes, device: str | torch.device = "cpu") -> DynamicsModel:
+    """:func:`load_model` of a checkpoint file's bytes (a trial's copy of the driver's model),
+    read in memory."""
+    name = "the model checkpoint in memory"
+    return _model_from_payload(_checked_payload(io.BytesIO(checkpoint), name), name, device)
+
+
+def _model_from_payload(
+    payload: dict[str, Any],
+    path: Path | str,
+    device: str | torch.device,
+    expect: ModelSpec | None = None,
+) -> DynamicsModel:
     if payload.get("form") == "markers":
         raise BadInput(
             f"{path} is a marker-form model (trained on recorded markers); use it with "
@@ -370,7 +393,7 @@ def load_model(
     return with_weights(build_model(spec, payload["n_segments"]), payload, path, device)
 
 
-def checkpoint_spec(payload: dict[str, Any], path: Path) -> ModelSpec:
+def checkpoint_spec(payload: dict[str, Any], path: Path | str) -> ModelSpec:
     """The model spec a checkpoint's payload holds (older ones' missing fields at their
     legacy values); BadInput if it is not one."""
     saved = payload.get("model_spec")
@@ -380,7 +403,7 @@ def checkpoint_spec(payload: dict[str, Any], path: Path) -> ModelSpec:
 
 
 def with_weights(
-    model: torch.nn.Module, payload: dict[str, Any], path: Path, device: str | torch.device
+    model: torch.nn.Module, payload: dict[str, Any], path: Path | str, device: str | torch.device
 ) -> Any:
     """``model`` with the checkpoint's finite weights, on ``device``, in eval mode, frozen;
     BadInput if they are not finite or do not fit."""

@@ -1,5 +1,5 @@
-"""The references of an online run: what doing nothing (``zero``) and uniform random actions
-(``random``) get from exactly the starts and goals of its MPC trials.
+"""The references of an online run: what the registered reference controllers (doing
+nothing, uniform random actions) get from exactly the starts and goals of its MPC trials.
 
 A learning curve means little without them: on a task whose start and goal are close, doing
 nothing already ends near the goal. Every trial (k, j) starts from ``env.reset(seed=stream_seed
@@ -17,11 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.controllers.base import make_controller, references
 from dlocli.env.rollout import episode_scores, rollout
 from dlocli.io import read_json, write_json_atomic
-
-#: the reference controllers (registered names) and how results and plots call them
-REFERENCES = {"zero": "doing nothing", "random": "random actions"}
 
 
 def reference_episode_scores(
@@ -29,8 +27,6 @@ def reference_episode_scores(
 ) -> dict[str, float]:
     """Scores (:func:`episode_scores`) and seconds of one episode of the registered
     controller ``name`` from ``env.reset(seed=reset_seed)``."""
-    from dlocli.controllers.base import make_controller
-
     start = time.perf_counter()
     controller = make_controller(name, env, seed=action_seed)
     episode = rollout(env, controller, reset_seed)
@@ -56,7 +52,7 @@ class ReferenceTable:
         """The (reference, trial) pairs of iteration ``k`` not yet run."""
         return [
             (name, j)
-            for name in REFERENCES
+            for name in references()
             for j in range(1, trials + 1)
             if self.key(k, j) not in self.table.get(name, {})
         ]

@@ -1,0 +1,57 @@
+"""What a backend tells before its simulator is imported: class attributes of a light base
+class that the backend's class inherits, read through ``dlocli.registry.backends.facts``
+(spec validation and ``--help`` import no simulator).
+
+A plugin backend sets these on its own :class:`~dlocli.backends.base.Backend` subclass."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import ClassVar
+
+
+class BackendFacts:
+    """The facts every backend has; the defaults suit a backend without limits."""
+
+    #: the most rod segments it can simulate (None: the rod spec's own bound)
+    max_segments: ClassVar[int | None] = None
+    #: the value a rod field left at None stands for in this backend (its own constant)
+    unset_rod_values: ClassVar[Mapping[str, float]] = {}
+
+
+class MujocoFacts(BackendFacts):
+    """MuJoCo's composite cable."""
+
+    # the rod of runs saved before the damping fields: stiffness-proportional joint damping
+    # of time 0.05 s (twist (1 + poisson) times that) and no air damping
+    unset_rod_values: ClassVar[Mapping[str, float]] = {
+        "bending_damping": 0.05,
+        "twist_damping": 0.066,
+        "air_damping": 0.0,
+    }
+
+
+class PybulletFacts(BackendFacts):
+    """PyBullet's chain of capsules."""
+
+    # PyBullet reports at most 128 joint coordinates, 7 for the floating base and 4 per
+    # spherical joint, so a chain of 32 segments would have its last joint locked
+    max_segments: ClassVar[int | None] = 31
+    # two physics steps of joint damping at the default 2 ms step, PyBullet's own velocity
+    # damping in the air
+    unset_rod_values: ClassVar[Mapping[str, float]] = {
+        "bending_damping": 0.004,
+        "twist_damping": 0.004,
+        "air_damping": 5.0,
+    }
+
+
+class FlexFacts(BackendFacts):
+    """MuJoCo 4's flex rod."""
+
+    # MuJoCo's flex damping time for bending and twist (no runs predate its damping fields)
+    unset_rod_values: ClassVar[Mapping[str, float]] = {
+        "bending_damping": 0.05,
+        "twist_damping": 0.05,
+        "air_damping": 0.0,
+    }

@@ -1,0 +1,56 @@
+"""The registries: every plugin kind registers its built-ins in its own package, and the
+light stand-ins that answer without importing an entry tell the truth about it."""
+
+from __future__ import annotations
+
+import pytest
+
+from dlocli import registry
+from dlocli.backends.facts import BackendFacts
+from dlocli.calibration.parameters import start_value
+from dlocli.controllers.base import is_planner, references
+from dlocli.errors import BadInput, UnknownName
+from dlocli.runs.online import OnlineSpec
+from dlocli.specs import BackendSpec, RodSpec
+
+REGISTRIES = {"backends": registry.backends, "models": registry.models,
+              "controllers": registry.controllers, "tasks": registry.tasks}  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", sorted(REGISTRIES))
+def test_every_entry_is_what_its_stand_ins_say(kind):
+    """An entry inherits its facts class, and its registered spec is its own."""
+    found = REGISTRIES[kind]
+    for name in found.names():
+        entry = found.get(name)
+        assert issubclass(entry, found.facts(name)), name
+        if hasattr(entry, "spec_cls"):
+            assert found.spec_cls(name) is entry.spec_cls, name
+
+
+def test_controllers_say_what_they_are():
+    assert list(references()) == ["zero", "random"]
+    assert [n for n in registry.controllers.names() if is_planner(n)] == ["mpc", "mppi"]
+
+
+def test_a_run_spec_plans_with_a_registered_planner_only():
+    assert type(OnlineSpec(planner="mppi").mpc).__name__ == "MPPISpec"
+    with pytest.raises(UnknownName, match="controller 'sac' does not plan"):
+        OnlineSpec(planner="sac")
+    with pytest.raises(UnknownName, match="did you mean 'mpc'"):
+        OnlineSpec(planner="mpx")
+
+
+def test_a_backends_segment_limit_is_its_fact():
+    assert registry.backends.facts("pybullet").max_segments == 31
+    BackendSpec(name="pybullet", rod=RodSpec(n_segments=31))
+    with pytest.raises(ValueError, match="at most 31 rod segments"):
+        BackendSpec(name="pybullet", rod=RodSpec(n_segments=32))
+
+
+def test_calibration_starts_from_what_the_backend_says_a_none_stands_for(monkeypatch):
+    rod = RodSpec(air_damping=None)
+    assert start_value("air_damping", rod, "pybullet") == 5.0
+    monkeypatch.setattr(registry.backends, "facts", lambda name: BackendFacts)
+    with pytest.raises(BadInput, match="does not say what rod.air_damping None stands for"):
+        start_value("air_damping", rod, "mujoco")
