@@ -68,10 +68,12 @@ def lock_held_elsewhere(lock_file: Path) -> Iterator[subprocess.Popen]:
 
 
 def run_dlo(argv: list[str]) -> int:
-    """Run the `dlo` entry point itself (``dlocli.cli.main``) in this process; its exit code."""
+    """Run the `dlo` entry point itself (``dlocli.cli.main``) in this process; its exit code.
+    The thread variables the entry point sets for its process are taken back, so processes
+    that later tests start get this one's environment (their floats depend on it)."""
     from dlocli.cli import main
 
-    old = sys.argv
+    old, environment = sys.argv, dict(os.environ)
     sys.argv = ["dlo", *argv]
     try:
         main()
@@ -79,6 +81,8 @@ def run_dlo(argv: list[str]) -> int:
         return exc.code if isinstance(exc.code, int) else 0
     finally:
         sys.argv = old
+        os.environ.clear()
+        os.environ.update(environment)
     return 0
 
 
