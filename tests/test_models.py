@@ -14,6 +14,7 @@ from dlocli.errors import BadInput
 from dlocli.models.base import (
     build_model,
     load_model,
+    load_model_bytes,
     resolve_device,
     save_checkpoint,
 )
@@ -122,6 +123,17 @@ def test_save_load_round_trip_is_exact(model, real, tmp_path):
     run = tmp_path / "run"
     save_checkpoint(model, run / "checkpoints" / "final.pt")
     assert torch.equal(load_model(run).state_std, model.state_std), "a run dir means final.pt"
+
+
+def test_a_checkpoints_bytes_load_as_its_file_does(model, real, tmp_path):
+    """Online trials get the checkpoint as bytes and load it in memory."""
+    state, actions = batch(real)
+    path = save_checkpoint(model, tmp_path / "m.pt")
+    again = load_model_bytes(path.read_bytes())
+    with torch.no_grad():
+        assert torch.equal(load_model(path).rollout(state, actions), again.rollout(state, actions))
+    with pytest.raises(BadInput, match="the model checkpoint in memory is not a readable"):
+        load_model_bytes(path.read_bytes()[:100])
 
 
 def test_version_1_checkpoint_loads_without_velocity(real, tmp_path):
