@@ -73,8 +73,9 @@ def test_the_walker_sees_circles():
 #: a `dlocli.x.y` path, and a repository path (examples/..., benchmarks/..., tests/..., dlocli/...)
 DOTTED = re.compile(r"\bdlocli(?:\.[A-Za-z_]\w*)+")
 REPO_PATH = re.compile(r"(?<![\w/.])((?:examples|benchmarks|tests|dlocli)/[\w./-]*\w)")
-#: names shaped like these that are not citations: Gymnasium / Minari ids, a metadata key
-NOT_CITATIONS = re.compile(r"-v\d+$|^dlocli\.observation_layout$")
+#: names shaped like these that are not citations: Gymnasium / Minari ids, a metadata key,
+#: the entry-point group of plugin commands
+NOT_CITATIONS = re.compile(r"-v\d+$|^dlocli\.observation_layout$|^dlocli\.commands$")
 #: files users do not have
 ABSENT = re.compile(r"\b(DESIGN\.md|FINDINGS(?:\.md)?)\b")
 

@@ -1,5 +1,5 @@
-"""A plugin package from outside dlocli (tests/plugin: a model, a backend, a learning agent
-and a planner, each registered by one entry-point line) works in every command: `list`,
+"""A plugin package from outside dlocli (tests/plugin: a model, a backend, a learning agent,
+a planner and a command, each registered by one entry-point line) works in every command: `list`,
 `train` (tests/test_model_plugin.py), `online`, `control` and `bench`; the backend's fact
 (its segment limit) reaches the spec, and the shared agent tests pick up its learner. Each
 command runs in a fresh process that finds the plugin as an installed package."""
@@ -45,6 +45,18 @@ def test_every_plugin_is_listed():
     listed = last_json(dlo("list", "--json"))
     assert "short-cable" in listed["backends"] and "chain" in listed["models"]
     assert {"best-constant", "shooting"} <= set(listed["controllers"])
+
+
+def test_a_plugin_command_is_listed_and_runs(tmp_path):
+    assert "goal-length" in dlo("--help").stdout
+    goal = tmp_path / "goal.npy"
+    assert dlo("goal", "--out", str(goal), "--shapes", "near-rest").returncode == 0
+    length = last_json(dlo("goal-length", "--goal", str(goal), "--json"))["length_m"]
+    assert 0.9 < length < 0.96  # 19 gaps of about a 5 cm segment each, the rod bent
+    missing = dlo("goal-length", "--goal", str(tmp_path / "none.npy"))
+    # its errors get dlo's one line and exit code
+    assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
+    assert "none.npy" in missing.stderr
 
 
 def test_the_backends_segment_limit_reaches_the_spec(tmp_path):

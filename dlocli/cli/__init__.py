@@ -127,19 +127,33 @@ def _short_help(text: str, limit: int) -> str:
     return " ".join(sentence) + "..."
 
 
+def all_commands() -> list[tuple[str, str]]:
+    """The built-in commands, then those plugins add through the ``dlocli.commands``
+    entry-point group (``name = module:function``, a Typer command function); a plugin cannot
+    replace a built-in."""
+    from importlib.metadata import entry_points
+
+    built_in = dict(COMMANDS)
+    added = [(ep.name, ep.value) for ep in entry_points(group="dlocli.commands")]
+    return [*COMMANDS, *((name, target) for name, target in added if name not in built_in)]
+
+
 class _LazyGroup(TyperGroup):
     """The root group: commands load on first use; its help lists them from their sources."""
 
     def __init__(self, **attrs: Any) -> None:
         super().__init__(**attrs)
+        self.listed = all_commands()
+        targets = dict(self.listed)
         self.commands = _LazyCommands(
-            {**dict(COMMANDS), **{alias: dict(COMMANDS)[name] for alias, name in ALIASES.items()}}
+            {**targets, **{alias: targets[name] for alias, name in ALIASES.items()}}
         )
 
     def format_commands(self, ctx: Context, formatter: HelpFormatter) -> None:
-        limit = formatter.width - 6 - max(len(name) for name, _ in COMMANDS)
+        limit = formatter.width - 6 - max(len(name) for name, _ in self.listed)
         rows = [
-            (name, _short_help(_first_docstring_line(target), limit)) for name, target in COMMANDS
+            (name, _short_help(_first_docstring_line(target), limit))
+            for name, target in self.listed
         ]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
