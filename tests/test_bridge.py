@@ -57,7 +57,8 @@ def served(*flags: str, kill: bool = False) -> Iterator[str]:
     finally:
         if cell.poll() is None:
             cell.send_signal(signal.SIGKILL if kill else signal.SIGINT)
-            cell.wait(timeout=30)
+            code = cell.wait(timeout=30)
+            assert kill or code == 0, cell.stderr.read()  # Ctrl-C is how a server ends
 
 
 def _control(goal: Path, policy: Path, out: Path, *flags: str) -> list[str]:

@@ -12,17 +12,21 @@ from dlocli.cli.flags import RunFlags, spec_flags
 def serve(
     run: RunFlags,
 ) -> None:
-    """Serve a simulator as a cell at --address until stopped (Ctrl-C): controllers step it
-    with `dlo control --cell ADDRESS`, as they would a robot."""
+    """Serve a simulator as a cell at --address until stopped (Ctrl-C, SIGTERM: exit 0):
+    controllers step it with `dlo control --cell ADDRESS`, as they would a robot."""
     import typer
 
     from dlocli.bridge.cell import serve as serve_cell
     from dlocli.extras import require
+    from dlocli.processes import stop_handled
 
     spec = run.spec()
     require("bridge", "dlo serve")
 
+    bound = [spec.address]
+
     def ready(address: str) -> None:
+        bound[0] = address  # tcp://HOST:* names its port only once bound
         mode = "real time" if spec.realtime else "lockstep"
         typer.echo(
             f"serving {spec.backend.name} ({spec.backend.rod.n_segments} segments, "
@@ -30,4 +34,8 @@ def serve(
             err=True,
         )
 
-    serve_cell(spec, ready)
+    try:
+        serve_cell(spec, ready)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: how a server is meant to end
+        stop_handled()
+        typer.echo(f"dlo serve: stopped serving at {bound[0]}", err=True)
