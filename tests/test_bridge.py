@@ -206,6 +206,9 @@ def test_the_cell_answers_a_bad_request_and_serves_on(tmp_path):
         socket.connect(address)
         for request, expected in [(b"not json", "error"), (protocol.encode("fly"), "error"),
                                   (protocol.encode("hello", protocol="x", version=9), "error"),
+                                  (protocol.encode("reset", seed="abc"), "error"),
+                                  (protocol.encode("reset", limits={"workspace_low": 1}), "error"),
+                                  (protocol.encode("set_state", state="x"), "error"),
                                   (protocol.encode("bye"), "bye")]:  # fmt: skip
             socket.send(request)
             assert protocol.decode(socket.recv())["type"] == expected

@@ -34,7 +34,7 @@ class Cell:
         self.rng = np.random.default_rng(spec.seed)
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
-        self.clock_start = time.monotonic()
+        self.clock_start = self.commanded_at = time.monotonic()
         self.seen: dict[str, np.ndarray] = {}  # the cable as the tracker last saw it
 
     # ------------------------------------------------------------------ requests
@@ -71,7 +71,7 @@ class Cell:
         self.backend.reset(None if seed is None else int(seed))
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
-        self.clock_start = time.monotonic()
+        self.clock_start = self.commanded_at = time.monotonic()
         return self._state(reset=True)
 
     def _on_step(self, request: dict[str, Any]) -> bytes:
@@ -81,7 +81,7 @@ class Cell:
         if self.rng.random() < self.spec.drop_probability:
             self.dropped += 1  # lost on the way: the held command acts in its period
         else:
-            self.held = velocities
+            self.held, self.commanded_at = velocities, time.monotonic()
         self._advance(self.held)
         return self._state()
 
@@ -132,13 +132,12 @@ class Cell:
 
     def _catch_up(self) -> None:
         """Real time: the periods whose tick passed before this command came run with the
-        held command (late); past ``hold_s`` without a command the held one is zero."""
+        held command (late); from ``hold_s`` after the last command the held one is zero."""
         dt = self.backend.control_dt
         now = time.monotonic()
-        waited = now - (self.clock_start + self.step_count * dt)
-        if waited > self.spec.hold_s:
-            self.held = np.zeros((2, 6))
-        while now > self.clock_start + (self.step_count + 1) * dt:
+        while (tick := self.clock_start + (self.step_count + 1) * dt) < now:
+            if tick - self.commanded_at > self.spec.hold_s:
+                self.held = np.zeros((2, 6))
             self.backend.step(self.held)
             self.step_count += 1
             self.late += 1
@@ -206,4 +205,6 @@ def _serve_loop(cell: Cell, socket: Any) -> None:
             reply = cell.handle(protocol.decode(message))
         except BadInput as exc:  # the controller hears why; the cell serves on
             reply = protocol.encode("error", message=str(exc))
+        except (KeyError, TypeError, ValueError) as exc:  # a field missing or of a wrong kind
+            reply = protocol.encode("error", message=f"a malformed request: {exc!r}")
         socket.send(reply)
