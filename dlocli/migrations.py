@@ -6,6 +6,11 @@ A field added to a spec that enters a bench job's fingerprint needs an entry in
 spec that lacks the field is completed with it, and a job whose spec holds it keeps its
 fingerprint (the field is left out). ``tests/test_migrations.py`` fails on a field added
 without one.
+
+Applied only where saved data is read: spec files and run spec.json
+(:meth:`dlocli.specs.Spec.saved_layout`, :func:`dlocli.resume.saved_spec`), checkpoints
+(:func:`dlocli.models.base.checkpoint_spec`) and bench fingerprints
+(:func:`dlocli.bench.spec.fingerprint`); validating a spec migrates nothing.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""Resuming a run from its directory: the saved spec (completed with the fields it predates)
-and the check that flags given with ``--resume`` do not contradict it."""
+"""Resuming a run from its directory: the saved spec (its older layouts migrated, completed
+with the fields it predates) and the check that flags given with ``--resume`` do not
+contradict it."""
 
 from __future__ import annotations
 
@@ -34,6 +35,12 @@ def saved_spec(path: Path) -> Any:
     return data
 
 
+def load_saved_spec(cls: type[SpecT], path: Path) -> SpecT:
+    """The run spec.json at ``path`` as a ``cls`` spec: older layouts migrated, the fields it
+    predates at their legacy values (ValueError if it is not JSON or not a ``cls`` spec)."""
+    return cls.model_validate(cls.saved_layout(saved_spec(path)))
+
+
 def resumed_run_spec(
     cls: type[SpecT],
     run_dir: Path,
@@ -52,7 +59,7 @@ def resumed_run_spec(
             f"pass the --out directory of an earlier `{command}`"
         )
     try:
-        spec = cls.model_validate(saved_spec(spec_path))
+        spec = load_saved_spec(cls, spec_path)
     except ValueError as exc:
         raise BadInput(
             f"--resume {run_dir}: spec.json is not {kind} spec; pass the directory of a "

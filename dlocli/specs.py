@@ -59,6 +59,19 @@ class Spec(BaseModel):
         """The FieldInfo of the field ``name`` (KeyError if there is none)."""
         return cls.model_fields[name]
 
+    @classmethod
+    def saved_layout(cls, data: Any) -> Any:
+        """``data`` (this spec as data, from a spec file, a run's spec.json or a checkpoint)
+        with the layouts of older saves migrated, nested specs included. The load boundaries
+        call it; validating a spec migrates no layout (:mod:`dlocli.migrations`)."""
+        if not isinstance(data, dict):
+            return data
+        nested = {name: strip_none(info.annotation) for name, info in cls.model_fields.items()}
+        return {
+            key: nested[key].saved_layout(value) if _is_spec(nested.get(key)) else value
+            for key, value in data.items()
+        }
+
     @model_validator(mode="before")
     @classmethod
     def _move_fields(cls, data: Any) -> Any:
@@ -77,6 +90,10 @@ class Spec(BaseModel):
         if isinstance(value, Path):
             require_utf8_path(value)
         return value
+
+
+def _is_spec(annotation: Any) -> bool:
+    return isinstance(annotation, type) and issubclass(annotation, Spec)
 
 
 #: the torch device a run computes on (one meaning in every spec that has one)
@@ -157,8 +174,8 @@ class RodSpec(Spec):
         description="How a held rod end bends in its gripper. 'half-segment': a joint at the "
         "gripper with the compliance of the half segment it stands for (stiffnesses 2 E I / l "
         "and 2 G J / l), so statics converge to the continuum's as 1/N^2 (within 1% at N = "
-        "20). 'rigid': the end segment is rigid in the gripper, the rod of runs made before "
-        "this field (a cantilever deflects about (1 - 1/N)^2 of the continuum's).",
+        "20). 'rigid': the end segment is rigid in the gripper (a cantilever deflects about "
+        "(1 - 1/N)^2 of the continuum's).",
     )
     bending_damping: float | None = Field(
         DEFAULT_DAMPING_TIME,
@@ -167,17 +184,17 @@ class RodSpec(Spec):
         "moment is (E I / l) (angle + beta * angular rate), a material of viscosity beta E). "
         "A bending mode of angular frequency w gets the damping ratio beta w / 2: the first "
         "mode of the 1 m paper rod (1.76 rad/s) 0.044 at the default 0.05. None = each "
-        "backend's earlier constant (mujoco 0.05, pybullet two physics steps), the rod of runs "
-        "saved before this field. MuJoCo's elasticity is explicit: with little damping it "
-        "needs a smaller physics_dt; PyBullet's springs and damping are explicit: at its 2 ms "
-        "default it adds rotary inertia to the segments (see the README's rod physics).",
+        "backend's own constant (mujoco 0.05, pybullet two physics steps). MuJoCo's "
+        "elasticity is explicit: with little damping it needs a smaller physics_dt; "
+        "PyBullet's springs and damping are explicit: at its default step it adds rotary "
+        "inertia to the segments (see the README's rod physics).",
     )
     twist_damping: float | None = Field(
         DEFAULT_DAMPING_TIME,
         ge=0,
         description="Twist damping time in seconds: each joint's twisting moment is (G J / l) "
         "(angle + time * angular rate); a twist mode of angular frequency w gets the damping "
-        "ratio time * w / 2. None = each backend's earlier constant (mujoco the bending "
+        "ratio time * w / 2. None = each backend's own constant (mujoco the bending "
         "coefficient, a time of (1 + poisson) * 0.05; pybullet two physics steps).",
     )
     air_damping: float | None = Field(
@@ -186,7 +203,7 @@ class RodSpec(Spec):
         description="Air damping d in 1/s: every segment's velocity v and angular velocity w "
         "decay at d (1 + |v|) v and d (1 + |w|) w (|v| in m/s, |w| in rad/s; PyBullet's "
         "velocity damping law); slow motions of every mode of angular frequency w get the "
-        "damping ratio d / (2 w). None = each backend's earlier constant (mujoco 0, pybullet "
+        "damping ratio d / (2 w). None = each backend's own constant (mujoco 0, pybullet "
         "5).",
     )
 
@@ -543,7 +560,7 @@ def resolve_spec(
     cls: type[SpecT], spec_file: Path | None = None, overrides: dict[str, Any] | None = None
 ) -> SpecT:
     """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths)."""
-    data: dict[str, Any] = load_spec_file(spec_file) if spec_file is not None else {}
+    data: dict[str, Any] = cls.saved_layout(load_spec_file(spec_file)) if spec_file else {}
     for dotted, value in (overrides or {}).items():
         if value is not None:
             _set_dotted(data, dotted, value)

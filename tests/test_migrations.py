@@ -16,8 +16,8 @@ from dlocli.bench.spec import FREE_FIELDS, BenchSpec
 from dlocli.controllers.mpc import MPCSpec
 from dlocli.models.base import build_model, load_model, save_checkpoint
 from dlocli.models.spec import TrainSpec, UpdateSpec, model_spec_classes
-from dlocli.resume import saved_spec
-from dlocli.specs import BackendSpec, RodSpec, TaskSpec
+from dlocli.resume import load_saved_spec
+from dlocli.specs import BackendSpec, RodSpec, TaskSpec, resolve_spec
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 #: committed benches whose jobs match the spec they were run with (bench_medium's jobs were
@@ -66,7 +66,7 @@ def fingerprinted_specs() -> dict[str, type]:
 
 @pytest.mark.parametrize("bench", BENCHES)
 def test_committed_bench_jobs_are_still_finished(bench):
-    spec = BenchSpec.model_validate(saved_spec(EXAMPLES / bench / "spec.json"))
+    spec = load_saved_spec(BenchSpec, EXAMPLES / bench / "spec.json")
     run = BenchRun(spec.model_copy(update={"out": EXAMPLES / bench}))
     jobs = sorted((EXAMPLES / bench / "jobs").glob("*.json"))
     assert jobs and run.jobs() == []  # --resume reruns none of them
@@ -104,15 +104,13 @@ def test_a_model_option_needs_a_legacy_value(name):
 )
 def test_real_cable_specs_build_the_models_they_built(file, expected):
     """The flat layout (`mlp_hidden`, `mlp_layers`, and the other models' fields) of the
-    spec files and of the committed runs' spec.json."""
-    import yaml
-
-    spec = TrainSpec.model_validate(yaml.safe_load((EXAMPLES / "real_cables" / file).read_text()))
+    spec files and of the committed runs' spec.json, migrated where they are read."""
+    spec = resolve_spec(TrainSpec, EXAMPLES / "real_cables" / file)
     assert {k: getattr(spec.model, k) for k in expected} == expected
     assert spec.model.length_projection == 3
     name = spec.model.name
     for saved in sorted((EXAMPLES / "real_cables" / "runs").glob(f"*/{name}-s*/spec.json")):
-        assert TrainSpec.model_validate(saved_spec(saved)).model == spec.model, saved
+        assert load_saved_spec(TrainSpec, saved).model == spec.model, saved
 
 
 def test_a_checkpoint_of_the_flat_layout_loads(tmp_path):
@@ -128,3 +126,16 @@ def test_a_checkpoint_of_the_flat_layout_loads(tmp_path):
     assert again.spec == model.spec
     weights = zip(model.state_dict().values(), again.state_dict().values(), strict=True)
     assert all(torch.equal(a, b) for a, b in weights)
+
+
+def test_validation_migrates_no_layout():
+    """Migrations run where saved data is read (spec files, spec.json, checkpoints), not on
+    every validation: a flat-layout field given to a spec directly is an unknown field."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="mlp_hidden"):
+        TrainSpec.model_validate({"model": {"name": "in-bilstm", "mlp_hidden": 512}})
+    with pytest.raises(ValidationError, match="recent_fraction"):
+        TrainSpec.model_validate({"recent_fraction": 0.5})
+    flat = {"model": {"name": "in-bilstm", "mlp_hidden": 512}, "recent_fraction": 0.5}
+    assert TrainSpec.model_validate(TrainSpec.saved_layout(flat)).model == TrainSpec().model

@@ -135,10 +135,10 @@ def test_a_spec_saved_before_the_rod_fields_is_the_earlier_rod_with_its_fingerpr
 
 def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod() -> None:
     from dlocli.bench.spec import BenchSpec, fingerprint
-    from dlocli.resume import saved_spec
+    from dlocli.resume import load_saved_spec
 
     run = Path(__file__).parents[1] / "examples" / "bench_paper"
-    spec = BenchSpec.model_validate(saved_spec(run / "spec.json"))
+    spec = load_saved_spec(BenchSpec, run / "spec.json")
     assert spec.backend.rod == RodSpec(**LEGACY_VALUES["rod"])
     today = spec.model_copy(update={"backend": spec.backend.model_copy(update={"rod": RodSpec()})})
     for path in sorted((run / "jobs").glob("*.json")):

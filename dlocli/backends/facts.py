@@ -22,8 +22,8 @@ class BackendFacts:
 class MujocoFacts(BackendFacts):
     """MuJoCo's composite cable."""
 
-    # the rod of runs saved before the damping fields: stiffness-proportional joint damping
-    # of time 0.05 s (twist (1 + poisson) times that) and no air damping
+    # the cable's own damping: stiffness-proportional joint damping of time 0.05 s (twist
+    # (1 + poisson) times that) and no air damping
     unset_rod_values: ClassVar[Mapping[str, float]] = {
         "bending_damping": 0.05,
         "twist_damping": 0.066,
@@ -49,7 +49,7 @@ class PybulletFacts(BackendFacts):
 class FlexFacts(BackendFacts):
     """MuJoCo 4's flex rod."""
 
-    # MuJoCo's flex damping time for bending and twist (no runs predate its damping fields)
+    # MuJoCo's flex damping time for bending and twist
     unset_rod_values: ClassVar[Mapping[str, float]] = {
         "bending_damping": 0.05,
         "twist_damping": 0.05,

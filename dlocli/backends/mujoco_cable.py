@@ -35,7 +35,7 @@ Model (built from the :class:`~dlocli.specs.RodSpec`, compiled once per backend)
   joint bending stiffness, so the pad (with a rigid clamp, the held segment) stays within
   ~0.7 degrees and ~0.5 mm of a gripper moving at full speed.
   Stiffer pads hold the ends so rigidly that a rod pulled taut kinks at its end joint and
-  diverges (100x: 7 in 10 stress episodes, 40x: 2 in 40, 25x and 15x: none in 100).
+  diverges (benchmarks/backend_stability.py).
 - The weld impedance *decreases* for violations beyond ~1 cm / 0.6 degrees (solimp dmin
   0.99 > dmax 0.8): a rod pulled taut by gripper motions that the separation guard cannot
   see (ends rotated apart) slips in the gripper instead of blowing up the simulation.
@@ -247,8 +247,8 @@ class MujocoCable(MujocoFacts, WeldedMujocoRod):
     # joint damping is implicit in MuJoCo: any Kelvin-Voigt time at the segments' real inertia
     capabilities = frozenset({END_LOAD, KELVIN_VOIGT_REAL_INERTIA})
     # The largest step that survives the stress tests (benchmarks/backend_stability.py):
-    # random smooth gripper motion is stable even at 10 ms, but full-speed rotations that pull
-    # the rod taut diverge in 0/100 episodes at 4 ms, 2/40 at 5 ms, 7/10 at 10 ms.
+    # random smooth gripper motion is stable at larger steps, but full-speed rotations that
+    # pull the rod taut diverge above this one.
     default_physics_dt = 0.004
 
     @classmethod

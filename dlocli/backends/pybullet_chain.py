@@ -11,7 +11,7 @@ Model (SI units throughout)
   ``k_b = EI / l`` and ``k_t = GJ / l`` exactly, so static shapes (the cantilever) are the
   discrete Euler-Bernoulli rod's.
 - Why explicit torques plus armature: PyBullet 3.2.7 offers no calibrated implicit joint
-  spring (measured: ``STABLE_PD_CONTROL`` gives static joint deflections 300x to 3e7x off
+  spring (``STABLE_PD_CONTROL`` gives static joint deflections orders of magnitude off
   ``tau / kp``, changing with kd; the spherical ``POSITION_CONTROL`` motor is a velocity
   constraint, not a spring). Explicit torques at 2 ms are unstable for the physical rotary
   inertia (the twist "zig-zag" mode of a 5 cm segment is ~2400 rad/s), and so is explicit
@@ -31,7 +31,7 @@ Model (SI units throughout)
   segments deflects ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at 20).
 - Damping: the rod spec's bending and twist damping times (above) and its air damping,
   PyBullet's own velocity damping of every link (acceleration ``-d (1 + |v|) v``). A spec
-  whose damping is None keeps the earlier constants: ``DAMPING_STEPS`` physics steps of
+  whose damping is None keeps the backend's own constants: ``DAMPING_STEPS`` physics steps of
   joint damping and ``AIR_DAMPING`` = 5/s (the rest shape settles with ``SETTLE_DAMPING``).
 - Grippers: each held end is a constraint (point-to-point, or ``JOINT_FIXED`` for rigid
   clamps) between the end of its segment and a world frame moved every physics step
@@ -187,8 +187,8 @@ class PybulletChain(PybulletFacts, Backend):
     name = "pybullet"
     # its explicit joint damping needs added rotary inertia: no KELVIN_VOIGT_REAL_INERTIA
     capabilities = frozenset({END_LOAD})
-    #: every dt is stable (the armature scales with dt^2); 2 ms keeps dynamics within ~3 mm of
-    #: a converged run (4 ms: 5.4 mm, 10 ms: 10 mm) at >= 250 env steps/s on 2 cores
+    #: every dt is stable (the armature scales with dt^2); this one keeps the dynamics close to
+    #: a converged run's at a useful simulation speed (benchmarks/rod_physics.py)
     default_physics_dt = 0.002
 
     def __init__(self, spec: BackendSpec | None = None, control_dt: float = 0.02) -> None:

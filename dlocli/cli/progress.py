@@ -47,7 +47,7 @@ def clock(seconds: float | None) -> str:
 
 class _EtaColumn(ProgressColumn):
     """ETA from the bar's own elapsed time and finished units. Rich's column estimates speed
-    from the last 30 s only, so units longer than that (an iteration) never got an ETA."""
+    from a recent window only, so units longer than that (an iteration) would get no ETA."""
 
     def render(self, task: Any) -> Text:
         if not task.total or task.completed >= task.total:

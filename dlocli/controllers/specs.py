@@ -72,9 +72,9 @@ class MPCSpec(PlannerSpec):
     )
     exact_gradient: bool = Field(
         False,
-        description="gauss-newton: back-propagate the exact gradient every iteration (about "
-        "2x the time) instead of J^T r with the residuals r of a forward rollout and the "
-        "Jacobian J of the latest refresh.",
+        description="gauss-newton: back-propagate the exact gradient every iteration (a "
+        "backward pass per iteration) instead of J^T r with the residuals r of a forward "
+        "rollout and the Jacobian J of the latest refresh.",
     )
     curvature_every: int = Field(
         25,
@@ -85,8 +85,8 @@ class MPCSpec(PlannerSpec):
     refresh: Literal["inline", "background"] = Field(
         "inline",
         description="gauss-newton: where the Jacobian refresh runs. inline: in the control "
-        "step that is due (one batched rollout of H*A+1 plans, ~70 ms for the paper's model "
-        "on one CPU thread, every `curvature_every`-th step). background: in a second "
+        "step that is due (one batched rollout of H*A+1 plans, every `curvature_every`-th "
+        "step). background: in a second "
         "thread from the due step's state and plan, installed curvature_every-1 re-plans "
         "later (it waits there if unfinished), so the steps keep their median latency where "
         "a second core is free. Deterministic either way; background's Jacobian is that "
@@ -166,9 +166,7 @@ class PilcoSpec(Spec):
         description="Least input scale (m) of the RBF policy, per dimension: its initial "
         "lengthscale. The scale is the spread of the states seen before the first update; "
         "where episode starts lie many such spreads away, the basis functions vanish there, "
-        "the policy outputs zero and its gradient too. The default is the cost width (0.01 "
-        "before 2026-12-02: pilco then did nothing on the bimanual task, and ended 1.4-1.8x "
-        "further from the single task's goals).",
+        "the policy outputs zero and its gradient too. The default is the cost width.",
     )
     policy_iterations: int = Field(
         30, ge=1, le=MAX_COUNT, description="Adam steps per policy update."

@@ -394,12 +394,13 @@ def _model_from_payload(
 
 
 def checkpoint_spec(payload: dict[str, Any], path: Path | str) -> ModelSpec:
-    """The model spec a checkpoint's payload holds (older ones' missing fields at their
-    legacy values); BadInput if it is not one."""
+    """The model spec a checkpoint's payload holds (older ones' layout migrated, their
+    missing fields at their legacy values); BadInput if it is not one."""
     saved = payload.get("model_spec")
     if not isinstance(saved, dict):
         raise BadInput(f"checkpoint {path} holds no model spec; retrain it")
-    return valid_model_spec(completed("model", saved), f"checkpoint {path} model spec")
+    saved = ModelSpec.saved_layout(completed("model", saved))
+    return valid_model_spec(saved, f"checkpoint {path} model spec")
 
 
 def with_weights(

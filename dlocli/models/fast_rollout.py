@@ -20,8 +20,7 @@ the same mathematics runs as:
 Results equal :meth:`DynamicsModel.rollout`'s to float32 rounding (tested against float64).
 Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and the README. Used when no
 gradient is wanted, on CPU, up to :data:`MAX_BATCH`; otherwise the PyTorch path runs. The
-first call compiles the loops (about 5 s, cached on disk; later processes load them in
-0.5 s).
+first call compiles the loops (cached on disk, so later processes only load them).
 """
 
 from __future__ import annotations
@@ -36,8 +35,8 @@ from torch import Tensor
 
 from dlocli.models.rnn import layer_params
 
-#: batch sizes up to which this path is faster than oneDNN (measured: 1.8x at 1, 1.2x at 4,
-#: 0.9x at 6; its recurrences run per sample, oneDNN batches them into matrix products)
+#: batch sizes up to which this path is faster than oneDNN (benchmarks/model_throughput.py):
+#: its recurrences run per sample, oneDNN batches them into matrix products
 MAX_BATCH = 4
 
 
@@ -279,8 +278,8 @@ def _build_weights(model: Any, key: tuple) -> _Weights:
 
 
 def _sources(model: Any) -> list[Tensor]:
-    """Every tensor :func:`_build_weights` reads (without walking the module tree: that
-    alone took 0.2 ms, 5% of a rollout)."""
+    """Every tensor :func:`_build_weights` reads (without walking the module tree, whose
+    cost is a noticeable share of a rollout)."""
     linears = _linears(model.edge_net) + _linears(model.node_net)
     return [
         *(t for m in linears for t in (m.weight, m.bias)),

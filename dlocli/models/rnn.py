@@ -11,7 +11,7 @@ with frozen weights; oneDNN's backward pass always computes the weight gradients
 - the backward pass (back-propagation through time) runs the same fused loop with the local
   derivatives of all steps precomputed in one vectorised pass, and gives the input gradient
   only: the weights are frozen;
-- both loops are compiled by TorchScript (measured 1.2-1.5x faster than the same Python);
+- both loops are compiled by TorchScript (faster than the same Python at small batches);
 - the weights are repacked only when they change (cached on the module).
 
 Used only where it was measured faster (``benchmarks/results/lstm_backward.md``): a backward
@@ -107,10 +107,11 @@ def _backward(grad_out: Tensor, acts: Tensor, cells: Tensor, w_hh: Tensor) -> Te
 
 @functools.cache
 def _kernels() -> tuple[Callable[..., Any], Callable[..., Any]]:
-    """:func:`_forward` and :func:`_backward` compiled by TorchScript (1.2-1.5x faster than
-    Python at small batches, where per-operation overhead dominates); plain Python if
-    scripting is unavailable. TorchScript is deprecated but still the fastest option here:
-    ``torch.compile`` took 150 s to compile this LSTM and was not faster."""
+    """:func:`_forward` and :func:`_backward` compiled by TorchScript (faster than Python at
+    small batches, where per-operation overhead dominates); plain Python if scripting is
+    unavailable. TorchScript is deprecated but still the fastest option here: ``torch.compile``
+    compiles this LSTM far more slowly and runs it no faster
+    (``benchmarks/results/lstm_backward.md``)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

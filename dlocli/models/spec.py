@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BeforeValidator, Field, SerializeAsAny, model_validator
+from pydantic import BeforeValidator, Field, SerializeAsAny
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import model_data, without_retired_train_fields
@@ -31,6 +31,18 @@ class ModelSpec(Spec):
         "onto the distances between neighbouring markers of the rollout's first frame (a "
         "cable does not stretch); 0: none.",
     )  # fmt: skip
+
+    @classmethod
+    def saved_layout(cls, data: Any) -> Any:
+        """A saved model spec (as data) without the fields of other models that the flat
+        layout, one spec shared by every model, saved with it."""
+        from dlocli.registry import models
+
+        name = data.get("name", cls.model_fields["name"].default) if isinstance(data, dict) else 0
+        if not isinstance(name, str) or name not in models:
+            return data  # validation names the problem
+        own = model_spec_class(name)
+        return model_data(data, set(own.model_fields), own.moved)
 
     @classmethod
     def field_of(cls, name: str) -> Any:
@@ -93,7 +105,7 @@ def model_spec_class(name: str) -> type[ModelSpec]:
 
 def model_spec(data: Any = None) -> ModelSpec:
     """The spec of the model ``data`` names (a dict or spec; none: the default model), as
-    its own spec class: older layouts migrated, options validated (ValidationError)."""
+    its own spec class, options validated (ValidationError)."""
     if isinstance(data, ModelSpec):
         if type(data) is model_spec_class(data.name):
             return data
@@ -103,7 +115,7 @@ def model_spec(data: Any = None) -> ModelSpec:
     if not isinstance(name, str):
         return ModelSpec.model_validate(data)  # the error names the field
     cls = model_spec_class(name)
-    return cls.model_validate(model_data(data, set(cls.model_fields), cls.moved))
+    return cls.model_validate(data)
 
 
 def _as_model_spec(value: Any) -> Any:
@@ -249,10 +261,9 @@ class TrainSpec(FitSpec):
     # extra steps within 50 epochs (README, model accuracy)
     batch_size: int = Field(16, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
 
-    @model_validator(mode="before")
     @classmethod
-    def _retired_fields(cls, data: Any) -> Any:
-        return without_retired_train_fields(data)
+    def saved_layout(cls, data: Any) -> Any:
+        return super().saved_layout(without_retired_train_fields(data))
 
 
 class EvalSpec(Spec):
