@@ -244,7 +244,7 @@ def test_the_defaults_are_the_sweeps_winners():
     import importlib.util
     from pathlib import Path
 
-    from dlocli.controllers.sb3_agents import SACSpec, TD3Spec
+    from dlocli.controllers.sb3_specs import SACSpec, TD3Spec
 
     path = Path(__file__).parent.parent / "benchmarks" / "rl_sweep.py"
     module_spec = importlib.util.spec_from_file_location("rl_sweep", path)

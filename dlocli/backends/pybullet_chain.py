@@ -5,24 +5,8 @@ Model (SI units throughout)
   ``rho * A * l``. Link frames sit at segment starts (the joint pivots); the inertial frame
   sits at the segment centre with its x axis along the rod, so PyBullet's link "world
   position" *is* the segment centre of base.py's convention.
-- Elasticity: every spherical joint carries a linear spring-damper on its rotation vector
-  ``theta`` (log map of the joint quaternion, child frame, x = rod axis):
-  ``tau = -diag(k_t, k_b, k_b) theta - beta diag(k_t, k_b, k_b) omega`` with
-  ``k_b = EI / l`` and ``k_t = GJ / l`` exactly, so static shapes (the cantilever) are the
-  discrete Euler-Bernoulli rod's.
-- Why explicit torques plus armature: PyBullet 3.2.7 offers no calibrated implicit joint
-  spring (``STABLE_PD_CONTROL`` gives static joint deflections orders of magnitude off
-  ``tau / kp``, changing with kd; the spherical ``POSITION_CONTROL`` motor is a velocity
-  constraint, not a spring). Explicit torques at 2 ms are unstable for the physical rotary
-  inertia (the twist "zig-zag" mode of a 5 cm segment is ~2400 rad/s), and so is explicit
-  Kelvin-Voigt damping whose rate at those modes exceeds ~1 / dt. So the segments' rotary
-  inertia is raised (an armature, as in MuJoCo) just enough that the fastest discrete modes
-  satisfy ``omega_max * dt <= COURANT`` (unstable from ~0.85), their damping rates likewise.
-  Masses and stiffnesses stay physical and statics are exact; the dynamics are the real
-  rod's only where no armature is needed: with little damping at
-  ``base.material_physics_dt`` (``added_inertia`` says how much was added;
-  benchmarks/results/rod_physics.txt gives it for the default rods). The backend therefore
-  does not declare ``KELVIN_VOIGT_REAL_INERTIA``.
+- Elasticity and rotary inertia: :mod:`dlocli.backends.pybullet_model` (``ChainModel``):
+  joint springs ``EI / l`` and ``GJ / l`` exactly, an armature where explicit springs need it.
 - Clamps (the rod spec's ``clamp_compliance``, default "half-segment"): each held end
   segment hangs on a point-to-point constraint at the gripper and a clamp spring-damper to
   the gripper's orientation, twice a rod joint's (the half segment between gripper and first
@@ -31,8 +15,9 @@ Model (SI units throughout)
   segments deflects ``(1 - 1/N)^2`` of Euler-Bernoulli's ``w L^4 / (8 EI)`` (-9.8% at 20).
 - Damping: the rod spec's bending and twist damping times (above) and its air damping,
   PyBullet's own velocity damping of every link (acceleration ``-d (1 + |v|) v``). A spec
-  whose damping is None keeps the backend's own constants: ``DAMPING_STEPS`` physics steps of
-  joint damping and ``AIR_DAMPING`` = 5/s (the rest shape settles with ``SETTLE_DAMPING``).
+  whose damping is None keeps the backend's own constants: ``pybullet_model.DAMPING_STEPS``
+  physics steps of joint damping and ``AIR_DAMPING`` = 5/s (the rest shape settles with
+  ``SETTLE_DAMPING``).
 - Grippers: each held end is a constraint (point-to-point, or ``JOINT_FIXED`` for rigid
   clamps) between the end of its segment and a world frame moved every physics step
   (``changeConstraint``, global ERP 1: no lag).
@@ -51,24 +36,30 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import pybullet as p
 
 from dlocli.backends.base import (
-    CLAMP_STIFFENING,
-    COURANT,
     END_LOAD,
     Backend,
     segment_inertia,
 )
 from dlocli.backends.facts import PybulletFacts
+from dlocli.backends.pybullet_model import ChainModel
+from dlocli.backends.pybullet_render import ChainCamera
+from dlocli.backends.pybullet_rotations import (
+    right_product,
+    rotate,
+    rotation_vector,
+    spin,
+    wxyz,
+    xyzw,
+)
 from dlocli.backends.rotations import quat_normalize, quat_rotate
-from dlocli.specs import BackendSpec, RodSpec
+from dlocli.specs import BackendSpec
 
-DAMPING_STEPS = 2.0  # joint damping time beta, in physics steps (damps the fastest modes)
 AIR_DAMPING = 5.0  # 1/s, default PyBullet linear/angular velocity damping of every link
 SETTLE_DAMPING = 20.0  # 1/s, air damping while the rest shape settles in reset()
 SETTLE_TIME = 3.0  # s of simulated settling for the rest shape
@@ -78,107 +69,12 @@ SOLVER_ITERATIONS = 10  # PGS sweeps; one 6-row constraint converges in a few
 MAX_JOINT_SPEED = 100.0  # rad/s; random gripper motion stays under 3, faster means a blow-up
 
 
-def _xyzw(q: np.ndarray) -> np.ndarray:
-    """(w,x,y,z) -> PyBullet's (x,y,z,w)."""
-    return q[..., [1, 2, 3, 0]]
-
-
-def _wxyz(q: np.ndarray) -> np.ndarray:
-    """PyBullet's (x,y,z,w) -> (w,x,y,z)."""
-    return q[..., [3, 0, 1, 2]]
-
-
-def _right_product(q: np.ndarray) -> np.ndarray:
-    """4x4 matrix M with ``a * q = M @ a`` for quaternions (w,x,y,z)."""
-    w, x, y, z = q
-    return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
-
-
-def _spin(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
-    """Rotation vector r (radians, world frame) of the shortest spin with q1 = exp(r) q0."""
-    rel = _right_product(q0 * np.array([1.0, -1, -1, -1])) @ q1  # q1 * conj(q0)
-    if rel[0] < 0:
-        rel = -rel
-    sin_half = float(np.linalg.norm(rel[1:]))
-    if sin_half < 1e-15:
-        return np.zeros(3)
-    return rel[1:] * (2.0 * math.atan2(sin_half, rel[0]) / sin_half)
-
-
 class _Targets(NamedTuple):
     """Gripper drive for one control period (PyBullet lists, x y z w quaternions)."""
 
     hold_pos: list[list[list[float]]]  # (2, n, 3) gripper positions at each physics step's end
     hold_orn: list[list[list[float]]]  # (2, n, 4) their orientations (x y z w)
     spin: list[list[float]]  # (2, 3) their world angular velocities (rad/s)
-
-
-def _rotate(q: tuple[float, ...], v: tuple[float, ...], inverse: bool = False) -> tuple:
-    """Vector v rotated by the unit quaternion q (x y z w), or by its inverse; plain floats."""
-    x, y, z, w = q
-    if inverse:
-        x, y, z = -x, -y, -z
-    tx, ty, tz = 2 * (y * v[2] - z * v[1]), 2 * (z * v[0] - x * v[2]), 2 * (x * v[1] - y * v[0])
-    return (
-        v[0] + w * tx + y * tz - z * ty,
-        v[1] + w * ty + z * tx - x * tz,
-        v[2] + w * tz + x * ty - y * tx,
-    )
-
-
-def _rotation_vector(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
-    """Rotation vector (rad) of the quaternion (x y z w), the shorter rotation; plain floats."""
-    sin_half = math.sqrt(x * x + y * y + z * z)
-    # theta = 2 asin(|v|) v / |v| for the shorter rotation (sign of w); -> 2 v at 0
-    f = math.asin(min(sin_half, 1.0)) / sin_half if sin_half > 1e-12 else 1.0
-    f = math.copysign(2.0 * f, w)
-    return f * x, f * y, f * z
-
-
-@dataclass(frozen=True)
-class ChainModel:
-    """Per-segment parameters of the discretised rod (SI units)."""
-
-    seg_length: float  # m
-    seg_mass: float  # kg
-    stiffness: np.ndarray  # (3,) N m/rad about (rod axis, bend y, bend z): (k_t, k_b, k_b)
-    damping: np.ndarray  # (3,) N m s/rad, stiffness-proportional (a damping time each)
-    inertia: np.ndarray  # (3,) kg m^2 about the segment centre, armature included
-
-    @classmethod
-    def from_rod(cls, rod: RodSpec, dt: float) -> ChainModel:
-        """Physical mass and stiffness; rotary inertia raised to keep explicit springs stable."""
-        seg = rod.segment_length
-        m = rod.density * rod.area * seg
-        k_b = rod.bending_stiffness / seg
-        k_t = rod.torsional_stiffness / seg
-        h = dt / COURANT
-        default = DAMPING_STEPS * dt
-        bend_time = default if rod.bending_damping is None else rod.bending_damping
-        twist_time = default if rod.twist_damping is None else rod.twist_damping
-        c_t, c_b = twist_time * k_t, bend_time * k_b
-        # zig-zag modes (neighbours alternate): twist omega^2 = 4 k_t / J_t,
-        # bending omega^2 = 16 k_b / (m l^2 + 4 J_b); J >= bound <=> omega * dt <= COURANT
-        # (chain_modes_squared); a compliant clamp's segment is faster
-        clamp = CLAMP_STIFFENING if rod.clamp_compliance == "half-segment" else 1.0
-        real_twist, real_bend = segment_inertia(rod)
-        j_twist = max(real_twist, 4.0 * clamp * k_t * h**2)
-        j_bend = max(real_bend, (16.0 * clamp * k_b * h**2 - m * seg**2) / 4.0)
-        # their explicit damping rates 4 c_t / J_t and 16 c_b / (m l^2 + 4 J_b) stay below
-        # 2 COURANT / dt the same way; the default damping (two steps) never needs more
-        j_twist_damped = max(j_twist, 2.0 * clamp * c_t * h)
-        j_bend_damped = max(j_bend, (8.0 * clamp * c_b * h - m * seg**2) / 4.0)
-        if (j_twist_damped, j_bend_damped) != (j_twist, j_bend):
-            # one axis much heavier than the others: the explicit gyroscopic torque blows up
-            j_twist = j_bend = max(j_twist_damped, j_bend_damped)
-        stiffness = np.array([k_t, k_b, k_b])
-        return cls(
-            seg_length=seg,
-            seg_mass=m,
-            stiffness=stiffness,
-            damping=np.array([c_t, c_b, c_b]),
-            inertia=np.array([j_twist, j_bend, j_bend]),
-        )
 
 
 class PybulletChain(PybulletFacts, Backend):
@@ -206,7 +102,7 @@ class PybulletChain(PybulletFacts, Backend):
         k, d = self.model.stiffness, self.model.damping  # (twist, bend, bend)
         self._gains = (float(k[0]), float(k[1]), float(d[0]), float(d[1]))
         self._frames: tuple[np.ndarray, np.ndarray] | None = None  # cached link frames
-        self._visuals: dict[str, int] = {}  # render-only visual shapes, by kind
+        self._camera = ChainCamera(self._client, self.rod, self.rest_height)
         self._build()
         self._rest_state = self._settle_rest()
 
@@ -330,7 +226,7 @@ class PybulletChain(PybulletFacts, Backend):
         # segment 0 starts at the left gripper (resetBase places the centre of mass)
         centre = rest[0, :3] + quat_rotate(rest[0, 3:], np.array([self.model.seg_length / 2, 0, 0]))
         p.resetBasePositionAndOrientation(
-            b, centre.tolist(), _xyzw(rest[0, 3:]).tolist(), physicsClientId=c
+            b, centre.tolist(), xyzw(rest[0, 3:]).tolist(), physicsClientId=c
         )
         self._set_dynamics(SETTLE_DAMPING)
         # a straight cantilever in free space is at rest already
@@ -358,13 +254,13 @@ class PybulletChain(PybulletFacts, Backend):
         frac = np.arange(1, self._n_sub + 1)[:, None] / self._n_sub  # ends of the physics steps
         positions, orientations, spins_per_second = [], [], []
         for g in range(len(self._holds)):
-            rotvec = _spin(start[g, 3:], end[g, 3:])
+            rotvec = spin(start[g, 3:], end[g, 3:])
             spins_per_second.append((rotvec / self.control_dt).tolist())
             angle = float(np.linalg.norm(rotvec))
             axis = rotvec / angle if angle > 1e-15 else np.zeros(3)
             half = 0.5 * angle * frac
             spins = np.hstack([np.cos(half), np.sin(half) * axis])  # (n,4) w x y z
-            orientations.append(_xyzw(spins @ _right_product(start[g, 3:]).T).tolist())
+            orientations.append(xyzw(spins @ right_product(start[g, 3:]).T).tolist())
             positions.append((start[g, :3] + frac * (end[g, :3] - start[g, :3])).tolist())
         return _Targets(hold_pos=positions, hold_orn=orientations, spin=spins_per_second)
 
@@ -380,7 +276,7 @@ class PybulletChain(PybulletFacts, Backend):
         for quat, (ox, oy, oz) in ((s[0], s[1]) for s in states):
             if not abs(ox) + abs(oy) + abs(oz) < MAX_JOINT_SPEED:
                 return None
-            tx, ty, tz = _rotation_vector(*quat)
+            tx, ty, tz = rotation_vector(*quat)
             torques.append((-kt * tx - ct * ox, -kb * ty - cb * oy, -kb * tz - cb * oz))
         return torques
 
@@ -389,7 +285,7 @@ class PybulletChain(PybulletFacts, Backend):
         external forces after every step)."""
         c, b, last = self._client, self._body, self.n_segments - 2
         start, quat = p.getLinkState(b, last, computeForwardKinematics=1, physicsClientId=c)[4:6]
-        along = _rotate(quat, (self.model.seg_length, 0.0, 0.0))
+        along = rotate(quat, (self.model.seg_length, 0.0, 0.0))
         end = [s + a for s, a in zip(start, along, strict=True)]
         p.applyExternalForce(b, last, force, end, p.WORLD_FRAME, physicsClientId=c)
         p.applyExternalTorque(b, last, torque, p.WORLD_FRAME, physicsClientId=c)
@@ -426,12 +322,12 @@ class PybulletChain(PybulletFacts, Backend):
                 gw * sz - gx * sy + gy * sx - gz * sw,
                 gw * sw + gx * sx + gy * sy + gz * sz,
             )
-            tx, ty, tz = _rotation_vector(*rel)
-            ox, oy, oz = _rotate(
+            tx, ty, tz = rotation_vector(*rel)
+            ox, oy, oz = rotate(
                 grip, [a - e for a, e in zip(spin, targets.spin[g], strict=True)], inverse=True
             )
             local = (-kt * tx - ct * ox, -kb * ty - cb * oy, -kb * tz - cb * oz)
-            torques.append(_rotate(grip, local))
+            torques.append(rotate(grip, local))
         return torques
 
     def _advance(self, start: np.ndarray, end: np.ndarray) -> bool:
@@ -542,7 +438,7 @@ class PybulletChain(PybulletFacts, Backend):
         return self._link_frames()[0].copy()
 
     def segment_quaternions(self) -> np.ndarray:
-        return quat_normalize(_wxyz(self._link_frames()[1]))  # unit, w >= 0
+        return quat_normalize(wxyz(self._link_frames()[1]))  # unit, w >= 0
 
     # ----------------------------------------------------------------- rendering
     def render(
@@ -550,67 +446,11 @@ class PybulletChain(PybulletFacts, Backend):
     ) -> np.ndarray:
         """Tiny-renderer image of the rod, grippers (grey boxes) and goal (green spheres)."""
         width, height = max(1, int(width)), max(1, int(height))
-        markers: list[int] = []
+        grips = self._gripper_poses if self.spec.held_ends == "both" else self._gripper_poses[:1]
         try:
-            markers = self._add_markers(goal)
-            return self._camera_image(width, height)
+            return self._camera.image(grips, goal, width, height)
         except Exception:  # noqa: BLE001 - rendering must never crash a run
             return self._fallback_image(width, height, goal)
-        finally:
-            # markers live only while rendering: static bodies still cost physics time
-            for body in markers:
-                with contextlib.suppress(Exception):
-                    p.removeBody(body, physicsClientId=self._client)
-
-    def _visual(self, kind: str, **shape: object) -> int:
-        """A visual shape (``createVisualShape`` arguments), created once per kind."""
-        if kind not in self._visuals:
-            self._visuals[kind] = p.createVisualShape(physicsClientId=self._client, **shape)
-        return self._visuals[kind]
-
-    def _add_markers(self, goal: np.ndarray | None) -> list[int]:
-        """Visual-only bodies (no mass, no collision) at the grippers and goal points."""
-        r = self.rod.radius
-        box = self._visual(
-            "gripper", shapeType=p.GEOM_BOX, halfExtents=[2 * r] * 3, rgbaColor=[0.4, 0.4, 0.45, 1]
-        )
-        ball = self._visual(
-            "goal", shapeType=p.GEOM_SPHERE, radius=1.2 * r, rgbaColor=[0.1, 0.7, 0.2, 1]
-        )
-        grips = self._gripper_poses if self.spec.held_ends == "both" else self._gripper_poses[:1]
-        places = [(box, pose[:3], _xyzw(pose[3:])) for pose in grips]  # a free end: no gripper
-        try:
-            points = np.asarray(goal, dtype=np.float64).reshape(-1, 3)
-        except (TypeError, ValueError):  # None or not (N,3)-like: draw no goal
-            points = np.zeros((0, 3))
-        places += [(ball, pt, [0, 0, 0, 1]) for pt in points if np.isfinite(pt).all()]
-        return [
-            p.createMultiBody(
-                baseMass=0,
-                baseVisualShapeIndex=vis,
-                basePosition=list(pos),
-                baseOrientation=list(orn),
-                physicsClientId=self._client,
-            )
-            for vis, pos, orn in places
-        ]
-
-    def _camera_image(self, width: int, height: int) -> np.ndarray:
-        """A fixed camera in front of the workspace (-y side), slightly above, looking at it."""
-        L = self.rod.length
-        target = [0.0, 0.0, self.rest_height - 0.2 * L]
-        view = p.computeViewMatrix([0.0, -1.6 * L, self.rest_height + 0.3 * L], target, [0, 0, 1])
-        proj = p.computeProjectionMatrixFOV(50.0, width / height, 0.05 * L, 10.0 * L)
-        _, _, rgba, _, _ = p.getCameraImage(
-            width,
-            height,
-            view,
-            proj,
-            renderer=p.ER_TINY_RENDERER,
-            flags=p.ER_NO_SEGMENTATION_MASK,
-            physicsClientId=self._client,
-        )
-        return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[..., :3].copy()
 
     def _fallback_image(self, width: int, height: int, goal: np.ndarray | None) -> np.ndarray:
         try:

@@ -124,7 +124,7 @@ def check_spec(spec: BenchSpec) -> None:
 def _refuse_oversized_agents(spec: BenchSpec) -> None:
     """BadInput, before any job starts, if a model or an SB3 agent would not fit in memory."""
     from dlocli.controllers.base import controller_spec
-    from dlocli.controllers.sb3_agents import SB3Spec
+    from dlocli.controllers.sb3_specs import SB3Spec
     from dlocli.env.shape_env import observation_space
     from dlocli.models.base import refuse_oversized_model
 

@@ -18,7 +18,7 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 from pydantic import ValidationError
@@ -26,6 +26,8 @@ from pydantic import ValidationError
 from dlocli.errors import BadInput
 from dlocli.registry import controllers
 from dlocli.specs import Spec, format_validation_error
+
+SpecT = TypeVar("SpecT", bound=Spec)
 
 
 @dataclass(frozen=True)
@@ -204,3 +206,12 @@ def make_controller(
     if cls.spec_cls is not None:
         kwargs["spec"] = controller_spec(name, options)
     return cls(env, seed=seed, **kwargs)
+
+
+def resolve_agent_spec(cls: type[SpecT], spec: Spec | None, fields: dict[str, Any]) -> SpecT:
+    """The agent's spec from a spec instance and/or keyword fields (fields override)."""
+    data = spec.model_dump() if spec is not None else {}
+    try:
+        return cls.model_validate({**data, **fields})
+    except ValidationError as exc:
+        raise BadInput(format_validation_error(exc, f"{cls.__name__} options")) from exc

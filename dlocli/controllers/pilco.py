@@ -39,14 +39,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from dlocli.controllers.base import LearningAgent
+from dlocli.controllers.base import LearningAgent, resolve_agent_spec
 from dlocli.controllers.pilco_math import (
     DTYPE,
     GaussianProcess,
     RBFPolicy,
     expected_return_cost,
 )
-from dlocli.controllers.sb3_agents import resolve_agent_spec
 from dlocli.controllers.specs import PilcoSpec
 from dlocli.io import read_json, write_bytes_atomic, write_json_atomic
 
