@@ -172,7 +172,7 @@ def test_bad_input_exits_2(small_dataset_dir, tmp_path):
 
 def test_stopped_training_resumes_to_the_same_model(small_dataset_dir, tmp_path):
     from dlocli.models.spec import TrainSpec
-    from dlocli.models.training import resumed_spec, run_training
+    from dlocli.runs.train import resumed_spec, run_training
 
     spec = TrainSpec(data=small_dataset_dir, model=TINY, epochs=3, **FAST_FIT)
     whole = run_training(spec.model_copy(update={"out": tmp_path / "whole"}))

@@ -20,24 +20,11 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     Grippers follow the recorded end markers; the rod is the cable between its outermost
     markers, with the cable's mass per length. `--resume OUT` continues after the last
     finished generation (`--generations` may change there: more extends the search)."""
-    from dlocli.calibration.run import run_calibration
     from dlocli.cli.progress import Bars
-    from dlocli.registry import backends
-    from dlocli.resume import resumed_run_spec
+    from dlocli.runs.calibrate import resumed_spec, run_calibration
 
     run.refuse_with_resume(resume)
-    if resume is not None:
-        spec = resumed_run_spec(
-            CalibrateSpec,
-            resume,
-            run.overrides,
-            "a calibration",
-            "dlo calibrate",
-            free=frozenset({"workers", "generations"}),
-        )
-    else:
-        spec = run.spec()
-    backends.check(spec.backend.name)
+    spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json) as bars:
 
         def show(event: dict[str, Any]) -> None:

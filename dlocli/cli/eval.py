@@ -13,7 +13,7 @@ def evaluate(
     run: RunFlags,
 ) -> None:
     """Errors (mm) of --checkpoint on --data: one step, 5 and 50 steps open loop, vs persistence."""
-    from dlocli.models.evaluation import run_evaluation
+    from dlocli.runs.evaluate import run_evaluation
 
     summary = run_evaluation(run.spec(), run.overwrite)
     emit_summary(summary, run.json, "dlo eval")

@@ -28,7 +28,7 @@ def train(
     import`, recorded cables) trains --update-steps gradient steps through open-loop
     rollouts of up to --rollout-steps steps, on its train split only."""
     from dlocli.models.fitting import BatchDone, Validated
-    from dlocli.models.training import resumed_spec, run_training
+    from dlocli.runs.train import resumed_spec, run_training
 
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()

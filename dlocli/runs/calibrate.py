@@ -1,4 +1,5 @@
-"""The calibration run: CMA-ES generations with a checkpoint each, then the eval report."""
+"""`dlo calibrate`: CMA-ES generations over the rod's material with a checkpoint each, then
+the eval report; resumable after any finished generation."""
 
 from __future__ import annotations
 
@@ -27,6 +28,16 @@ from dlocli.calibration.report import write_report
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.errors import BadInput
 from dlocli.extras import require
+from dlocli.io import (
+    adopt_written,
+    prepare_run_dir,
+    read_json,
+    write_json_atomic,
+    write_text_atomic,
+)
+from dlocli.registry import backends
+from dlocli.resume import resumed_run_spec
+from dlocli.rundir import owned
 
 Event = dict[str, Any]
 
@@ -69,19 +80,24 @@ def check_same_recordings(state: Event, digest: str, spec: CalibrateSpec) -> Non
         )
 
 
+#: what a resumed calibration may change
+FREE_FIELDS = frozenset({"workers", "generations"})
+
+
+def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> CalibrateSpec:
+    """`dlo calibrate --resume RUN`: the spec of the run in ``run_dir`` (pass it to
+    :func:`run_calibration` with ``resume=True``); flags that contradict it are refused, but
+    for :data:`FREE_FIELDS`."""
+    return resumed_run_spec(
+        CalibrateSpec, run_dir, overrides, "a calibration", "dlo calibrate", free=FREE_FIELDS
+    )
+
+
 def run_calibration(
     spec: CalibrateSpec, overwrite: bool, show: Callable[[Event], None], resume: bool = False
 ) -> dict[str, Any]:
     """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary."""
-    from dlocli.io import (
-        adopt_written,
-        prepare_run_dir,
-        read_json,
-        write_json_atomic,
-        write_text_atomic,
-    )
-    from dlocli.rundir import owned
-
+    backends.check(spec.backend.name)
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
     cable = load_cable(spec)  # every input checked before OUT is touched
     names = draw_train(cable, spec)

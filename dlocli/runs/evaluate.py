@@ -1,0 +1,68 @@
+"""`dlo eval`: a trained model's one-step and open-loop errors on a dataset, next to
+persistence's (:mod:`dlocli.models.evaluation`); on recorded cables, the data set's published
+protocol (:mod:`dlocli.markers.evaluation`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from dlocli.data import Dataset, load_dataset
+from dlocli.errors import BadInput
+from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
+from dlocli.markers.dataset import MarkerDataset
+from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
+from dlocli.models.base import load_model
+from dlocli.models.evaluation import evaluate_model, plot_rollout
+from dlocli.models.markers import load_marker_model
+from dlocli.models.spec import EvalSpec
+from dlocli.rundir import owned
+
+
+def run_evaluation(spec: EvalSpec, overwrite: bool = False) -> dict[str, Any]:
+    """`dlo eval`: the errors of ``spec.checkpoint`` on ``spec.data``; with ``spec.out``, the
+    spec and the summary are written there."""
+    if spec.checkpoint is None or spec.data is None:
+        raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
+    if spec.plot is not None and spec.plot.suffix != ".png":
+        raise BadInput(f"--plot {spec.plot} must end in .png")
+    if spec.plot is not None:
+        check_writable(spec.plot, "--plot", overwrite)
+    dataset = load_dataset(spec.data)
+    if isinstance(dataset, MarkerDataset):
+        net = load_marker_model(spec.checkpoint, spec.device)
+    else:
+        net = load_model(spec.checkpoint, spec.device)
+    if dataset.n_segments != net.n_segments:
+        raise BadInput(
+            f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "
+            f"{dataset.n_segments}; evaluate on matching data"
+        )
+    if spec.out is None:
+        return _evaluation_summary(spec, net, dataset)
+    with owned(spec.out):  # one writer per run directory
+        out = prepare_run_dir(spec.out, overwrite)
+        summary = _evaluation_summary(spec, net, dataset)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+def _evaluation_summary(
+    spec: EvalSpec, net: Any, dataset: Dataset | MarkerDataset
+) -> dict[str, Any]:
+    summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
+    if isinstance(dataset, MarkerDataset):
+        scores, curves = evaluate_markers(net, dataset)
+        summary.update(scores)
+        if spec.plot is not None:
+            plot_error_by_horizon(scores, curves, dataset.rate_hz, spec.plot)
+            summary["plot"] = str(spec.plot)
+        if spec.out is not None:
+            write_json_atomic(Path(spec.out) / "error_by_frame.json", curves)
+        return summary
+    summary.update(evaluate_model(net, dataset, max_starts=spec.max_starts))
+    if spec.plot is not None:
+        plot_rollout(net, dataset, 0, spec.plot)
+        summary["plot"] = str(spec.plot)
+    return summary
