@@ -166,11 +166,11 @@ def test_batches_weight_in_the_newest_episodes(data):
 def test_dlo_train_offers_only_the_fields_it_uses(small_dataset_dir, tmp_path):
     """`dlo train` has no schedule: its spec refuses the online loop's update fields, its
     --help lists none, and the specs it saved when it held them (at the one schedule it
-    ran) still load."""
+    ran) still load, where saved specs are read."""
     with pytest.raises(ValidationError, match="schedule"):
         TrainSpec(data=small_dataset_dir, schedule="steps")
     saved = {"schedule": "epochs", "recent_fraction": 0.5, "patience": 5, "val_transitions": 9}
-    assert TrainSpec.model_validate(saved) == TrainSpec()
+    assert TrainSpec.model_validate(TrainSpec.saved_layout(saved)) == TrainSpec()
     help_text = runner.invoke(app, ["train", "--help"], env={"COLUMNS": "250"}).output
     assert "--epochs" in help_text and "--update-steps" in help_text  # rod and marker data
     for flag in ("--schedule", "--recent-fraction", "--patience", "--val-transitions"):
