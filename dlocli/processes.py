@@ -4,8 +4,9 @@ lost, and worker processes end when the process that started them dies, however 
 A signal handler's exception is raised wherever the main thread happens to be; when that is a
 destructor or a weakref callback, Python prints "Exception ignored" and carries on, and the
 stop is lost (a collect then ran on for its 100,000 episodes). So the handlers also record the
-stop, and the long loops call :func:`raise_if_stopped` at their safe points (each simulator
-step, each episode) to raise it again."""
+stop in the process's :class:`~dlocli.cancel.CancelToken` (:func:`signal_token`, which the
+commands hand to the library's fits), and the long loops call :func:`raise_if_stopped` at
+their safe points (each simulator step, each episode) to raise it again."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ import threading
 import time
 from typing import Any
 
+from dlocli.cancel import CancelToken
+
 #: the PID of the `dlo` process; forked workers inherit the handler but not this role
 _main_pid: int | None = None
 
@@ -25,8 +28,22 @@ class Terminated(KeyboardInterrupt):
     with exit code 143."""
 
 
-#: the stop that arrived and may have been swallowed; raised again by `raise_if_stopped`
-_pending: type[KeyboardInterrupt] | None = None
+class _SignalStops(CancelToken):
+    """The stop that arrived in the main process and may have been swallowed; a forked worker
+    that inherited it never raises it (its own signals end it)."""
+
+    @property
+    def reason(self) -> type[BaseException] | None:
+        return self._reason if os.getpid() == _main_pid else None
+
+
+_stops = _SignalStops()
+
+
+def signal_token() -> CancelToken:
+    """The token the process's stop signals (Ctrl-C, SIGTERM) cancel: what a command hands to
+    the library's long computations."""
+    return _stops
 
 
 def _on_sigterm(signum: int, frame: object) -> None:
@@ -44,30 +61,25 @@ def _on_sigint(signum: int, frame: object) -> None:
 
 
 def _stop(kind: type[KeyboardInterrupt]) -> None:
-    global _pending
-    _pending = kind
+    _stops.cancel(kind)
     raise kind
 
 
 def raise_if_stopped() -> None:
     """Raise the stop (Ctrl-C, SIGTERM) that arrived but was swallowed where it landed; a
     no-op otherwise. Cheap: call it once per step of any long loop."""
-    global _pending
-    if _pending is not None and os.getpid() == _main_pid:
-        kind, _pending = _pending, None
-        raise kind
+    _stops.raise_if_cancelled()
 
 
 def pending_stop() -> type[KeyboardInterrupt] | None:
     """The stop that arrived and was not yet handled (None if none): an error that follows
     a stop (a worker pool broken by Ctrl-C) is the stop, not a failure."""
-    return _pending if os.getpid() == _main_pid else None
+    return _stops.reason  # type: ignore[return-value]  # only _stop cancels it, with one
 
 
 def stop_handled() -> None:
     """The stop reached the command's handler: forget it (finishing work may still step)."""
-    global _pending
-    _pending = None
+    _stops.clear()
 
 
 def handle_stop_signals() -> None:

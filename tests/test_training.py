@@ -218,3 +218,25 @@ def test_hidden_is_the_width_of_every_model(small_dataset_dir, tmp_path):
         count = [sum(p.numel() for p in build_model({"name": name, "hidden": h}, 20).parameters())
                  for h in (16, 150)]  # fmt: skip
         assert count[0] < count[1], name
+
+
+def test_a_cancelled_token_stops_the_fit_before_its_next_step(small_dataset_dir):
+    """Cancellation reaches the library as the token it is given: cancelled after the first
+    epoch's validation, the fit stops before the second epoch's first gradient step."""
+    from dlocli.cancel import CancelToken
+    from dlocli.models.fitting import BatchDone
+
+    data = load_dataset(small_dataset_dir)
+    token, seen = CancelToken(), []
+
+    def progress(event):
+        seen.append(event)
+        if isinstance(event, Validated):
+            token.cancel()
+
+    with pytest.raises(KeyboardInterrupt):
+        train_model(fresh("mlp", data), data, FitSpec(epochs=3, **FAST_FIT), progress=progress,
+                    cancel=token)  # fmt: skip
+    assert not any(isinstance(e, BatchDone) and e.count > 1 for e in seen)
+    assert token.reason is None, "the stop is raised once"
+    train_model(fresh("mlp", data), data, FitSpec(epochs=1, **FAST_FIT), cancel=token)

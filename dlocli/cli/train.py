@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from dlocli.cli.common import (
     AcceptChangesFlag,
     ResumeFlag,
@@ -27,18 +25,18 @@ def train(
     A rod dataset (`dlo collect`) trains one step for --epochs. A marker dataset (`dlo
     import`, recorded cables) trains --update-steps gradient steps through open-loop
     rollouts of up to --rollout-steps steps, on its train split only."""
-    from dlocli.models.fitting import BatchDone, Validated
+    from dlocli.models.fitting import BatchDone, FitEvent, RolloutValidated, Validated
     from dlocli.runs.train import resumed_spec, run_training
 
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json) as bars:
 
-        def show(event: BatchDone | Validated | dict[str, Any]) -> None:
-            if isinstance(event, dict):  # a marker dataset: gradient steps through rollouts
-                info = (f"k {event['k']}, rollout loss {event['train_loss']:.3g} cm, "
-                        f"validation {event['val_score_cm']:.3g} cm")  # fmt: skip
-                bars.update("step", event["step"], event["steps"], info=info)
+        def show(event: FitEvent) -> None:
+            if isinstance(event, RolloutValidated):  # a marker dataset: steps through rollouts
+                info = (f"k {event.k}, rollout loss {event.train_loss:.3g} cm, "
+                        f"validation {event.val_loss:.3g} cm")  # fmt: skip
+                bars.update("step", event.count, event.total, info=info)
                 return
             if "epoch" not in bars.phases:  # training starts (after earlier epochs, resumed)
                 bars.begin("epoch", spec.epochs, done=event.count - 1)
@@ -46,7 +44,7 @@ def train(
             if isinstance(event, Validated):  # an epoch finished
                 bars.update("epoch", event.count, spec.epochs,
                             info=f"val loss {event.val_loss:.4g}")  # fmt: skip
-            else:  # each epoch counts its batches afresh
+            elif isinstance(event, BatchDone):  # each epoch counts its batches afresh
                 bars.update("batch", event.batch, event.batches,
                             info=f"loss {event.loss:.4g}")  # fmt: skip
 

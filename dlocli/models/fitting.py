@@ -8,6 +8,9 @@ Every model is fitted with Adam on the mean squared error of the normalised stat
 with Gaussian noise on the input state (paper Sec. IV-C), on a train/validation split by
 trajectory that stays the same as the dataset grows (so continued training in the online
 loop never validates on what it trained on).
+
+Every fit reports its progress as :class:`FitEvent` (a batch done, a validation) and is
+stopped through the :class:`~dlocli.cancel.CancelToken` it is given, checked every step.
 """
 
 from __future__ import annotations
@@ -22,13 +25,13 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import torch
 
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.errors import BadInput, DloError
 from dlocli.models.base import DynamicsModel, resolve_device
 from dlocli.models.mirror import with_mirrored
 from dlocli.models.spec import FitSpec
 from dlocli.models.splits import split_episodes
-from dlocli.processes import raise_if_stopped
 
 EVAL_BATCH = 1024
 Unit = Literal["epoch", "step"]
@@ -58,23 +61,28 @@ class FitRecord:
 
 
 @dataclass
-class BatchDone:
-    """Progress within a round: ``batch`` of ``batches`` done in round ``count``."""
+class FitEvent:
+    """Progress of a fit (every schedule's, every model form's): ``count`` epochs or gradient
+    steps (``unit``) into it."""
 
     unit: Unit
     count: int
+
+
+@dataclass
+class BatchDone(FitEvent):
+    """Progress within a round: ``batch`` of ``batches`` done in round ``count``."""
+
     batch: int
     batches: int
     loss: float
 
 
 @dataclass
-class Validated:
+class Validated(FitEvent):
     """A round ended: ``count`` of ``total`` epochs or steps done, validated at
     ``val_loss`` (with ``stopped_early``: the fit stops here; ``val_loss`` is the best's)."""
 
-    unit: Unit
-    count: int
     total: int
     val_loss: float
     stopped_early: bool = False
@@ -83,7 +91,17 @@ class Validated:
         return asdict(self)
 
 
-Progress = Callable[[BatchDone | Validated], None]
+@dataclass
+class RolloutValidated(Validated):
+    """A validation of a fit through k-step rollouts (marker models): ``val_loss`` is the
+    benchmark score of whole rollouts (cm), ``train_loss`` the mean k-step rollout loss (cm)
+    since the previous validation."""
+
+    k: int = 1
+    train_loss: float = math.nan
+
+
+Progress = Callable[[FitEvent], None]
 #: called after each validation with its record, the optimizer and the random generator
 OnValidation = Callable[[FitRecord, torch.optim.Optimizer, torch.Generator], None]
 
@@ -244,10 +262,12 @@ def gradient_step(
     idx: torch.Tensor,
     fit: FitSpec,
     gen: torch.Generator,
+    cancel: CancelToken | None = None,
 ) -> torch.Tensor:
     """One Adam step on the rows ``idx`` of ``data``, with input noise from ``gen``; the
-    batch's loss (detached)."""
-    raise_if_stopped()
+    batch's loss (detached). A cancelled ``cancel`` raises its stop before the step."""
+    if cancel is not None:
+        cancel.raise_if_cancelled()
     state = data["state"][idx]
     noise = None
     if fit.input_noise > 0:  # in units of the one-step change, expressed in state units
@@ -314,10 +334,12 @@ def fit_loop(
     best: KeepBest,
     progress: Progress | None = None,
     on_validation: OnValidation | None = None,
+    cancel: CancelToken | None = None,
 ) -> tuple[list[FitRecord], int]:
     """Train ``model`` round by round as ``plan`` says, validating after each round; stop
-    when ``best`` says so and end with the weights it keeps. Returns the records and the
-    training rows processed."""
+    when ``best`` says so and end with the weights it keeps, or raise ``cancel``'s stop before
+    any gradient step once it is cancelled. Returns the records and the training rows
+    processed."""
     history: list[FitRecord] = []
     optimizer, rows, count = setup.optimizer, 0, 0
     for each in plan.rounds():
@@ -325,7 +347,7 @@ def fit_loop(
         model.train()
         total, seen = torch.zeros((), device=setup.train["state"].device), 0
         for b, idx in enumerate(each.batches, 1):
-            loss = gradient_step(model, optimizer, setup.train, idx, fit, gen)
+            loss = gradient_step(model, optimizer, setup.train, idx, fit, gen, cancel)
             total += loss * len(idx)
             seen += len(idx)
             if progress is not None and (b % 10 == 1 or b == each.size):

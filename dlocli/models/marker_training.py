@@ -16,21 +16,17 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
 
+from dlocli.cancel import CancelToken
 from dlocli.errors import DloError
-from dlocli.markers.dataset import MarkerDataset
-from dlocli.models.fitting import KeepBest
+from dlocli.models.fitting import KeepBest, Progress, RolloutValidated
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
-from dlocli.processes import raise_if_stopped
 
-Progress = Callable[[dict[str, Any]], None]
 CM = 0.01
 
 
@@ -141,9 +137,12 @@ def fit_markers(
     val: list[Cable],
     fit: FitSpec,
     progress: Progress | None = None,
+    cancel: CancelToken | None = None,
 ) -> list[dict[str, float]]:
     """Train ``model`` in place on one or more cables (see the module docstring); returns
-    the validation history. The model ends in eval mode with the best validated weights."""
+    the validation history. The model ends in eval mode with the best validated weights.
+    ``progress`` gets a :class:`~dlocli.models.fitting.RolloutValidated` after each
+    validation; ``cancel`` stops the fit before the next gradient step once cancelled."""
     from dlocli.models.base import resolve_device
 
     device = resolve_device(fit.device)
@@ -161,7 +160,8 @@ def fit_markers(
     best = KeepBest(keep=True)
     start, running = time.perf_counter(), []
     for step in range(1, total + 1):
-        raise_if_stopped()
+        if cancel is not None:
+            cancel.raise_if_cancelled()
         k = rollout_length(fit, step)
         loss = rollout_loss(model, *sampler.sample(fit.batch_size, k))
         if not math.isfinite(loss.item()):
@@ -187,98 +187,8 @@ def fit_markers(
             running = []
             best.observe(step, val_score, model)
             if progress:
-                progress(record)
+                progress(RolloutValidated("step", step, total, val_score, k=k,
+                                          train_loss=record["train_loss"]))  # fmt: skip
     best.restore(total, model)
     model.eval()
     return history
-
-
-# ---------------------------------------------------------------------- the command
-def run_marker_training(
-    spec: Any, dataset: MarkerDataset, overwrite: bool, progress: Progress | None
-) -> dict[str, Any]:
-    """`dlo train` on a marker dataset: train on its train split (``val_fraction`` of those
-    trajectories held out for validation; the eval split is never seen), then write
-    OUT/{spec.json, metrics.csv, summary.json, checkpoints/final.pt, plots/loss.png}."""
-    from dlocli.errors import BadInput
-    from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
-    from dlocli.markers.protocol import freeze
-    from dlocli.models.base import save_checkpoint
-    from dlocli.models.markers import FORM, build_marker_model, load_marker_model
-    from dlocli.models.splits import split_episodes
-
-    episodes = dataset.episodes("train")
-    train_idx, val_idx = split_episodes(len(episodes), spec.val_fraction)
-    train, val = [episodes[i] for i in train_idx], [episodes[i] for i in val_idx]
-    torch.manual_seed(spec.seed)
-    if spec.init_from is not None:  # fine-tuning: the checkpoint's model and normalization
-        model = load_marker_model(spec.init_from)
-        if not np.array_equal(model.held.cpu().numpy(), dataset.held):
-            raise BadInput(
-                f"--init-from {spec.init_from} was trained on another marker layout than "
-                "--data (held markers differ); pass a checkpoint of the same cable"
-            )
-    else:
-        model = build_marker_model(spec.model, dataset.n_markers, dataset.held)
-    out = prepare_run_dir(spec.out, overwrite)
-    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-
-    def report(record: dict[str, float]) -> None:
-        if progress is not None:
-            progress({**record, "steps": spec.update_steps})
-
-    held = dataset.held
-    history = fit_markers(model, [Cable(train, held)], [Cable(val, held)] if val else [],
-                          spec, report)  # fmt: skip
-    save_checkpoint(model, out / "checkpoints" / "final.pt", {"form": FORM})
-    lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
-    lines += [f"{r['step']},{r['k']},{r['train_loss']:.6g},{r['val_score_cm']:.6g},"
-              f"{r['seconds']:.2f}" for r in history]  # fmt: skip
-    write_text_atomic(out / "metrics.csv", "\n".join(lines) + "\n")
-    from dlocli.markers.protocol import deform_score_cm
-
-    best = min((r["val_score_cm"] for r in history), default=math.nan)
-    summary = {
-        "model": spec.model.name,
-        "form": FORM,
-        "parameters": sum(p.numel() for p in model.parameters()),
-        "device": str(model.device),
-        "update_steps": spec.update_steps,
-        "rollout_steps": spec.rollout_steps,
-        "train_episodes": len(train),
-        "val_episodes": len(val),
-        "val_score_cm": None if math.isnan(best) else round(best, 4),
-        "val_freeze_cm": round(
-            float(np.mean([deform_score_cm(freeze(e, dataset.held), e) for e in val])), 4
-        )
-        if val
-        else None,  # fmt: skip
-        "seconds": round(history[-1]["seconds"], 1) if history else 0.0,
-        "out": str(out),
-    }
-    _plot_history(history, out / "plots" / "loss.png")
-    write_json_atomic(out / "summary.json", summary)
-    return summary
-
-
-def _plot_history(history: list[dict[str, float]], path: Any) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from dlocli.io import atomic_path
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    steps = [r["step"] for r in history]
-    ax.plot(steps, [r["train_loss"] for r in history], label="train: k-step rollout L1 (cm)")
-    ax.plot(steps, [r["val_score_cm"] for r in history], label="validation: whole rollout (cm)")
-    ax.set_xlabel("gradient step")
-    ax.set_ylabel("cm")
-    ax.set_yscale("log")
-    ax.legend()
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)

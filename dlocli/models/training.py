@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.models.base import DynamicsModel
 from dlocli.models.fitting import (  # noqa: F401 (the training API, also from here)
@@ -70,6 +71,7 @@ def train_model(
     start_epoch: int = 0,
     generator_state: torch.Tensor | None = None,
     best: KeepBest | None = None,
+    cancel: CancelToken | None = None,
 ) -> TrainResult:
     """Train ``model`` in place for ``fit.epochs`` epochs on ``dataset``'s training split
     (with ``fit.mirror``, also on its transitions' mirrored twins; validation stays on the
@@ -83,7 +85,8 @@ def train_model(
     :class:`FitRecord`, the optimizer and the random generator (for checkpoints), after
     ``best`` (the lowest validation loss so far) has seen it. ``start_epoch`` epochs are
     taken as done: given the generator state saved after them, the remaining epochs are
-    those an uninterrupted run would train.
+    those an uninterrupted run would train. ``cancel``: stop before the next gradient step
+    once it is cancelled (none: run to the end).
     """
     setup = set_up(model, dataset, fit, optimizer_state)
     gen = torch.Generator(device="cpu").manual_seed(fit.seed)
@@ -93,7 +96,7 @@ def train_model(
     plan = EpochPlan(fit, len(setup.train["state"]), setup.val, gen, device, start_epoch)
     start = time.perf_counter()
     history, rows = fit_loop(model, setup, fit, plan, gen, best or KeepBest(), progress,
-                                on_validation)  # fmt: skip
+                             on_validation, cancel)  # fmt: skip
     elapsed = time.perf_counter() - start
     return TrainResult(
         history=history,

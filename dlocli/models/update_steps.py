@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.models.base import DynamicsModel
 from dlocli.models.fitting import (
@@ -32,6 +33,7 @@ from dlocli.models.fitting import (
 )
 from dlocli.models.spec import UpdateSpec
 from dlocli.models.training import train_model
+from dlocli.processes import signal_token
 
 
 def update_model(
@@ -40,14 +42,20 @@ def update_model(
     fit: UpdateSpec,
     *,
     recent_episodes: np.ndarray | None = None,
+    cancel: CancelToken | None = None,
     **options: Any,
 ) -> TrainResult:
     """Train ``model`` in place as ``fit.schedule`` says: :func:`train_steps` ("steps", with
     ``recent_episodes`` weighted in) or :func:`~dlocli.models.training.train_model`; the
-    ``options`` both take (``optimizer_state``, ``progress``, ``on_validation``)."""
+    ``options`` both take (``optimizer_state``, ``progress``, ``on_validation``). Without
+    ``cancel`` the update stops on the process's signals: the online loop, which calls it,
+    hands it no token yet."""
+    cancel = signal_token() if cancel is None else cancel
     if fit.schedule == "steps":
-        return train_steps(model, dataset, fit, recent_episodes=recent_episodes, **options)
-    return train_model(model, dataset, fit, **options)
+        return train_steps(
+            model, dataset, fit, recent_episodes=recent_episodes, cancel=cancel, **options
+        )
+    return train_model(model, dataset, fit, cancel=cancel, **options)
 
 
 @dataclass
@@ -98,6 +106,7 @@ def train_steps(
     optimizer_state: dict | None = None,
     progress: Progress | None = None,
     on_validation: OnValidation | None = None,
+    cancel: CancelToken | None = None,
 ) -> TrainResult:
     """Train ``model`` in place for at most ``fit.update_steps`` Adam steps (schedule
     "steps"): a cost per call that does not grow with ``dataset``.
@@ -117,7 +126,7 @@ def train_steps(
     the starting weights and optimizer state. ``progress`` gets a
     :class:`~dlocli.models.fitting.Validated` (unit "step") after each validation;
     ``on_validation`` each validation's :class:`~dlocli.models.fitting.FitRecord`, the optimizer
-    and the generator.
+    and the generator; ``cancel`` stops it before the next gradient step once cancelled.
     """
     setup = set_up(model, dataset, fit, optimizer_state)
     n_train = len(setup.train["state"])
@@ -129,7 +138,7 @@ def train_steps(
     best = KeepBest(validation_loss(model, val), patience=fit.patience, keep=has_val)
     best.start(model, setup.optimizer)
     start = time.perf_counter()
-    history, _ = fit_loop(model, setup, fit, plan, gen, best, progress, on_validation)
+    history, _ = fit_loop(model, setup, fit, plan, gen, best, progress, on_validation, cancel)
     elapsed = time.perf_counter() - start
     step = plan.steps
     return TrainResult(
@@ -190,9 +199,11 @@ def train_like_online(
     fit: UpdateSpec,
     updates: int,
     progress: Progress | None = None,
+    cancel: CancelToken | None = None,
 ) -> TrainResult:
     """Train a fresh ``model`` on all of ``dataset`` as long as the online loop's model had
     trained after ``updates`` updates under ``fit.schedule`` (paper Fig. 7's offline model):
     E·updates epochs ("epochs"), or update_steps·updates steps with nothing weighted ("steps",
-    so the offline comparison stays affordable where the paper's schedule is not)."""
-    return update_model(model, dataset, fit.times(updates), progress=progress)
+    so the offline comparison stays affordable where the paper's schedule is not). Without
+    ``cancel``, as :func:`update_model`, it stops on the process's signals."""
+    return update_model(model, dataset, fit.times(updates), progress=progress, cancel=cancel)

@@ -12,12 +12,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from dlocli.data import Dataset, load_dataset
 from dlocli.errors import BadInput
-from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.markers.dataset import MarkerDataset
+from dlocli.markers.protocol import deform_score_cm, freeze
 from dlocli.models.base import (
     DynamicsModel,
     build_model,
@@ -28,10 +30,13 @@ from dlocli.models.base import (
 )
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.fitting import FitRecord, KeepBest, Progress
-from dlocli.models.marker_training import run_marker_training
+from dlocli.models.marker_training import Cable, fit_markers
+from dlocli.models.markers import FORM, build_marker_model, load_marker_model
 from dlocli.models.spec import TrainSpec
+from dlocli.models.splits import split_episodes
 from dlocli.models.training import train_model
 from dlocli.plots import plot_losses
+from dlocli.processes import signal_token
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.tensorboard import Scalars
@@ -149,7 +154,8 @@ def _train_in(
     try:
         result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
                              on_validation=on_epoch, start_epoch=done.epoch,
-                             generator_state=done.generator, best=best)  # fmt: skip
+                             generator_state=done.generator, best=best,
+                             cancel=signal_token())  # fmt: skip
     finally:
         scalars.close()
     save_checkpoint(model, ckpt_dir / "final.pt",
@@ -221,3 +227,79 @@ def _json_safe(summary: dict[str, Any]) -> dict[str, Any]:
     return {
         k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in summary.items()
     }
+
+
+# ---------------------------------------------------------------------- marker datasets
+def run_marker_training(
+    spec: TrainSpec, dataset: MarkerDataset, overwrite: bool, progress: Progress | None
+) -> dict[str, Any]:
+    """`dlo train` on a marker dataset: train on its train split (``val_fraction`` of those
+    trajectories held out for validation; the eval split is never seen), then write
+    OUT/{spec.json, metrics.csv, summary.json, checkpoints/final.pt, plots/loss.png}."""
+    episodes = dataset.episodes("train")
+    train_idx, val_idx = split_episodes(len(episodes), spec.val_fraction)
+    train, val = [episodes[i] for i in train_idx], [episodes[i] for i in val_idx]
+    torch.manual_seed(spec.seed)
+    if spec.init_from is not None:  # fine-tuning: the checkpoint's model and normalization
+        model = load_marker_model(spec.init_from)
+        if not np.array_equal(model.held.cpu().numpy(), dataset.held):
+            raise BadInput(
+                f"--init-from {spec.init_from} was trained on another marker layout than "
+                "--data (held markers differ); pass a checkpoint of the same cable"
+            )
+    else:
+        model = build_marker_model(spec.model, dataset.n_markers, dataset.held)
+    out = prepare_run_dir(spec.out, overwrite)
+    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+
+    held = dataset.held
+    history = fit_markers(model, [Cable(train, held)], [Cable(val, held)] if val else [],
+                          spec, progress, signal_token())  # fmt: skip
+    save_checkpoint(model, out / "checkpoints" / "final.pt", {"form": FORM})
+    lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
+    lines += [f"{r['step']},{r['k']},{r['train_loss']:.6g},{r['val_score_cm']:.6g},"
+              f"{r['seconds']:.2f}" for r in history]  # fmt: skip
+    write_text_atomic(out / "metrics.csv", "\n".join(lines) + "\n")
+    best = min((r["val_score_cm"] for r in history), default=math.nan)
+    summary = {
+        "model": spec.model.name,
+        "form": FORM,
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "device": str(model.device),
+        "update_steps": spec.update_steps,
+        "rollout_steps": spec.rollout_steps,
+        "train_episodes": len(train),
+        "val_episodes": len(val),
+        "val_score_cm": None if math.isnan(best) else round(best, 4),
+        "val_freeze_cm": round(
+            float(np.mean([deform_score_cm(freeze(e, dataset.held), e) for e in val])), 4
+        )
+        if val
+        else None,  # fmt: skip
+        "seconds": round(history[-1]["seconds"], 1) if history else 0.0,
+        "out": str(out),
+    }
+    _plot_history(history, out / "plots" / "loss.png")
+    write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+def _plot_history(history: list[dict[str, float]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    steps = [r["step"] for r in history]
+    ax.plot(steps, [r["train_loss"] for r in history], label="train: k-step rollout L1 (cm)")
+    ax.plot(steps, [r["val_score_cm"] for r in history], label="validation: whole rollout (cm)")
+    ax.set_xlabel("gradient step")
+    ax.set_ylabel("cm")
+    ax.set_yscale("log")
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
