@@ -6,7 +6,7 @@ these end to end)::
     import dlocli
     data = dlocli.random_dataset(dlocli.CollectSpec(episodes=4))   # random actions, in memory
     model = dlocli.build_model(dlocli.ModelSpec(hidden=32), data.n_segments)
-    dlocli.train_model(model, data, dlocli.FitSpec(epochs=5, lr=1e-3))
+    dlocli.fit(model, data, dlocli.FitSpec(epochs=5, lr=1e-3))     # the schedule: epochs
     env = dlocli.make_env(backend="mujoco", task="single", seed=0)
     episode = dlocli.rollout(env, dlocli.make_controller("mpc", env, model=model), seed=1)
     dlocli.episode_scores(episode, env.task_spec.episode_steps)   # plain floats, mm
@@ -42,6 +42,7 @@ _LAZY = {
     "build_model": "dlocli.models.base:build_model",
     "load_model": "dlocli.models.base:load_model",
     "save_checkpoint": "dlocli.models.base:save_checkpoint",
+    "fit": "dlocli.models.fit:fit",
     "train_model": "dlocli.models.training:train_model",
     # control, episodes and their scores
     "make_controller": "dlocli.controllers.base:make_controller",

@@ -17,12 +17,13 @@ from dlocli.data import load_dataset
 from dlocli.migrations import LEGACY_VALUES
 from dlocli.models.base import build_model, read_checkpoint
 from dlocli.models.spec import TrainSpec, UpdateSpec
+from dlocli.models.step_schedule import recent_rows, sample_batch, train_steps
 from dlocli.models.training import (
     split_episodes,
     transition_tensors,
     validation_loss,
 )
-from dlocli.models.update_steps import recent_rows, sample_batch, train_like_online, train_steps
+from dlocli.models.update_steps import train_like_online
 
 runner = CliRunner()
 STEPS = {"schedule": "steps", "lr": 3e-3, "batch_size": 16, "val_fraction": 0.2, "device": "cpu"}
@@ -233,3 +234,20 @@ def test_offline_model_trains_as_long_as_the_online_one(data, schedule):
         assert result.steps == 18 and [r.count for r in result.history][-1] == 18
     else:
         assert [r.count for r in result.history] == [1, 2, 3, 4, 5, 6]
+
+
+def test_fit_is_the_one_entry_point_of_both_rod_schedules(data):
+    """dlocli.fit picks the schedule from the spec: the same weights as the schedule's own
+    function (the marker schedule runs in tests/test_real_cables.py through `dlo train`)."""
+    from dlocli.models.fit import fit
+    from dlocli.models.training import train_model
+
+    steps = UpdateSpec(**{**STEPS, "update_steps": 12, "eval_every": 6})
+    epochs = steps.model_copy(update={"schedule": "epochs", "epochs": 1})
+    recent = {"recent_episodes": np.array([5])}  # weighed in by the steps schedule only
+    for spec, own, own_options in ((steps, train_steps, recent), (epochs, train_model, {})):
+        by_fit, by_own = fresh(data), fresh(data)
+        result = fit(by_fit, data, spec, **recent)
+        own(by_own, data, spec, **own_options)
+        assert result.history[-1].unit == ("step" if spec.schedule == "steps" else "epoch")
+        assert all(map(torch.equal, weights(by_fit), weights(by_own))), spec.schedule

@@ -2,7 +2,7 @@
 mini-batches (an epoch's, or ``eval_every`` gradient steps'), each ended by a validation;
 :class:`KeepBest` tracks the best validation, stops early and restores the best weights
 where the plan asks it to. :func:`dlocli.models.training.train_model` plans epochs (the
-paper's schedule), :func:`dlocli.models.update_steps.train_steps` gradient steps.
+paper's schedule), :func:`dlocli.models.step_schedule.train_steps` gradient steps.
 
 Every model is fitted with Adam on the mean squared error of the normalised state change,
 with Gaussian noise on the input state (paper Sec. IV-C), on a train/validation split by
@@ -41,13 +41,15 @@ Unit = Literal["epoch", "step"]
 @dataclass
 class FitRecord:
     """One validation: after ``count`` epochs or gradient steps (``unit``), the mean training
-    loss since the previous one, the validation loss, and the seconds in between."""
+    loss since the previous one, the validation loss, and the seconds in between; a fit
+    through rollout windows also records their length ``k`` then (and its losses are cm)."""
 
     unit: Unit
     count: int
     train_loss: float
     val_loss: float
     seconds: float
+    k: int | None = None
 
     def as_row(self) -> dict[str, float]:
         """``{unit: count, "train_loss", "val_loss", "seconds"}`` (metrics.csv, checkpoints)."""

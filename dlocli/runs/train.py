@@ -1,14 +1,14 @@
 """`dlo train`: fit a dynamics model to a dataset and write a run directory: the data, the
-model (fresh, or continued from ``init_from``), training by epochs
-(:func:`dlocli.models.training.train_model`; marker datasets through open-loop rollouts,
-:mod:`dlocli.models.marker_training`), checkpoints, metrics, evaluation and plots; resumable
-after any finished epoch.
+model (fresh, or continued from ``init_from``), training (:func:`dlocli.models.fit.fit`:
+epochs on a rod dataset, rollout windows on a marker dataset), checkpoints, metrics,
+evaluation and plots; a rod run resumes after any finished epoch.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from itertools import accumulate
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +29,10 @@ from dlocli.models.base import (
     save_checkpoint,
 )
 from dlocli.models.evaluation import evaluate_model, plot_rollout
+from dlocli.models.fit import fit
 from dlocli.models.fitting import FitRecord, KeepBest, Progress
-from dlocli.models.marker_training import Cable, fit_markers
 from dlocli.models.markers import FORM, build_marker_model, load_marker_model
 from dlocli.models.spec import TrainSpec
-from dlocli.models.splits import split_episodes
-from dlocli.models.training import train_model
 from dlocli.plots import plot_losses
 from dlocli.processes import signal_token
 from dlocli.resume import resumed_run_spec
@@ -152,10 +150,10 @@ def _train_in(
         save_checkpoint(model, out / LAST_CHECKPOINT, point)
 
     try:
-        result = train_model(model, dataset, spec, optimizer_state=opt_state, progress=progress,
-                             on_validation=on_epoch, start_epoch=done.epoch,
-                             generator_state=done.generator, best=best,
-                             cancel=signal_token())  # fmt: skip
+        result = fit(model, dataset, spec, optimizer_state=opt_state, progress=progress,
+                     on_validation=on_epoch, start_epoch=done.epoch,
+                     generator_state=done.generator, best=best,
+                     cancel=signal_token())  # fmt: skip
     finally:
         scalars.close()
     save_checkpoint(model, ckpt_dir / "final.pt",
@@ -236,9 +234,6 @@ def run_marker_training(
     """`dlo train` on a marker dataset: train on its train split (``val_fraction`` of those
     trajectories held out for validation; the eval split is never seen), then write
     OUT/{spec.json, metrics.csv, summary.json, checkpoints/final.pt, plots/loss.png}."""
-    episodes = dataset.episodes("train")
-    train_idx, val_idx = split_episodes(len(episodes), spec.val_fraction)
-    train, val = [episodes[i] for i in train_idx], [episodes[i] for i in val_idx]
     torch.manual_seed(spec.seed)
     if spec.init_from is not None:  # fine-tuning: the checkpoint's model and normalization
         model = load_marker_model(spec.init_from)
@@ -252,15 +247,16 @@ def run_marker_training(
     out = prepare_run_dir(spec.out, overwrite)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
 
-    held = dataset.held
-    history = fit_markers(model, [Cable(train, held)], [Cable(val, held)] if val else [],
-                          spec, progress, signal_token())  # fmt: skip
+    result = fit(model, dataset, spec, progress=progress, cancel=signal_token())
+    history = result.history
+    seconds = list(accumulate(r.seconds for r in history))  # since the fit started
     save_checkpoint(model, out / "checkpoints" / "final.pt", {"form": FORM})
     lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
-    lines += [f"{r['step']},{r['k']},{r['train_loss']:.6g},{r['val_score_cm']:.6g},"
-              f"{r['seconds']:.2f}" for r in history]  # fmt: skip
+    lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
+              for r, s in zip(history, seconds, strict=True)]  # fmt: skip
     write_text_atomic(out / "metrics.csv", "\n".join(lines) + "\n")
-    best = min((r["val_score_cm"] for r in history), default=math.nan)
+    best = min((r.val_loss for r in history), default=math.nan)
+    val = [dataset.episodes("train")[i] for i in result.val_episodes]
     summary = {
         "model": spec.model.name,
         "form": FORM,
@@ -268,7 +264,7 @@ def run_marker_training(
         "device": str(model.device),
         "update_steps": spec.update_steps,
         "rollout_steps": spec.rollout_steps,
-        "train_episodes": len(train),
+        "train_episodes": len(result.train_episodes),
         "val_episodes": len(val),
         "val_score_cm": None if math.isnan(best) else round(best, 4),
         "val_freeze_cm": round(
@@ -276,7 +272,7 @@ def run_marker_training(
         )
         if val
         else None,  # fmt: skip
-        "seconds": round(history[-1]["seconds"], 1) if history else 0.0,
+        "seconds": round(seconds[-1], 1) if history else 0.0,
         "out": str(out),
     }
     _plot_history(history, out / "plots" / "loss.png")
@@ -284,16 +280,16 @@ def run_marker_training(
     return summary
 
 
-def _plot_history(history: list[dict[str, float]], path: Path) -> None:
+def _plot_history(history: list[FitRecord], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    steps = [r["step"] for r in history]
-    ax.plot(steps, [r["train_loss"] for r in history], label="train: k-step rollout L1 (cm)")
-    ax.plot(steps, [r["val_score_cm"] for r in history], label="validation: whole rollout (cm)")
+    steps = [r.count for r in history]
+    ax.plot(steps, [r.train_loss for r in history], label="train: k-step rollout L1 (cm)")
+    ax.plot(steps, [r.val_loss for r in history], label="validation: whole rollout (cm)")
     ax.set_xlabel("gradient step")
     ax.set_ylabel("cm")
     ax.set_yscale("log")

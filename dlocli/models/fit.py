@@ -1,0 +1,83 @@
+"""The one training entry point: :func:`fit` trains a model on data as a schedule says, the
+schedule chosen by the model's form and the spec:
+
+- epochs (the paper's): passes over all the training transitions
+  (:func:`dlocli.models.training.train_model`);
+- steps (an ``UpdateSpec`` with schedule "steps"): a fixed number of gradient steps with the
+  newest episodes weighted in (:func:`dlocli.models.step_schedule.train_steps`);
+- rollout windows (a marker model, recorded cables): gradient steps through k-step open-loop
+  rollouts (:func:`dlocli.models.marker_training.fit_markers`).
+
+Every schedule reports :class:`~dlocli.models.fitting.FitEvent` to ``progress``, stops before
+its next gradient step once ``cancel`` is cancelled, and returns a
+:class:`~dlocli.models.fitting.TrainResult`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from dlocli.cancel import CancelToken
+from dlocli.models.base import DynamicsModel
+from dlocli.models.fitting import FitRecord, Progress, TrainResult
+from dlocli.models.marker_training import Cable, fit_markers
+from dlocli.models.markers import MarkerModel
+from dlocli.models.spec import FitSpec, UpdateSpec
+from dlocli.models.splits import split_episodes
+from dlocli.models.step_schedule import train_steps
+from dlocli.models.training import train_model
+
+
+def fit(
+    model: DynamicsModel | MarkerModel,
+    data: Any,
+    schedule: FitSpec,
+    *,
+    progress: Progress | None = None,
+    cancel: CancelToken | None = None,
+    recent_episodes: np.ndarray | None = None,
+    **state: Any,
+) -> TrainResult:
+    """Train ``model`` in place on ``data`` (a rod :class:`~dlocli.data.Dataset`; for a marker
+    model a marker dataset) as ``schedule`` says (see the module docstring). The steps
+    schedule weighs ``recent_episodes`` (those added since the previous update) in; the others
+    train on all episodes alike. ``state`` is what the schedule continues from: epochs take
+    ``optimizer_state``, ``on_validation``, ``start_epoch``, ``generator_state`` and ``best``;
+    steps ``optimizer_state`` and ``on_validation``; rollout windows none."""
+    if isinstance(model, MarkerModel):
+        return _fit_windows(model, data, schedule, progress, cancel, **state)
+    if isinstance(schedule, UpdateSpec) and schedule.schedule == "steps":
+        return train_steps(model, data, schedule, progress=progress, cancel=cancel,
+                           recent_episodes=recent_episodes, **state)  # fmt: skip
+    return train_model(model, data, schedule, progress=progress, cancel=cancel, **state)
+
+
+def _fit_windows(
+    model: MarkerModel,
+    data: Any,
+    schedule: FitSpec,
+    progress: Progress | None,
+    cancel: CancelToken | None,
+) -> TrainResult:
+    """Rollout windows on the train split of the marker dataset ``data``, ``val_fraction`` of
+    its trajectories held out for validation (its eval split is never seen)."""
+    episodes = data.episodes("train")
+    train_idx, val_idx = split_episodes(len(episodes), schedule.val_fraction)
+    train = Cable([episodes[i] for i in train_idx], data.held)
+    val = [Cable([episodes[i] for i in val_idx], data.held)] if len(val_idx) else []
+    rows = fit_markers(model, [train], val, schedule, progress, cancel)
+    history, before = [], 0.0
+    for row in rows:  # their seconds count from the start, a record's from the previous one
+        history.append(FitRecord("step", row["step"], row["train_loss"], row["val_score_cm"],
+                                 row["seconds"] - before, k=row["k"]))  # fmt: skip
+        before = row["seconds"]
+    return TrainResult(
+        history=history,
+        train_episodes=train_idx,
+        val_episodes=val_idx,
+        steps=schedule.update_steps,
+        best_val_loss=min((r.val_loss for r in history), default=math.nan),
+    )
