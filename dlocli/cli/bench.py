@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 import typer
 
-from dlocli.bench.spec import BenchSpec as S
+from dlocli.bench.spec import BenchSpec
 from dlocli.cli.common import ResumeFlag, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
@@ -21,7 +21,7 @@ OPTION_HELP = (
 
 
 @handle_errors
-@spec_flags(S)
+@spec_flags(BenchSpec)
 def bench(
     run: RunFlags,
     option: Annotated[

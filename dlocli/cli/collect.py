@@ -36,12 +36,10 @@ def collect(
 
     Each finished episode is saved at once; `--resume OUT` collects only the missing ones.
     """
-    from dlocli.runs.checks import check_registered
     from dlocli.runs.collect import collect_random, resumed_spec
 
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
-    check_registered(spec)
     with Bars(run.json) as bars:
         bars.begin("episode", spec.episodes, every=max(spec.episodes // 20, 1))
 

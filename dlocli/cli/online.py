@@ -7,11 +7,11 @@ from typing import Any
 from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
-from dlocli.runs.online import OnlineSpec as S
+from dlocli.runs.online import OnlineSpec
 
 
 @handle_errors
-@spec_flags(S)
+@spec_flags(OnlineSpec)
 def online(
     run: RunFlags,
     resume: ResumeFlag = None,

@@ -10,11 +10,11 @@ from dlocli.cli.common import (
 )
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
-from dlocli.models.spec import TrainSpec as S
+from dlocli.models.spec import TrainSpec
 
 
 @handle_errors
-@spec_flags(S)
+@spec_flags(TrainSpec)
 def train(
     run: RunFlags,
     resume: ResumeFlag = None,

@@ -45,6 +45,7 @@ from dlocli.io import adopt_written, prepare_run_dir, versions, write_json_atomi
 from dlocli.limits import refuse_oversized_dataset
 from dlocli.processes import raise_if_stopped, start_worker
 from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
+from dlocli.runs.checks import check_registered
 from dlocli.specs import CollectSpec, EnvSpec
 
 PARTS_DIR = "episodes"
@@ -137,6 +138,7 @@ def collect_random(
     KeyboardInterrupt the finished episodes are assembled into ``dataset.h5`` (atomically)
     before re-raising.
     """
+    check_registered(spec)
     refuse_oversized_dataset(spec.episodes, spec.task.episode_steps, spec.backend.rod.n_segments)
     with owned(spec.out):
         if resume:
