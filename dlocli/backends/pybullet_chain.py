@@ -119,7 +119,7 @@ class PybulletChain(PybulletFacts, Backend):
         )
         seg, r, n = self.model.seg_length, self.rod.radius, self.n_segments - 1
         along_x = p.getQuaternionFromEuler([0, math.pi / 2, 0])  # capsules are along z
-        # no collision shapes (no floor, no self-collision): 35-60% faster steps; the
+        # no collision shapes (no floor, no self-collision): much faster steps; the
         # inertias are set explicitly in _set_dynamics
         vis = p.createVisualShape(
             p.GEOM_CAPSULE,

@@ -10,7 +10,7 @@ nothing is ever discarded.
 
 Seeding: SB3's ``seed=`` seeds Python's, NumPy's and torch's global generators, the action
 space and the env's first reset, so the same seed on CPU gives the same agent. Torch's thread
-count is the caller's choice; on a busy 2-core CPU one thread learns several times faster.
+count is the caller's choice; on a busy CPU one thread learns faster than several.
 """
 
 from __future__ import annotations
