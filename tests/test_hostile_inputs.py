@@ -328,3 +328,71 @@ def test_a_text_file_as_checkpoint_is_one_line(command, near_rest_goal, small_da
     line = _one_line([*argv, "--checkpoint", str(text), "--out", str(tmp_path / "out")],
                      capsys, [tmp_path])  # fmt: skip
     assert str(text) in line and "checkpoint" in line
+
+
+# ------------------------------------------------------------------ marker datasets (issue 44)
+# (id, change to a good marker dataset file, words the one line must hold)
+MARKER_DATASETS: list[tuple[str, Callable[[h5py.File], None], str]] = [
+    ("held-indices", _set("held", lambda a: np.array([0, 1, 99, 5, 0, 0])), "held holds int64"),
+    ("held-nan", _set("held", lambda a: np.where(a, 1.0, np.nan)), "held holds float64"),
+    ("held-one-end", _set("held", lambda a: np.array([1, 1, 0, 0, 0, 0], bool)), "each end"),
+    ("split-code", _set("split", lambda a: a + 2), "split holds [2]"),
+    ("split-negative", _set("split", lambda a: a.astype(np.int8) - 1), "split holds [-1]"),
+    ("split-nan", _set("split", lambda a: np.where(a == 1, np.nan, 0)), "split holds [nan]"),
+    ("no-train-split", _set("split", lambda a: 1 + 0 * a), "no train episodes"),
+    ("rate-zero", _set_attr("rate_hz", 0.0), "rate_hz is 0.0"),
+    ("rate-negative", _set_attr("rate_hz", -100.0), "rate_hz is -100.0"),
+    ("rate-nan", _set_attr("rate_hz", np.nan), "rate_hz is nan"),
+    ("rate-text", _set_attr("rate_hz", "fast"), "rate_hz is fast"),
+    ("positions-text", _set("positions", lambda a: a.astype("S8")), "not numbers"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+@pytest.mark.parametrize(("case", "change", "words"), MARKER_DATASETS,
+                         ids=[c[0] for c in MARKER_DATASETS])  # fmt: skip
+def test_a_damaged_marker_dataset_is_refused_by_train_and_eval(
+    command, case, change, words, marker_run, tmp_path, capsys
+):
+    dataset, checkpoint = marker_run
+    bad = tmp_path / "dataset.h5"
+    shutil.copyfile(dataset, bad)
+    with h5py.File(bad, "r+") as f:
+        change(f)
+    argv = {"train": ["train", "--rollout-steps", "2", "--update-steps", "1"],
+            "eval": ["eval", "--checkpoint", str(checkpoint)]}[command]  # fmt: skip
+    line = _one_line([*argv, "--data", str(bad), "--out", str(tmp_path / "out")], capsys,
+                     [tmp_path])  # fmt: skip
+    assert words in line and str(bad) in line
+
+
+def test_eval_refuses_a_marker_dataset_without_an_eval_split(marker_run, tmp_path, capsys):
+    dataset, checkpoint = marker_run
+    bad = tmp_path / "dataset.h5"
+    shutil.copyfile(dataset, bad)
+    with h5py.File(bad, "r+") as f:
+        _set("split", lambda a: 0 * a)(f)
+    line = _one_line(["eval", "--checkpoint", str(checkpoint), "--data", str(bad)], capsys,
+                     [tmp_path])  # fmt: skip
+    assert "no eval episodes" in line and str(bad) in line
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0])
+def test_a_marker_checkpoint_with_a_scale_not_positive_is_refused(
+    scale, marker_run, tmp_path, capsys
+):
+    import torch
+
+    dataset, checkpoint = marker_run
+    payload = torch.load(checkpoint, weights_only=True)
+    payload["state_dict"]["position_scale"] = torch.full((3,), scale)
+    bad = tmp_path / "model.pt"
+    torch.save(payload, bad)
+    line = _one_line(["eval", "--checkpoint", str(bad), "--data", str(dataset)], capsys,
+                     [tmp_path])  # fmt: skip
+    assert "position_scale" in line and str(bad) in line
+
+
+def test_the_good_marker_dataset_evaluates(marker_run, tmp_path, capsys):
+    dataset, checkpoint = marker_run
+    assert run_dlo(["eval", "--checkpoint", str(checkpoint), "--data", str(dataset)]) == 0

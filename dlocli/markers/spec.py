@@ -9,6 +9,9 @@ from pydantic import Field
 
 from dlocli.specs import Spec
 
+DEFAULT_RATE_HZ = 100.0
+MAX_RATE_HZ = 100_000
+
 
 class ImportSpec(Spec):
     """`dlo import`: recorded marker trajectories -> a marker dataset run directory."""
@@ -22,6 +25,6 @@ class ImportSpec(Spec):
         "eval/*.pkl, each a pickled (frames, 3, markers) list of metres.",
     )
     rate_hz: float = Field(
-        100.0, gt=0, le=100000, description="Frames per second of the recording."
+        DEFAULT_RATE_HZ, gt=0, le=MAX_RATE_HZ, description="Frames per second of the recording."
     )
     out: Path = Field(Path("runs/import"), description="Run directory for the dataset.")

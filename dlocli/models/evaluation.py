@@ -148,6 +148,7 @@ def run_evaluation(spec: Any, overwrite: bool = False) -> dict[str, Any]:
     if isinstance(dataset, MarkerDataset):
         from dlocli.models.markers import load_marker_model
 
+        dataset.require_split("eval")
         net = load_marker_model(spec.checkpoint, spec.device)
     else:
         net = load_model(spec.checkpoint, spec.device)
