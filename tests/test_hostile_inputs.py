@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +24,8 @@ from tiny import (
     edit_policy_data,
     file_digests,
     run_dlo,
+    swinging_cable,
+    write_cable,
 )
 
 
@@ -396,3 +399,53 @@ def test_a_marker_checkpoint_with_a_scale_not_positive_is_refused(
 def test_the_good_marker_dataset_evaluates(marker_run, tmp_path, capsys):
     dataset, checkpoint = marker_run
     assert run_dlo(["eval", "--checkpoint", str(checkpoint), "--data", str(dataset)]) == 0
+
+
+# ----------------------------------------------------------------------- recordings (issue 44)
+def _fifo(root: Path) -> str:
+    os.mkfifo(root / "train" / "x.pkl")  # opened for reading, it would wait for a writer
+    return "not a regular file"
+
+
+def _name_not_utf8(root: Path) -> str:
+    shutil.copyfile(root / "train" / "0.pkl", root / "train" / f"a{NOT_UTF8}.pkl")
+    return "a\\xff.pkl: the file name is not valid UTF-8"
+
+
+def _millimetres(root: Path) -> str:
+    (root / "train" / "0.pkl").write_bytes(pickle.dumps((1000 * swinging_cable(0)).tolist()))
+    return "pass --units"
+
+
+def _int_beyond_float(root: Path) -> str:
+    (root / "train" / "0.pkl").write_bytes(pickle.dumps([[[10**400] * 6] * 3] * 5))
+    return "too large for a float"
+
+
+@pytest.mark.parametrize("damage", [_fifo, _name_not_utf8, _millimetres, _int_beyond_float])
+def test_a_recording_that_is_not_one_is_refused_by_import(damage, tmp_path, capsys):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    words = damage(root)
+    line = _one_line(["import", "--source", str(root), "--out", str(tmp_path / "out")], capsys,
+                     [tmp_path])  # fmt: skip
+    assert words in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_millimetre_recording_imports_in_metres_when_told(tmp_path, capsys):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    _millimetres(root)
+    out = tmp_path / "out"
+    assert run_dlo(["import", "--source", str(root), "--units", "mm", "--out", str(out)]) == 0
+    from dlocli.data import load_dataset
+
+    np.testing.assert_allclose(load_dataset(out).episodes()[0][0], swinging_cable(0)[0].T,
+                               atol=1e-6)  # fmt: skip
+
+
+@pytest.mark.parametrize("out", ["CABLE/train/out", "CABLE", "."], ids=["inside", "same", "above"])
+def test_import_refuses_an_out_by_its_source(out, tmp_path, capsys):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    line = _one_line(["import", "--source", str(root), "--out", str(tmp_path / out)], capsys,
+                     [tmp_path])  # fmt: skip
+    assert "apart from the recordings" in line
