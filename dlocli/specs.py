@@ -547,10 +547,15 @@ def resolve_spec(
     for dotted, value in (overrides or {}).items():
         if value is not None:
             _set_dotted(data, dotted, value)
+    return validated(cls, data, str(spec_file or "spec"))
+
+
+def validated(cls: type[SpecT], data: Any, source: str) -> SpecT:
+    """``data`` as a ``cls``; BadInput naming ``source`` and the first bad field if not one."""
     try:
         return cls.model_validate(data)
     except ValidationError as exc:
-        raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
+        raise BadInput(format_validation_error(exc, source)) from exc
 
 
 def field_info(cls: type[Spec], dotted: str) -> Any:

@@ -449,3 +449,60 @@ def test_import_refuses_an_out_by_its_source(out, tmp_path, capsys):
     line = _one_line(["import", "--source", str(root), "--out", str(tmp_path / out)], capsys,
                      [tmp_path])  # fmt: skip
     assert "apart from the recordings" in line
+
+
+# ------------------------------------------------------------------------- resumes (issue 44)
+def _saved_run(tmp_path: Path, command: str) -> Path:
+    """A run directory holding only the spec.json a fresh `dlo COMMAND` would save."""
+    from dlocli.calibration.spec import CalibrateSpec
+    from dlocli.runs.online import OnlineSpec
+
+    run = tmp_path / "run"
+    run.mkdir()
+    if command == "calibrate":
+        source = write_cable(tmp_path / "CABLE", n_train=2, n_eval=1, frames=5)
+        spec = CalibrateSpec(source=source, cable_length=1.0, cable_mass=0.1, out=run)
+    else:
+        spec = OnlineSpec(out=run)
+    (run / "spec.json").write_text(json.dumps(spec.model_dump(mode="json")))
+    return run
+
+
+@pytest.mark.parametrize(
+    ("command", "flags", "words"),
+    [("calibrate", ["--generations", "0"], "field 'generations'"),
+     ("calibrate", ["--workers", "1000"], "field 'workers'"),
+     ("online", ["--workers", "1000"], "field 'workers'"),
+     ("online", ["--executor", "nosuch"], "field 'executor'")],
+    ids=["calibrate-generations", "calibrate-workers", "online-workers", "online-executor"],
+)  # fmt: skip
+def test_flags_a_resume_takes_are_checked_as_a_fresh_run_checks_them(
+    command, flags, words, tmp_path, capsys
+):
+    run = _saved_run(tmp_path, command)
+    line = _one_line([command, "--resume", str(run), *flags], capsys, [tmp_path])
+    assert words in line and f"--resume {run}" in line
+
+
+def _generation(candidates: object, scores: object) -> dict[str, object]:
+    return {"generations": [{"candidates": candidates, "scores": scores}]}
+
+
+# (id, history.json content, words) for a run of population 8 fitting 3 parameters
+DAMAGED_HISTORIES = [
+    ("scores-short", _generation([[0.5] * 3] * 8, [1.0] * 3), "3 scores, not 8"),
+    ("scores-text", _generation([[0.5] * 3] * 8, ["1.0"] * 8), "generations.0.scores.0"),
+    ("candidate-short", _generation([[0.5] * 2] * 8, [1.0] * 8), "not 8 of 3 parameters"),
+    ("generations-number", {"generations": 3}, "field 'generations'"),
+    ("seconds-text", {"seconds": "soon"}, "field 'seconds'"),
+    ("scores-true", _generation([[0.5] * 3] * 8, [True] * 8), "generations.0.scores.0"),
+]
+
+
+@pytest.mark.parametrize(("case", "history", "words"), DAMAGED_HISTORIES,
+                         ids=[c[0] for c in DAMAGED_HISTORIES])  # fmt: skip
+def test_a_damaged_calibration_history_is_refused_on_resume(case, history, words, tmp_path, capsys):
+    run = _saved_run(tmp_path, "calibrate")
+    (run / "history.json").write_text(json.dumps(history))
+    line = _one_line(["calibrate", "--resume", str(run)], capsys, [tmp_path])
+    assert words in line and "history.json" in line
