@@ -19,10 +19,12 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
 from pydantic.fields import FieldInfo
+from pydantic_core import PydanticCustomError
 
 from dlocli.errors import BadInput
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
@@ -61,14 +63,25 @@ class Spec(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _move_fields(cls, data: Any) -> Any:
+    def _move_fields(cls, data: Any, info: ValidationInfo) -> Any:
         if not isinstance(data, dict) or not any(old in data for old in cls.moved):
             return data
+        if is_given(info):  # only saved runs keep the old layout
+            old = next(old for old in cls.moved if old in data)
+            raise retired(old, moved_to=cls.moved[old])
         data = dict(data)
         for old, dotted in cls.moved.items():
             if old in data:
                 _set_dotted(data, dotted, data.pop(old), copy=True)
         return data
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_booleans_for_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        # pydantic's lax mode reads true as 1: a spec that says `seed: true` meant something else
+        if isinstance(value, bool) and _numbers_only(cls.model_fields[info.field_name].annotation):
+            raise ValueError("a boolean where a number belongs; write the number")
+        return value
 
     @field_validator("*")
     @classmethod
@@ -84,6 +97,33 @@ Device = Annotated[
     str,
     Field(description="Torch device: auto (CUDA if present, else the CPU), cpu, cuda or cuda:K."),
 ]
+
+
+#: the name every run saves its resolved spec under
+SAVED_SPEC = "spec.json"
+#: the validation context of a spec the user gives (spec file and flags): retired and
+#: misplaced fields are refused there, and accepted (migrated) only in saved runs
+GIVEN = {"given": True}
+
+
+def is_given(info: ValidationInfo) -> bool:
+    """Whether the spec being validated is one the user gives (not one saved by a run)."""
+    return bool(info.context and info.context.get("given"))
+
+
+def retired(field: str, moved_to: str = "", why: str = "") -> PydanticCustomError:
+    """The error of a retired field in a given spec: where it moved (a path beside it), or
+    why it went. :func:`format_validation_error` names both by their full paths."""
+    return PydanticCustomError(
+        "retired_field", "'{field}' is retired", {"field": field, "moved_to": moved_to, "why": why}
+    )
+
+
+def _numbers_only(annotation: Any) -> bool:
+    """Whether a field of ``annotation`` takes int or float values but no booleans."""
+    options = get_args(annotation) if get_origin(annotation) in (Union, UnionType) else ()
+    options = options or (annotation,)
+    return bool not in options and any(o in (int, float) for o in options)
 
 
 def require_utf8_path(path: Path) -> None:
@@ -524,6 +564,12 @@ def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
     """One line naming the first bad field and what is expected."""
     err = exc.errors()[0]
     field = ".".join(str(p) for p in err["loc"]) or "(root)"
+    if err["type"] == "retired_field":
+        at = "".join(f"{p}." for p in err["loc"])
+        ctx = err["ctx"]
+        fix = f"write it as '{at}{ctx['moved_to']}'" if ctx["moved_to"] else "remove it"
+        why = f" ({ctx['why']})" if ctx["why"] else ""
+        return f"{source}: field '{at}{ctx['field']}' is retired{why}; {fix}"
     if err["type"] == "extra_forbidden":
         return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
     return f"{source}: field '{field}': {err['msg']} (got {_bounded_repr(err.get('input'))})"
@@ -542,18 +588,26 @@ def _bounded_repr(value: Any) -> str:
 def resolve_spec(
     cls: type[SpecT], spec_file: Path | None = None, overrides: dict[str, Any] | None = None
 ) -> SpecT:
-    """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths)."""
+    """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths).
+
+    A spec the user writes is strict: a retired or misplaced field is refused. A run's own
+    ``spec.json`` (``--spec RUN/spec.json`` re-runs it) is read as runs are: the layout of
+    the version that saved it is migrated."""
     data: dict[str, Any] = load_spec_file(spec_file) if spec_file is not None else {}
     for dotted, value in (overrides or {}).items():
         if value is not None:
             _set_dotted(data, dotted, value)
-    return validated(cls, data, str(spec_file or "spec"))
+    saved = spec_file is not None and Path(spec_file).name == SAVED_SPEC
+    return validated(cls, data, str(spec_file or "spec"), None if saved else GIVEN)
 
 
-def validated(cls: type[SpecT], data: Any, source: str) -> SpecT:
-    """``data`` as a ``cls``; BadInput naming ``source`` and the first bad field if not one."""
+def validated(
+    cls: type[SpecT], data: Any, source: str, context: dict[str, Any] | None = None
+) -> SpecT:
+    """``data`` as a ``cls``; BadInput naming ``source`` and the first bad field if not one.
+    ``context``: :data:`GIVEN` for a spec the user gives."""
     try:
-        return cls.model_validate(data)
+        return cls.model_validate(data, context=context)
     except ValidationError as exc:
         raise BadInput(format_validation_error(exc, source)) from exc
 

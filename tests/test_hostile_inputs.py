@@ -506,3 +506,41 @@ def test_a_damaged_calibration_history_is_refused_on_resume(case, history, words
     (run / "history.json").write_text(json.dumps(history))
     line = _one_line(["calibrate", "--resume", str(run)], capsys, [tmp_path])
     assert words in line and "history.json" in line
+
+
+# --------------------------------------------------------------------- strict specs (issue 44)
+STRICT_SPECS = [
+    ("goal", "seed: true", "field 'seed': Value error, a boolean where a number belongs"),
+    ("goal", "task: {episode_steps: false}", "field 'task.episode_steps': Value error, a boolean"),
+    ("collect", "steps: 5", "field 'steps' is retired; write it as 'task.episode_steps'"),
+    ("train", "model: {name: mlp, mlp_hidden: 64}", "'model.mlp_hidden' is retired; write it as "
+     "'model.hidden'"),
+    ("train", "model: {name: mlp, lstm_layers: 3}", "unknown field 'model.lstm_layers'"),
+    ("train", "schedule: steps", "field 'schedule' is retired (an update field of the online"),
+    ("train", "episode_steps: 5", "unknown field 'episode_steps'"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("command", "text", "words"), STRICT_SPECS,
+                         ids=[f"{c}-{t.split(':')[0]}-{i}" for i, (c, t, _) in
+                              enumerate(STRICT_SPECS)])  # fmt: skip
+def test_a_spec_with_a_retired_misplaced_or_boolean_field_is_refused(
+    command, text, words, tmp_path, capsys
+):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(text + "\n")
+    inputs = {"train": ["--data", str(tmp_path / "data")]}.get(command, [])
+    line = _one_line([command, "--spec", str(spec), *inputs, "--out", str(tmp_path / "out")],
+                     capsys, [tmp_path])  # fmt: skip
+    assert words in line and str(spec) in line
+
+
+def test_a_runs_own_spec_json_still_reads_its_older_layout(tmp_path):
+    """`--spec RUN/spec.json` re-runs a run: the layout its version saved is migrated."""
+    from dlocli.models.spec import TrainSpec
+    from dlocli.specs import resolve_spec
+
+    saved = tmp_path / "spec.json"
+    saved.write_text(json.dumps({"model": {"name": "mlp", "mlp_hidden": 64, "lstm_layers": 2},
+                                 "schedule": "epochs"}))  # fmt: skip
+    assert resolve_spec(TrainSpec, saved).model.hidden == 64

@@ -6,11 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BeforeValidator, Field, SerializeAsAny, model_validator
+from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo, model_validator
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
-from dlocli.migrations import model_data, without_retired_train_fields
-from dlocli.specs import MODEL_OPTIONS, Device, Spec
+from dlocli.migrations import RETIRED_TRAIN_FIELDS, model_data, without_retired_train_fields
+from dlocli.specs import MODEL_OPTIONS, Device, Spec, is_given, retired
 
 
 class ModelSpec(Spec):
@@ -91,9 +91,11 @@ def model_spec_class(name: str) -> type[ModelSpec]:
     return models.spec_cls(name) or ModelSpec
 
 
-def model_spec(data: Any = None) -> ModelSpec:
+def model_spec(data: Any = None, context: dict[str, Any] | None = None) -> ModelSpec:
     """The spec of the model ``data`` names (a dict or spec; none: the default model), as
-    its own spec class: older layouts migrated, options validated (ValidationError)."""
+    its own spec class: older layouts migrated, options validated (ValidationError). With
+    the context :data:`~dlocli.specs.GIVEN` (a spec the user gives) nothing is migrated: an
+    option of another model or a renamed one is refused."""
     if isinstance(data, ModelSpec):
         if type(data) is model_spec_class(data.name):
             return data
@@ -103,12 +105,14 @@ def model_spec(data: Any = None) -> ModelSpec:
     if not isinstance(name, str):
         return ModelSpec.model_validate(data)  # the error names the field
     cls = model_spec_class(name)
+    if context and context.get("given"):
+        return cls.model_validate(data, context=context)
     return cls.model_validate(model_data(data, set(cls.model_fields), cls.moved))
 
 
-def _as_model_spec(value: Any) -> Any:
+def _as_model_spec(value: Any, info: ValidationInfo) -> Any:
     # an unknown name is not a ValueError: it leaves validation as UnknownName, whole
-    return model_spec(value) if isinstance(value, dict | ModelSpec) else value
+    return model_spec(value, info.context) if isinstance(value, dict | ModelSpec) else value
 
 
 #: a field holding a model spec: validated as the spec of the model it names, saved whole
@@ -251,7 +255,13 @@ class TrainSpec(FitSpec):
 
     @model_validator(mode="before")
     @classmethod
-    def _retired_fields(cls, data: Any) -> Any:
+    def _retired_fields(cls, data: Any, info: ValidationInfo) -> Any:
+        names = [k for k in RETIRED_TRAIN_FIELDS if isinstance(data, dict) and k in data]
+        if names and is_given(info):  # only saved runs keep them
+            why = (
+                "an update field of the online loop, without effect in dlo train: it runs --epochs"
+            )
+            raise retired(names[0], why=why)
         return without_retired_train_fields(data)
 
 
