@@ -544,3 +544,28 @@ def test_a_runs_own_spec_json_still_reads_its_older_layout(tmp_path):
     saved.write_text(json.dumps({"model": {"name": "mlp", "mlp_hidden": 64, "lstm_layers": 2},
                                  "schedule": "epochs"}))  # fmt: skip
     assert resolve_spec(TrainSpec, saved).model.hidden == 64
+
+
+# ----------------------------------------------------------------------- bench (issue 44)
+@pytest.mark.parametrize("option", ["sac.ent_coef=-5", "sac.ent_coef=auto_x", "sac.ent_coef=true"])
+def test_a_bad_agent_option_is_refused_before_any_job_runs(option, tmp_path, capsys):
+    spec = tmp_path / "bench.json"
+    spec.write_text(json.dumps(TINY_BENCH | {"agents": ["zero", "sac"]}))
+    line = _one_line(["bench", "--spec", str(spec), "-o", option, "--out", str(tmp_path / "out")],
+                     capsys, [tmp_path])  # fmt: skip
+    assert "field 'ent_coef'" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_failed_bench_job_is_one_line_in_the_log_too(tmp_path, capsys, monkeypatch):
+    def fail(*args: object) -> None:
+        raise RuntimeError("the rest state diverged\n  at step 3")
+
+    monkeypatch.setattr("dlocli.bench.run.run_job", fail)
+    spec = tmp_path / "bench.json"
+    spec.write_text(json.dumps(TINY_BENCH | {"agents": ["zero"]}))
+    assert run_dlo(["bench", "--spec", str(spec), "--out", str(tmp_path / "out")]) == 1
+    out, err = capsys.readouterr()
+    logged = [line for line in out.splitlines() if "zero-s0" in line]
+    assert len(logged) == 1 and "zero-s0 failed: RuntimeError: the rest state" in logged[0], out
+    assert err.count("\n") == 1 and "zero-s0" in err, err
