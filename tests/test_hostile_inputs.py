@@ -569,3 +569,18 @@ def test_a_failed_bench_job_is_one_line_in_the_log_too(tmp_path, capsys, monkeyp
     logged = [line for line in out.splitlines() if "zero-s0" in line]
     assert len(logged) == 1 and "zero-s0 failed: RuntimeError: the rest state" in logged[0], out
     assert err.count("\n") == 1 and "zero-s0" in err, err
+
+
+# ----------------------------------------------------------------------- Gymnasium (issue 44)
+@pytest.mark.parametrize("make", ["dlocli", "gymnasium"])
+def test_a_render_mode_the_env_cannot_provide_is_refused_at_construction(make):
+    """gym.make would wrap it in HumanRendering, a window that fails without a display."""
+    import gymnasium as gym
+
+    import dlocli
+    from dlocli.errors import BadOption
+
+    build = {"dlocli": lambda **kw: dlocli.make_env("mujoco", "single", **kw),
+             "gymnasium": lambda **kw: gym.make("dlocli/MujocoSingle-v0", **kw)}[make]  # fmt: skip
+    with pytest.raises(BadOption, match="render_mode .* got 'human'"):
+        build(render_mode="human", shapes="near-rest")
