@@ -24,7 +24,6 @@ from pydantic import (
     model_validator,
 )
 from pydantic.fields import FieldInfo
-from pydantic_core import PydanticCustomError
 
 from dlocli.errors import BadInput
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
@@ -68,7 +67,7 @@ class Spec(BaseModel):
             return data
         if is_given(info):  # only saved runs keep the old layout
             old = next(old for old in cls.moved if old in data)
-            raise retired(old, moved_to=cls.moved[old])
+            raise RetiredField(old, moved_to=cls.moved[old])
         data = dict(data)
         for old, dotted in cls.moved.items():
             if old in data:
@@ -111,12 +110,13 @@ def is_given(info: ValidationInfo) -> bool:
     return bool(info.context and info.context.get("given"))
 
 
-def retired(field: str, moved_to: str = "", why: str = "") -> PydanticCustomError:
-    """The error of a retired field in a given spec: where it moved (a path beside it), or
-    why it went. :func:`format_validation_error` names both by their full paths."""
-    return PydanticCustomError(
-        "retired_field", "'{field}' is retired", {"field": field, "moved_to": moved_to, "why": why}
-    )
+class RetiredField(ValueError):
+    """A retired field in a given spec: where it moved (a path beside it), or why it went.
+    :func:`format_validation_error` names both by their full paths."""
+
+    def __init__(self, field: str, moved_to: str = "", why: str = "") -> None:
+        super().__init__(f"'{field}' is retired")
+        self.field, self.moved_to, self.why = field, moved_to, why
 
 
 def _numbers_only(annotation: Any) -> bool:
@@ -564,12 +564,12 @@ def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
     """One line naming the first bad field and what is expected."""
     err = exc.errors()[0]
     field = ".".join(str(p) for p in err["loc"]) or "(root)"
-    if err["type"] == "retired_field":
+    retired = err.get("ctx", {}).get("error")
+    if isinstance(retired, RetiredField):
         at = "".join(f"{p}." for p in err["loc"])
-        ctx = err["ctx"]
-        fix = f"write it as '{at}{ctx['moved_to']}'" if ctx["moved_to"] else "remove it"
-        why = f" ({ctx['why']})" if ctx["why"] else ""
-        return f"{source}: field '{at}{ctx['field']}' is retired{why}; {fix}"
+        fix = f"write it as '{at}{retired.moved_to}'" if retired.moved_to else "remove it"
+        why = f" ({retired.why})" if retired.why else ""
+        return f"{source}: field '{at}{retired.field}' is retired{why}; {fix}"
     if err["type"] == "extra_forbidden":
         return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
     return f"{source}: field '{field}': {err['msg']} (got {_bounded_repr(err.get('input'))})"

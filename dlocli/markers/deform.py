@@ -63,12 +63,13 @@ def _read_regular(path: Path, limit: int) -> bytes:
     with os.fdopen(fd, "rb") as f:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
             raise BadInput(f"{path} is not a regular file (a FIFO, device or socket); pass files")
-        if os.fstat(fd).st_size > limit:
-            raise BadInput(
-                f"{path} is {os.fstat(fd).st_size / 2**20:.0f} MiB, over the budget's "
-                f"{limit / 2**20:.0f} MiB left; raise --max-memory-mib or import fewer files"
-            )
-        return f.read(limit + 1)[:limit]  # a file growing while read is cut, then refused
+        data = f.read(limit + 1)  # no more than the budget, whatever the file claims or becomes
+    if len(data) > limit:
+        raise BadInput(
+            f"{path} is over the budget's {limit / 2**20:.0f} MiB left; raise --max-memory-mib "
+            "or import fewer files"
+        )
+    return data
 
 
 def held_markers(n_markers: int) -> np.ndarray:
@@ -102,7 +103,7 @@ def read_folder(
     for split, files in found.items():
         out[split] = []
         for path in files:
-            array = read_trajectory(path, budget_bytes - kept)
+            array = read_trajectory(path, max(0, budget_bytes - kept))
             kept += KEPT_PER_BYTE * array.nbytes
             counts.setdefault(array.shape[1], str(path))
             if len(counts) > 1:

@@ -10,7 +10,7 @@ from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo, mod
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import RETIRED_TRAIN_FIELDS, model_data, without_retired_train_fields
-from dlocli.specs import MODEL_OPTIONS, Device, Spec, is_given, retired
+from dlocli.specs import MODEL_OPTIONS, Device, RetiredField, Spec, is_given
 
 
 class ModelSpec(Spec):
@@ -261,7 +261,7 @@ class TrainSpec(FitSpec):
             why = (
                 "an update field of the online loop, without effect in dlo train: it runs --epochs"
             )
-            raise retired(names[0], why=why)
+            raise RetiredField(names[0], why=why)
         return without_retired_train_fields(data)
 
 
