@@ -43,8 +43,9 @@ MODEL_OPTIONS = "model.*"
 class Spec(BaseModel):
     """Base of all specs: unknown fields are refused, values validated on assignment.
 
-    ``moved`` maps the names of fields that moved to their new dotted path, so spec files
-    and saved runs written before the move still load.
+    ``moved`` maps the names of fields that moved to their new dotted path, so saved runs
+    written before the move still load; a spec the user gives (:data:`GIVEN`) is told the
+    new path instead.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
