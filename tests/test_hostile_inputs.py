@@ -380,9 +380,11 @@ def test_eval_refuses_a_marker_dataset_without_an_eval_split(marker_run, tmp_pat
     assert "no eval episodes" in line and str(bad) in line
 
 
-@pytest.mark.parametrize("scale", [0.0, -1.0])
+@pytest.mark.parametrize(("scale", "words"), [(0.0, "position_scale holds [0.0"),
+                                             (-1.0, "position_scale holds [-1.0"),
+                                             (float("inf"), "NaN or inf weights")])  # fmt: skip
 def test_a_marker_checkpoint_with_a_scale_not_positive_is_refused(
-    scale, marker_run, tmp_path, capsys
+    scale, words, marker_run, tmp_path, capsys
 ):
     import torch
 
@@ -393,7 +395,15 @@ def test_a_marker_checkpoint_with_a_scale_not_positive_is_refused(
     torch.save(payload, bad)
     line = _one_line(["eval", "--checkpoint", str(bad), "--data", str(dataset)], capsys,
                      [tmp_path])  # fmt: skip
-    assert "position_scale" in line and str(bad) in line
+    assert words in line and str(bad) in line
+
+
+def test_a_text_file_as_a_marker_checkpoint_is_one_line(marker_run, tmp_path, capsys):
+    text = tmp_path / "model.pt"
+    text.write_text("hello\n")
+    line = _one_line(["eval", "--checkpoint", str(text), "--data", str(marker_run[0])], capsys,
+                     [tmp_path])  # fmt: skip
+    assert f"{text} is not a readable model checkpoint" in line
 
 
 def test_the_good_marker_dataset_evaluates(marker_run, tmp_path, capsys):
