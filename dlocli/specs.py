@@ -491,6 +491,7 @@ class CollectSpec(EnvSpec):
 
 
 SpecT = TypeVar("SpecT", bound=Spec)
+ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
 #: limits of a spec file: a spec is a few hundred lines; YAML aliases can make a few hundred
@@ -603,8 +604,8 @@ def resolve_spec(
 
 
 def validated(
-    cls: type[SpecT], data: Any, source: str, context: dict[str, Any] | None = None
-) -> SpecT:
+    cls: type[ModelT], data: Any, source: str, context: dict[str, Any] | None = None
+) -> ModelT:
     """``data`` as a ``cls``; BadInput naming ``source`` and the first bad field if not one.
     ``context``: :data:`GIVEN` for a spec the user gives."""
     try:
