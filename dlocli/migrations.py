@@ -7,10 +7,11 @@ spec that lacks the field is completed with it, and a job whose spec holds it ke
 fingerprint (the field is left out). ``tests/test_migrations.py`` fails on a field added
 without one.
 
-Applied only where saved data is read: spec files and run spec.json
+Applied only where saved data is read: run spec.json, resumed or given with ``--spec``
 (:meth:`dlocli.specs.Spec.saved_layout`, :func:`dlocli.resume.saved_spec`), checkpoints
 (:func:`dlocli.models.base.checkpoint_spec`) and bench fingerprints
-(:func:`dlocli.bench.spec.fingerprint`); validating a spec migrates nothing.
+(:func:`dlocli.bench.spec.fingerprint`); validating a spec migrates nothing, and a spec the
+user writes (:data:`dlocli.specs.GIVEN`) is told a retired field's replacement instead.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ from typing import Any, TypeVar
 
 from dlocli.errors import BadInput
 from dlocli.migrations import completed
-from dlocli.specs import Spec
+from dlocli.specs import Spec, validated
 
 SpecT = TypeVar("SpecT", bound=Spec)
 
@@ -59,16 +59,16 @@ def resumed_run_spec(
             f"pass the --out directory of an earlier `{command}`"
         )
     try:
-        spec = load_saved_spec(cls, spec_path)
+        saved = cls.saved_layout(saved_spec(spec_path))  # the load boundary of a resume
     except ValueError as exc:
         raise BadInput(
-            f"--resume {run_dir}: spec.json is not {kind} spec; pass the directory of a "
-            f"`{command}` run"
+            f"--resume {run_dir}: spec.json is not JSON; pass the directory of a `{command}` run"
         ) from exc
-    data = spec.model_dump()
+    data = validated(cls, saved, f"--resume {run_dir}: spec.json (not {kind} spec?)").model_dump()
     refuse_resume_conflicts(data, overrides, run_dir, free)
     changed = {k: v for k, v in overrides.items() if k in free and v is not None}
-    return cls.model_validate({**data, **changed, "out": Path(run_dir)})
+    # the flags a resume takes are checked as a fresh run checks them
+    return validated(cls, {**data, **changed, "out": Path(run_dir)}, f"--resume {run_dir}")
 
 
 def refuse_resume_conflicts(

@@ -13,7 +13,15 @@ from types import UnionType
 from typing import Annotated, Any, ClassVar, TypeVar, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic.fields import FieldInfo
 
 from dlocli.errors import BadInput
@@ -32,8 +40,9 @@ MODEL_OPTIONS = "model.*"
 class Spec(BaseModel):
     """Base of all specs: unknown fields are refused, values validated on assignment.
 
-    ``moved`` maps the names of fields that moved to their new dotted path, so spec files
-    and saved runs written before the move still load.
+    ``moved`` maps the names of fields that moved to their new dotted path, so saved runs
+    written before the move still load; a spec the user gives (:data:`GIVEN`) is told the
+    new path instead.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
@@ -51,7 +60,7 @@ class Spec(BaseModel):
 
     @classmethod
     def saved_layout(cls, data: Any) -> Any:
-        """``data`` (this spec as data, from a spec file, a run's spec.json or a checkpoint)
+        """``data`` (this spec as data, from a run's spec.json or a checkpoint)
         with the layouts of older saves migrated, nested specs included. The load boundaries
         call it; validating a spec migrates no layout (:mod:`dlocli.migrations`)."""
         if not isinstance(data, dict):
@@ -64,14 +73,25 @@ class Spec(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _move_fields(cls, data: Any) -> Any:
+    def _move_fields(cls, data: Any, info: ValidationInfo) -> Any:
         if not isinstance(data, dict) or not any(old in data for old in cls.moved):
             return data
+        if is_given(info):  # only saved runs keep the old layout
+            old = next(old for old in cls.moved if old in data)
+            raise RetiredField(old, moved_to=cls.moved[old])
         data = dict(data)
         for old, dotted in cls.moved.items():
             if old in data:
                 _set_dotted(data, dotted, data.pop(old), copy=True)
         return data
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_booleans_for_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        # pydantic's lax mode reads true as 1: a spec that says `seed: true` meant something else
+        if isinstance(value, bool) and _numbers_only(cls.model_fields[info.field_name].annotation):
+            raise ValueError("a boolean where a number belongs; write the number")
+        return value
 
     @field_validator("*")
     @classmethod
@@ -93,6 +113,34 @@ Device = Annotated[
 ]
 
 
+#: the name every run saves its resolved spec under
+SAVED_SPEC = "spec.json"
+#: the validation context of a spec the user gives (spec file and flags): retired and
+#: misplaced fields are refused there, and accepted (migrated) only in saved runs
+GIVEN = {"given": True}
+
+
+def is_given(info: ValidationInfo) -> bool:
+    """Whether the spec being validated is one the user gives (not one saved by a run)."""
+    return bool(info.context and info.context.get("given"))
+
+
+class RetiredField(ValueError):
+    """A retired field in a given spec: where it moved (a path beside it), or why it went.
+    :func:`format_validation_error` names both by their full paths."""
+
+    def __init__(self, field: str, moved_to: str = "", why: str = "") -> None:
+        super().__init__(f"'{field}' is retired")
+        self.field, self.moved_to, self.why = field, moved_to, why
+
+
+def _numbers_only(annotation: Any) -> bool:
+    """Whether a field of ``annotation`` takes int or float values but no booleans."""
+    options = get_args(annotation) if get_origin(annotation) in (Union, UnionType) else ()
+    options = options or (annotation,)
+    return bool not in options and any(o in (int, float) for o in options)
+
+
 def require_utf8_path(path: Path) -> None:
     """Refuse a path whose name is not valid UTF-8 (bytes the shell passed undecoded)."""
     try:
@@ -105,6 +153,7 @@ def require_utf8_path(path: Path) -> None:
 
 
 SpecT = TypeVar("SpecT", bound=Spec)
+ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
 #: limits of a spec file: a spec is a few hundred lines; YAML aliases can make a few hundred
@@ -179,6 +228,12 @@ def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
     """One line naming the first bad field and what is expected."""
     err = exc.errors()[0]
     field = ".".join(str(p) for p in err["loc"]) or "(root)"
+    retired = err.get("ctx", {}).get("error")
+    if isinstance(retired, RetiredField):
+        at = "".join(f"{p}." for p in err["loc"])
+        fix = f"write it as '{at}{retired.moved_to}'" if retired.moved_to else "remove it"
+        why = f" ({retired.why})" if retired.why else ""
+        return f"{source}: field '{at}{retired.field}' is retired{why}; {fix}"
     if err["type"] == "extra_forbidden":
         return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
     return f"{source}: field '{field}': {err['msg']} (got {_bounded_repr(err.get('input'))})"
@@ -197,15 +252,30 @@ def _bounded_repr(value: Any) -> str:
 def resolve_spec(
     cls: type[SpecT], spec_file: Path | None = None, overrides: dict[str, Any] | None = None
 ) -> SpecT:
-    """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths)."""
-    data: dict[str, Any] = cls.saved_layout(load_spec_file(spec_file)) if spec_file else {}
+    """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths).
+
+    A spec the user writes is strict: a retired or misplaced field is refused. A run's own
+    ``spec.json`` (``--spec RUN/spec.json`` re-runs it) is read as runs are: the layout of
+    the version that saved it is migrated (:meth:`Spec.saved_layout`, its load boundary)."""
+    saved = spec_file is not None and Path(spec_file).name == SAVED_SPEC
+    data: dict[str, Any] = load_spec_file(spec_file) if spec_file is not None else {}
+    if saved:
+        data = cls.saved_layout(data)
     for dotted, value in (overrides or {}).items():
         if value is not None:
             _set_dotted(data, dotted, value)
+    return validated(cls, data, str(spec_file or "spec"), None if saved else GIVEN)
+
+
+def validated(
+    cls: type[ModelT], data: Any, source: str, context: dict[str, Any] | None = None
+) -> ModelT:
+    """``data`` as a ``cls``; BadInput naming ``source`` and the first bad field if not one.
+    ``context``: :data:`GIVEN` for a spec the user gives."""
     try:
-        return cls.model_validate(data)
+        return cls.model_validate(data, context=context)
     except ValidationError as exc:
-        raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
+        raise BadInput(format_validation_error(exc, source)) from exc
 
 
 def field_info(cls: type[Spec], dotted: str) -> Any:

@@ -27,29 +27,35 @@ from dlocli.backend_spec import (
 )
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
 from dlocli.spec_base import (
+    GIVEN,
     MAX_SPEC_BYTES,
     MAX_YAML_ALIASES,
     MAX_YAML_NODES,
     MODEL_OPTIONS,
+    SAVED_SPEC,
     Device,
+    RetiredField,
     Spec,
     SpecT,
     field_info,
     format_validation_error,
+    is_given,
     load_spec_file,
     new_default,
     require_utf8_path,
     resolve_spec,
     strip_none,
+    validated,
 )
 
 __all__ = [
-    "DEFAULT_DAMPING_TIME", "INEXTENSIBLE_YOUNG_TENSION", "MAX_RESET_STEPS", "MAX_SPEC_BYTES",
-    "MAX_YAML_ALIASES", "MAX_YAML_NODES", "MODEL_OPTIONS", "STANDARD_GRAVITY", "BackendSpec",
-    "Box", "CollectSpec", "Device", "EnvSpec", "EnvelopeSpec", "GoalSpec", "RodSpec", "Spec",
-    "SpecT", "TaskSpec", "default_backend", "field_info", "format_validation_error",
-    "load_spec_file", "new_default", "require_utf8_path", "resolve_spec",
-    "segment_limit_error", "strip_none",
+    "DEFAULT_DAMPING_TIME", "GIVEN", "INEXTENSIBLE_YOUNG_TENSION", "MAX_RESET_STEPS",
+    "MAX_SPEC_BYTES", "MAX_YAML_ALIASES", "MAX_YAML_NODES", "MODEL_OPTIONS", "SAVED_SPEC",
+    "STANDARD_GRAVITY", "BackendSpec", "Box", "CollectSpec", "Device", "EnvSpec",
+    "EnvelopeSpec", "GoalSpec", "RetiredField", "RodSpec", "Spec", "SpecT", "TaskSpec",
+    "default_backend", "field_info", "format_validation_error", "is_given", "load_spec_file",
+    "new_default", "require_utf8_path", "resolve_spec", "segment_limit_error", "strip_none",
+    "validated",
 ]  # fmt: skip
 
 #: most control steps of a reset's motion or settling: each is a control period of physics

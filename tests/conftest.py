@@ -71,3 +71,32 @@ def near_rest_goal(tmp_path_factory: pytest.TempPathFactory):
     path = tmp_path_factory.mktemp("goal") / "goal.npy"
     assert run_dlo(["goal", "--out", str(path), "--shapes", "near-rest"]) == 0
     return path
+
+
+@pytest.fixture(scope="session")
+def marker_run(tmp_path_factory: pytest.TempPathFactory):
+    """A tiny marker dataset (4 train and 2 eval recordings of 6 markers, 12 frames) and an
+    untrained marker model fitted to its scales: ``(dataset.h5, checkpoint.pt)``."""
+    import numpy as np
+
+    from dlocli.markers.dataset import MarkerDataset
+    from dlocli.markers.deform import held_markers
+    from dlocli.models.base import save_checkpoint
+    from dlocli.models.markers import FORM, build_marker_model
+
+    rng = np.random.default_rng(0)
+    line = np.stack([np.linspace(0, 0.8, 6), np.zeros(6), np.full(6, 0.5)], -1)
+
+    def recording() -> np.ndarray:
+        return line + np.cumsum(rng.normal(0, 1e-3, (12, 6, 3)), 0)
+
+    held = held_markers(6)
+    data = MarkerDataset.from_trajectories(
+        {s: [(str(i), recording()) for i in range(n)] for s, n in (("train", 4), ("eval", 2))},
+        held, {"rate_hz": 100.0},
+    )  # fmt: skip
+    root = tmp_path_factory.mktemp("markers")
+    model = build_marker_model({"name": "in-bilstm", "hidden": 8}, 6, held)
+    model.fit_normalization([(e, held) for e in data.episodes("train")])
+    save_checkpoint(model, root / "model.pt", {"form": FORM})
+    return data.save(root / "dataset.h5"), root / "model.pt"

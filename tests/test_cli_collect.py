@@ -118,7 +118,7 @@ def test_non_empty_out_is_refused_and_kept(tmp_path):
 
 def test_spec_file_then_flags(tmp_path):
     spec = tmp_path / "spec.yaml"
-    spec.write_text("episodes: 5\nsteps: 7\ntask: {name: bimanual}\n")
+    spec.write_text("episodes: 5\ntask: {name: bimanual, episode_steps: 7}\n")
     out = tmp_path / "run"
     res = run("collect", "--spec", str(spec), "--episodes", "1", "--out", str(out), "--json")
     assert res.exit_code == 0, res.output

@@ -23,7 +23,7 @@ from dlocli.specs import CollectSpec
 runner = CliRunner()
 EPISODES = 20
 # tiny episodes, short settling: a whole run takes a few seconds
-SPEC = f"episodes: {EPISODES}\nsteps: 3\nseed: 3\ntask: {{reset_settle_steps: 10}}\n"
+SPEC = f"episodes: {EPISODES}\nseed: 3\ntask: {{episode_steps: 3, reset_settle_steps: 10}}\n"
 
 
 def run(*args: str):

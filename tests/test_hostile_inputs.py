@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +24,8 @@ from tiny import (
     edit_policy_data,
     file_digests,
     run_dlo,
+    swinging_cable,
+    write_cable,
 )
 
 
@@ -328,3 +331,266 @@ def test_a_text_file_as_checkpoint_is_one_line(command, near_rest_goal, small_da
     line = _one_line([*argv, "--checkpoint", str(text), "--out", str(tmp_path / "out")],
                      capsys, [tmp_path])  # fmt: skip
     assert str(text) in line and "checkpoint" in line
+
+
+# ------------------------------------------------------------------ marker datasets (issue 44)
+# (id, change to a good marker dataset file, words the one line must hold)
+MARKER_DATASETS: list[tuple[str, Callable[[h5py.File], None], str]] = [
+    ("held-indices", _set("held", lambda a: np.array([0, 1, 99, 5, 0, 0])), "held holds int64"),
+    ("held-nan", _set("held", lambda a: np.where(a, 1.0, np.nan)), "held holds float64"),
+    ("held-one-end", _set("held", lambda a: np.array([1, 1, 0, 0, 0, 0], bool)), "each end"),
+    ("split-code", _set("split", lambda a: a + 2), "split holds [2]"),
+    ("split-negative", _set("split", lambda a: a.astype(np.int8) - 1), "split holds [-1]"),
+    ("split-nan", _set("split", lambda a: np.where(a == 1, np.nan, 0)), "split holds [nan]"),
+    ("no-train-split", _set("split", lambda a: 1 + 0 * a), "no train episodes"),
+    ("rate-zero", _set_attr("rate_hz", 0.0), "rate_hz is 0.0"),
+    ("rate-negative", _set_attr("rate_hz", -100.0), "rate_hz is -100.0"),
+    ("rate-nan", _set_attr("rate_hz", np.nan), "rate_hz is nan"),
+    ("rate-text", _set_attr("rate_hz", "fast"), "rate_hz is fast"),
+    ("positions-text", _set("positions", lambda a: a.astype("S8")), "not numbers"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+@pytest.mark.parametrize(("case", "change", "words"), MARKER_DATASETS,
+                         ids=[c[0] for c in MARKER_DATASETS])  # fmt: skip
+def test_a_damaged_marker_dataset_is_refused_by_train_and_eval(
+    command, case, change, words, marker_run, tmp_path, capsys
+):
+    dataset, checkpoint = marker_run
+    bad = tmp_path / "dataset.h5"
+    shutil.copyfile(dataset, bad)
+    with h5py.File(bad, "r+") as f:
+        change(f)
+    argv = {"train": ["train", "--rollout-steps", "2", "--update-steps", "1"],
+            "eval": ["eval", "--checkpoint", str(checkpoint)]}[command]  # fmt: skip
+    line = _one_line([*argv, "--data", str(bad), "--out", str(tmp_path / "out")], capsys,
+                     [tmp_path])  # fmt: skip
+    assert words in line and str(bad) in line
+
+
+def test_eval_refuses_a_marker_dataset_without_an_eval_split(marker_run, tmp_path, capsys):
+    dataset, checkpoint = marker_run
+    bad = tmp_path / "dataset.h5"
+    shutil.copyfile(dataset, bad)
+    with h5py.File(bad, "r+") as f:
+        _set("split", lambda a: 0 * a)(f)
+    line = _one_line(["eval", "--checkpoint", str(checkpoint), "--data", str(bad)], capsys,
+                     [tmp_path])  # fmt: skip
+    assert "no eval episodes" in line and str(bad) in line
+
+
+@pytest.mark.parametrize(("scale", "words"), [(0.0, "position_scale holds [0.0"),
+                                             (-1.0, "position_scale holds [-1.0"),
+                                             (float("inf"), "NaN or inf weights")])  # fmt: skip
+def test_a_marker_checkpoint_with_a_scale_not_positive_is_refused(
+    scale, words, marker_run, tmp_path, capsys
+):
+    import torch
+
+    dataset, checkpoint = marker_run
+    payload = torch.load(checkpoint, weights_only=True)
+    payload["state_dict"]["position_scale"] = torch.full((3,), scale)
+    bad = tmp_path / "model.pt"
+    torch.save(payload, bad)
+    line = _one_line(["eval", "--checkpoint", str(bad), "--data", str(dataset)], capsys,
+                     [tmp_path])  # fmt: skip
+    assert words in line and str(bad) in line
+
+
+def test_a_text_file_as_a_marker_checkpoint_is_one_line(marker_run, tmp_path, capsys):
+    text = tmp_path / "model.pt"
+    text.write_text("hello\n")
+    line = _one_line(["eval", "--checkpoint", str(text), "--data", str(marker_run[0])], capsys,
+                     [tmp_path])  # fmt: skip
+    assert f"{text} is not a readable model checkpoint" in line
+
+
+def test_the_good_marker_dataset_evaluates(marker_run, tmp_path, capsys):
+    dataset, checkpoint = marker_run
+    assert run_dlo(["eval", "--checkpoint", str(checkpoint), "--data", str(dataset)]) == 0
+
+
+# ----------------------------------------------------------------------- recordings (issue 44)
+def _fifo(root: Path) -> str:
+    os.mkfifo(root / "train" / "x.pkl")  # opened for reading, it would wait for a writer
+    return "not a regular file"
+
+
+def _name_not_utf8(root: Path) -> str:
+    shutil.copyfile(root / "train" / "0.pkl", root / "train" / f"a{NOT_UTF8}.pkl")
+    return "a\\xff.pkl: the file name is not valid UTF-8"
+
+
+def _millimetres(root: Path) -> str:
+    (root / "train" / "0.pkl").write_bytes(pickle.dumps((1000 * swinging_cable(0)).tolist()))
+    return "pass --units"
+
+
+def _int_beyond_float(root: Path) -> str:
+    (root / "train" / "0.pkl").write_bytes(pickle.dumps([[[10**400] * 6] * 3] * 5))
+    return "too large for a float"
+
+
+@pytest.mark.parametrize("damage", [_fifo, _name_not_utf8, _millimetres, _int_beyond_float])
+def test_a_recording_that_is_not_one_is_refused_by_import(damage, tmp_path, capsys):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    words = damage(root)
+    line = _one_line(["import", "--source", str(root), "--out", str(tmp_path / "out")], capsys,
+                     [tmp_path])  # fmt: skip
+    assert words in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_millimetre_recording_imports_in_metres_when_told(tmp_path, capsys):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    _millimetres(root)
+    out = tmp_path / "out"
+    assert run_dlo(["import", "--source", str(root), "--units", "mm", "--out", str(out)]) == 0
+    from dlocli.data import load_dataset
+
+    np.testing.assert_allclose(load_dataset(out).episodes()[0][0], swinging_cable(0)[0].T,
+                               atol=1e-6)  # fmt: skip
+
+
+@pytest.mark.parametrize("out", ["CABLE/train/out", "CABLE", "."], ids=["inside", "same", "above"])
+def test_import_refuses_an_out_by_its_source(out, tmp_path, capsys):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    line = _one_line(["import", "--source", str(root), "--out", str(tmp_path / out)], capsys,
+                     [tmp_path])  # fmt: skip
+    assert "apart from the recordings" in line
+
+
+# ------------------------------------------------------------------------- resumes (issue 44)
+def _saved_run(tmp_path: Path, command: str) -> Path:
+    """A run directory holding only the spec.json a fresh `dlo COMMAND` would save."""
+    from dlocli.calibration.spec import CalibrateSpec
+    from dlocli.runs.online import OnlineSpec
+
+    run = tmp_path / "run"
+    run.mkdir()
+    if command == "calibrate":
+        source = write_cable(tmp_path / "CABLE", n_train=2, n_eval=1, frames=5)
+        spec = CalibrateSpec(source=source, cable_length=1.0, cable_mass=0.1, out=run)
+    else:
+        spec = OnlineSpec(out=run)
+    (run / "spec.json").write_text(json.dumps(spec.model_dump(mode="json")))
+    return run
+
+
+@pytest.mark.parametrize(
+    ("command", "flags", "words"),
+    [("calibrate", ["--generations", "0"], "field 'generations'"),
+     ("calibrate", ["--workers", "1000"], "field 'workers'"),
+     ("online", ["--workers", "1000"], "field 'workers'"),
+     ("online", ["--executor", "nosuch"], "field 'executor'")],
+    ids=["calibrate-generations", "calibrate-workers", "online-workers", "online-executor"],
+)  # fmt: skip
+def test_flags_a_resume_takes_are_checked_as_a_fresh_run_checks_them(
+    command, flags, words, tmp_path, capsys
+):
+    run = _saved_run(tmp_path, command)
+    line = _one_line([command, "--resume", str(run), *flags], capsys, [tmp_path])
+    assert words in line and f"--resume {run}" in line
+
+
+def _generation(candidates: object, scores: object) -> dict[str, object]:
+    return {"generations": [{"candidates": candidates, "scores": scores}]}
+
+
+# (id, history.json content, words) for a run of population 8 fitting 3 parameters
+DAMAGED_HISTORIES = [
+    ("scores-short", _generation([[0.5] * 3] * 8, [1.0] * 3), "3 scores, not 8"),
+    ("scores-text", _generation([[0.5] * 3] * 8, ["1.0"] * 8), "generations.0.scores.0"),
+    ("candidate-short", _generation([[0.5] * 2] * 8, [1.0] * 8), "not 8 of 3 parameters"),
+    ("generations-number", {"generations": 3}, "field 'generations'"),
+    ("seconds-text", {"seconds": "soon"}, "field 'seconds'"),
+    ("scores-true", _generation([[0.5] * 3] * 8, [True] * 8), "generations.0.scores.0"),
+]
+
+
+@pytest.mark.parametrize(("case", "history", "words"), DAMAGED_HISTORIES,
+                         ids=[c[0] for c in DAMAGED_HISTORIES])  # fmt: skip
+def test_a_damaged_calibration_history_is_refused_on_resume(case, history, words, tmp_path, capsys):
+    run = _saved_run(tmp_path, "calibrate")
+    (run / "history.json").write_text(json.dumps(history))
+    line = _one_line(["calibrate", "--resume", str(run)], capsys, [tmp_path])
+    assert words in line and "history.json" in line
+
+
+# --------------------------------------------------------------------- strict specs (issue 44)
+STRICT_SPECS = [
+    ("goal", "seed: true", "field 'seed': Value error, a boolean where a number belongs"),
+    ("goal", "task: {episode_steps: false}", "field 'task.episode_steps': Value error, a boolean"),
+    ("collect", "steps: 5", "field 'steps' is retired; write it as 'task.episode_steps'"),
+    ("train", "model: {name: mlp, mlp_hidden: 64}", "'model.mlp_hidden' is retired; write it as "
+     "'model.hidden'"),
+    ("train", "model: {name: mlp, lstm_layers: 3}", "unknown field 'model.lstm_layers'"),
+    ("train", "schedule: steps", "field 'schedule' is retired (an update field of the online"),
+    ("train", "episode_steps: 5", "unknown field 'episode_steps'"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("command", "text", "words"), STRICT_SPECS,
+                         ids=[f"{c}-{t.split(':')[0]}-{i}" for i, (c, t, _) in
+                              enumerate(STRICT_SPECS)])  # fmt: skip
+def test_a_spec_with_a_retired_misplaced_or_boolean_field_is_refused(
+    command, text, words, tmp_path, capsys
+):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(text + "\n")
+    inputs = {"train": ["--data", str(tmp_path / "data")]}.get(command, [])
+    line = _one_line([command, "--spec", str(spec), *inputs, "--out", str(tmp_path / "out")],
+                     capsys, [tmp_path])  # fmt: skip
+    assert words in line and str(spec) in line
+
+
+def test_a_runs_own_spec_json_still_reads_its_older_layout(tmp_path):
+    """`--spec RUN/spec.json` re-runs a run: the layout its version saved is migrated."""
+    from dlocli.models.spec import TrainSpec
+    from dlocli.specs import resolve_spec
+
+    saved = tmp_path / "spec.json"
+    saved.write_text(json.dumps({"model": {"name": "mlp", "mlp_hidden": 64, "lstm_layers": 2},
+                                 "schedule": "epochs"}))  # fmt: skip
+    assert resolve_spec(TrainSpec, saved).model.hidden == 64
+
+
+# ----------------------------------------------------------------------- bench (issue 44)
+@pytest.mark.parametrize("option", ["sac.ent_coef=-5", "sac.ent_coef=auto_x", "sac.ent_coef=true"])
+def test_a_bad_agent_option_is_refused_before_any_job_runs(option, tmp_path, capsys):
+    spec = tmp_path / "bench.json"
+    spec.write_text(json.dumps(TINY_BENCH | {"agents": ["zero", "sac"]}))
+    line = _one_line(["bench", "--spec", str(spec), "-o", option, "--out", str(tmp_path / "out")],
+                     capsys, [tmp_path])  # fmt: skip
+    assert "field 'ent_coef'" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_failed_bench_job_is_one_line_in_the_log_too(tmp_path, capsys, monkeypatch):
+    def fail(*args: object) -> None:
+        raise RuntimeError("the rest state diverged\n  at step 3")
+
+    monkeypatch.setattr("dlocli.bench.run.run_job", fail)
+    spec = tmp_path / "bench.json"
+    spec.write_text(json.dumps(TINY_BENCH | {"agents": ["zero"]}))
+    assert run_dlo(["bench", "--spec", str(spec), "--out", str(tmp_path / "out")]) == 1
+    out, err = capsys.readouterr()
+    logged = [line for line in out.splitlines() if "zero-s0" in line]
+    assert len(logged) == 1 and "zero-s0 failed: RuntimeError: the rest state" in logged[0], out
+    assert err.count("\n") == 1 and "zero-s0" in err, err
+
+
+# ----------------------------------------------------------------------- Gymnasium (issue 44)
+@pytest.mark.parametrize("make", ["dlocli", "gymnasium"])
+def test_a_render_mode_the_env_cannot_provide_is_refused_at_construction(make):
+    """gym.make would wrap it in HumanRendering, a window that fails without a display."""
+    import gymnasium as gym
+
+    import dlocli
+    from dlocli.errors import BadOption
+
+    build = {"dlocli": lambda **kw: dlocli.make_env("mujoco", "single", **kw),
+             "gymnasium": lambda **kw: gym.make("dlocli/MujocoSingle-v0", **kw)}[make]  # fmt: skip
+    with pytest.raises(BadOption, match="render_mode .* got 'human'"):
+        build(render_mode="human", shapes="near-rest")

@@ -6,14 +6,17 @@ limit, so a regression fails fast instead of swapping."""
 from __future__ import annotations
 
 import os
+import pickle
+import struct
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from tiny import file_digests, run_dlo
+from tiny import file_digests, run_dlo, write_cable
 
 HUGE = str(10**12)
 LIMIT = "less than or equal to"
@@ -106,11 +109,8 @@ MEMORY: list[tuple[str, str, str]] = [
 ]  # fmt: skip
 
 
-@pytest.mark.parametrize(("case", "argv", "words"), MEMORY, ids=[c[0] for c in MEMORY])
-def test_a_size_beyond_memory_is_refused_under_a_memory_limit(case, argv, words, tmp_path):
-    spec = tmp_path / "spec.yaml"
-    spec.write_text("model: {hidden: 65536}\n")
-    args = argv.format(out=tmp_path / "out", spec=spec).split()
+def _under_memory_limit(args: list[str]) -> subprocess.CompletedProcess:
+    """`dlo ARGS` in a subprocess limited to ADDRESS_SPACE bytes of memory."""
     program = (
         "import resource, sys\n"
         f"resource.setrlimit(resource.RLIMIT_AS, ({ADDRESS_SPACE}, {ADDRESS_SPACE}))\n"
@@ -119,10 +119,17 @@ def test_a_size_beyond_memory_is_refused_under_a_memory_limit(case, argv, words,
         "main()\n"
     )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
-    start = time.monotonic()
-    done = subprocess.run(
+    return subprocess.run(
         [sys.executable, "-c", program], capture_output=True, text=True, timeout=60, env=env
     )
+
+
+@pytest.mark.parametrize(("case", "argv", "words"), MEMORY, ids=[c[0] for c in MEMORY])
+def test_a_size_beyond_memory_is_refused_under_a_memory_limit(case, argv, words, tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("model: {hidden: 65536}\n")
+    start = time.monotonic()
+    done = _under_memory_limit(argv.format(out=tmp_path / "out", spec=spec).split())
     seconds = time.monotonic() - start
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert done.returncode == 2, done.stderr[-2000:]
@@ -152,3 +159,45 @@ def test_a_file_size_limit_is_one_line_and_no_short_file(argv, tmp_path):
     assert done.returncode == 1, done.stderr[-2000:]
     assert len(lines) == 1 and "file size limit" in lines[0], done.stderr[-2000:]
     assert not [p for p in out.rglob("*") if p.suffix in (".npy", ".h5")]
+
+
+# ----------------------------------------------------------------------- recordings (issue 44)
+def _memo_fan_out() -> bytes:
+    """[[x] * 1000] * 1000, x a list of 300 floats, each list pickled once and reused through
+    the memo: 7 kB that expand to 300 million numbers (2.4 GB before this was refused)."""
+    floats = b"".join(b"G" + struct.pack(">d", 0.1) for _ in range(300))
+    return (b"\x80\x04" + b"]\x94(" * 3 + floats + b"e" + b"h\x02" * 999 + b"e"
+            + b"h\x01" * 999 + b"e.")  # fmt: skip
+
+
+def _huge_declared_bytes() -> bytes:
+    return b"\x80\x04\x8e" + struct.pack("<Q", 2**62) + b"xx."  # BINBYTES8 of 4 EiB
+
+
+def _huge_declared_frame() -> bytes:
+    return b"\x80\x04\x95" + struct.pack("<Q", 2**62) + b"]."  # a FRAME of 4 EiB
+
+
+def _over_the_budget() -> bytes:
+    return pickle.dumps(np.zeros((4000, 3, 30)).tolist())  # 360,000 numbers: 21 MiB to read
+
+
+BOMBS = [
+    (_memo_fan_out, "memo reference"),
+    (_huge_declared_bytes, "not a readable pickle"),
+    (_huge_declared_frame, "not a readable pickle"),
+    (_over_the_budget, "over the budget"),
+]
+
+
+@pytest.mark.parametrize(("write", "words"), BOMBS, ids=[w.__name__[1:] for w, _ in BOMBS])
+def test_a_recording_past_the_memory_budget_is_refused_before_it_is_built(write, words, tmp_path):
+    root = write_cable(tmp_path / "CABLE", n_train=1, n_eval=0, frames=5)
+    (root / "train" / "z.pkl").write_bytes(write())
+    args = ["import", "--source", str(root), "--max-memory-mib", "16", "--out",
+            str(tmp_path / "out")]  # fmt: skip
+    done = _under_memory_limit(args)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert len(lines) == 1 and words in lines[0] and "z.pkl" in lines[0], done.stderr[-2000:]
+    assert not (tmp_path / "out").exists()

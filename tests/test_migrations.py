@@ -103,8 +103,9 @@ def test_a_model_option_needs_a_legacy_value(name):
     ],
 )
 def test_real_cable_specs_build_the_models_they_built(file, expected):
-    """The flat layout (`mlp_hidden`, `mlp_layers`, and the other models' fields) of the
-    spec files and of the committed runs' spec.json, migrated where they are read."""
+    """The spec files, given as a user gives them (today's names: a retired one is refused),
+    build the models that the committed runs' spec.json built: theirs is the flat layout
+    (`mlp_hidden`, `mlp_layers`, and the other models' fields), migrated where it is read."""
     spec = resolve_spec(TrainSpec, EXAMPLES / "real_cables" / file)
     assert {k: getattr(spec.model, k) for k in expected} == expected
     assert spec.model.length_projection == 3
@@ -129,7 +130,7 @@ def test_a_checkpoint_of_the_flat_layout_loads(tmp_path):
 
 
 def test_validation_migrates_no_layout():
-    """Migrations run where saved data is read (spec files, spec.json, checkpoints), not on
+    """Migrations run where saved data is read (run spec.json, checkpoints), not on
     every validation: a flat-layout field given to a spec directly is an unknown field."""
     from pydantic import ValidationError
 

@@ -19,9 +19,8 @@ from dlocli.markers import deform, protocol
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.registry import models
 
-from tiny import run_dlo
+from tiny import FRAMES, MARKERS, run_dlo, swinging_cable, write_cable
 
-FRAMES, MARKERS = 40, 6
 DEFORM_DATA = Path(
     os.environ.get("DLOCLI_DEFORM_DATA", Path(__file__).parents[2] / "shared/data/deform")
 )
@@ -31,30 +30,9 @@ def _run(*argv: str) -> int:
     return run_dlo(list(argv))
 
 
-def _swinging_cable(seed: int, frames: int = FRAMES, markers: int = MARKERS) -> np.ndarray:
-    """(frames, 3, markers) like a DEFORM file: a sagging cable whose ends move."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(frames)[:, None] / 100.0
-    s = np.linspace(0, 1, markers)[None, :]
-    phase, amp = rng.uniform(0, 6), rng.uniform(0.02, 0.08)
-    x = 0.8 * s + amp * np.sin(2 * np.pi * t + phase)
-    y = 0.05 * np.sin(np.pi * s) * np.cos(3 * t + phase)
-    z = 0.5 - 0.2 * np.sin(np.pi * s) + amp * np.sin(5 * t) * s
-    return np.stack([x, y, z], 1).astype(np.float64)
-
-
-def _write_cable(root: Path, n_train: int = 4, n_eval: int = 2, **kw) -> Path:
-    for split, n in (("train", n_train), ("eval", n_eval)):
-        (root / split).mkdir(parents=True, exist_ok=True)
-        for i in range(n):
-            array = _swinging_cable(i + (100 if split == "eval" else 0), **kw)
-            (root / split / f"{i}.pkl").write_bytes(pickle.dumps(array.tolist()))
-    return root
-
-
 @pytest.fixture(scope="module")
 def cable(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return _write_cable(tmp_path_factory.mktemp("cable") / "CABLE")
+    return write_cable(tmp_path_factory.mktemp("cable") / "CABLE")
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +109,7 @@ def test_every_registered_model_has_a_marker_form(name: str) -> None:
 
     held = deform.held_markers(MARKERS)
     model = build_marker_model({"name": name, "hidden": 8}, MARKERS, held)
-    rec = torch.as_tensor(_swinging_cable(0).transpose(0, 2, 1)[None], dtype=torch.float32)
+    rec = torch.as_tensor(swinging_cable(0).transpose(0, 2, 1)[None], dtype=torch.float32)
     pred = model.rollout(rec[:, 1], rec[:, 0], rec[:, 2:])
     assert pred.shape == rec[:, 2:].shape
     torch.testing.assert_close(pred[:, :, held], rec[:, 2:, held])  # held ones are the input
@@ -144,7 +122,7 @@ def test_a_crafted_pickle_is_refused_and_runs_nothing(tmp_path: Path, capsys) ->
         def __reduce__(self):
             return (os.system, (f"touch {marker}",))
 
-    root = _write_cable(tmp_path / "CABLE")
+    root = write_cable(tmp_path / "CABLE")
     (root / "train" / "evil.pkl").write_bytes(pickle.dumps(Payload()))
     code = _run("import", "--source", str(root), "--out", str(tmp_path / "out"))
     err = capsys.readouterr().err.strip()
@@ -159,11 +137,11 @@ def test_a_crafted_pickle_is_refused_and_runs_nothing(tmp_path: Path, capsys) ->
         (lambda: np.zeros((10, 4, 6)).tolist(), "shape"),
         (lambda: np.zeros((10, 3, 3)).tolist(), "at least 4"),
         (lambda: np.full((10, 3, 6), np.nan).tolist(), "NaN"),
-        (lambda: "text", "rectangular"),
+        (lambda: "text", "holds text"),
     ],
 )
 def test_bad_files_get_one_line(tmp_path: Path, capsys, bad, words: str) -> None:
-    root = _write_cable(tmp_path / "CABLE")
+    root = write_cable(tmp_path / "CABLE")
     (root / "train" / "bad.pkl").write_bytes(pickle.dumps(bad()))
     existing = tmp_path / "out"
     existing.mkdir()
@@ -175,8 +153,8 @@ def test_bad_files_get_one_line(tmp_path: Path, capsys, bad, words: str) -> None
 
 
 def test_mixed_marker_counts_are_refused(tmp_path: Path, capsys) -> None:
-    root = _write_cable(tmp_path / "CABLE")
-    (root / "eval" / "z.pkl").write_bytes(pickle.dumps(_swinging_cable(0, markers=7).tolist()))
+    root = write_cable(tmp_path / "CABLE")
+    (root / "eval" / "z.pkl").write_bytes(pickle.dumps(swinging_cable(0, markers=7).tolist()))
     assert _run("import", "--source", str(root), "--out", str(tmp_path / "out")) == 2
     assert "mixed marker counts" in capsys.readouterr().err
 

@@ -180,7 +180,7 @@ def test_dlo_train_offers_only_the_fields_it_uses(small_dataset_dir, tmp_path):
     spec.write_text("schedule: steps\n")
     res = runner.invoke(app, ["train", "--data", str(small_dataset_dir), "--spec", str(spec),
                               "--out", str(tmp_path / "run")])  # fmt: skip
-    assert res.exit_code == 2 and "unknown field 'schedule'" in res.output, res.output
+    assert res.exit_code == 2 and "field 'schedule' is retired" in res.output, res.output
     assert not (tmp_path / "run").exists()
 
 

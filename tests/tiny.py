@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
 import subprocess
 import sys
@@ -14,6 +15,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 #: options of the learning agents: small networks and GP, short horizons
 TINY_AGENTS: dict[str, dict[str, Any]] = {
@@ -156,3 +159,29 @@ def built_once(factory: Any, name: str, build: Callable[[Path], None]) -> Path:
             built.touch()
     shutil.copytree(shared, own, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".built"))
     return own
+
+
+# ----------------------------------------------------------------------------- recordings
+FRAMES, MARKERS = 40, 6
+
+
+def swinging_cable(seed: int, frames: int = FRAMES, markers: int = MARKERS) -> np.ndarray:
+    """(frames, 3, markers) like a DEFORM file: a sagging cable whose ends move."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames)[:, None] / 100.0
+    s = np.linspace(0, 1, markers)[None, :]
+    phase, amp = rng.uniform(0, 6), rng.uniform(0.02, 0.08)
+    x = 0.8 * s + amp * np.sin(2 * np.pi * t + phase)
+    y = 0.05 * np.sin(np.pi * s) * np.cos(3 * t + phase)
+    z = 0.5 - 0.2 * np.sin(np.pi * s) + amp * np.sin(5 * t) * s
+    return np.stack([x, y, z], 1).astype(np.float64)
+
+
+def write_cable(root: Path, n_train: int = 4, n_eval: int = 2, **kw) -> Path:
+    """A cable folder in the DEFORM layout: train/ and eval/ of pickled recordings."""
+    for split, n in (("train", n_train), ("eval", n_eval)):
+        (root / split).mkdir(parents=True, exist_ok=True)
+        for i in range(n):
+            array = swinging_cable(i + (100 if split == "eval" else 0), **kw)
+            (root / split / f"{i}.pkl").write_bytes(pickle.dumps(array.tolist()))
+    return root

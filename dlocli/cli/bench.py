@@ -81,10 +81,9 @@ class _BenchProgress:
         elif event == "job":
             self.done += 1
             bars.update("job", self.done, info=f"{info['job']} took {info['seconds']:.0f} s")
-        elif event == "failed":
-            bars.note(f"  {info['job']} failed: {info['error']}")
+        elif event == "failed":  # one line as it happens; the causes again in the final error
             self.done += 1
-            bars.update("job", self.done, info=f"{info['job']} failed")
+            bars.update("job", self.done, info=f"{info['job']} failed: {info['error'][:120]}")
 
 
 def _emit(summary: dict[str, Any], as_json: bool) -> None:

@@ -43,6 +43,27 @@ TrainFreq = Annotated[int | Literal["episode"], BeforeValidator(_check_train_fre
 TRAIN_FREQ_HELP = "Env steps between updates, or 'episode': once per task episode (its length)."
 
 
+def _check_ent_coef(value: Any) -> Any:
+    """What SB3 reads as an entropy coefficient, checked here: SB3 takes a negative one
+    (which rewards certainty) and fails on a bad 'auto_X' only when the agent is built."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0:
+        return value
+    if value == "auto":
+        return value
+    if isinstance(value, str) and value.startswith("auto_"):
+        try:
+            start = float(value.removeprefix("auto_"))
+        except ValueError:
+            start = 0.0
+        if 0 < start < float("inf"):
+            return value
+    raise ValueError("must be a number >= 0, 'auto', or 'auto_X' with X > 0 (its start)")
+
+
+#: the entropy coefficient of SAC: fixed, or learned from a start (1 for 'auto')
+EntCoef = Annotated[str | float, BeforeValidator(_check_ent_coef)]
+
+
 class SB3Spec(Spec):
     """Fields shared by the SB3 off-policy algorithms (constructor keywords of SB3)."""
 
@@ -115,8 +136,10 @@ class SACSpec(SB3Spec):
     tau: float = new_default(SB3Spec, "tau", 0.02)
     train_freq: TrainFreq = new_default(SB3Spec, "train_freq", 8)
     gradient_steps: int = new_default(SB3Spec, "gradient_steps", 8)
-    ent_coef: str | float = Field(
-        "auto", description="Entropy coefficient, or 'auto' to learn it (target -|A|)."
+    ent_coef: EntCoef = Field(
+        "auto",
+        description="Entropy coefficient (>= 0), or 'auto' to learn it (target -|A|; "
+        "'auto_X' starts it at X).",
     )
     use_sde: bool = Field(
         True,

@@ -220,7 +220,13 @@ class DLOShapeEnv(gym.Env):
             value BadOption (a ValueError).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    @property
+    def metadata(self) -> dict[str, Any]:  # type: ignore[override]
+        # a property, as on Gymnasium's wrappers: gym.make then hands render_mode="human" to
+        # the constructor, which refuses it, instead of wrapping the env in HumanRendering (a
+        # pygame window, which fails at the first frame without a display)
+        return {"render_modes": ["rgb_array"], "render_fps": 50}
+
     _closed = False
 
     def __init__(
@@ -242,7 +248,10 @@ class DLOShapeEnv(gym.Env):
             raise BadOption(f"DLOShapeEnv: seed must be an integer >= 0, got {seed!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             modes = ", ".join(["None", *self.metadata["render_modes"]])
-            raise BadOption(f"DLOShapeEnv: render_mode must be one of {modes}, got {render_mode!r}")
+            raise BadOption(
+                f"DLOShapeEnv: render_mode must be one of {modes}, got {render_mode!r} (it "
+                "renders frames, no window: wrap an rgb_array env in HumanRendering to see them)"
+            )
         self.task: Task = make_task(self.task_spec.name)
         self.backend = make_backend(self.backend_spec, self.task_spec.control_dt, cell)
         self._apply_limits()

@@ -31,6 +31,7 @@ import numpy as np
 from dlocli.dataset_format import FORMAT, FORMAT_VERSION
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
+from dlocli.markers.spec import DEFAULT_RATE_HZ, MAX_RATE_HZ
 
 FORM = "markers"
 SPLIT_CODES = {"train": 0, "eval": 1}
@@ -45,6 +46,7 @@ class MarkerDataset:
     split: np.ndarray
     names: np.ndarray
     attrs: dict[str, Any] = field(default_factory=dict)
+    path: Path | None = None  # the file it was read from, named in errors
 
     @classmethod
     def from_trajectories(
@@ -82,7 +84,7 @@ class MarkerDataset:
 
     @property
     def rate_hz(self) -> float:
-        return float(self.attrs.get("rate_hz", 100.0))
+        return float(self.attrs.get("rate_hz", DEFAULT_RATE_HZ))
 
     def episodes(self, split: str | None = None) -> list[np.ndarray]:
         """Each episode's frames (T_e + 1, V, 3), of one split (None: all)."""
@@ -90,6 +92,14 @@ class MarkerDataset:
         starts = ends - (self.episode_lengths + 1)
         keep = np.ones(self.n_episodes, bool) if split is None else self.split == SPLIT_CODES[split]
         return [self.positions[a:b] for a, b, k in zip(starts, ends, keep, strict=True) if k]
+
+    def require_split(self, split: str) -> None:
+        """BadInput naming the file unless ``split`` holds an episode."""
+        if not (self.split == SPLIT_CODES[split]).any():
+            raise BadInput(
+                f"marker dataset {self.path}: split holds no {split} episodes (code "
+                f"{SPLIT_CODES[split]}); import a cable folder that holds {split}/ recordings"
+            )
 
     def episode_names(self, split: str | None = None) -> list[str]:
         keep = np.ones(self.n_episodes, bool) if split is None else self.split == SPLIT_CODES[split]
@@ -123,17 +133,25 @@ def read_marker_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> MarkerDatas
     arrays["names"] = np.array(
         [n.decode() if isinstance(n, bytes) else str(n) for n in arrays["names"]], dtype=object
     )
-    data = MarkerDataset(**arrays, attrs=attrs)
+    data = MarkerDataset(**arrays, attrs=attrs, path=path)
+    _check_held(data.held, path)
     _check(data, path)
     from dlocli.dataset_checks import check_fields
 
     check_fields(arrays, attrs, path, FORMAT_VERSION)
+    _check_split(data.split, path)
+    _check_rate(attrs, path)
+    data.require_split("train")
     return data
 
 
 def _check(data: MarkerDataset, path: Path) -> None:
     """BadInput unless shapes agree and positions are finite."""
     lengths, pos = data.episode_lengths, data.positions
+    if pos.dtype.kind not in "fiu":
+        raise BadInput(
+            f"marker dataset {path}: positions hold {pos.dtype}, not numbers; re-import it"
+        )
     ok = (
         lengths.ndim == 1 and len(lengths) > 0 and bool((lengths >= 2).all())
         and pos.ndim == 3 and pos.shape[2] == 3 and pos.shape[0] == int((lengths + 1).sum())
@@ -144,3 +162,39 @@ def _check(data: MarkerDataset, path: Path) -> None:
         raise BadInput(f"marker dataset {path} has inconsistent array shapes; re-import it")
     if not np.isfinite(pos).all():
         raise BadInput(f"marker dataset {path} contains NaN or inf positions; re-import it")
+
+
+def _check_held(held: np.ndarray, path: Path) -> None:
+    """A boolean mask with held markers in both halves (a gripper at each end: the
+    straight-line reference and the models' inputs assume it)."""
+    if held.dtype != bool:
+        raise BadInput(
+            f"marker dataset {path}: held holds {held.dtype}, not a boolean mask (one flag per "
+            "marker); re-import it"
+        )
+    half = len(held) // 2
+    if not (held[:half].any() and held[half:].any()):
+        raise BadInput(
+            f"marker dataset {path}: held marks markers {np.flatnonzero(held).tolist()[:8]}, "
+            "not some at each end of the cable; re-import it"
+        )
+
+
+def _check_split(split: np.ndarray, path: Path) -> None:
+    codes = sorted(SPLIT_CODES.values())
+    if split.dtype.kind not in "iu" or not np.isin(split, codes).all():
+        shown = split[~np.isin(split, codes)][:1] if split.dtype.kind in "fiu" else split.dtype
+        raise BadInput(
+            f"marker dataset {path}: split holds {str(shown)[:40]}, not only the codes "
+            f"{codes} (0 train, 1 eval); re-import it"
+        )
+
+
+def _check_rate(attrs: dict[str, Any], path: Path) -> None:
+    rate = attrs.get("rate_hz", DEFAULT_RATE_HZ)
+    number = isinstance(rate, (int, float)) and not isinstance(rate, bool)
+    if not (number and 0 < rate <= MAX_RATE_HZ):  # False for NaN too
+        raise BadInput(
+            f"marker dataset {path}: rate_hz is {str(rate)[:40]}, not frames per second in "
+            f"(0, {MAX_RATE_HZ}]; re-import it with --rate-hz"
+        )

@@ -1,50 +1,38 @@
 """Read DEFORM trajectory files (Chen et al., CoRL 2024, repository roahmlab/DEFORM).
 
 Each ``.pkl`` is a pickled nested list of floats, shape (frames, 3, V): x/y/z in metres of V
-markers along the cable. Pickles can run code when loaded, so they are read with an
-unpickler that refuses every global: a plain list of floats loads, anything that names a
-class or function is refused before it is built.
+markers along the cable. Pickles can run code when loaded, so they are read by
+:mod:`~dlocli.markers.plain_pickle`: a plain list of numbers loads, anything that names a
+class or function, reuses an object or does not fit the memory budget is refused before it
+is built. Only regular files are opened (a FIFO named ``x.pkl`` would block the read).
 """
 
 from __future__ import annotations
 
-import pickle
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
 
 from dlocli.errors import BadInput
+from dlocli.markers.plain_pickle import load_plain
+from dlocli.markers.spec import DEFAULT_MEMORY_MIB
 
 SPLITS = ("train", "eval")
 MIN_MARKERS = 4  # two held at each end
 HELD_PER_END = 2
-MAX_FILE_BYTES = 256 * 2**20
+#: memory the numbers of the recordings read so far keep per float64 byte: the arrays, the
+#: dataset's float32 copy and the image of its file
+KEPT_PER_BYTE = 2
+DEFAULT_BUDGET = DEFAULT_MEMORY_MIB * 2**20
 
 
-class _NoGlobals(pickle.Unpickler):
-    """An unpickler for plain data: every global (class, function) is refused."""
-
-    def find_class(self, module: str, name: str) -> None:
-        raise pickle.UnpicklingError(f"it names {module}.{name}")
-
-
-def read_trajectory(path: Path) -> np.ndarray:
-    """One recorded trajectory as (frames, V, 3) float64; BadInput on anything else."""
+def read_trajectory(path: Path, budget_bytes: int = DEFAULT_BUDGET) -> np.ndarray:
+    """One recorded trajectory as (frames, V, 3) float64, read within ``budget_bytes`` of
+    memory; BadInput on anything else."""
     path = Path(path)
-    if path.stat().st_size > MAX_FILE_BYTES:
-        raise BadInput(f"{path} is over {MAX_FILE_BYTES >> 20} MiB; not a trajectory file")
-    try:
-        with open(path, "rb") as f:
-            data = _NoGlobals(f).load()
-    except pickle.UnpicklingError as exc:
-        raise BadInput(
-            f"{path} refused: {exc} (only plain lists of numbers are loaded; code in a pickle "
-            "is never run); pass the DEFORM data files"
-        ) from exc
-    except (EOFError, ValueError, TypeError, IndexError, KeyError, MemoryError) as exc:
-        raise BadInput(
-            f"{path} is not a readable pickle ({type(exc).__name__}); re-download it"
-        ) from exc
+    data = load_plain(_read_regular(path, budget_bytes), str(path), budget_bytes)
     try:
         array = np.asarray(data, dtype=np.float64)
     except (ValueError, TypeError) as exc:
@@ -65,6 +53,25 @@ def read_trajectory(path: Path) -> np.ndarray:
     return array.transpose(0, 2, 1).copy()
 
 
+def _read_regular(path: Path, limit: int) -> bytes:
+    """The bytes of ``path``, a regular file of at most ``limit`` bytes; BadInput otherwise.
+    Opened without blocking and checked once open, so a FIFO or device never stalls it."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as exc:
+        raise BadInput(f"{path} cannot be read ({exc.strerror}); pass readable files") from exc
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise BadInput(f"{path} is not a regular file (a FIFO, device or socket); pass files")
+        data = f.read(limit + 1)  # no more than the budget, whatever the file claims or becomes
+    if len(data) > limit:
+        raise BadInput(
+            f"{path} is over the budget's {limit / 2**20:.0f} MiB left; raise --max-memory-mib "
+            "or import fewer files"
+        )
+    return data
+
+
 def held_markers(n_markers: int) -> np.ndarray:
     """(V,) bool: the two markers at each end, which the grippers hold."""
     held = np.zeros(n_markers, dtype=bool)
@@ -72,9 +79,12 @@ def held_markers(n_markers: int) -> np.ndarray:
     return held
 
 
-def read_folder(folder: Path) -> dict[str, list[tuple[str, np.ndarray]]]:
+def read_folder(
+    folder: Path, budget_bytes: int = DEFAULT_BUDGET
+) -> dict[str, list[tuple[str, np.ndarray]]]:
     """``{split: [(file stem, (frames, V, 3)), ...]}`` from ``folder/train`` and
-    ``folder/eval`` (sorted by name); every file must have the same marker count."""
+    ``folder/eval`` (sorted by name), read within ``budget_bytes`` of memory; every file must
+    have the same marker count."""
     folder = Path(folder)
     if not folder.is_dir():
         raise BadInput(
@@ -87,10 +97,14 @@ def read_folder(folder: Path) -> dict[str, list[tuple[str, np.ndarray]]]:
         )
     out: dict[str, list[tuple[str, np.ndarray]]] = {}
     counts: dict[int, str] = {}
+    for path in (p for files in found.values() for p in files):
+        _require_utf8_name(path)
+    kept = 0
     for split, files in found.items():
         out[split] = []
         for path in files:
-            array = read_trajectory(path)
+            array = read_trajectory(path, max(0, budget_bytes - kept))
+            kept += KEPT_PER_BYTE * array.nbytes
             counts.setdefault(array.shape[1], str(path))
             if len(counts) > 1:
                 (a, first), (b, other) = list(counts.items())[:2]
@@ -100,3 +114,12 @@ def read_folder(folder: Path) -> dict[str, list[tuple[str, np.ndarray]]]:
                 )
             out[split].append((path.stem, array))
     return out
+
+
+def _require_utf8_name(path: Path) -> None:
+    """The file's name becomes an episode name in the dataset (UTF-8 text)."""
+    try:
+        path.name.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise BadInput(f"{shown}: the file name is not valid UTF-8; rename the file") from None

@@ -10,7 +10,10 @@ from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
 from dlocli.markers import deform, protocol
 from dlocli.markers.dataset import MarkerDataset
-from dlocli.markers.spec import ImportSpec
+from dlocli.markers.spec import UNITS, ImportSpec
+
+#: plausible length (m) of a recorded cable along its markers; outside it, a unit error
+CABLE_LENGTH_M = (0.02, 10.0)
 
 
 def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
@@ -21,7 +24,10 @@ def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
 
     if spec.source is None:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
-    trajectories = deform.read_folder(spec.source)  # everything is checked before --out is touched
+    _refuse_out_by_source(spec)
+    # everything is checked before --out is touched
+    trajectories = deform.read_folder(spec.source, spec.max_memory_mib * 2**20)
+    trajectories = in_metres(trajectories, spec)
     n_markers = trajectories["train"][0][1].shape[1]
     held = deform.held_markers(n_markers)
     dataset = MarkerDataset.from_trajectories(
@@ -54,3 +60,37 @@ def describe(dataset: MarkerDataset) -> dict[str, Any]:
         scores = [protocol.deform_score_cm(reference(e, dataset.held), e) for e in episodes]
         summary[f"{split}_{name}_cm"] = round(float(np.mean(scores)), 4)
     return summary
+
+
+def _refuse_out_by_source(spec: ImportSpec) -> None:
+    """BadInput if --out lies inside --source (the import would land among the recordings it
+    reads) or holds it (--overwrite would put the recordings at stake)."""
+    from dlocli.rundir import resolved
+
+    out, source = resolved(spec.out, "--out"), resolved(spec.source, "--source")
+    if out == source or source in out.parents or out in source.parents:
+        raise BadInput(
+            f"--out {spec.out} lies inside or holds --source {spec.source}; write the dataset "
+            "to a folder apart from the recordings"
+        )
+
+
+def in_metres(
+    trajectories: dict[str, list[tuple[str, np.ndarray]]], spec: ImportSpec
+) -> dict[str, list[tuple[str, np.ndarray]]]:
+    """The recordings scaled from ``spec.units`` to metres; BadInput naming the first whose
+    cable is not of a plausible length (frame 0, along its markers) in metres."""
+    low, high = CABLE_LENGTH_M
+    scaled = {
+        s: [(n, a * UNITS[spec.units]) for n, a in items] for s, items in trajectories.items()
+    }
+    for split, items in scaled.items():
+        for name, array in items:
+            length = float(np.linalg.norm(np.diff(array[0], axis=0), axis=-1).sum())
+            if not low <= length <= high:
+                raise BadInput(
+                    f"{spec.source}/{split}/{name}.pkl: the cable is {length:.4g} m long along "
+                    f"its markers (read in {spec.units}), not {low:g}-{high:g} m; pass --units "
+                    "with the recording's unit (m, cm or mm)"
+                )
+    return scaled

@@ -33,6 +33,9 @@ from dlocli.models.spec import ModelSpec
 FEATURES = 10  # relative position 3, velocity 3, held displacement 3, held flag 1
 FORM = "markers"
 
+#: the normalisation buffers, fitted on the training data
+SCALES = ("position_scale", "velocity_scale", "acceleration_scale")
+
 
 class MarkerModel(torch.nn.Module):
     """Base of the marker-form models; subclasses implement :meth:`predict`."""
@@ -45,7 +48,7 @@ class MarkerModel(torch.nn.Module):
         self.spec = spec
         self.n_segments = int(n_markers)  # the checkpoint's count field
         self.register_buffer("held", held)
-        for name in ("position_scale", "velocity_scale", "acceleration_scale"):
+        for name in SCALES:
             self.register_buffer(name, torch.ones(3))
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
 
@@ -232,4 +235,18 @@ def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerMo
     held = payload["state_dict"].get("held")
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:
         raise BadInput(f"checkpoint {path} lacks its held-marker mask; retrain it")
-    return with_weights(build_marker_model(spec, len(held), held.numpy()), payload, path, device)
+    model = with_weights(build_marker_model(spec, len(held), held.numpy()), payload, path, device)
+    _check_scales(model, path)
+    return model
+
+
+def _check_scales(model: MarkerModel, path: Any) -> None:
+    """BadInput unless every normalisation scale is positive: a zero divides the features
+    into NaN, and every score with them (training keeps them at least 1e-6)."""
+    for name in SCALES:
+        scale = getattr(model, name)
+        if not bool((scale > 0).all()):
+            raise BadInput(
+                f"checkpoint {path}: {name} holds {scale.cpu().tolist()}, not positive "
+                "numbers (the training data's spread); retrain it"
+            )

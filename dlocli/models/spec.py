@@ -6,11 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BeforeValidator, Field, SerializeAsAny
+from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo, model_validator
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
-from dlocli.migrations import model_data, without_retired_train_fields
-from dlocli.specs import MODEL_OPTIONS, Device, Spec
+from dlocli.migrations import RETIRED_TRAIN_FIELDS, model_data, without_retired_train_fields
+from dlocli.specs import MODEL_OPTIONS, Device, RetiredField, Spec, is_given
 
 
 class ModelSpec(Spec):
@@ -103,9 +103,10 @@ def model_spec_class(name: str) -> type[ModelSpec]:
     return models.spec_cls(name) or ModelSpec
 
 
-def model_spec(data: Any = None) -> ModelSpec:
+def model_spec(data: Any = None, context: dict[str, Any] | None = None) -> ModelSpec:
     """The spec of the model ``data`` names (a dict or spec; none: the default model), as
-    its own spec class, options validated (ValidationError)."""
+    its own spec class, options validated (ValidationError). With the context
+    :data:`~dlocli.specs.GIVEN` (a spec the user gives) a renamed option is refused as retired."""
     if isinstance(data, ModelSpec):
         if type(data) is model_spec_class(data.name):
             return data
@@ -115,12 +116,12 @@ def model_spec(data: Any = None) -> ModelSpec:
     if not isinstance(name, str):
         return ModelSpec.model_validate(data)  # the error names the field
     cls = model_spec_class(name)
-    return cls.model_validate(data)
+    return cls.model_validate(data, context=context)
 
 
-def _as_model_spec(value: Any) -> Any:
+def _as_model_spec(value: Any, info: ValidationInfo) -> Any:
     # an unknown name is not a ValueError: it leaves validation as UnknownName, whole
-    return model_spec(value) if isinstance(value, dict | ModelSpec) else value
+    return model_spec(value, info.context) if isinstance(value, dict | ModelSpec) else value
 
 
 #: a field holding a model spec: validated as the spec of the model it names, saved whole
@@ -264,6 +265,18 @@ class TrainSpec(FitSpec):
     @classmethod
     def saved_layout(cls, data: Any) -> Any:
         return super().saved_layout(without_retired_train_fields(data))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _retired_fields(cls, data: Any, info: ValidationInfo) -> Any:
+        # saved runs drop them at the load boundary (saved_layout); a given spec is told why
+        names = [k for k in RETIRED_TRAIN_FIELDS if isinstance(data, dict) and k in data]
+        if names and is_given(info):
+            why = (
+                "an update field of the online loop, without effect in dlo train: it runs --epochs"
+            )
+            raise RetiredField(names[0], why=why)
+        return data
 
 
 class EvalSpec(Spec):

@@ -24,6 +24,7 @@ from dlocli.calibration.fit import (
     recordings_digest,
     rod_spec,
 )
+from dlocli.calibration.history import read_history
 from dlocli.calibration.report import write_report
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.errors import BadInput
@@ -31,7 +32,6 @@ from dlocli.extras import require
 from dlocli.io import (
     adopt_written,
     prepare_run_dir,
-    read_json,
     write_json_atomic,
     write_text_atomic,
 )
@@ -105,7 +105,7 @@ def run_calibration(
     with owned(spec.out):
         out = Path(spec.out) if resume else prepare_run_dir(spec.out, overwrite)
         history_file = out / HISTORY_FILE
-        state = read_json(history_file, dict) if resume and history_file.is_file() else {}
+        state = read_history(history_file, spec) if resume and history_file.is_file() else {}
         digest = recordings_digest(cable)
         check_same_recordings(state, digest, spec)
         if resume:  # a run killed outright could not record its files as dlo's

@@ -30,6 +30,7 @@ def run_evaluation(spec: EvalSpec, overwrite: bool = False) -> dict[str, Any]:
         check_writable(spec.plot, "--plot", overwrite)
     dataset = load_dataset(spec.data)
     if isinstance(dataset, MarkerDataset):
+        dataset.require_split("eval")
         net = load_marker_model(spec.checkpoint, spec.device)
     else:
         net = load_model(spec.checkpoint, spec.device)
