@@ -37,6 +37,9 @@ FORM = "markers"
 class MarkerModel(torch.nn.Module):
     """Base of the marker-form models; subclasses implement :meth:`predict`."""
 
+    #: the form planners read it in (:mod:`dlocli.controllers.views`)
+    form = FORM
+
     def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
         super().__init__()
         held = torch.as_tensor(np.asarray(held, dtype=bool))
