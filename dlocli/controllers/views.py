@@ -87,7 +87,7 @@ class MarkerView:
         self.latency = spec.observation.latency_steps
         self.gain = kalman_gain(spec.observation.noise_mm, MODEL_ERROR_MM)
         self.dt = spec.control_dt
-        twist = np.broadcast_to(max_twist(spec), (2, 6))
+        twist = np.array(np.broadcast_to(max_twist(spec), (2, 6)))
         self.scale = torch.as_tensor(twist, dtype=torch.float32, device=device)
         self.held = torch.as_tensor(layout.held, device=device)
         self.holder = torch.as_tensor(np.maximum(layout.holder, 0), device=device)

@@ -226,11 +226,20 @@ def _marker_form(rod_model: Any) -> type[MarkerModel] | None:
 
 def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:
     """A trained marker-form model from a checkpoint or run directory, in eval mode."""
-    from dlocli.models.base import checkpoint_spec, read_checkpoint, with_weights
+    from dlocli.models.base import read_checkpoint
 
     payload = read_checkpoint(path)
     if payload.get("form") != FORM:
         raise BadInput(f"{path} is a rod model; evaluate it on a rod dataset (`dlo collect`)")
+    return marker_model_from_payload(payload, path, device)
+
+
+def marker_model_from_payload(
+    payload: dict[str, Any], path: Any, device: str | torch.device = "cpu"
+) -> MarkerModel:
+    """The marker model a checkpoint's payload holds (named ``path`` in errors)."""
+    from dlocli.models.base import checkpoint_spec, with_weights
+
     spec = checkpoint_spec(payload, path)
     held = payload["state_dict"].get("held")
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:

@@ -56,7 +56,7 @@ def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[
 
     env = make_env_from_spec(env_spec(spec))
     try:
-        model = load_model_bytes(checkpoint, spec.fit.device)
+        model = load_model_bytes(checkpoint, spec.fit.device, markers=True)
         seed = stream_seed(spec.seed, TRIAL, k, j)
         planner = make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=model)
         timed = TimedController(planner)
