@@ -285,7 +285,8 @@ class OnlineMPCLearner(MPCLearner):
     def model(self) -> DynamicsModel:
         from dlocli.models.base import load_model
 
-        return load_model(self.run.paths.checkpoint(self.updates), self.spec.fit.device)
+        path = self.run.paths.checkpoint(self.updates)
+        return load_model(path, self.spec.fit.device, markers=True)
 
     def training_returns(self) -> list[float]:
         if self.updates == 0:
