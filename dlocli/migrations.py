@@ -47,6 +47,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
             "kind": "full",
             "markers": 10,
             "marker_arc_lengths": None,
+            "gripper_markers": 0.05,
             "noise_mm": 0.0,
             "latency_steps": 0,
             "dropout": 0.0,

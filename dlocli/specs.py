@@ -330,6 +330,12 @@ class ObservationSpec(Spec):
         description="Where the markers sit, as fractions of the rod length from its left end "
         "(0 to 1, increasing); those on a held end segment move with its gripper.",
     )
+    gripper_markers: float = Field(
+        0.05, ge=0.0, le=0.5,
+        description="A marker on each gripper, this far behind the rod's end along the "
+        "gripper's axis (a fraction of the rod length; 0: none): the rod's end point does not "
+        "show how the gripper turns, this marker does.",
+    )  # fmt: skip
     noise_mm: float = Field(
         0.0, ge=0.0, le=1000.0, allow_inf_nan=False,
         description="Standard deviation of the Gaussian noise on each marker coordinate (mm).",
@@ -377,7 +383,9 @@ class ObservationSpec(Spec):
         return self
 
     def marker_count(self) -> int:
-        return self.markers if self.marker_arc_lengths is None else len(self.marker_arc_lengths)
+        """M: the markers on the rod, and those on the grippers."""
+        on_rod = self.markers if self.marker_arc_lengths is None else len(self.marker_arc_lengths)
+        return on_rod + (2 if self.gripper_markers > 0 else 0)
 
 
 class TaskSpec(Spec):

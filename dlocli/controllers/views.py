@@ -126,12 +126,14 @@ class MarkerView:
     def _update_frame(self, seen: torch.Tensor, visible: torch.Tensor) -> None:
         """Blend the report of the delayed frame with the model's prediction of it."""
         held_now = self._held_at(self._poses[0])
-        if self._frame is None:
-            frame = seen
+        if self._frame is None or (self.gain == 1.0 and bool(visible.all())):
+            frame = seen  # the first report, or a clean and whole one: nothing to blend
         else:
             before = self._frame if self._frame_before is None else self._frame_before
             predicted = self.model(self._frame, before, held_now)
-            frame = predicted + self.gain * torch.where(visible, seen - predicted, 0.0)
+            blended = predicted + self.gain * (seen - predicted)
+            frame = torch.where(visible, seen if self.gain == 1.0 else blended,
+                                predicted)  # fmt: skip
         frame = torch.where(self.held[:, None], held_now, frame)
         self._frame_before, self._frame = self._frame, frame
 

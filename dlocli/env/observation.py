@@ -9,6 +9,10 @@ knows its own poses, predicts it as x = p_g + d R_g e_x, with d = s for the left
 grippers' points (s = 0 and s = L, where the default markers sit); the clamp lets the end
 segment pivot about them, so a held marker further in is predicted a few mm off.
 
+The rod's end point does not show how a gripper turns, so by default each gripper carries
+a marker of its own, behind the rod's end on the gripper's axis (arc length -d or L + d):
+held, and placed by the gripper's pose alone.
+
 A goal shape holds segment centres only, so all of a goal's markers lie on its polyline.
 
 :class:`Tracker` turns true marker frames into what a tracker reports: a latency of k
@@ -45,6 +49,8 @@ class MarkerLayout:
     holder: np.ndarray
     #: (M,) the marker's offset from its gripper's point along the gripper's axis (m)
     lever: np.ndarray
+    #: (M,) whether the marker sits on a gripper (not on the rod)
+    on_gripper: np.ndarray
     #: rod length (m)
     length: float
 
@@ -68,20 +74,28 @@ def marker_layout(
         arc = np.linspace(0.0, length, spec.markers)
     else:
         arc = np.asarray(spec.marker_arc_lengths, dtype=np.float64) * length
-    segment = np.minimum((arc / seg).astype(int), n_segments - 1)
+    on_rod = len(arc)
+    on_gripper = np.zeros(on_rod, dtype=bool)
+    if spec.gripper_markers > 0:
+        behind = spec.gripper_markers * length
+        arc = np.concatenate([[-behind], arc, [length + behind]])
+        on_gripper = np.concatenate([[True], on_gripper, [True]])
+    segment = np.clip(np.floor(arc / seg).astype(int), 0, n_segments - 1)
     holder = np.full(len(arc), -1)
     if held_grippers[0]:
         holder[segment == 0] = 0
     if held_grippers[1]:
         holder[segment == n_segments - 1] = 1
-    if not (holder >= 0).any() or (holder >= 0).all():
+    holder[on_gripper] = np.where(arc[on_gripper] < 0, 0, 1)
+    if not (holder[~on_gripper] < 0).any() or not (holder >= 0).any():
         raise BadInput(
-            f"observation markers: {int((holder >= 0).sum())} of {len(arc)} sit on a held end "
-            f"segment (the first or last {seg:.3f} m); place at least one there and one between"
+            f"observation markers: {int((holder[~on_gripper] >= 0).sum())} of {on_rod} sit on a "
+            f"held end segment (the first or last {seg:.3f} m); keep one between them, and one "
+            "there or on the grippers (gripper_markers)"
         )
     lever = np.where(holder == 1, arc - length, arc)
     offset = arc - (segment + 0.5) * seg
-    return MarkerLayout(arc, segment, offset, holder, lever, float(length))
+    return MarkerLayout(arc, segment, offset, holder, lever, on_gripper, float(length))
 
 
 def axis_x(quaternions: Any) -> Any:
@@ -97,13 +111,15 @@ def axis_x(quaternions: Any) -> Any:
 
 
 def markers_of_state(
-    layout: MarkerLayout, positions: np.ndarray, quaternions: np.ndarray
+    layout: MarkerLayout, positions: np.ndarray, quaternions: np.ndarray, grippers: np.ndarray
 ) -> np.ndarray:
-    """(..., M, 3) true marker positions from segment centres (..., N, 3) and orientations
-    (..., N, 4): held ones on their segment, free ones on the centres' polyline."""
+    """(..., M, 3) true marker positions from segment centres (..., N, 3), orientations
+    (..., N, 4) and gripper poses (..., 2, 7): held ones on their segment or gripper, free
+    ones on the centres' polyline."""
     centres = positions[..., layout.segment, :]
     on_segment = centres + layout.offset[:, None] * axis_x(quaternions[..., layout.segment, :])
-    return np.where(layout.held[:, None], on_segment, markers_of_shape(layout, positions))
+    markers = np.where(layout.held[:, None], on_segment, markers_of_shape(layout, positions))
+    return np.where(layout.on_gripper[:, None], held_markers(layout, grippers), markers)
 
 
 def markers_of_shape(layout: MarkerLayout, positions: np.ndarray) -> np.ndarray:

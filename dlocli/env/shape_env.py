@@ -484,7 +484,7 @@ class DLOShapeEnv(gym.Env):
     def _marker_parts(self, state: np.ndarray, grippers: np.ndarray) -> dict[str, np.ndarray]:
         """The markers observation's parts: the tracker's report of the true markers."""
         assert self.tracker is not None and self.marker_layout is not None
-        true = markers_of_state(self.marker_layout, state[:, :3], state[:, 3:])
+        true = markers_of_state(self.marker_layout, state[:, :3], state[:, 3:], grippers)
         if self._reported is None:  # a reset: the tracker's stream follows the episode's
             seen, visible = self.tracker.reset(self._tracker_rng(), true)
         else:

@@ -281,7 +281,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200, help="episode length T")
     parser.add_argument("--initial-episodes", type=int, default=10)
     parser.add_argument("--trials", type=int, default=10, help="MPC trials per iteration")
-    parser.add_argument("--update-steps", type=int, default=300)
+    parser.add_argument("--update-steps", type=int, default=500)
     parser.add_argument("--rollout-steps", type=int, default=8)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--hidden", type=int, default=64)
