@@ -218,3 +218,20 @@ def test_planner_acts_through_a_marker_model_under_every_fault():
         assert rollout(env, actions, seed=2).positions.shape == episode.positions.shape
     finally:
         env.close()
+
+
+def test_learning_agents_take_the_markers_observation():
+    """SAC and PILCO learn from the markers observation as from any other."""
+    from dlocli.controllers.base import make_controller
+
+    from tiny import TINY_AGENTS
+
+    env = env_of("mujoco", noise_mm=2)
+    try:
+        for name in ("sac", "pilco"):
+            agent = make_controller(name, env, options=TINY_AGENTS[name], seed=0)
+            agent.learn(40)
+            obs, _ = env.reset(seed=1)
+            assert agent.act(obs).shape == (6,)
+    finally:
+        env.close()
