@@ -355,29 +355,30 @@ def _checked_payload(source: Path | io.BytesIO, path: Path | str) -> dict[str, A
 
 
 def load_model(
-    path: Path,
-    device: str | torch.device = "cpu",
-    expect: ModelSpec | None = None,
-    markers: bool = False,
+    path: Path, device: str | torch.device = "cpu", expect: ModelSpec | None = None
 ) -> DynamicsModel:
     """A trained model from a checkpoint or run directory, in eval mode on ``device``.
 
     Its parameters are frozen (``requires_grad`` False), so a planner's backward pass
     computes gradients for the actions only; :func:`~dlocli.models.training.train_model` unfreezes.
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
-    ``markers``: a marker-form model is welcome too (a planner's, :mod:`dlocli.controllers.views`).
     """
-    return _model_from_payload(read_checkpoint(path), path, device, expect, markers)
+    return _model_from_payload(read_checkpoint(path), path, device, expect)
 
 
-def load_model_bytes(
-    checkpoint: bytes, device: str | torch.device = "cpu", markers: bool = False
-) -> DynamicsModel:
+def load_model_bytes(checkpoint: bytes, device: str | torch.device = "cpu") -> DynamicsModel:
     """:func:`load_model` of a checkpoint file's bytes (a trial's copy of the driver's model),
     read in memory."""
-    name = "the model checkpoint in memory"
-    payload = _checked_payload(io.BytesIO(checkpoint), name)
-    return _model_from_payload(payload, name, device, markers=markers)
+    return _model_from_payload(read_checkpoint_bytes(checkpoint), IN_MEMORY, device)
+
+
+#: how errors name a checkpoint read from bytes
+IN_MEMORY = "the model checkpoint in memory"
+
+
+def read_checkpoint_bytes(checkpoint: bytes) -> dict[str, Any]:
+    """:func:`read_checkpoint` of a checkpoint file's bytes."""
+    return _checked_payload(io.BytesIO(checkpoint), IN_MEMORY)
 
 
 def _model_from_payload(
@@ -385,12 +386,7 @@ def _model_from_payload(
     path: Path | str,
     device: str | torch.device,
     expect: ModelSpec | None = None,
-    markers: bool = False,
 ) -> DynamicsModel:
-    if payload.get("form") == "markers" and markers:
-        from dlocli.models.markers import marker_model_from_payload
-
-        return marker_model_from_payload(payload, path, device)
     if payload.get("form") == "markers":
         raise BadInput(
             f"{path} is a marker-form model (trained on recorded markers); use it with "

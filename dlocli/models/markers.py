@@ -234,6 +234,18 @@ def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerMo
     return marker_model_from_payload(payload, path, device)
 
 
+def load_planning_model(source: Any, device: str | torch.device = "cpu") -> torch.nn.Module:
+    """A model a planner plans with, from a checkpoint (a path, or a file's bytes): a marker
+    model if the checkpoint holds one, else the rod model."""
+    from dlocli.models import base
+
+    from_bytes = isinstance(source, bytes)
+    payload = base.read_checkpoint_bytes(source) if from_bytes else base.read_checkpoint(source)
+    if payload.get("form") == FORM:
+        return marker_model_from_payload(payload, base.IN_MEMORY if from_bytes else source, device)
+    return base.load_model_bytes(source, device) if from_bytes else base.load_model(source, device)
+
+
 def marker_model_from_payload(
     payload: dict[str, Any], path: Any, device: str | torch.device = "cpu"
 ) -> MarkerModel:

@@ -140,9 +140,10 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
     if spec.checkpoint is None:
         return None
-    from dlocli.models.base import load_model, resolve_device
+    from dlocli.models.base import resolve_device
+    from dlocli.models.markers import load_planning_model
 
-    model = load_model(spec.checkpoint, resolve_device(spec.device), markers=True)
+    model = load_planning_model(spec.checkpoint, resolve_device(spec.device))
     found = model.n_segments
     if getattr(model, "form", "rod") == "rod" and found != n_segments:  # markers: the view
         raise BadInput(

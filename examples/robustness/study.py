@@ -156,7 +156,7 @@ def evaluate(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str, An
 
 def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> Any:
     from dlocli.controllers.base import make_controller
-    from dlocli.models.base import load_model
+    from dlocli.models.markers import load_planning_model
 
     if name in ("zero", "random"):
         return None
@@ -166,7 +166,7 @@ def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> A
         agent.load_policy(learned / "policy")
         return agent
     final = sorted((learned / "checkpoints").glob("iter_*.pt"))[-1]
-    model = load_model(final, markers=True)
+    model = load_planning_model(final)
     return make_controller("mpc", env, seed=seed, model=model)
 
 
