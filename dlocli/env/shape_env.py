@@ -19,6 +19,8 @@ steps. Loops that stop at divergence count the steps they skip at -1.5
 from __future__ import annotations
 
 import difflib
+import hashlib
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +34,14 @@ from dlocli.backends.rotations import state_change
 from dlocli.bridge.spec import CellChoice
 from dlocli.env.envelope import Envelope
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
+from dlocli.env.observation import (
+    MarkerLayout,
+    Tracker,
+    held_markers,
+    marker_layout,
+    markers_of_shape,
+    markers_of_state,
+)
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shapes import make_shape, max_twist
 from dlocli.env.tasks import Task, make_task
@@ -109,12 +119,27 @@ POSITION_BOUND = 10.0
 VELOCITY_BOUND = 100.0
 
 
-def observation_layout(n: int, velocity: bool = False) -> dict[str, tuple[int, ...]]:
-    """The parts of the flat observation, in order, with their shapes (N = ``n`` segments)."""
+def observation_layout(
+    n: int, velocity: bool = False, markers: int | None = None
+) -> dict[str, tuple[int, ...]]:
+    """The parts of the flat observation, in order, with their shapes (N = ``n`` segments);
+    with ``markers`` = M, those of the markers observation (:mod:`dlocli.env.observation`)."""
+    if markers is not None:
+        layout = {"markers": (markers, 3), "visible": (markers, 1), "grippers": (2, 7),
+                  "goal": (markers, 3)}  # fmt: skip
+        if velocity:
+            layout["velocities"] = (markers, 3)
+        return layout
     layout = {"positions": (n, 3), "quaternions": (n, 4), "grippers": (2, 7), "goal": (n, 3)}
     if velocity:
         layout["velocities"] = (n, 7)
     return layout
+
+
+def observed_markers(task: TaskSpec) -> int | None:
+    """M with the task's markers observation, None with the full one."""
+    observation = task.observation
+    return observation.marker_count() if observation.kind == "markers" else None
 
 
 #: bound of each column of every part of the observation (rows repeat it)
@@ -124,15 +149,21 @@ _ROW_BOUNDS = {
     "grippers": [POSITION_BOUND] * 3 + [1.0] * 4,
     "goal": [POSITION_BOUND] * 3,
     "velocities": [VELOCITY_BOUND] * 7,
+    "markers": [POSITION_BOUND] * 3,
+    "visible": [1.0],
 }
 
 
-def observation_space(n: int, velocity: bool = False) -> gym.spaces.Box:
+def observation_space(n: int, velocity: bool = False, markers: int | None = None) -> gym.spaces.Box:
     """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1], velocity
-    components (if observed) within +-VELOCITY_BOUND."""
-    layout = observation_layout(n, velocity)
-    high = np.concatenate([np.tile(_ROW_BOUNDS[k], shape[0]) for k, shape in layout.items()])
-    return gym.spaces.Box(-high.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+    components (if observed) within +-VELOCITY_BOUND, visibility flags within [0, 1]."""
+    layout = observation_layout(n, velocity, markers)
+    # a row's bounds are the first columns of its part's (markers' velocities: 3 of 7)
+    rows = {k: _ROW_BOUNDS[k][: shape[1]] for k, shape in layout.items()}
+    high = np.concatenate([np.tile(rows[k], shape[0]) for k, shape in layout.items()])
+    flags = np.concatenate([np.full(int(np.prod(shape)), k == "visible") for k, shape in layout.items()])
+    low = np.where(flags, 0.0, -high)
+    return gym.spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
 
 
 def observation_slices(layout: dict[str, tuple[int, ...]]) -> dict[str, slice]:
@@ -253,13 +284,26 @@ class DLOShapeEnv(gym.Env):
         self.n_segments = self.backend.n_segments
         self.render_mode = render_mode
         self.seed_value = int(seed)
-        n = self.n_segments
+        n, velocity = self.n_segments, self.task_spec.observe_velocity
+        markers = observed_markers(self.task_spec)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
-        self.observation_space = observation_space(n, self.task_spec.observe_velocity)
+        self.observation_space = observation_space(n, velocity, markers)
         #: shape of each part of the flat observation, in order (README, "Gymnasium")
-        self.observation_shapes = observation_layout(n, self.task_spec.observe_velocity)
+        self.observation_shapes = observation_layout(n, velocity, markers)
         #: where each part lies in the flat observation: ``obs[slices["goal"]]``
         self.observation_slices = observation_slices(self.observation_shapes)
+        #: the true state's parts, as the full observation holds them (:meth:`state_parts`)
+        self.state_shapes = observation_layout(n, velocity)
+        self._state_slices = observation_slices(self.state_shapes)
+        self._state_space = observation_space(n, velocity)
+        #: where the markers sit (None with the full observation) and the tracker's faults
+        self.marker_layout: MarkerLayout | None = None
+        self.tracker: Tracker | None = None
+        if markers is not None:
+            rod = self.backend.rod
+            held = (bool(self.backend.moving[0]), bool(self.backend.moving[1]))
+            self.marker_layout = marker_layout(self.task_spec.observation, rod.length, n, held)
+            self.tracker = Tracker(self.task_spec.observation, markers)
         self._goal_rng = np.random.default_rng([seed, 1])
         self._goal_given = goal is not None or self.task_spec.goal_file is not None
         #: (2,7) gripper poses that made the goal, when the env made it (None: a given goal)
@@ -278,6 +322,8 @@ class DLOShapeEnv(gym.Env):
         self._t = 0
         self._previous: np.ndarray | None = None  # (N, 7) segment state one step earlier
         self._last_observation: np.ndarray | None = None
+        self._last_state: np.ndarray | None = None  # the full observation's vector
+        self._reported: np.ndarray | None = None  # (M, 3) the tracker's previous report
 
     # ------------------------------------------------------------------ setup
     def _apply_limits(self) -> None:
@@ -346,7 +392,7 @@ class DLOShapeEnv(gym.Env):
         self.envelope.check_start(self.backend.gripper_poses())
         self._t = 0
         self._previous = None  # settled: counted at rest
-        self._last_observation = None
+        self._last_observation = self._last_state = self._reported = None
         self._return = 0.0
         return self._observation(), self._info(diverged=False)
 
@@ -357,7 +403,7 @@ class DLOShapeEnv(gym.Env):
         self._previous = self.segment_state()
         velocities = commands * self._scale
         poses = self.backend.gripper_poses()
-        sent = self.envelope.apply(velocities, poses, self.backend.tracked)
+        sent = self.envelope.apply(velocities, poses, self.tracked)
         if sent is not velocities:  # clipped: what the grippers did is what is recorded
             commands = sent / self._scale
         ok = self.backend.step(sent)
@@ -383,16 +429,21 @@ class DLOShapeEnv(gym.Env):
         self.episode_returns = list(episode_returns)
 
     def _positions(self) -> np.ndarray:
-        if self.backend.diverged and self._last_observation is not None:
-            return self.split_observation(self._last_observation)["positions"]
+        if self.backend.diverged and self._last_state is not None:
+            return self.state_parts()["positions"]
         return self.backend.segment_positions()
 
     def _info(self, diverged: bool) -> dict[str, Any]:
         error = float(shape_error_mm(self._positions(), self.goal))
         return {
             "shape_error_mm": error, "diverged": diverged, "t": self._t,
-            "tracked": self.backend.tracked,
+            "tracked": self.tracked,
         }  # fmt: skip
+
+    @property
+    def tracked(self) -> bool:
+        """Whether the latest observation saw the cable (a cell's tracker, a lost frame)."""
+        return self.backend.tracked and not (self.tracker is not None and self.tracker.lost)
 
     def segment_state(self) -> np.ndarray:
         """(N, 7) segment positions and quaternions."""
@@ -412,11 +463,71 @@ class DLOShapeEnv(gym.Env):
         if self.task_spec.observe_velocity:
             change = 0.0 * state if self._previous is None else state_change(self._previous, state)
             parts["velocities"] = change / self.task_spec.control_dt
-        flat = np.concatenate([parts[name].ravel() for name in self.observation_shapes])
-        obs = np.nan_to_num(flat, posinf=np.inf, neginf=-np.inf)
-        obs = np.clip(obs, self.observation_space.low, self.observation_space.high)
-        self._last_observation = obs.astype(np.float32)
+        self._last_state = self._flat(parts, self.state_shapes, self._state_space)
+        if self.tracker is None:
+            self._last_observation = self._last_state
+        else:
+            marker_parts = self._marker_parts(state, parts["grippers"])
+            self._last_observation = self._flat(
+                marker_parts, self.observation_shapes, self.observation_space
+            )
         return self._last_observation
+
+    @staticmethod
+    def _flat(
+        parts: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]], space: gym.spaces.Box
+    ) -> np.ndarray:
+        flat = np.concatenate([parts[name].ravel() for name in shapes])
+        flat = np.nan_to_num(flat, posinf=np.inf, neginf=-np.inf)
+        return np.clip(flat, space.low, space.high).astype(np.float32)
+
+    def _marker_parts(self, state: np.ndarray, grippers: np.ndarray) -> dict[str, np.ndarray]:
+        """The markers observation's parts: the tracker's report of the true markers."""
+        assert self.tracker is not None and self.marker_layout is not None
+        true = markers_of_state(self.marker_layout, state[:, :3], state[:, 3:], grippers)
+        if self._reported is None:  # a reset: the tracker's stream follows the episode's
+            seen, visible = self.tracker.reset(self._tracker_rng(), true)
+        else:
+            seen, visible = self.tracker.report(true)
+        parts = {
+            "markers": seen,
+            "visible": visible[:, None].astype(np.float64),
+            "grippers": grippers,
+            "goal": self.goal_markers(),
+        }
+        if self.task_spec.observe_velocity:
+            before = seen if self._reported is None else self._reported
+            parts["velocities"] = (seen - before) / self.task_spec.control_dt
+        self._reported = seen.copy()
+        return parts
+
+    def goal_markers(self) -> np.ndarray:
+        """(M, 3) the goal's markers: on the polyline of its centres, the held ones at the
+        goal's gripper poses when the env made the goal (a goal file has none)."""
+        assert self.marker_layout is not None
+        markers = markers_of_shape(self.marker_layout, np.asarray(self.goal))
+        if self.goal_gripper_poses is None:
+            return markers
+        held = self.marker_layout.held[:, None]
+        return np.where(held, held_markers(self.marker_layout, self.goal_gripper_poses), markers)
+
+    def _tracker_rng(self) -> np.random.Generator:
+        """The tracker's generator of this episode, from the episode's start state, so the
+        tracker draws nothing from the env's own stream (starts and goals stay the same)."""
+        state = json.dumps(self.reset_generator_state, sort_keys=True, default=str)
+        digest = hashlib.sha256(state.encode()).digest()
+        return np.random.default_rng(int.from_bytes(digest[:16], "little"))
+
+    def state_parts(self) -> dict[str, np.ndarray]:
+        """The true state at the latest observation, as the full observation would hold it
+        (float32): positions, quaternions, grippers, goal and, if observed, velocities;
+        whatever the controller observes."""
+        if self._last_state is None:
+            raise RuntimeError("call reset() before state_parts()")
+        return {
+            name: self._last_state[self._state_slices[name]].reshape(shape)
+            for name, shape in self.state_shapes.items()
+        }
 
     def split_observation(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         """Inverse of the flat observation: positions, quaternions, grippers, goal and, if
