@@ -12,7 +12,7 @@ base and the loaders (:mod:`dlocli.spec_base`) and the rod and backend specs
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -144,9 +144,7 @@ class ObservationSpec(Spec):
     occlusion_markers: int = Field(
         3, ge=1, le=1000, description="Neighbouring markers an occlusion hides."
     )
-    occlusion_steps: int = Field(
-        10, ge=1, le=MAX_COUNT, description="Frames an occlusion lasts."
-    )
+    occlusion_steps: int = Field(10, ge=1, le=MAX_COUNT, description="Frames an occlusion lasts.")
 
     def faults(self) -> dict[str, Any]:
         """The tracker faults set away from their defaults (a clean tracker: empty)."""
@@ -157,7 +155,7 @@ class ObservationSpec(Spec):
     @model_validator(mode="after")
     def _markers_consistent(self) -> ObservationSpec:
         arcs = self.marker_arc_lengths
-        if arcs is not None and any(b <= a for a, b in zip(arcs, arcs[1:])):
+        if arcs is not None and any(b <= a for a, b in zip(arcs, arcs[1:], strict=False)):
             raise ValueError("marker_arc_lengths must increase along the rod")
         if arcs is not None and len(arcs) < 2:
             raise ValueError("marker_arc_lengths: give at least 2 markers")

@@ -12,7 +12,7 @@ from gymnasium.utils.env_checker import check_env
 from dlocli.controllers.views import MarkerView, kalman_gain
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.observation import Tracker, held_markers, marker_layout, markers_of_state
-from dlocli.env.rollout import random_actions, random_episode, rollout, ActionSequence
+from dlocli.env.rollout import ActionSequence, random_actions, random_episode, rollout
 from dlocli.env.shape_env import make_env
 from dlocli.errors import BadInput
 from dlocli.models.base import valid_model_spec
@@ -136,7 +136,7 @@ def test_dataset_keeps_the_reports(tmp_path):
 def test_kalman_gain():
     assert kalman_gain(0, 1) == 1
     gains = [kalman_gain(s, 1) for s in (1, 2, 5, 10)]
-    assert all(a > b for a, b in zip(gains, gains[1:])) and 0 < gains[-1] < 0.2
+    assert all(a > b for a, b in zip(gains, gains[1:], strict=False)) and 0 < gains[-1] < 0.2
 
 
 def marker_model(env):

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from dlocli.data import load_dataset
+
 from tiny import file_digests, run_dlo
 
 FAULTS = ["--noise-mm", "2", "--latency-steps", "1", "--dropout", "0.05"]
@@ -76,7 +77,8 @@ def test_bad_observation_settings_get_one_line(flags, says, tmp_path, capsys):
 
 def test_markers_off_the_rod_get_one_line(tmp_path, capsys):
     spec = tmp_path / "spec.yaml"
-    spec.write_text("task:\n  observation:\n    kind: markers\n    marker_arc_lengths: [0, 0.5, 1.2]\n")
+    arcs = "    marker_arc_lengths: [0, 0.5, 1.2]\n"
+    spec.write_text("task:\n  observation:\n    kind: markers\n" + arcs)
     assert run_dlo(["online", "--spec", str(spec), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "marker_arc_lengths" in err, err

@@ -1,9 +1,10 @@
 """PILCO benchmark agent (Deisenroth & Rasmussen 2011, [DR11]) on a reduced rod state.
 
 Reduced state: the positions of ``n_keypoints`` segments (with the markers observation:
-free markers), one at the centre of each of ``n_keypoints`` equal stretches of the rod (for 20 segments and 3 keypoints: segments 3, 10
-and 16), flattened to D = 3 * n_keypoints metres. The goal is mapped the same way, and the
-saturating cost of [DR11] eq. 24 measures the keypoints' distance to the goal's keypoints
+free markers), one at the centre of each of ``n_keypoints`` equal stretches of the rod (for
+20 segments and 3 keypoints: segments 3, 10 and 16), flattened to D = 3 * n_keypoints
+metres. The goal is mapped the same way, and the saturating cost of [DR11] eq. 24 measures
+the keypoints' distance to the goal's keypoints
 with width ``cost_width`` (0.1 m: about that distance from a random start, so the start lies
 on the cost's slope rather than its flat tail). Segment orientations and gripper poses are
 left out: the GP treats their effect as noise. A PILCO step holds one action for

@@ -2,9 +2,9 @@
 
 A :class:`ModelPlanner` keeps a plan of H actions (H, A) in task space, optimises it through
 the model's predictions at every re-plan (through a view of the model's form,
-:mod:`dlocli.controllers.views`: the rod's segments or tracked markers), executes its first action, and warm-starts the next
-re-plan from the remaining actions shifted forward (the tail repeats the last action).
-Subclasses implement :meth:`ModelPlanner._optimise` only.
+:mod:`dlocli.controllers.views`: the rod's segments or tracked markers), executes its first
+action, and warm-starts the next re-plan from the remaining actions shifted forward (the
+tail repeats the last action). Subclasses implement :meth:`ModelPlanner._optimise` only.
 
 Shapes: B candidate plans, H horizon steps, A = task action size (6 or 12), N segments (or
 M markers).

@@ -18,22 +18,21 @@ steps. Loops that stop at divergence count the steps they skip at -1.5
 
 from __future__ import annotations
 
-import difflib
 import hashlib
 import json
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from pydantic import ValidationError
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
 from dlocli.bridge.spec import CellChoice
 from dlocli.env.envelope import Envelope
+from dlocli.env.goals import check_goal_reachable, load_goal
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
+from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.observation import (
     MarkerLayout,
     Tracker,
@@ -42,16 +41,21 @@ from dlocli.env.observation import (
     markers_of_shape,
     markers_of_state,
 )
-from dlocli.env.metrics import reward as shape_reward
+from dlocli.env.options import resolve_env_options
 from dlocli.env.shapes import make_shape, max_twist
+from dlocli.env.spaces import (
+    observation_layout,
+    observation_slices,
+    observation_space,
+    observed_markers,
+)
 from dlocli.env.tasks import Task, make_task
-from dlocli.errors import BadInput, BadOption, UnknownOption, UnworkablePhysics
+from dlocli.errors import BadInput, BadOption, UnworkablePhysics
 from dlocli.extras import require
 from dlocli.io import atomic_path
 from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
-from dlocli.registry import tasks as task_registry
-from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec, format_validation_error
+from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec
 
 
 def make_backend(
@@ -66,173 +70,6 @@ def make_backend(
         return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s)
     cls = backend_registry.get(spec.name)
     return cls(spec, control_dt=control_dt)
-
-
-def load_goal(path: Path, n_segments: int) -> np.ndarray:
-    """Read a goal file: .npy, float (N,3), finite. BadInput naming the expected format."""
-    path = Path(path)
-    expected = f"expected a .npy file holding a float array of shape ({n_segments}, 3) in metres"
-    if path.suffix != ".npy":
-        raise BadInput(f"goal {path} is not a .npy file; {expected}")
-    if not path.is_file():
-        raise BadInput(f"goal {path} does not exist; {expected} (make one with `dlo goal`)")
-    try:
-        # memory-mapped: a header that claims terabytes is refused by its shape, not allocated
-        goal = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
-        # numpy's own text (an allow_pickle hint for a text file) would mislead
-        raise BadInput(f"goal {path} could not be read as a .npy array; {expected}") from exc
-    if not isinstance(goal, np.ndarray):
-        raise BadInput(f"goal {path} is an .npz archive, not one array; {expected}")
-    if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused
-        raise BadInput(f"goal {path} has dtype {goal.dtype} and shape {goal.shape}; {expected}")
-    if not np.all(np.isfinite(goal)):
-        raise BadInput(f"goal {path} contains NaN or inf; {expected}")
-    return goal.astype(np.float64)
-
-
-def check_goal_reachable(
-    goal: np.ndarray, backend: Backend, limits_margin: float = 0.2, name: str = "goal"
-) -> None:
-    """Refuse goals the rod cannot take: segments too far apart or outside the workspace;
-    ``name`` says which goal in the message (its file)."""
-    length = backend.rod.length
-    # the reach first: a goal inside it has gaps that cannot overflow
-    low = backend.limits.low - limits_margin - length
-    high = backend.limits.high + limits_margin
-    if np.any(goal < low) or np.any(goal > high):
-        low_m = np.round(backend.limits.low, 2).tolist()
-        high_m = np.round(backend.limits.high, 2).tolist()
-        raise BadInput(f"{name} lies outside the grippers' reach (workspace {low_m}..{high_m} m)")
-    seg = length / backend.n_segments
-    gaps = np.linalg.norm(np.diff(goal, axis=0), axis=1)
-    if np.any(gaps > 1.5 * seg) or np.any(gaps < 0.5 * seg):
-        raise BadInput(
-            f"{name}: segments {gaps.min():.3f}-{gaps.max():.3f} m apart but the rod's segments "
-            f"are {seg:.3f} m long; the rod cannot take this shape (make one with `dlo goal`)"
-        )
-
-
-#: bound of every position in the observation (metres); a diverged rod is clipped to it
-POSITION_BOUND = 10.0
-#: bound of every velocity component in the observation (m/s, 1/s)
-VELOCITY_BOUND = 100.0
-
-
-def observation_layout(
-    n: int, velocity: bool = False, markers: int | None = None
-) -> dict[str, tuple[int, ...]]:
-    """The parts of the flat observation, in order, with their shapes (N = ``n`` segments);
-    with ``markers`` = M, those of the markers observation (:mod:`dlocli.env.observation`)."""
-    if markers is not None:
-        layout = {"markers": (markers, 3), "visible": (markers, 1), "grippers": (2, 7),
-                  "goal": (markers, 3)}  # fmt: skip
-        if velocity:
-            layout["velocities"] = (markers, 3)
-        return layout
-    layout = {"positions": (n, 3), "quaternions": (n, 4), "grippers": (2, 7), "goal": (n, 3)}
-    if velocity:
-        layout["velocities"] = (n, 7)
-    return layout
-
-
-def observed_markers(task: TaskSpec) -> int | None:
-    """M with the task's markers observation, None with the full one."""
-    observation = task.observation
-    return observation.marker_count() if observation.kind == "markers" else None
-
-
-#: bound of each column of every part of the observation (rows repeat it)
-_ROW_BOUNDS = {
-    "positions": [POSITION_BOUND] * 3,
-    "quaternions": [1.0] * 4,
-    "grippers": [POSITION_BOUND] * 3 + [1.0] * 4,
-    "goal": [POSITION_BOUND] * 3,
-    "velocities": [VELOCITY_BOUND] * 7,
-    "markers": [POSITION_BOUND] * 3,
-    "visible": [1.0],
-}
-
-
-def observation_space(n: int, velocity: bool = False, markers: int | None = None) -> gym.spaces.Box:
-    """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1], velocity
-    components (if observed) within +-VELOCITY_BOUND, visibility flags within [0, 1]."""
-    layout = observation_layout(n, velocity, markers)
-    # a row's bounds are the first columns of its part's (markers' velocities: 3 of 7)
-    rows = {k: _ROW_BOUNDS[k][: shape[1]] for k, shape in layout.items()}
-    high = np.concatenate([np.tile(rows[k], shape[0]) for k, shape in layout.items()])
-    flags = np.concatenate([np.full(int(np.prod(shape)), k == "visible") for k, shape in layout.items()])
-    low = np.where(flags, 0.0, -high)
-    return gym.spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
-
-
-def observation_slices(layout: dict[str, tuple[int, ...]]) -> dict[str, slice]:
-    """Where each part of ``layout`` lies in the flat observation."""
-    slices, start = {}, 0
-    for name, shape in layout.items():
-        size = int(np.prod(shape))
-        slices[name] = slice(start, start + size)
-        start += size
-    return slices
-
-
-#: keyword arguments of DLOShapeEnv (and gym.make) besides the TaskSpec fields
-ENV_KEYWORDS = ("backend", "task", "goal", "seed", "render_mode")
-
-
-def env_keywords() -> list[str]:
-    """Every keyword DLOShapeEnv, ``make_env`` and ``gym.make`` of a dlocli id accept."""
-    return [*ENV_KEYWORDS, *(f for f in TaskSpec.model_fields if f not in ("name", "goal"))]
-
-
-def resolve_env_options(
-    backend: BackendSpec | str | None,
-    task: TaskSpec | str,
-    goal: np.ndarray | Path | str | None,
-    task_options: dict[str, Any],
-) -> tuple[BackendSpec, TaskSpec, np.ndarray | Path | str | None]:
-    """Validated specs from the env's keyword arguments: ``task_options`` set TaskSpec fields,
-    ``goal`` "fixed" or "random" sets the goal mode. UnknownOption, BadOption, UnknownName."""
-    valid = env_keywords()
-    for key in task_options:
-        if key not in valid:
-            # Python's own wording: wrappers such as TorchRL's GymEnv retry without a keyword
-            # (frameskip) only when the TypeError says "unexpected keyword argument"
-            hint = _did_you_mean(key, valid)
-            raise UnknownOption(
-                f"DLOShapeEnv() got an unexpected keyword argument '{key}'{hint}; "
-                f"valid ones: {', '.join(valid)}"
-            )
-    modes = ("fixed", "random")
-    if isinstance(goal, str) and goal in modes:
-        task_options, goal = {**task_options, "goal": goal}, None
-    elif isinstance(goal, str) and not goal.endswith(".npy"):
-        raise BadOption(
-            f"DLOShapeEnv: goal={goal!r} is neither a goal mode ('fixed' or 'random') nor a "
-            f".npy file{_did_you_mean(goal, modes)}; pass a mode, an (N, 3) array or a .npy path"
-        )
-    try:  # validated as a whole: a bad value is refused, not silently dropped
-        if backend is None:  # the MuJoCo rod of the installed MuJoCo
-            backend_spec = BackendSpec()
-        else:
-            backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
-        backend_spec = BackendSpec.model_validate(backend_spec)
-        task_spec = TaskSpec(name=task) if isinstance(task, str) else task
-        task_spec = TaskSpec.model_validate(
-            {**TaskSpec.model_validate(task_spec).model_dump(), **task_options}
-            if task_options
-            else task_spec
-        )
-    except ValidationError as exc:
-        raise BadOption(format_validation_error(exc, "DLOShapeEnv")) from exc
-    backend_registry.check(backend_spec.name)
-    task_registry.check(task_spec.name)
-    return backend_spec, task_spec, goal
-
-
-def _did_you_mean(name: str, valid: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, valid, n=1)
-    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 class DLOShapeEnv(gym.Env):

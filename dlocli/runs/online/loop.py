@@ -156,7 +156,7 @@ class OnlineRun:
         import torch
 
         from dlocli.models.base import resolve_device, save_checkpoint
-        from dlocli.models.fitting import Validated
+        from dlocli.models.fitting import RolloutValidated
         from dlocli.models.markers import FORM, load_marker_model
         from dlocli.runs.online.markers import new_marker_model, update_marker_model
 
@@ -171,12 +171,11 @@ class OnlineRun:
         start = time.perf_counter()
         self.progress("update", {"iteration": k, "unit": "step", "total": fit.update_steps})
 
-        def report(record: dict[str, float]) -> None:
-            score = record["val_score_cm"]
-            self.scalars.add((k - 1) * fit.update_steps + record["step"], "loss",
-                             train=record["train_loss"], val=score)  # fmt: skip
-            done = Validated("step", record["step"], fit.update_steps, score)
-            self.progress("validation", {"iteration": k, **done.as_dict()})
+        def report(event: Any) -> None:
+            if isinstance(event, RolloutValidated):
+                self.scalars.add((k - 1) * fit.update_steps + event.count, "loss",
+                                 train=event.train_loss, val=event.val_loss)  # fmt: skip
+                self.progress("validation", {"iteration": k, **event.as_dict()})
 
         with update_threads(self.spec):
             history = update_marker_model(model, data, self.spec, fit, report)

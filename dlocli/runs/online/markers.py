@@ -64,6 +64,7 @@ def update_marker_model(
 ) -> list[dict[str, float]]:
     """Train the marker ``model`` on D (``spec``: the online spec) in place; its history."""
     from dlocli.models.marker_training import Cable, fit_markers
+    from dlocli.processes import signal_token
 
     layout = run_marker_layout(spec)
     latency = spec.task.observation.latency_steps
@@ -76,7 +77,8 @@ def update_marker_model(
         )
     val = complete_runs(data, val_idx, layout, latency)
     cables_val = [Cable(val, layout.held)] if val else []
-    return fit_markers(model, [Cable(train, layout.held)], cables_val, fit, progress)
+    cancel = signal_token()  # Ctrl-C and SIGTERM stop the update between gradient steps
+    return fit_markers(model, [Cable(train, layout.held)], cables_val, fit, progress, cancel)
 
 
 def new_marker_model(spec: Any) -> Any:
