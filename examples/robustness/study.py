@@ -178,7 +178,15 @@ def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
              for n in ("mpc-markers", "sac-markers") for setting in SETTINGS]  # fmt: skip
     jobs += [(options, "mpc-markers-noise5", s, setting)
              for s in range(options.noise_trained_seeds) for setting in SETTINGS]  # fmt: skip
-    return jobs
+    return [job for job in jobs if options.learners is None or job[1] in options.learners]
+
+
+def merge_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Add ``rows`` to the evaluation file, replacing rows of the same episode."""
+    key = lambda r: (r["learner"], r["seed"], r["setting"], r["episode"])  # noqa: E731
+    kept = {key(r): r for r in (json.loads(path.read_text()) if path.is_file() else [])}
+    kept |= {key(r): r for r in rows}
+    path.write_text(json.dumps(list(kept.values()), indent=0))
 
 
 # ----------------------------------------------------------------------------- report
@@ -287,14 +295,15 @@ def main() -> None:
     parser.add_argument("--hidden", type=int, default=64)
     parser.add_argument("--eval-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--learners", type=lambda s: s.split(","), default=None,
+                        help="evaluate these learners only (comma-separated)")  # fmt: skip
     options = parser.parse_args()
     options.out.mkdir(parents=True, exist_ok=True)
     if options.stage == "train":
         run_jobs(train, [(options, n, s) for n, s in learners(options)], options.workers)
     elif options.stage == "evaluate":
         rows = run_jobs(evaluate, evaluation_jobs(options), options.workers)
-        flat = [r for rs in rows for r in rs]
-        (options.out / "evaluation.json").write_text(json.dumps(flat, indent=0))
+        merge_rows(options.out / "evaluation.json", [r for rs in rows for r in rs])
     else:
         report(options)
 
