@@ -16,6 +16,10 @@ rewards            (M,) f32        paper eq. 12 reward of each transition
 goals              (E, N, 3) f32   the episode's goal shape
 diverged           (E,) bool       the episode ended because the physics diverged
                                    (the diverged step itself is never stored)
+markers            (S, M, 3) f32   optional (markers observation): the tracker's report
+                                   of M markers, metres; a missing one at its last
+                                   seen position
+visible            (S, M) bool     optional, with markers: which markers were seen
 =================  ==============  ==================================================
 
 Attributes: ``format``, ``format_version``, ``n_segments``, ``spec`` (JSON of the resolved
@@ -45,6 +49,8 @@ from dlocli.markers.dataset import MarkerDataset, read_marker_arrays
 
 STATE_ARRAYS = ("positions", "quaternions", "grippers")
 EPISODE_ARRAYS = ("actions", "rewards")
+#: what a markers observation adds per state (present in all episodes or in none)
+OBSERVED_ARRAYS = ("markers", "visible")
 
 
 @dataclass
@@ -58,6 +64,8 @@ class Episode:
     rewards: np.ndarray  # (T,)
     goal: np.ndarray  # (N, 3)
     diverged: bool = False
+    markers: np.ndarray | None = None  # (T+1, M, 3) the tracker's report
+    visible: np.ndarray | None = None  # (T+1, M) which markers it saw
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -76,6 +84,8 @@ class Dataset:
     goals: np.ndarray
     diverged: np.ndarray
     attrs: dict[str, Any] = field(default_factory=dict)
+    markers: np.ndarray | None = None
+    visible: np.ndarray | None = None
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -96,6 +106,7 @@ class Dataset:
             goals=np.stack([np.asarray(e.goal, dtype=np.float32) for e in episodes]),
             diverged=np.array([e.diverged for e in episodes], dtype=bool),
             attrs=dict(attrs or {}),
+            **_observed(episodes),
         )
 
     def concat(self, *others: Dataset) -> Dataset:
@@ -110,7 +121,7 @@ class Dataset:
             name: np.concatenate([getattr(d, name) for d in (self, *others)])
             for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
         }
-        return Dataset(**arrays, attrs=dict(self.attrs))
+        return Dataset(**arrays, attrs=dict(self.attrs), **_observed((self, *others)))
 
     # ------------------------------------------------------------------ views
     @property
@@ -180,6 +191,8 @@ class Dataset:
             rewards=self.rewards[a0 : a0 + t],
             goal=self.goals[e],
             diverged=bool(self.diverged[e]),
+            markers=None if self.markers is None else self.markers[s0 : s0 + t + 1],
+            visible=None if self.visible is None else self.visible[s0 : s0 + t + 1],
         )
 
     def subset(self, episodes: np.ndarray) -> Dataset:
@@ -200,6 +213,9 @@ class Dataset:
                 f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
             for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged"):
                 f.create_dataset(name, data=getattr(self, name))
+            for name in OBSERVED_ARRAYS:
+                if getattr(self, name) is not None:
+                    f.create_dataset(name, data=getattr(self, name))
         path = Path(path)
         write_bytes_atomic(path, image.getbuffer())  # a view: no second copy
         return path
@@ -230,6 +246,7 @@ def load_dataset(path: Path) -> Dataset | MarkerDataset:
             if missing:
                 raise BadInput(f"dataset {path} lacks {', '.join(missing)}; re-collect it")
             arrays = {n: f[n][()] for n in names}
+            arrays |= {n: f[n][()] for n in OBSERVED_ARRAYS if n in f}
             attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
     except OSError as exc:
         raise BadInput(
@@ -239,6 +256,19 @@ def load_dataset(path: Path) -> Dataset | MarkerDataset:
     _check_consistent(data, path)
     check_fields(arrays, attrs, path, FORMAT_VERSION)
     return data
+
+
+def _observed(datasets: Any, cat: Any = None) -> dict[str, np.ndarray | None]:
+    """The markers observation's arrays of ``datasets`` (episodes or datasets) joined, or
+    None where any lacks them (BadInput if their marker counts differ)."""
+    if any(d.markers is None for d in datasets):
+        return {}
+    if len({d.markers.shape[1] for d in datasets}) > 1:
+        raise BadInput("cannot join episodes observed through different marker counts")
+    return {
+        "markers": np.concatenate([np.asarray(d.markers, np.float32) for d in datasets]),
+        "visible": np.concatenate([np.asarray(d.visible, bool) for d in datasets]),
+    }
 
 
 def _decode_attr(value: Any) -> Any:

@@ -35,6 +35,7 @@ def check_fields(
     check_unit_quaternions(arrays, path)
     check_actions_in_range(arrays, path)
     check_positions_bounded(arrays, path)
+    check_observed_markers(arrays, path)
 
 
 def check_format_version(attrs: dict[str, Any], path: Path, newest_version: int) -> None:
@@ -116,3 +117,23 @@ def check_positions_bounded(arrays: dict[str, np.ndarray], path: Path) -> None:
                     f"dataset {path}: {name} reach {largest:.3g} m from the origin, more than "
                     f"{MAX_POSITION:g} m (positions are in metres); re-collect it"
                 )
+
+
+def check_observed_markers(arrays: dict[str, np.ndarray], path: Path) -> None:
+    """The markers observation's optional arrays: both or neither, (S, M, 3) finite
+    positions and (S, M) flags, one row per state."""
+    markers, visible = arrays.get("markers"), arrays.get("visible")
+    if markers is None and visible is None:
+        return
+    states = len(arrays["positions"])
+    ok = (
+        markers is not None and visible is not None
+        and markers.ndim == 3 and markers.shape[0] == states and markers.shape[2] == 3
+        and markers.dtype.kind == "f" and bool(np.isfinite(markers).all())
+        and visible.shape == markers.shape[:2] and visible.dtype.kind == "b"
+    )  # fmt: skip
+    if not ok:
+        raise BadInput(
+            f"dataset {path}: markers and visible must be (S, M, 3) finite positions and "
+            "(S, M) flags, one row per state; re-collect it"
+        )

@@ -49,6 +49,18 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
             "right_low": None,
             "right_high": None,
         },
+        "observation": {
+            "kind": "full",
+            "markers": 10,
+            "marker_arc_lengths": None,
+            "gripper_markers": 0.05,
+            "noise_mm": 0.0,
+            "latency_steps": 0,
+            "dropout": 0.0,
+            "occlusion_probability": 0.0,
+            "occlusion_markers": 3,
+            "occlusion_steps": 10,
+        },
     },
     "rod": {
         "clamp_compliance": "rigid",

@@ -12,7 +12,7 @@ base and the loaders (:mod:`dlocli.spec_base`) and the rod and backend specs
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -103,6 +103,81 @@ class EnvelopeSpec(Spec):
         return self
 
 
+class ObservationSpec(Spec):
+    """What every controller, agent and online trial observes of the rod: the simulator's
+    exact state ("full"), or tracked marker positions ("markers") with a tracker's faults."""
+
+    kind: Literal["full", "markers"] = Field(
+        "full",
+        description="'full': every segment's position, orientation and velocity, exact and "
+        "at once; 'markers': positions of tracked markers only, with the faults below.",
+    )
+    markers: int = Field(
+        10, ge=2, le=1000,
+        description="Markers M, evenly spaced from the rod's left end to its right end, where "
+        "the grippers hold it (unless marker_arc_lengths places them).",
+    )  # fmt: skip
+    marker_arc_lengths: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] | None = Field(
+        None,
+        description="Where the markers sit, as fractions of the rod length from its left end "
+        "(0 to 1, increasing); those on a held end segment move with its gripper.",
+    )
+    gripper_markers: float = Field(
+        0.05, ge=0.0, le=0.5,
+        description="A marker on each gripper, this far behind the rod's end along the "
+        "gripper's axis (a fraction of the rod length; 0: none): the rod's end point does not "
+        "show how the gripper turns, this marker does.",
+    )  # fmt: skip
+    noise_mm: float = Field(
+        0.0, ge=0.0, le=1000.0, allow_inf_nan=False,
+        description="Standard deviation of the Gaussian noise on each marker coordinate (mm).",
+    )  # fmt: skip
+    latency_steps: int = Field(
+        0, ge=0, le=MAX_COUNT,
+        description="The tracker's delay in control steps: a frame shows the rod as it was "
+        "this many steps earlier (the gripper poses are the robot's own, current).",
+    )  # fmt: skip
+    dropout: float = Field(
+        0.0, ge=0.0, lt=1.0,
+        description="Probability that a frame is lost: every marker is reported missing and "
+        "keeps its last seen position.",
+    )  # fmt: skip
+    occlusion_probability: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="Probability per frame that an occlusion starts: occlusion_markers "
+        "neighbouring markers at a random place go missing for occlusion_steps frames.",
+    )  # fmt: skip
+    occlusion_markers: int = Field(
+        3, ge=1, le=1000, description="Neighbouring markers an occlusion hides."
+    )
+    occlusion_steps: int = Field(10, ge=1, le=MAX_COUNT, description="Frames an occlusion lasts.")
+
+    def faults(self) -> dict[str, Any]:
+        """The tracker faults set away from their defaults (a clean tracker: empty)."""
+        names = ("noise_mm", "latency_steps", "dropout", "occlusion_probability")
+        fields = type(self).model_fields
+        return {n: getattr(self, n) for n in names if getattr(self, n) != fields[n].default}
+
+    @model_validator(mode="after")
+    def _markers_consistent(self) -> ObservationSpec:
+        arcs = self.marker_arc_lengths
+        if arcs is not None and any(b <= a for a, b in zip(arcs, arcs[1:], strict=False)):
+            raise ValueError("marker_arc_lengths must increase along the rod")
+        if arcs is not None and len(arcs) < 2:
+            raise ValueError("marker_arc_lengths: give at least 2 markers")
+        if self.kind == "full" and self.faults():
+            raise ValueError(
+                f"{', '.join(self.faults())} apply to tracked markers: set observation kind "
+                "'markers' (--observation markers)"
+            )
+        return self
+
+    def marker_count(self) -> int:
+        """M: the markers on the rod, and those on the grippers."""
+        on_rod = self.markers if self.marker_arc_lengths is None else len(self.marker_arc_lengths)
+        return on_rod + (2 if self.gripper_markers > 0 else 0)
+
+
 class TaskSpec(Spec):
     """The shape-control task on top of a backend (DLOShapeEnv)."""
 
@@ -184,6 +259,10 @@ class TaskSpec(Spec):
         default_factory=EnvelopeSpec,
         description="Safety envelope every command passes through (limits beyond the task's).",
     )
+    observation: ObservationSpec = Field(
+        default_factory=ObservationSpec,
+        description="What the controller observes: the exact state or tracked markers.",
+    )
 
     def inert_fields(self) -> set[str]:
         """Fields that do not change any result under this spec's ``shapes``."""
@@ -201,6 +280,11 @@ class TaskSpec(Spec):
         if self.min_separation > self.max_separation:
             raise ValueError(
                 f"min_separation {self.min_separation} exceeds max_separation {self.max_separation}"
+            )
+        if self.observation.latency_steps >= self.episode_steps:
+            raise ValueError(
+                f"observation latency_steps {self.observation.latency_steps} must be shorter "
+                f"than the episode ({self.episode_steps} steps)"
             )
         return self
 

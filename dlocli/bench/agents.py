@@ -283,9 +283,9 @@ class OnlineMPCLearner(MPCLearner):
         self.updates, self.transitions = state["updates"], state["transitions"]
 
     def model(self) -> DynamicsModel:
-        from dlocli.models.base import load_model
+        from dlocli.models.markers import load_planning_model
 
-        return load_model(self.run.paths.checkpoint(self.updates), self.spec.fit.device)
+        return load_planning_model(self.run.paths.checkpoint(self.updates), self.spec.fit.device)
 
     def training_returns(self) -> list[float]:
         if self.updates == 0:

@@ -125,13 +125,14 @@ def _refuse_oversized_agents(spec: BenchSpec) -> None:
     """BadInput, before any job starts, if a model or an SB3 agent would not fit in memory."""
     from dlocli.controllers.base import controller_spec
     from dlocli.controllers.sb3_specs import SB3Spec
-    from dlocli.env.shape_env import observation_space
+    from dlocli.env.shape_env import observation_space, observed_markers
     from dlocli.models.base import refuse_oversized_model
 
     n_segments = spec.backend.rod.n_segments
     if {"mpc", "mpc-offline"} & set(spec.agents):
         refuse_oversized_model(spec.model, n_segments)
-    obs_dim = observation_space(n_segments, spec.task.observe_velocity).shape[0]
+    markers = observed_markers(spec.task)
+    obs_dim = observation_space(n_segments, spec.task.observe_velocity, markers).shape[0]
     for name in set(spec.agents) & set(option_agents()):
         options = controller_spec(name, spec.options.get(name))
         if isinstance(options, SB3Spec):  # 12: two grippers' actions, the largest

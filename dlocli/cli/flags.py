@@ -50,6 +50,13 @@ ALIASES: dict[str, str] = {
     "task.envelope.max_linear_acceleration": "max-linear-acceleration",
     "task.envelope.max_angular_acceleration": "max-angular-acceleration",
     "task.envelope.stop_after_lost_s": "stop-after-lost-s",
+    "task.observation.kind": "observation",
+    "task.observation.markers": "markers",
+    "task.observation.noise_mm": "noise-mm",
+    "task.observation.latency_steps": "latency-steps",
+    "task.observation.dropout": "dropout",
+    "task.observation.occlusion_probability": "occlusion-probability",
+    "fit.rollout_steps": "rollout-steps",
 }
 
 

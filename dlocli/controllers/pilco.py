@@ -1,9 +1,10 @@
 """PILCO benchmark agent (Deisenroth & Rasmussen 2011, [DR11]) on a reduced rod state.
 
-Reduced state: the positions of ``n_keypoints`` segments, one at the centre of each of
-``n_keypoints`` equal stretches of the rod (for 20 segments and 3 keypoints: segments 3, 10
-and 16), flattened to D = 3 * n_keypoints metres. The goal is mapped the same way, and the
-saturating cost of [DR11] eq. 24 measures the keypoints' distance to the goal's keypoints
+Reduced state: the positions of ``n_keypoints`` segments (with the markers observation:
+free markers), one at the centre of each of ``n_keypoints`` equal stretches of the rod (for
+20 segments and 3 keypoints: segments 3, 10 and 16), flattened to D = 3 * n_keypoints
+metres. The goal is mapped the same way, and the saturating cost of [DR11] eq. 24 measures
+the keypoints' distance to the goal's keypoints
 with width ``cost_width`` (0.1 m: about that distance from a random start, so the start lies
 on the cost's slope rather than its flat tail). Segment orientations and gripper poses are
 left out: the GP treats their effect as noise. A PILCO step holds one action for
@@ -79,6 +80,12 @@ class PilcoAgent(LearningAgent):
         super().__init__(env, seed=seed)
         self.spec: PilcoSpec = resolve_agent_spec(PilcoSpec, spec, spec_fields)
         self.keypoints = keypoint_indices(env.n_segments, self.spec.n_keypoints)
+        self._positions = "positions"
+        layout = getattr(env, "marker_layout", None)
+        if layout is not None:  # the markers observation: keypoints among the free markers
+            free = np.flatnonzero(~layout.held)
+            self.keypoints = free[keypoint_indices(len(free), self.spec.n_keypoints)]
+            self._positions = "markers"
         self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)
         self.policy: RBFPolicy | None = None
@@ -101,7 +108,7 @@ class PilcoAgent(LearningAgent):
     def reduce(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Reduced state and reduced goal (3 * n_keypoints each) of a flat observation."""
         parts = self.env.split_observation(obs)
-        state = parts["positions"][self.keypoints].ravel()
+        state = parts[self._positions][self.keypoints].ravel()
         goal = parts["goal"][self.keypoints].ravel()
         return state.astype(np.float64), goal.astype(np.float64)
 

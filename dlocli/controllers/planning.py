@@ -1,11 +1,13 @@
 """What every planner through a learned dynamics model shares (gradient MPC, MPPI).
 
 A :class:`ModelPlanner` keeps a plan of H actions (H, A) in task space, optimises it through
-``model.rollout`` at every re-plan, executes its first action, and warm-starts the next
-re-plan from the remaining actions shifted forward (the tail repeats the last action).
-Subclasses implement :meth:`ModelPlanner._optimise` only.
+the model's predictions at every re-plan (through a view of the model's form,
+:mod:`dlocli.controllers.views`: the rod's segments or tracked markers), executes its first
+action, and warm-starts the next re-plan from the remaining actions shifted forward (the
+tail repeats the last action). Subclasses implement :meth:`ModelPlanner._optimise` only.
 
-Shapes: B candidate plans, H horizon steps, A = task action size (6 or 12), N segments.
+Shapes: B candidate plans, H horizon steps, A = task action size (6 or 12), N segments (or
+M markers).
 Plans live on the model's device; nothing here assumes a CPU.
 """
 
@@ -21,6 +23,7 @@ import torch
 
 from dlocli.controllers.base import Planner
 from dlocli.controllers.specs import PlannerSpec
+from dlocli.controllers.views import RodView, make_view
 
 
 def shift_plan(plan: torch.Tensor, steps: int) -> torch.Tensor:
@@ -50,19 +53,23 @@ class ModelPlanner(Planner):
         self.model = model.eval()
         self.device = model_device(model)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
+        self.view = make_view(env, self.model, self.device)
         self._goal: torch.Tensor | None = None
         self._plan: torch.Tensor | None = None  # (H, A), the latest optimised plan
         self._cursor = 0  # actions of self._plan already executed
         self._observed: torch.Tensor | None = None  # (1, N, 7), the state at the latest act
         self._previous: torch.Tensor | None = None  # (1, N, 7), the state one step before it
+        self._goal_pending = False  # the goal is read from the episode's first observation
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
         super().reset(goal)
         self._goal = torch.as_tensor(self.goal, dtype=torch.float32, device=self.device)
+        self._goal_pending = True
         self._plan = None
         self._cursor = 0
         self._observed = self._previous = None
+        self.view.reset()
 
     @property
     def plan(self) -> torch.Tensor | None:
@@ -73,9 +80,13 @@ class ModelPlanner(Planner):
     def _act(self, obs: np.ndarray) -> np.ndarray:
         if self._goal is None:
             raise RuntimeError("call reset(goal) before act()")
-        state = self.state_tensor(obs)
-        # act() is called once per control step, so the last observation is s_{t-1}
-        self._previous, self._observed = self._observed, state
+        if self._goal_pending:
+            self._goal, self._goal_pending = self.view.goal(obs, self.goal), False
+        state, before = self.view.observe(obs)
+        # act() is called once per control step, so the last state is s_{t-1} unless the
+        # view estimates it itself
+        self._previous = self._observed if before is None else before
+        self._observed = state
         if self._plan is not None and self._cursor < min(self.spec.replan_every, self.spec.horizon):
             action = self._plan[self._cursor]
             self._cursor += 1
@@ -91,10 +102,9 @@ class ModelPlanner(Planner):
         return self._plan[0].cpu().numpy()
 
     def state_tensor(self, obs: np.ndarray) -> torch.Tensor:
-        """Model state (1, N, 7) = concat(positions, quaternions) from a flat observation."""
-        parts = self.env.split_observation(obs)
-        state = np.concatenate([parts["positions"], parts["quaternions"]], axis=-1)
-        return torch.as_tensor(state[None], dtype=torch.float32, device=self.device)
+        """The model's state (1, N, 7) = concat(positions, quaternions) of a full observation
+        (a marker view's state needs the episode so far: :meth:`act` keeps it)."""
+        return RodView.observe(self.view, obs)[0]
 
     def _initial_plan(self) -> torch.Tensor:
         """(H, A) start of the optimisation: the shifted previous plan, or zeros."""
@@ -122,14 +132,11 @@ class ModelPlanner(Planner):
         position errors (m) then sqrt(action_cost) x the actions. ``previous`` is the state one
         step before ``state`` (None: at rest); by default :meth:`previous_of` finds it."""
         commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
-        batch = plans.shape[0]
         if previous is ...:
             previous = self.previous_of(state)
-        if previous is not None:
-            previous = previous.expand(batch, -1, -1)
-        predicted = self.model.rollout(state.expand(batch, -1, -1), commands, previous)
+        predicted = self.view.predict(state, commands, previous)
         assert self._goal is not None
-        errors = (predicted[..., :3] - self._goal).flatten(1)
+        errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
         return torch.cat([errors, effort], dim=1)
 

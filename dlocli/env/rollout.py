@@ -1,5 +1,8 @@
 """The one episode loop, and the random episodes every part of dlocli collects.
 
+An episode records the true state, whatever the policy observed; with the markers
+observation it also records the tracker's reports (what a learner of the marker model gets).
+
 A *policy* is anything with ``reset(goal)`` and ``act(obs)``: every registered controller,
 :class:`ActionSequence` (fixed actions, e.g. random ones) and :class:`NoisyPolicy` (another
 policy's actions with random exploration noise). :func:`rollout` resets the env from a seed,
@@ -82,12 +85,14 @@ def rollout(env: Any, policy: Any, seed: int, on_step: OnStep | None = None) -> 
     """
     obs, _ = env.reset(seed=seed)
     policy.reset(env.goal)
-    observations, commands, rewards, diverged = [obs], [], [], False
+    states, observations, commands, rewards = [env.state_parts()], [obs], [], []
+    diverged = False
     for t in range(1, env.task_spec.episode_steps + 1):
         obs, reward, _, truncated, info = env.step(policy.act(obs))
         if info["diverged"]:
             diverged = True
             break
+        states.append(env.state_parts())
         observations.append(obs)
         commands.append(info["commands"])
         rewards.append(reward)
@@ -95,15 +100,18 @@ def rollout(env: Any, policy: Any, seed: int, on_step: OnStep | None = None) -> 
             on_step(t, reward, info)
         if truncated:
             break
-    parts = env.split_observation(np.array(observations))
+    tracked = getattr(env, "tracker", None) is not None
+    seen = env.split_observation(np.array(observations)) if tracked else {}
     return Episode(
-        positions=parts["positions"],
-        quaternions=parts["quaternions"],
-        grippers=parts["grippers"],
+        positions=np.array([s["positions"] for s in states]),
+        quaternions=np.array([s["quaternions"] for s in states]),
+        grippers=np.array([s["grippers"] for s in states]),
         actions=np.array(commands, dtype=np.float32).reshape(-1, 2, 6),
         rewards=np.array(rewards, dtype=np.float32),
         goal=np.asarray(env.goal),
         diverged=diverged,
+        markers=seen.get("markers"),
+        visible=None if not seen else seen["visible"][..., 0] > 0.5,
     )
 
 

@@ -18,30 +18,44 @@ steps. Loops that stop at divergence count the steps they skip at -1.5
 
 from __future__ import annotations
 
-import difflib
-from collections.abc import Sequence
+import hashlib
+import json
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from pydantic import ValidationError
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
 from dlocli.bridge.spec import CellChoice
 from dlocli.env.envelope import Envelope
+from dlocli.env.goals import check_goal_reachable, load_goal
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
+from dlocli.env.observation import (
+    MarkerLayout,
+    Tracker,
+    held_markers,
+    marker_layout,
+    markers_of_shape,
+    markers_of_state,
+)
+from dlocli.env.options import resolve_env_options
 from dlocli.env.shapes import make_shape, max_twist
+from dlocli.env.spaces import (
+    observation_layout,
+    observation_slices,
+    observation_space,
+    observed_markers,
+)
 from dlocli.env.tasks import Task, make_task
-from dlocli.errors import BadInput, BadOption, UnknownOption, UnworkablePhysics
+from dlocli.errors import BadInput, BadOption, UnworkablePhysics
 from dlocli.extras import require
 from dlocli.io import atomic_path
 from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
-from dlocli.registry import tasks as task_registry
-from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec, format_validation_error
+from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec
 
 
 def make_backend(
@@ -56,152 +70,6 @@ def make_backend(
         return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s)
     cls = backend_registry.get(spec.name)
     return cls(spec, control_dt=control_dt)
-
-
-def load_goal(path: Path, n_segments: int) -> np.ndarray:
-    """Read a goal file: .npy, float (N,3), finite. BadInput naming the expected format."""
-    path = Path(path)
-    expected = f"expected a .npy file holding a float array of shape ({n_segments}, 3) in metres"
-    if path.suffix != ".npy":
-        raise BadInput(f"goal {path} is not a .npy file; {expected}")
-    if not path.is_file():
-        raise BadInput(f"goal {path} does not exist; {expected} (make one with `dlo goal`)")
-    try:
-        # memory-mapped: a header that claims terabytes is refused by its shape, not allocated
-        goal = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
-        # numpy's own text (an allow_pickle hint for a text file) would mislead
-        raise BadInput(f"goal {path} could not be read as a .npy array; {expected}") from exc
-    if not isinstance(goal, np.ndarray):
-        raise BadInput(f"goal {path} is an .npz archive, not one array; {expected}")
-    if goal.dtype.kind not in "fiu" or goal.shape != (n_segments, 3):  # complex: refused
-        raise BadInput(f"goal {path} has dtype {goal.dtype} and shape {goal.shape}; {expected}")
-    if not np.all(np.isfinite(goal)):
-        raise BadInput(f"goal {path} contains NaN or inf; {expected}")
-    return goal.astype(np.float64)
-
-
-def check_goal_reachable(
-    goal: np.ndarray, backend: Backend, limits_margin: float = 0.2, name: str = "goal"
-) -> None:
-    """Refuse goals the rod cannot take: segments too far apart or outside the workspace;
-    ``name`` says which goal in the message (its file)."""
-    length = backend.rod.length
-    # the reach first: a goal inside it has gaps that cannot overflow
-    low = backend.limits.low - limits_margin - length
-    high = backend.limits.high + limits_margin
-    if np.any(goal < low) or np.any(goal > high):
-        low_m = np.round(backend.limits.low, 2).tolist()
-        high_m = np.round(backend.limits.high, 2).tolist()
-        raise BadInput(f"{name} lies outside the grippers' reach (workspace {low_m}..{high_m} m)")
-    seg = length / backend.n_segments
-    gaps = np.linalg.norm(np.diff(goal, axis=0), axis=1)
-    if np.any(gaps > 1.5 * seg) or np.any(gaps < 0.5 * seg):
-        raise BadInput(
-            f"{name}: segments {gaps.min():.3f}-{gaps.max():.3f} m apart but the rod's segments "
-            f"are {seg:.3f} m long; the rod cannot take this shape (make one with `dlo goal`)"
-        )
-
-
-#: bound of every position in the observation (metres); a diverged rod is clipped to it
-POSITION_BOUND = 10.0
-#: bound of every velocity component in the observation (m/s, 1/s)
-VELOCITY_BOUND = 100.0
-
-
-def observation_layout(n: int, velocity: bool = False) -> dict[str, tuple[int, ...]]:
-    """The parts of the flat observation, in order, with their shapes (N = ``n`` segments)."""
-    layout = {"positions": (n, 3), "quaternions": (n, 4), "grippers": (2, 7), "goal": (n, 3)}
-    if velocity:
-        layout["velocities"] = (n, 7)
-    return layout
-
-
-#: bound of each column of every part of the observation (rows repeat it)
-_ROW_BOUNDS = {
-    "positions": [POSITION_BOUND] * 3,
-    "quaternions": [1.0] * 4,
-    "grippers": [POSITION_BOUND] * 3 + [1.0] * 4,
-    "goal": [POSITION_BOUND] * 3,
-    "velocities": [VELOCITY_BOUND] * 7,
-}
-
-
-def observation_space(n: int, velocity: bool = False) -> gym.spaces.Box:
-    """Positions within +-POSITION_BOUND m, quaternion components within [-1, 1], velocity
-    components (if observed) within +-VELOCITY_BOUND."""
-    layout = observation_layout(n, velocity)
-    high = np.concatenate([np.tile(_ROW_BOUNDS[k], shape[0]) for k, shape in layout.items()])
-    return gym.spaces.Box(-high.astype(np.float32), high.astype(np.float32), dtype=np.float32)
-
-
-def observation_slices(layout: dict[str, tuple[int, ...]]) -> dict[str, slice]:
-    """Where each part of ``layout`` lies in the flat observation."""
-    slices, start = {}, 0
-    for name, shape in layout.items():
-        size = int(np.prod(shape))
-        slices[name] = slice(start, start + size)
-        start += size
-    return slices
-
-
-#: keyword arguments of DLOShapeEnv (and gym.make) besides the TaskSpec fields
-ENV_KEYWORDS = ("backend", "task", "goal", "seed", "render_mode")
-
-
-def env_keywords() -> list[str]:
-    """Every keyword DLOShapeEnv, ``make_env`` and ``gym.make`` of a dlocli id accept."""
-    return [*ENV_KEYWORDS, *(f for f in TaskSpec.model_fields if f not in ("name", "goal"))]
-
-
-def resolve_env_options(
-    backend: BackendSpec | str | None,
-    task: TaskSpec | str,
-    goal: np.ndarray | Path | str | None,
-    task_options: dict[str, Any],
-) -> tuple[BackendSpec, TaskSpec, np.ndarray | Path | str | None]:
-    """Validated specs from the env's keyword arguments: ``task_options`` set TaskSpec fields,
-    ``goal`` "fixed" or "random" sets the goal mode. UnknownOption, BadOption, UnknownName."""
-    valid = env_keywords()
-    for key in task_options:
-        if key not in valid:
-            # Python's own wording: wrappers such as TorchRL's GymEnv retry without a keyword
-            # (frameskip) only when the TypeError says "unexpected keyword argument"
-            hint = _did_you_mean(key, valid)
-            raise UnknownOption(
-                f"DLOShapeEnv() got an unexpected keyword argument '{key}'{hint}; "
-                f"valid ones: {', '.join(valid)}"
-            )
-    modes = ("fixed", "random")
-    if isinstance(goal, str) and goal in modes:
-        task_options, goal = {**task_options, "goal": goal}, None
-    elif isinstance(goal, str) and not goal.endswith(".npy"):
-        raise BadOption(
-            f"DLOShapeEnv: goal={goal!r} is neither a goal mode ('fixed' or 'random') nor a "
-            f".npy file{_did_you_mean(goal, modes)}; pass a mode, an (N, 3) array or a .npy path"
-        )
-    try:  # validated as a whole: a bad value is refused, not silently dropped
-        if backend is None:  # the MuJoCo rod of the installed MuJoCo
-            backend_spec = BackendSpec()
-        else:
-            backend_spec = BackendSpec(name=backend) if isinstance(backend, str) else backend
-        backend_spec = BackendSpec.model_validate(backend_spec)
-        task_spec = TaskSpec(name=task) if isinstance(task, str) else task
-        task_spec = TaskSpec.model_validate(
-            {**TaskSpec.model_validate(task_spec).model_dump(), **task_options}
-            if task_options
-            else task_spec
-        )
-    except ValidationError as exc:
-        raise BadOption(format_validation_error(exc, "DLOShapeEnv")) from exc
-    backend_registry.check(backend_spec.name)
-    task_registry.check(task_spec.name)
-    return backend_spec, task_spec, goal
-
-
-def _did_you_mean(name: str, valid: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, valid, n=1)
-    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 class DLOShapeEnv(gym.Env):
@@ -262,13 +130,26 @@ class DLOShapeEnv(gym.Env):
         self.n_segments = self.backend.n_segments
         self.render_mode = render_mode
         self.seed_value = int(seed)
-        n = self.n_segments
+        n, velocity = self.n_segments, self.task_spec.observe_velocity
+        markers = observed_markers(self.task_spec)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
-        self.observation_space = observation_space(n, self.task_spec.observe_velocity)
+        self.observation_space = observation_space(n, velocity, markers)
         #: shape of each part of the flat observation, in order (README, "Gymnasium")
-        self.observation_shapes = observation_layout(n, self.task_spec.observe_velocity)
+        self.observation_shapes = observation_layout(n, velocity, markers)
         #: where each part lies in the flat observation: ``obs[slices["goal"]]``
         self.observation_slices = observation_slices(self.observation_shapes)
+        #: the true state's parts, as the full observation holds them (:meth:`state_parts`)
+        self.state_shapes = observation_layout(n, velocity)
+        self._state_slices = observation_slices(self.state_shapes)
+        self._state_space = observation_space(n, velocity)
+        #: where the markers sit (None with the full observation) and the tracker's faults
+        self.marker_layout: MarkerLayout | None = None
+        self.tracker: Tracker | None = None
+        if markers is not None:
+            rod = self.backend.rod
+            held = (bool(self.backend.moving[0]), bool(self.backend.moving[1]))
+            self.marker_layout = marker_layout(self.task_spec.observation, rod.length, n, held)
+            self.tracker = Tracker(self.task_spec.observation, markers)
         self._goal_rng = np.random.default_rng([seed, 1])
         self._goal_given = goal is not None or self.task_spec.goal_file is not None
         #: (2,7) gripper poses that made the goal, when the env made it (None: a given goal)
@@ -287,6 +168,8 @@ class DLOShapeEnv(gym.Env):
         self._t = 0
         self._previous: np.ndarray | None = None  # (N, 7) segment state one step earlier
         self._last_observation: np.ndarray | None = None
+        self._last_state: np.ndarray | None = None  # the full observation's vector
+        self._reported: np.ndarray | None = None  # (M, 3) the tracker's previous report
 
     # ------------------------------------------------------------------ setup
     def _apply_limits(self) -> None:
@@ -355,7 +238,7 @@ class DLOShapeEnv(gym.Env):
         self.envelope.check_start(self.backend.gripper_poses())
         self._t = 0
         self._previous = None  # settled: counted at rest
-        self._last_observation = None
+        self._last_observation = self._last_state = self._reported = None
         self._return = 0.0
         return self._observation(), self._info(diverged=False)
 
@@ -366,7 +249,7 @@ class DLOShapeEnv(gym.Env):
         self._previous = self.segment_state()
         velocities = commands * self._scale
         poses = self.backend.gripper_poses()
-        sent = self.envelope.apply(velocities, poses, self.backend.tracked)
+        sent = self.envelope.apply(velocities, poses, self.tracked)
         if sent is not velocities:  # clipped: what the grippers did is what is recorded
             commands = sent / self._scale
         ok = self.backend.step(sent)
@@ -392,16 +275,21 @@ class DLOShapeEnv(gym.Env):
         self.episode_returns = list(episode_returns)
 
     def _positions(self) -> np.ndarray:
-        if self.backend.diverged and self._last_observation is not None:
-            return self.split_observation(self._last_observation)["positions"]
+        if self.backend.diverged and self._last_state is not None:
+            return self.state_parts()["positions"]
         return self.backend.segment_positions()
 
     def _info(self, diverged: bool) -> dict[str, Any]:
         error = float(shape_error_mm(self._positions(), self.goal))
         return {
             "shape_error_mm": error, "diverged": diverged, "t": self._t,
-            "tracked": self.backend.tracked,
+            "tracked": self.tracked,
         }  # fmt: skip
+
+    @property
+    def tracked(self) -> bool:
+        """Whether the latest observation saw the cable (a cell's tracker, a lost frame)."""
+        return self.backend.tracked and not (self.tracker is not None and self.tracker.lost)
 
     def segment_state(self) -> np.ndarray:
         """(N, 7) segment positions and quaternions."""
@@ -421,11 +309,71 @@ class DLOShapeEnv(gym.Env):
         if self.task_spec.observe_velocity:
             change = 0.0 * state if self._previous is None else state_change(self._previous, state)
             parts["velocities"] = change / self.task_spec.control_dt
-        flat = np.concatenate([parts[name].ravel() for name in self.observation_shapes])
-        obs = np.nan_to_num(flat, posinf=np.inf, neginf=-np.inf)
-        obs = np.clip(obs, self.observation_space.low, self.observation_space.high)
-        self._last_observation = obs.astype(np.float32)
+        self._last_state = self._flat(parts, self.state_shapes, self._state_space)
+        if self.tracker is None:
+            self._last_observation = self._last_state
+        else:
+            marker_parts = self._marker_parts(state, parts["grippers"])
+            self._last_observation = self._flat(
+                marker_parts, self.observation_shapes, self.observation_space
+            )
         return self._last_observation
+
+    @staticmethod
+    def _flat(
+        parts: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]], space: gym.spaces.Box
+    ) -> np.ndarray:
+        flat = np.concatenate([parts[name].ravel() for name in shapes])
+        flat = np.nan_to_num(flat, posinf=np.inf, neginf=-np.inf)
+        return np.clip(flat, space.low, space.high).astype(np.float32)
+
+    def _marker_parts(self, state: np.ndarray, grippers: np.ndarray) -> dict[str, np.ndarray]:
+        """The markers observation's parts: the tracker's report of the true markers."""
+        assert self.tracker is not None and self.marker_layout is not None
+        true = markers_of_state(self.marker_layout, state[:, :3], state[:, 3:], grippers)
+        if self._reported is None:  # a reset: the tracker's stream follows the episode's
+            seen, visible = self.tracker.reset(self._tracker_rng(), true)
+        else:
+            seen, visible = self.tracker.report(true)
+        parts = {
+            "markers": seen,
+            "visible": visible[:, None].astype(np.float64),
+            "grippers": grippers,
+            "goal": self.goal_markers(),
+        }
+        if self.task_spec.observe_velocity:
+            before = seen if self._reported is None else self._reported
+            parts["velocities"] = (seen - before) / self.task_spec.control_dt
+        self._reported = seen.copy()
+        return parts
+
+    def goal_markers(self) -> np.ndarray:
+        """(M, 3) the goal's markers: on the polyline of its centres, the held ones at the
+        goal's gripper poses when the env made the goal (a goal file has none)."""
+        assert self.marker_layout is not None
+        markers = markers_of_shape(self.marker_layout, np.asarray(self.goal))
+        if self.goal_gripper_poses is None:
+            return markers
+        held = self.marker_layout.held[:, None]
+        return np.where(held, held_markers(self.marker_layout, self.goal_gripper_poses), markers)
+
+    def _tracker_rng(self) -> np.random.Generator:
+        """The tracker's generator of this episode, from the episode's start state, so the
+        tracker draws nothing from the env's own stream (starts and goals stay the same)."""
+        state = json.dumps(self.reset_generator_state, sort_keys=True, default=str)
+        digest = hashlib.sha256(state.encode()).digest()
+        return np.random.default_rng(int.from_bytes(digest[:16], "little"))
+
+    def state_parts(self) -> dict[str, np.ndarray]:
+        """The true state at the latest observation, as the full observation would hold it
+        (float32): positions, quaternions, grippers, goal and, if observed, velocities;
+        whatever the controller observes."""
+        if self._last_state is None:
+            raise RuntimeError("call reset() before state_parts()")
+        return {
+            name: self._last_state[self._state_slices[name]].reshape(shape)
+            for name, shape in self.state_shapes.items()
+        }
 
     def split_observation(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         """Inverse of the flat observation: positions, quaternions, grippers, goal and, if

@@ -369,8 +369,16 @@ def load_model(
 def load_model_bytes(checkpoint: bytes, device: str | torch.device = "cpu") -> DynamicsModel:
     """:func:`load_model` of a checkpoint file's bytes (a trial's copy of the driver's model),
     read in memory."""
-    name = "the model checkpoint in memory"
-    return _model_from_payload(_checked_payload(io.BytesIO(checkpoint), name), name, device)
+    return _model_from_payload(read_checkpoint_bytes(checkpoint), IN_MEMORY, device)
+
+
+#: how errors name a checkpoint read from bytes
+IN_MEMORY = "the model checkpoint in memory"
+
+
+def read_checkpoint_bytes(checkpoint: bytes) -> dict[str, Any]:
+    """:func:`read_checkpoint` of a checkpoint file's bytes."""
+    return _checked_payload(io.BytesIO(checkpoint), IN_MEMORY)
 
 
 def _model_from_payload(

@@ -40,6 +40,9 @@ SCALES = ("position_scale", "velocity_scale", "acceleration_scale")
 class MarkerModel(torch.nn.Module):
     """Base of the marker-form models; subclasses implement :meth:`predict`."""
 
+    #: the form planners read it in (:mod:`dlocli.controllers.views`)
+    form = FORM
+
     def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
         super().__init__()
         held = torch.as_tensor(np.asarray(held, dtype=bool))
@@ -226,11 +229,32 @@ def _marker_form(rod_model: Any) -> type[MarkerModel] | None:
 
 def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:
     """A trained marker-form model from a checkpoint or run directory, in eval mode."""
-    from dlocli.models.base import checkpoint_spec, read_checkpoint, with_weights
+    from dlocli.models.base import read_checkpoint
 
     payload = read_checkpoint(path)
     if payload.get("form") != FORM:
         raise BadInput(f"{path} is a rod model; evaluate it on a rod dataset (`dlo collect`)")
+    return marker_model_from_payload(payload, path, device)
+
+
+def load_planning_model(source: Any, device: str | torch.device = "cpu") -> torch.nn.Module:
+    """A model a planner plans with, from a checkpoint (a path, or a file's bytes): a marker
+    model if the checkpoint holds one, else the rod model."""
+    from dlocli.models import base
+
+    from_bytes = isinstance(source, bytes)
+    payload = base.read_checkpoint_bytes(source) if from_bytes else base.read_checkpoint(source)
+    if payload.get("form") == FORM:
+        return marker_model_from_payload(payload, base.IN_MEMORY if from_bytes else source, device)
+    return base.load_model_bytes(source, device) if from_bytes else base.load_model(source, device)
+
+
+def marker_model_from_payload(
+    payload: dict[str, Any], path: Any, device: str | torch.device = "cpu"
+) -> MarkerModel:
+    """The marker model a checkpoint's payload holds (named ``path`` in errors)."""
+    from dlocli.models.base import checkpoint_spec, with_weights
+
     spec = checkpoint_spec(payload, path)
     held = payload["state_dict"].get("held")
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:

@@ -63,6 +63,9 @@ class ControlSpec(EnvSpec, CellChoice):
         "video_every", "cell", "cell_timeout_s", "task.envelope.max_linear_speed",
         "task.envelope.max_angular_speed", "task.envelope.max_linear_acceleration",
         "task.envelope.max_angular_acceleration", "task.envelope.stop_after_lost_s",
+        "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
+        "task.observation.latency_steps", "task.observation.dropout",
+        "task.observation.occlusion_probability",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
@@ -137,11 +140,12 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
     if spec.checkpoint is None:
         return None
-    from dlocli.models.base import load_model, resolve_device
+    from dlocli.models.base import resolve_device
+    from dlocli.models.markers import load_planning_model
 
-    model = load_model(spec.checkpoint, resolve_device(spec.device))
+    model = load_planning_model(spec.checkpoint, resolve_device(spec.device))
     found = model.n_segments
-    if found != n_segments:
+    if getattr(model, "form", "rod") == "rod" and found != n_segments:  # markers: the view
         raise BadInput(
             f"model {spec.checkpoint} is for {found} segments but the rod has {n_segments}; "
             f"train one on {n_segments}-segment data or set backend.rod.n_segments={found}"

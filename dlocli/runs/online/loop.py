@@ -101,6 +101,9 @@ class OnlineRun:
 
         if self.paths.checkpoint(k).is_file():
             return
+        if self.spec.task.observation.kind == "markers":
+            self.update_marker_model(k, data)
+            return
         device = resolve_device(self.spec.fit.device)
         if k == 1:
             torch.manual_seed(stream_seed(self.spec.seed, TRAIN, 0))
@@ -145,6 +148,44 @@ class OnlineRun:
                 **extra,
             },
         )
+
+    def update_marker_model(self, k: int, data: Dataset) -> None:
+        """The update of the marker form (the markers observation,
+        :mod:`dlocli.runs.online.markers`): ``fit.update_steps`` steps from iteration k-1's
+        weights; checkpointed as iteration k."""
+        import torch
+
+        from dlocli.models.base import resolve_device, save_checkpoint
+        from dlocli.models.fitting import RolloutValidated
+        from dlocli.models.markers import FORM, load_marker_model
+        from dlocli.runs.online.markers import new_marker_model, update_marker_model
+
+        if k == 1:
+            torch.manual_seed(stream_seed(self.spec.seed, TRAIN, 0))
+            model = new_marker_model(self.spec)
+        else:
+            model = load_marker_model(self.paths.checkpoint(k - 1))
+        fit = self.spec.fit.model_copy(
+            update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
+        )
+        start = time.perf_counter()
+        self.progress("update", {"iteration": k, "unit": "step", "total": fit.update_steps})
+
+        def report(event: Any) -> None:
+            if isinstance(event, RolloutValidated):
+                self.scalars.add((k - 1) * fit.update_steps + event.count, "loss",
+                                 train=event.train_loss, val=event.val_loss)  # fmt: skip
+                self.progress("validation", {"iteration": k, **event.as_dict()})
+
+        with update_threads(self.spec):
+            history = update_marker_model(model, data, self.spec, fit, report)
+            threads = torch.get_num_threads()
+        best = min((r["val_score_cm"] for r in history), default=float("nan"))
+        save_checkpoint(model, self.paths.checkpoint(k), {
+            "form": FORM, "iteration": k, "val_score_cm": best, "threads": threads,
+            "train_seconds": time.perf_counter() - start,
+            "device": str(resolve_device(self.spec.fit.device)),
+        })  # fmt: skip
 
     def _validations(self, k: int) -> Callable[[Any], None]:
         """A fit's progress callback that reports its validations as iteration k's."""

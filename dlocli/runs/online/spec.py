@@ -7,7 +7,7 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import ClassVar
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from dlocli.controllers.specs import (
     PlannerName,
@@ -34,7 +34,9 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
         "initial_episodes", "planner", "mpc.horizon", "fit.lr", MODEL_OPTIONS, "task.goal",
         "task.name", "task.shapes", "backend.name", "fit.device", "noise_probability",
         "noise_std", "workers", "threads", "executor", "ray_address", "fit.mirror", "offline",
-        "seed", "out",
+        "seed", "out", "task.observation.kind", "task.observation.markers",
+        "task.observation.noise_mm", "task.observation.latency_steps", "task.observation.dropout",
+        "task.observation.occlusion_probability", "fit.rollout_steps",
     )  # fmt: skip
 
     iters: int = Field(
@@ -79,6 +81,12 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
         "(paper Fig. 7).",
     )
     out: Path = Field(Path("runs/online"), description="Run directory.")
+
+    @model_validator(mode="after")
+    def _offline_needs_full(self) -> OnlineSpec:
+        if self.offline and self.task.observation.kind == "markers":
+            raise ValueError("--offline compares rod models: drop it with --observation markers")
+        return self
 
 
 #: fields that may change when a run resumes: they change where trials run, not the results

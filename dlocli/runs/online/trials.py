@@ -52,11 +52,11 @@ def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[
     (seed, k, j)), and the seconds the planner took in it."""
     from dlocli.controllers.base import make_controller
     from dlocli.env.shape_env import make_env_from_spec
-    from dlocli.models.base import load_model_bytes
+    from dlocli.models.markers import load_planning_model
 
     env = make_env_from_spec(env_spec(spec))
     try:
-        model = load_model_bytes(checkpoint, spec.fit.device)
+        model = load_planning_model(checkpoint, spec.fit.device)
         seed = stream_seed(spec.seed, TRIAL, k, j)
         planner = make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=model)
         timed = TimedController(planner)

@@ -1,0 +1,312 @@
+"""What a real cell's tracker costs: the learned-model MPC (Algorithm 1 with the markers
+observation) and SAC (the same observation), each trained once per seed on clean markers,
+then evaluated under Gaussian marker noise, latency, lost frames and an occlusion; beside the
+MPC learned with the full observation, the MPC learned under 5 mm of noise, and doing nothing
+and random actions from the same starts to the same goals.
+
+    python examples/robustness/study.py train     # the learners (resumable; hours on 2 CPUs)
+    python examples/robustness/study.py evaluate  # every learner under every setting
+    python examples/robustness/study.py report    # table.md, results.csv, robustness.png
+
+Everything lands in --out (default runs/robustness); ``report`` writes the table and figure
+into this folder. Sizes are options (--budget, --seeds, ...); the committed results say
+which were used (results.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+EVAL_STREAM = 77  # the evaluation episodes' seed stream, apart from every training stream
+
+#: the evaluation settings: one fault at a time, then the acceptance setting and all at once
+SETTINGS: dict[str, dict[str, Any]] = {
+    "clean": {},
+    "noise 2 mm": {"noise_mm": 2.0},
+    "noise 5 mm": {"noise_mm": 5.0},
+    "noise 10 mm": {"noise_mm": 10.0},
+    "latency 1": {"latency_steps": 1},
+    "latency 3": {"latency_steps": 3},
+    "dropout 0.05": {"dropout": 0.05},
+    "occlusion": {"occlusion_probability": 0.05, "occlusion_markers": 3, "occlusion_steps": 10},
+    "5 mm + latency 1": {"noise_mm": 5.0, "latency_steps": 1},
+    "all": {"noise_mm": 5.0, "latency_steps": 1, "dropout": 0.05,
+            "occlusion_probability": 0.05, "occlusion_markers": 3, "occlusion_steps": 10},
+}  # fmt: skip
+
+
+def task(options: argparse.Namespace, observation: dict[str, Any]) -> dict[str, Any]:
+    """The paper-scale single task (random-pose starts and a fixed goal per seed)."""
+    return {"episode_steps": options.steps, "observation": observation}
+
+
+MARKERS = {"kind": "markers", "markers": 10}
+
+
+# ----------------------------------------------------------------------------- learners
+def learners(options: argparse.Namespace) -> list[tuple[str, int]]:
+    """(learner, seed) of every training job."""
+    seeds = range(options.seeds)
+    jobs = [(name, s) for s in seeds for name in ("mpc-markers", "sac-markers", "mpc-full")]
+    return jobs + [("mpc-markers-noise5", s) for s in range(options.noise_trained_seeds)]
+
+
+def online_spec(options: argparse.Namespace, name: str, seed: int) -> Any:
+    from dlocli.runs.online import OnlineSpec
+
+    observation = {"kind": "full"} if name == "mpc-full" else dict(MARKERS)
+    if name.endswith("noise5"):
+        observation["noise_mm"] = 5.0
+    trials = options.trials
+    iters = max(1, (options.budget // options.steps - options.initial_episodes) // trials)
+    fit: dict[str, Any] = {"schedule": "steps", "update_steps": options.update_steps,
+                           "lr": options.lr, "eval_every": options.update_steps // 3}  # fmt: skip
+    if name != "mpc-full":
+        fit |= {"rollout_steps": options.rollout_steps, "rollout_start": 2}
+    return OnlineSpec.model_validate({
+        "task": task(options, observation), "seed": seed, "iters": iters, "trials": trials,
+        "initial_episodes": options.initial_episodes, "model": {"hidden": options.hidden},
+        "fit": fit, "out": str(options.out / "learners" / f"{name}-s{seed}"), "threads": 1,
+    })  # fmt: skip
+
+
+def train(job: tuple[argparse.Namespace, str, int]) -> str:
+    """One training job (resumes where it stopped)."""
+    options, name, seed = job
+    import torch
+
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    if name.startswith("mpc"):
+        train_mpc(options, name, seed)
+    else:
+        train_sac(options, seed)
+    return f"{name}-s{seed}: {time.perf_counter() - start:.0f} s"
+
+
+def train_mpc(options: argparse.Namespace, name: str, seed: int) -> None:
+    from dlocli.rundir import owned
+    from dlocli.runs.online.loop import OnlineRun
+
+    spec = online_spec(options, name, seed)
+    spec.out.mkdir(parents=True, exist_ok=True)
+    (spec.out / "spec.json").write_text(spec.model_dump_json(indent=1))
+    with owned(spec.out):
+        run = OnlineRun(spec)
+        run.run()
+        # the model of every transition collected: one more update after the last trials
+        run.update_model(spec.iters + 1, run.dataset_until(spec.iters))
+
+
+def train_sac(options: argparse.Namespace, seed: int) -> None:
+    from dlocli.controllers.base import make_controller
+    from dlocli.env.shape_env import make_env
+
+    out = options.out / "learners" / f"sac-markers-s{seed}"
+    if (out / "policy" / "model.zip").is_file():
+        return
+    env = make_env(None, task="single", seed=seed, render_mode=None, **task(options, MARKERS))
+    try:
+        agent = make_controller("sac", env, seed=seed)
+        agent.learn(options.sac_budget)
+        agent.save_policy(out / "policy")
+    finally:
+        env.close()
+
+
+# ----------------------------------------------------------------------------- evaluation
+def evaluate(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str, Any]]:
+    """Every evaluation episode of one learner (or reference) under one setting."""
+    options, name, seed, setting = job
+    import torch
+
+    from dlocli.controllers.base import make_controller
+    from dlocli.env.rollout import episode_scores, rollout, stream_seed
+    from dlocli.env.shape_env import make_env
+
+    torch.set_num_threads(1)
+    trained_full = name == "mpc-full"
+    observation = {"kind": "full"} if trained_full else {**MARKERS, **SETTINGS[setting]}
+    env = make_env(None, task="single", seed=seed, render_mode=None, **task(options, observation))
+    rows = []
+    try:
+        controller = make_agent(options, env, name, seed)
+        for i in range(options.eval_episodes):
+            start = time.perf_counter()
+            if name in ("zero", "random"):
+                controller = make_controller(name, env, seed=stream_seed(seed, EVAL_STREAM, i, 1))
+            episode = rollout(env, controller, stream_seed(seed, EVAL_STREAM, i))
+            scores = episode_scores(episode, env.task_spec.episode_steps)
+            rows.append({"learner": name, "seed": seed, "setting": setting, "episode": i,
+                         **scores, "seconds": round(time.perf_counter() - start, 2)})  # fmt: skip
+    finally:
+        env.close()
+    return rows
+
+
+def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> Any:
+    from dlocli.controllers.base import make_controller
+    from dlocli.models.markers import load_planning_model
+
+    if name in ("zero", "random"):
+        return None
+    learned = options.out / "learners" / f"{name}-s{seed}"
+    if name.startswith("sac"):
+        agent = make_controller("sac", env, seed=seed)
+        agent.load_policy(learned / "policy")
+        return agent
+    final = sorted((learned / "checkpoints").glob("iter_*.pt"))[-1]
+    model = load_planning_model(final)
+    return make_controller("mpc", env, seed=seed, model=model)
+
+
+def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
+    # doing nothing and random actions do not read the observation: the clean setting only
+    jobs = [(options, n, s, "clean") for s in range(options.seeds)
+            for n in ("zero", "random", "mpc-full")]  # fmt: skip
+    jobs += [(options, n, s, setting) for s in range(options.seeds)
+             for n in ("mpc-markers", "sac-markers") for setting in SETTINGS]  # fmt: skip
+    jobs += [(options, "mpc-markers-noise5", s, setting)
+             for s in range(options.noise_trained_seeds) for setting in SETTINGS]  # fmt: skip
+    return [job for job in jobs if options.learners is None or job[1] in options.learners]
+
+
+def merge_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Add ``rows`` to the evaluation file, replacing rows of the same episode."""
+    key = lambda r: (r["learner"], r["seed"], r["setting"], r["episode"])  # noqa: E731
+    kept = {key(r): r for r in (json.loads(path.read_text()) if path.is_file() else [])}
+    kept |= {key(r): r for r in rows}
+    path.write_text(json.dumps(list(kept.values()), indent=0))
+
+
+# ----------------------------------------------------------------------------- report
+def report(options: argparse.Namespace) -> None:
+    rows = json.loads((options.out / "evaluation.json").read_text())
+    import csv
+
+    with open(HERE / "results.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    table = summarise(rows)
+    (HERE / "table.md").write_text(markdown(table))
+    plot(table, HERE / "robustness.png")
+    print(markdown(table))
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[tuple[str, str], dict[str, float]]:
+    """Per (learner, setting): mean and std over seeds of the per-seed mean final error and
+    score, and the mean initial error."""
+    cells: dict[tuple[str, str], dict[int, list[dict[str, Any]]]] = {}
+    for r in rows:
+        cells.setdefault((r["learner"], r["setting"]), {}).setdefault(r["seed"], []).append(r)
+    table = {}
+    for key, seeds in cells.items():
+        final = [np.mean([r["final_error_mm"] for r in rs]) for rs in seeds.values()]
+        score = [np.mean([r["score"] for r in rs]) for rs in seeds.values()]
+        initial = [np.mean([r["initial_error_mm"] for r in rs]) for rs in seeds.values()]
+        table[key] = {"final": float(np.mean(final)), "final_std": float(np.std(final)),
+                      "score": float(np.mean(score)), "score_std": float(np.std(score)),
+                      "initial": float(np.mean(initial)), "seeds": len(seeds)}  # fmt: skip
+    return table
+
+
+LEARNERS = ["zero", "random", "mpc-full", "mpc-markers", "mpc-markers-noise5", "sac-markers"]
+
+
+def markdown(table: dict[tuple[str, str], dict[str, float]]) -> str:
+    lines = ["| learner | setting | seeds | initial error (mm) | final error (mm) | score |",
+             "|---|---|---:|---:|---:|---:|"]  # fmt: skip
+    for name in LEARNERS:
+        for setting in SETTINGS:
+            cell = table.get((name, setting))
+            if cell is None:
+                continue
+            lines.append(
+                f"| {name} | {setting} | {cell['seeds']} | {cell['initial']:.1f} | "
+                f"{cell['final']:.1f} ± {cell['final_std']:.1f} | "
+                f"{cell['score']:.2f} ± {cell['score_std']:.2f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot(table: dict[tuple[str, str], dict[str, float]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    settings = list(SETTINGS)
+    fig, ax = plt.subplots(figsize=(10, 4.2))
+    shown = [n for n in LEARNERS if any((n, s) in table for s in settings) and n != "mpc-full"]
+    width = 0.8 / len(shown)
+    for i, name in enumerate(shown):
+        x = [j + (i - (len(shown) - 1) / 2) * width for j, s in enumerate(settings)
+             if (name, s) in table]  # fmt: skip
+        y = [table[(name, s)]["final"] for s in settings if (name, s) in table]
+        err = [table[(name, s)]["final_std"] for s in settings if (name, s) in table]
+        ax.bar(x, y, width, yerr=err, label=name, capsize=2)
+    full = table.get(("mpc-full", "clean"))
+    if full is not None:
+        ax.axhline(full["final"], color="k", lw=0.8, ls=":", label="mpc-full, exact state")
+    ax.set_xticks(range(len(settings)), settings, rotation=25, ha="right")
+    ax.set_ylabel("final shape error (mm), mean of seeds")
+    ax.set_yscale("log")
+    ax.set_title("Evaluated under each tracker setting (trained on clean markers)")
+    ax.legend(fontsize=8, ncol=3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+# ----------------------------------------------------------------------------- main
+def run_jobs(function: Any, jobs: list[Any], workers: int) -> list[Any]:
+    results = []
+    with ProcessPoolExecutor(workers) as pool:
+        for done, result in enumerate(pool.map(function, jobs), 1):
+            print(f"[{done}/{len(jobs)}] {result if isinstance(result, str) else ''}", flush=True)
+            results.append(result)
+    return results
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("stage", choices=["train", "evaluate", "report"])
+    parser.add_argument("--out", type=Path, default=Path("runs/robustness"))
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--noise-trained-seeds", type=int, default=1)
+    parser.add_argument("--budget", type=int, default=20000, help="mpc's transitions")
+    parser.add_argument("--sac-budget", type=int, default=20000)
+    parser.add_argument("--steps", type=int, default=200, help="episode length T")
+    parser.add_argument("--initial-episodes", type=int, default=10)
+    parser.add_argument("--trials", type=int, default=10, help="MPC trials per iteration")
+    parser.add_argument("--update-steps", type=int, default=500)
+    parser.add_argument("--rollout-steps", type=int, default=8)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument("--eval-episodes", type=int, default=5)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--learners", type=lambda s: s.split(","), default=None,
+                        help="evaluate these learners only (comma-separated)")  # fmt: skip
+    options = parser.parse_args()
+    options.out.mkdir(parents=True, exist_ok=True)
+    if options.stage == "train":
+        run_jobs(train, [(options, n, s) for n, s in learners(options)], options.workers)
+    elif options.stage == "evaluate":
+        rows = run_jobs(evaluate, evaluation_jobs(options), options.workers)
+        merge_rows(options.out / "evaluation.json", [r for rs in rows for r in rs])
+    else:
+        report(options)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
