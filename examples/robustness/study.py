@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -57,8 +58,15 @@ MARKERS = {"kind": "markers", "markers": 10}
 def learners(options: argparse.Namespace) -> list[tuple[str, int]]:
     """(learner, seed) of every training job."""
     seeds = range(options.seeds)
+    if options.learners is not None:
+        return [(name, s) for s in seeds for name in options.learners]
     jobs = [(name, s) for s in seeds for name in ("mpc-markers", "sac-markers", "mpc-full")]
     return jobs + [("mpc-markers-noise5", s) for s in range(options.noise_trained_seeds)]
+
+
+#: a learner named NAME-20k continues NAME's run to this many transitions (Algorithm 1
+#: resumes where it stopped: the same iterations, updates and seeds as one longer run)
+LONGER = {"-20k": 20000}
 
 
 def online_spec(options: argparse.Namespace, name: str, seed: int) -> Any:
@@ -68,7 +76,8 @@ def online_spec(options: argparse.Namespace, name: str, seed: int) -> Any:
     if name.endswith("noise5"):
         observation["noise_mm"] = 5.0
     trials = options.trials
-    iters = max(1, (options.budget // options.steps - options.initial_episodes) // trials)
+    budget = next((n for tag, n in LONGER.items() if name.endswith(tag)), options.budget)
+    iters = max(1, (budget // options.steps - options.initial_episodes) // trials)
     fit: dict[str, Any] = {"schedule": "steps", "update_steps": options.update_steps,
                            "lr": options.lr, "eval_every": options.update_steps // 3}  # fmt: skip
     if name != "mpc-full":
@@ -99,6 +108,9 @@ def train_mpc(options: argparse.Namespace, name: str, seed: int) -> None:
     from dlocli.runs.online.loop import OnlineRun
 
     spec = online_spec(options, name, seed)
+    shorter = next((name.removesuffix(tag) for tag in LONGER if name.endswith(tag)), None)
+    if shorter is not None and not spec.out.exists():
+        shutil.copytree(options.out / "learners" / f"{shorter}-s{seed}", spec.out)
     spec.out.mkdir(parents=True, exist_ok=True)
     (spec.out / "spec.json").write_text(spec.model_dump_json(indent=1))
     with owned(spec.out):
@@ -178,7 +190,12 @@ def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
              for n in ("mpc-markers", "sac-markers") for setting in SETTINGS]  # fmt: skip
     jobs += [(options, "mpc-markers-noise5", s, setting)
              for s in range(options.noise_trained_seeds) for setting in SETTINGS]  # fmt: skip
-    return [job for job in jobs if options.learners is None or job[1] in options.learners]
+    if options.learners is not None:  # these learners only, the longer runs among them
+        longer = [n for n in options.learners if n.endswith(tuple(LONGER))]
+        jobs += [(options, n, s, setting) for s in range(options.seeds) for n in longer
+                 for setting in SETTINGS]  # fmt: skip
+        jobs = [job for job in jobs if job[1] in options.learners]
+    return jobs
 
 
 def merge_rows(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -221,7 +238,15 @@ def summarise(rows: list[dict[str, Any]]) -> dict[tuple[str, str], dict[str, flo
     return table
 
 
-LEARNERS = ["zero", "random", "mpc-full", "mpc-markers", "mpc-markers-noise5", "sac-markers"]
+LEARNERS = [
+    "zero",
+    "random",
+    "mpc-full",
+    "mpc-markers",
+    "mpc-markers-20k",
+    "mpc-markers-noise5",
+    "sac-markers",
+]
 
 
 def markdown(table: dict[tuple[str, str], dict[str, float]]) -> str:
