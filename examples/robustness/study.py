@@ -40,6 +40,10 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "latency 3": {"latency_steps": 3},
     "dropout 0.05": {"dropout": 0.05},
     "occlusion": {"occlusion_probability": 0.05, "occlusion_markers": 3, "occlusion_steps": 10},
+    # where it breaks: past the grid
+    "noise 20 mm": {"noise_mm": 20.0},
+    "latency 6": {"latency_steps": 6},
+    "dropout 0.3": {"dropout": 0.3},
     "5 mm + latency 1": {"noise_mm": 5.0, "latency_steps": 1},
     "all": {"noise_mm": 5.0, "latency_steps": 1, "dropout": 0.05,
             "occlusion_probability": 0.05, "occlusion_markers": 3, "occlusion_steps": 10},
