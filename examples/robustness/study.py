@@ -199,6 +199,8 @@ def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
         jobs += [(options, n, s, setting) for s in range(options.seeds) for n in longer
                  for setting in SETTINGS]  # fmt: skip
         jobs = [job for job in jobs if job[1] in options.learners]
+    if options.settings is not None:
+        jobs = [job for job in jobs if job[3] in options.settings]
     return jobs
 
 
@@ -325,7 +327,9 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--learners", type=lambda s: s.split(","), default=None,
-                        help="evaluate these learners only (comma-separated)")  # fmt: skip
+                        help="train or evaluate these learners only (comma-separated)")  # fmt: skip
+    parser.add_argument("--settings", type=lambda s: s.split(","), default=None,
+                        help="evaluate under these settings only (comma-separated)")  # fmt: skip
     options = parser.parse_args()
     options.out.mkdir(parents=True, exist_ok=True)
     if options.stage == "train":
