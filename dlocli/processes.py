@@ -18,6 +18,7 @@ import time
 from typing import Any
 
 from dlocli.cancel import CancelToken
+from dlocli.threads import set_worker_threads
 
 #: the PID of the `dlo` process; forked workers inherit the handler but not this role
 _main_pid: int | None = None
@@ -123,8 +124,6 @@ def start_worker(parent: int, threads: int) -> None:
     """A pool worker's start: ``threads`` threads with passive waiting
     (:func:`dlocli.threads.set_worker_threads`, before the tasks import torch), and an end
     with the process ``parent`` (:func:`exit_with_parent`)."""
-    from dlocli.threads import set_worker_threads
-
     set_worker_threads(threads)
     exit_with_parent(parent)
 

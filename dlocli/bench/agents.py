@@ -30,10 +30,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dlocli.bench.spec import eval_points, mpc_points, mpc_schedule
+from dlocli.controllers.base import LearningAgent, make_controller
+from dlocli.data import Dataset
 from dlocli.env.rollout import episode_scores, stream_seed
+from dlocli.env.shape_env import load_goal, make_env, make_goal
 from dlocli.errors import UnknownName
-from dlocli.io import read_json, write_json_atomic
+from dlocli.io import atomic_path, read_json, write_json_atomic
+from dlocli.models.base import build_model, resolve_device
+from dlocli.models.markers import load_planning_model
+from dlocli.models.update_steps import train_like_online
+from dlocli.registry import controllers
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
+from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
 from dlocli.tensorboard import TENSORBOARD_DIR
 
 if TYPE_CHECKING:
@@ -52,9 +60,6 @@ ONLINE_AGENT = "mpc"
 # ----------------------------------------------------------------------------- envs
 @lru_cache(maxsize=8)
 def _goal(backend_json: str, task_json: str, seed: int) -> np.ndarray:
-    from dlocli.env.shape_env import load_goal, make_goal
-    from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
-
     backend = BackendSpec.model_validate_json(backend_json)
     task = TaskSpec.model_validate_json(task_json)
     if task.goal_file is not None:
@@ -70,8 +75,6 @@ def fixed_goal(spec: BenchSpec, task: str, seed: int) -> np.ndarray:
 
 def make_bench_env(spec: BenchSpec, task: str, goals: str, seed: int) -> DLOShapeEnv:
     """A DLOShapeEnv of ``task`` with the seed's fixed goal or random goals."""
-    from dlocli.env.shape_env import make_env
-
     task_spec = spec.task.model_copy(update={"name": task, "goal": goals, "goal_file": None})
     goal = fixed_goal(spec, task, seed) if goals == "fixed" else None
     return make_env(spec.backend, task_spec, goal=goal, seed=seed)
@@ -92,9 +95,6 @@ def learner_class(name: str) -> type[BenchLearner]:
     LearningAgent (sac, td3, pilco, ...) learns by itself; ``mpc`` learns its model online
     (paper Algorithm 1), ``mpc-offline`` from as much random data, both planning with the
     spec's planner; a controller that needs nothing (zero, random, ...) does not learn."""
-    from dlocli.controllers.base import LearningAgent
-    from dlocli.registry import controllers
-
     check_agent(name)
     if name.endswith(OFFLINE):
         return OfflineMPCLearner
@@ -114,9 +114,6 @@ def is_reference(name: str) -> bool:
 
 def agent_names() -> list[str]:
     """Every registered controller the bench can run, and ``mpc-offline``."""
-    from dlocli.controllers.base import LearningAgent
-    from dlocli.registry import controllers
-
     names = []
     for name in controllers.names():
         cls = controllers.facts(name)
@@ -190,8 +187,6 @@ class FixedLearner(BenchLearner):
         self.transitions = transitions  # learns nothing: a flat line at the schedule's points
 
     def controller(self, env: DLOShapeEnv) -> Controller:
-        from dlocli.controllers.base import make_controller
-
         return make_controller(self.name, env, seed=stream_seed(self.seed, EVAL_CONTROLLER))
 
 
@@ -199,8 +194,6 @@ class AgentLearner(BenchLearner):
     """A registered :class:`LearningAgent` (sac, td3, pilco) on its own training env."""
 
     def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
-        from dlocli.controllers.base import make_controller
-
         super().__init__(name, spec, seed, work)
         self.env = train_env(spec, seed)
         options = spec.options.get(name)
@@ -245,8 +238,6 @@ class MPCLearner(BenchLearner):
         """The current dynamics model."""
 
     def controller(self, env: DLOShapeEnv) -> Controller:
-        from dlocli.controllers.base import make_controller
-
         seed = stream_seed(self.seed, EVAL_CONTROLLER)
         spec = self.spec
         return make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=self.model())
@@ -283,8 +274,6 @@ class OnlineMPCLearner(MPCLearner):
         self.updates, self.transitions = state["updates"], state["transitions"]
 
     def model(self) -> DynamicsModel:
-        from dlocli.models.markers import load_planning_model
-
         return load_planning_model(self.run.paths.checkpoint(self.updates), self.spec.fit.device)
 
     def training_returns(self) -> list[float]:
@@ -307,9 +296,6 @@ class OfflineMPCLearner(MPCLearner):
     def learn_to(self, transitions: int) -> None:
         import torch
 
-        from dlocli.models.base import build_model, resolve_device
-        from dlocli.models.update_steps import train_like_online
-
         k = self.points().index(transitions)
         data = self._random_data(transitions)
         torch.manual_seed(stream_seed(self.seed, TRAIN, 0))  # as the online model's first update
@@ -322,8 +308,6 @@ class OfflineMPCLearner(MPCLearner):
 
     def _random_data(self, transitions: int) -> Dataset:
         """Random episodes (those of ``mpc``'s initial dataset first) up to ``transitions``."""
-        from dlocli.data import Dataset
-
         episodes = self.data.n_episodes if self.data is not None else 0
         needed = transitions // self.spec.task.episode_steps - episodes
         if needed <= 0:
@@ -360,8 +344,6 @@ def online_spec(spec: BenchSpec, seed: int, work: Path) -> OnlineSpec:
 
     A fixed goal is written to ``work/goal.npy`` so the online run's envs use the seed's goal.
     """
-    from dlocli.io import atomic_path
-
     initial, trials, iterations = mpc_schedule(spec)
     task = spec.task
     if task.goal == "fixed":

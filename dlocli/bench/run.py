@@ -46,6 +46,13 @@ from typing import Any
 from dlocli.bench.agents import agent_names, check_agent, is_reference
 from dlocli.bench.checkpoint import JobCheckpoint
 from dlocli.bench.jobs import RESUME_DIR, Job, run_job
+from dlocli.bench.report import (
+    draw_figures,
+    read_results_csv,
+    summary_table,
+    write_results_csv,
+    write_summary,
+)
 from dlocli.bench.spec import (
     FREE_FIELDS,
     BenchSpec,
@@ -55,8 +62,13 @@ from dlocli.bench.spec import (
     option_agents,
     seeds_of,
 )
+from dlocli.controllers.base import controller_spec
+from dlocli.controllers.sb3_specs import SB3Spec
+from dlocli.env.shape_env import observation_space, observed_markers
 from dlocli.errors import BadInput, DloError
+from dlocli.executors import ClusterLost, check_executor, open_executor
 from dlocli.io import adopt_written, prepare_run_dir, read_json, write_json_atomic
+from dlocli.models.base import refuse_oversized_model
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import InUse, owned
 from dlocli.runs.checks import check_registered
@@ -73,9 +85,6 @@ Progress = Callable[[str, dict[str, Any]], None]
 # ----------------------------------------------------------------------------- checks
 def check_spec(spec: BenchSpec) -> None:
     """Refuse what cannot run, with one line naming the fix (BadInput)."""
-    from dlocli.controllers.base import controller_spec
-    from dlocli.executors import check_executor
-
     check_registered(spec)
     if not spec.agents:
         raise BadInput(f"--agents is empty; pass some of {', '.join(agent_names())}")
@@ -123,11 +132,6 @@ def check_spec(spec: BenchSpec) -> None:
 
 def _refuse_oversized_agents(spec: BenchSpec) -> None:
     """BadInput, before any job starts, if a model or an SB3 agent would not fit in memory."""
-    from dlocli.controllers.base import controller_spec
-    from dlocli.controllers.sb3_specs import SB3Spec
-    from dlocli.env.shape_env import observation_space, observed_markers
-    from dlocli.models.base import refuse_oversized_model
-
     n_segments = spec.backend.rod.n_segments
     if {"mpc", "mpc-offline"} & set(spec.agents):
         refuse_oversized_model(spec.model, n_segments)
@@ -217,8 +221,6 @@ class BenchRun:
 
     def _run_jobs(self, executor: Any, todo: list[Job]) -> dict[str, BaseException]:
         """Run ``todo``, saving each job as it finishes; what each failed job raised."""
-        from dlocli.executors import ClusterLost
-
         failed: dict[str, BaseException] = {}
         spec_json = self.spec.model_dump_json()
         calls = [(spec_json, job.agent, job.seed, job.scratch) for job in todo]
@@ -237,8 +239,6 @@ class BenchRun:
 
     def write_results_csv_from_jobs(self) -> None:
         """results.csv from every job file of this spec in jobs/, whatever the agents."""
-        from dlocli.bench.report import write_results_csv
-
         rows = []
         for path in sorted((self.out / "jobs").glob("*-s*.json")):
             agent, _, seed = path.stem.rpartition("-s")
@@ -255,13 +255,6 @@ class BenchRun:
         return rows
 
     def write_results(self) -> dict[str, Any]:
-        from dlocli.bench.report import (
-            draw_figures,
-            summary_table,
-            write_results_csv,
-            write_summary,
-        )
-
         rows = self.rows()
         write_results_csv(self.out / "results.csv", rows)
         table = summary_table(rows)
@@ -282,8 +275,6 @@ def start_bench(
     spec: BenchSpec, overwrite: bool = False, progress: Progress | None = None
 ) -> dict[str, Any]:
     """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept)."""
-    from dlocli.executors import open_executor
-
     check_spec(spec)
     if (Path(spec.out) / "spec.json").is_file() and not overwrite:
         if (Path(spec.out) / "jobs").is_dir():
@@ -309,8 +300,6 @@ def resume_bench(
     run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
 ) -> dict[str, Any]:
     """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change."""
-    from dlocli.executors import open_executor
-
     spec = load_bench_spec(run_dir, overrides)
     check_spec(spec)
     with open_executor(spec, spec.threads) as executor, owned(run_dir, shared=True):
@@ -336,8 +325,6 @@ def report_bench(run_dirs: list[Path]) -> dict[str, Any]:
     learned on the same task and goals (say ``mpc`` with and without ``fit.mirror``), each
     is labelled with its run directory's name: ``mpc [bench_paper_mirror]``; the references
     (``zero``, ``random``) keep their names, a seed's evaluation counted once."""
-    from dlocli.bench.report import draw_figures, read_results_csv, summary_table, write_summary
-
     if not run_dirs:
         raise BadInput("--report needs a run directory")
     for run in run_dirs:

@@ -10,6 +10,7 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import Field, TypeAdapter, model_validator
 
+from dlocli.controllers.base import LearningAgent, controller_spec
 from dlocli.controllers.specs import (
     PlannerName,
     PlannerOptions,
@@ -24,6 +25,7 @@ from dlocli.migrations import (
     without_legacy_values,
 )
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
+from dlocli.registry import controllers
 from dlocli.specs import MODEL_OPTIONS, EnvSpec
 
 #: compact JSON, the bytes fingerprints have always hashed
@@ -159,9 +161,6 @@ def fingerprint_data(spec: BenchSpec, with_options: bool = True) -> dict[str, An
 def option_agents() -> list[str]:
     """The agents that take options: the learning agents with a spec (sac, td3, pilco, ...);
     mpc's are the bench spec's own model, fit and mpc fields."""
-    from dlocli.controllers.base import LearningAgent
-    from dlocli.registry import controllers
-
     return [
         name
         for name in controllers.names()
@@ -171,8 +170,6 @@ def option_agents() -> list[str]:
 
 def resolved_options(spec: BenchSpec, agent: str) -> dict[str, Any] | None:
     """The options ``agent`` ran with, defaults filled in (None for agents without any)."""
-    from dlocli.controllers.base import controller_spec
-
     if agent not in option_agents():
         return None
     options = controller_spec(agent, spec.options.get(agent))

@@ -19,6 +19,7 @@ import numpy as np
 from dlocli.backends.base import Backend
 from dlocli.bridge import protocol
 from dlocli.bridge.spec import ServeSpec
+from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
 from dlocli.processes import raise_if_stopped
 
@@ -174,8 +175,6 @@ def serve(spec: ServeSpec, ready: Callable[[str], None] | None = None) -> None:
     """Serve ``spec.backend`` at ``spec.address`` until stopped (SIGINT, SIGTERM);
     ``ready(address)`` is called once the socket listens."""
     import zmq
-
-    from dlocli.env.shape_env import make_backend
 
     backend = make_backend(spec.backend, spec.control_dt)
     context = zmq.Context()

@@ -27,6 +27,7 @@ from dlocli.calibration.spec import CalibrateSpec
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.markers import deform, protocol
 from dlocli.processes import exit_with_parent, raise_if_stopped
+from dlocli.registry import backends
 from dlocli.specs import BackendSpec, RodSpec, format_validation_error
 
 HISTORY_FILE = "history.json"
@@ -96,8 +97,6 @@ def _init_worker(
 def replay_named(backend_spec: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
     """Replay the worker's recordings ``names`` on one rod; one result dict per recording
     (score None where the simulator cannot build the rod)."""
-    from dlocli.registry import backends
-
     spec = BackendSpec.model_validate(backend_spec)
     try:
         backend = backends.get(spec.name)(spec, control_dt=_worker["dt"])

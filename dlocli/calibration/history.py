@@ -17,6 +17,8 @@ from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.errors import BadInput
+from dlocli.io import read_json
+from dlocli.specs import validated
 
 
 class _Generation(BaseModel):
@@ -37,9 +39,6 @@ class _History(BaseModel):
 def read_history(path: Path, spec: CalibrateSpec) -> dict[str, Any]:
     """The history in ``path`` as data; BadInput naming the field that is not of this run
     (population, parameter count, numbers)."""
-    from dlocli.io import read_json
-    from dlocli.specs import validated
-
     state = read_json(path, dict)
     history = validated(_History, state, f"--resume {spec.out}: {path.name}")
     n, size = spec.population, len(spec.parameters)

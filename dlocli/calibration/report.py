@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from dlocli.io import write_json_atomic, write_text_atomic
+
 #: DEFORM (Chen et al., CoRL 2024) Table 1, physics simulators, cm, by cable folder name
 PUBLISHED_CM: dict[str, dict[str, float]] = {
     "DER": {"DLO1": 1.96, "DLO2": 1.91, "DLO3": 1.86, "DLO4": 1.50},
@@ -53,8 +55,6 @@ def markdown(summary: dict[str, Any]) -> str:
 
 def write_report(out: Path, summary: dict[str, Any]) -> None:
     """OUT/report.json and OUT/report.md (atomic)."""
-    from dlocli.io import write_json_atomic, write_text_atomic
-
     summary["published_cm"] = published_rows(summary["cable"])
     write_json_atomic(out / "report.json", summary)
     write_text_atomic(out / "report.md", markdown(summary))

@@ -7,6 +7,7 @@ from typing import ClassVar, Literal
 
 from pydantic import Field, field_validator
 
+from dlocli.calibration.parameters import PARAMETERS
 from dlocli.limits import MAX_PROCESSES, MAX_SEED
 from dlocli.specs import BackendSpec, RodSpec, Spec
 
@@ -101,8 +102,6 @@ class CalibrateSpec(Spec):
     @field_validator("parameters")
     @classmethod
     def _known(cls, value: list[str]) -> list[str]:
-        from dlocli.calibration.parameters import PARAMETERS
-
         unknown = [p for p in value if p not in PARAMETERS]
         if unknown:
             raise ValueError(

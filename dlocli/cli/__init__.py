@@ -8,6 +8,7 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
+import sys
 import typing
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -16,6 +17,11 @@ from typing import TYPE_CHECKING, Any
 import typer
 import typer.main
 from typer.core import TyperCommand, TyperGroup, TyperOption
+
+from dlocli import __version__
+from dlocli.cli.common import print_error
+from dlocli.processes import handle_stop_signals
+from dlocli.threads import fit_this_process
 
 if TYPE_CHECKING:  # Typer carries its own Click; these names are for annotations only
     from typer._click import Context, HelpFormatter
@@ -179,8 +185,6 @@ def _root(
 ) -> None:
     """Learn and control the 3D shape of deformable linear objects (cables, ropes)."""
     if version:
-        from dlocli import __version__
-
         typer.echo(f"dlocli {__version__}")
         raise typer.Exit(0)
     if ctx.invoked_subcommand is None:
@@ -190,12 +194,6 @@ def _root(
 
 def main() -> None:
     """The `dlo` entry point: SIGTERM handled like Ctrl-C, usage errors as one line."""
-    import sys
-
-    from dlocli.cli.common import print_error
-    from dlocli.processes import handle_stop_signals
-    from dlocli.threads import fit_this_process
-
     fit_this_process()  # before any command imports torch
 
     # Typer vendors Click; its UsageError is public only as BadParameter's base

@@ -7,6 +7,8 @@ from typing import Any
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.progress import Bars
+from dlocli.runs.calibrate import resumed_spec, run_calibration
 
 
 @handle_errors
@@ -20,9 +22,6 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     Grippers follow the recorded end markers; the rod is the cable between its outermost
     markers, with the cable's mass per length. `--resume OUT` continues after the last
     finished generation (`--generations` may change there: more extends the search)."""
-    from dlocli.cli.progress import Bars
-    from dlocli.runs.calibrate import resumed_spec, run_calibration
-
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json) as bars:

@@ -14,6 +14,7 @@ from dlocli.cli.common import (
 )
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.runs.collect import collect_random, resumed_spec
 from dlocli.specs import CollectSpec
 
 
@@ -36,8 +37,6 @@ def collect(
 
     Each finished episode is saved at once; `--resume OUT` collects only the missing ones.
     """
-    from dlocli.runs.collect import collect_random, resumed_spec
-
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json) as bars:

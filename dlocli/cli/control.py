@@ -9,7 +9,8 @@ import typer
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
-from dlocli.runs.control import ControlSpec
+from dlocli.registry import controllers
+from dlocli.runs.control import ControlSpec, run_control
 
 OPTION_HELP = "Controller option KEY=VALUE, a field of the --controller's spec; repeatable."
 
@@ -17,8 +18,6 @@ OPTION_HELP = "Controller option KEY=VALUE, a field of the --controller's spec; 
 def controller_options_help() -> str:
     """The -o help: every registered controller's options and their defaults, from its spec
     (a plugin's module is imported for it, so only --help calls it)."""
-    from dlocli.registry import controllers
-
     described = []
     for name in controllers.names():
         spec_cls = controllers.spec_cls(name)
@@ -38,8 +37,6 @@ def control(
     ] = None,
 ) -> None:
     """Drive the rod from a seeded random start to the --goal shape; write OUT/summary.json."""
-    from dlocli.runs.control import run_control
-
     run.overrides |= parse_options(option or [], "controller_options")
     spec = run.spec()
     with Bars(run.json) as bars:

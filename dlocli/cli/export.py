@@ -10,6 +10,7 @@ import typer
 
 from dlocli.cli.common import JsonFlag, emit_summary, handle_errors
 from dlocli.errors import BadInput
+from dlocli.runs.export import export_minari
 
 
 class ExportFormat(str, Enum):
@@ -76,8 +77,6 @@ def export(
     (6 or 12), rewards as stored; the env spec is recorded, so `recover_environment()` works
     after `import dlocli`.
     """
-    from dlocli.runs.export import export_minari
-
     summary = export_minari(
         run_or_dataset,
         dataset_id=_one_of(dataset_id, old_name, "--dataset-id", "--name"),

@@ -25,6 +25,8 @@ import yaml
 
 from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile
 from dlocli.errors import BadInput
+from dlocli.models.spec import ModelSpec, model_spec_classes
+from dlocli.rundir import refuse_outputs_in_inputs
 from dlocli.specs import MODEL_OPTIONS, Spec, field_info, resolve_spec, strip_none
 
 MODEL = "model"  # the field of the run specs that holds the model spec
@@ -73,16 +75,12 @@ def flag_name(dotted: str) -> str:
 def model_flags() -> list[str]:
     """The fields of every registered model's spec (``model.FIELD``), for the commands that
     build a model: the common ones first, then each model's own."""
-    from dlocli.models.spec import model_spec_classes
-
     fields = {name: None for cls in model_spec_classes().values() for name in cls.model_fields}
     return [f"{MODEL}.{name}" for name in fields]
 
 
 def _model_help(dotted: str, info: Any) -> str:
     """Help of a model option: which models have it, and their defaults."""
-    from dlocli.models.spec import ModelSpec, model_spec_classes
-
     field = dotted.split(".")[-1]
     owners = {n: c for n, c in model_spec_classes().items() if field in c.model_fields}
     if field == "name":
@@ -167,8 +165,6 @@ class RunFlags:
     def spec(self) -> Any:
         """The run's spec: defaults, then the spec file, then the flags given; BadInput if
         it would write into a run it reads."""
-        from dlocli.rundir import refuse_outputs_in_inputs
-
         spec = resolve_spec(self.spec_cls, self.spec_file, self.overrides)
         refuse_outputs_in_inputs(spec)
         return spec

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.runs.goal import run_goal
 from dlocli.specs import GoalSpec
 
 
@@ -14,6 +15,4 @@ def goal(
 ) -> None:
     """Drive the grippers to a random pose (seeded), let the rod settle, save its shape: a
     goal drawn from the same distribution as the env's goals."""
-    from dlocli.runs.goal import run_goal
-
     emit_summary(run_goal(run.spec(), run.overwrite), run.json, "dlo goal")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.markers.importing import run_import
 from dlocli.markers.spec import ImportSpec
 
 
@@ -15,6 +16,4 @@ def import_recordings(
     """Import --source (train/*.pkl, eval/*.pkl: pickled (frames, 3, markers) lists, read
     without running code) into OUT/dataset.h5 for `dlo train` and `dlo eval`; prints the
     freeze and straight-line references' scores."""
-    from dlocli.markers.importing import run_import
-
     emit_summary(run_import(run.spec(), run.overwrite), run.json, "dlo import")

@@ -8,6 +8,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from dlocli import registry
 from dlocli.cli.common import handle_errors
 
 
@@ -17,8 +18,6 @@ def list_plugins(
 ) -> None:
     """List registered backends, tasks, models and controllers."""
     import json
-
-    from dlocli import registry
 
     kinds = {
         "backends": registry.backends,

@@ -7,7 +7,7 @@ from typing import Any
 from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
-from dlocli.runs.online import OnlineSpec
+from dlocli.runs.online import OnlineSpec, resume_online, start_online
 
 
 @handle_errors
@@ -24,8 +24,6 @@ def online(
     --workers 2` keeps each update's cost fixed (examples/online_paper; timings in the
     README). For a CPU demo in minutes, see the README's first command.
     """
-    from dlocli.runs.online import resume_online, start_online
-
     run.refuse_with_resume(resume)
     with Bars(run.json) as bars:
         callback = _OnlineProgress(bars)

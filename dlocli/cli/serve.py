@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from dlocli.bridge.cell import serve as serve_cell
 from dlocli.bridge.spec import ServeSpec
 from dlocli.cli.common import handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.extras import require
+from dlocli.processes import stop_handled
 
 
 @handle_errors
@@ -15,10 +18,6 @@ def serve(
     """Serve a simulator as a cell at --address until stopped (Ctrl-C, SIGTERM: exit 0):
     controllers step it with `dlo control --cell ADDRESS`, as they would a robot."""
     import typer
-
-    from dlocli.bridge.cell import serve as serve_cell
-    from dlocli.extras import require
-    from dlocli.processes import stop_handled
 
     spec = run.spec()
     require("bridge", "dlo serve")

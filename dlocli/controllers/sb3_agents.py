@@ -29,7 +29,8 @@ from dlocli.controllers.base import LearningAgent, resolve_agent_spec
 from dlocli.controllers.sb3_replay import REPLAY_DIR, load_buffer_rows, save_buffer_rows
 from dlocli.controllers.sb3_specs import SACSpec, SB3Spec, TD3Spec
 from dlocli.errors import BadInput
-from dlocli.io import read_json, write_json_atomic
+from dlocli.io import atomic_path, read_json, write_json_atomic
+from dlocli.tensorboard import available
 
 
 class SB3Agent(LearningAgent):
@@ -100,8 +101,6 @@ class SB3Agent(LearningAgent):
         """SB3's own logger writes its training curves (losses, entropy, episode reward)
         there as TensorBoard events, when TensorBoard is installed: one logger for every
         ``learn`` call (SB3 would open a new event file per call)."""
-        from dlocli.tensorboard import available
-
         if available():
             self.log_directory = Path(directory) / f"{self.algorithm}_0"
 
@@ -117,8 +116,6 @@ class SB3Agent(LearningAgent):
     def save_policy(self, directory: Path) -> bool:
         """Write ``model.zip`` (SB3's own format: networks and optimizer, no replay buffer)
         and ``agent.json`` (algorithm, transitions, seed, spaces) into ``directory``."""
-        from dlocli.io import atomic_path
-
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         with atomic_path(directory / "model.zip") as tmp, open(tmp, "wb") as file:

@@ -16,6 +16,9 @@ from __future__ import annotations
 import re
 from typing import TYPE_CHECKING, Any
 
+from dlocli.errors import BadOption
+from dlocli.registry import backends, tasks
+
 if TYPE_CHECKING:
     import gymnasium as gym
 
@@ -38,8 +41,6 @@ def gym_id(backend: str, task: str) -> str:
 
 def gym_ids() -> dict[str, tuple[str, str]]:
     """Every dlocli id with its (backend, task), from the backend and task registries."""
-    from dlocli.registry import backends, tasks
-
     return {gym_id(b, t): (b, t) for b in backends.names() for t in tasks.names()}
 
 
@@ -76,8 +77,6 @@ def episode_time_limit(env: gym.Env[Any, Any]) -> gym.Env[Any, Any]:
     truncation alone.
     """
     from gymnasium.wrappers import TimeLimit
-
-    from dlocli.errors import BadOption
 
     if not isinstance(env, TimeLimit):
         return env

@@ -28,6 +28,7 @@ import numpy as np
 
 from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
+from dlocli.bridge.remote import RemoteCell
 from dlocli.bridge.spec import CellChoice
 from dlocli.env.envelope import Envelope
 from dlocli.env.goals import check_goal_reachable, load_goal
@@ -65,7 +66,6 @@ def make_backend(
     rod of ``spec`` stepped by the cell at that address (:mod:`dlocli.bridge`)."""
     if cell is not None and cell.cell is not None:
         require("bridge", "--cell", "drop --cell to simulate in this process")
-        from dlocli.bridge.remote import RemoteCell
 
         return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s)
     cls = backend_registry.get(spec.name)

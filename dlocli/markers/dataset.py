@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.dataset_checks import check_fields
 from dlocli.dataset_format import FORMAT, FORMAT_VERSION
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
@@ -136,7 +137,6 @@ def read_marker_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> MarkerDatas
     data = MarkerDataset(**arrays, attrs=attrs, path=path)
     _check_held(data.held, path)
     _check(data, path)
-    from dlocli.dataset_checks import check_fields
 
     check_fields(arrays, attrs, path, FORMAT_VERSION)
     _check_split(data.split, path)

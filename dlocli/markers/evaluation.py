@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from dlocli.io import atomic_path
 from dlocli.markers import protocol
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.models.marker_training import predict_episodes
@@ -78,8 +79,6 @@ def plot_error_by_horizon(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from dlocli.io import atomic_path
 
     fig, ax = plt.subplots(figsize=(6, 3.8))
     for name, curve in curves["free_error_mm"].items():

@@ -8,9 +8,11 @@ import numpy as np
 
 from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
+from dlocli.io import prepare_run_dir, write_json_atomic
 from dlocli.markers import deform, protocol
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.spec import UNITS, ImportSpec
+from dlocli.rundir import owned, resolved
 
 #: plausible length (m) of a recorded cable along its markers; outside it, a unit error
 CABLE_LENGTH_M = (0.02, 10.0)
@@ -19,9 +21,6 @@ CABLE_LENGTH_M = (0.02, 10.0)
 def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
     """Read ``spec.source`` (refusing anything but plain data), write OUT/dataset.h5,
     OUT/spec.json and OUT/summary.json; return the summary."""
-    from dlocli.io import prepare_run_dir, write_json_atomic
-    from dlocli.rundir import owned
-
     if spec.source is None:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
     _refuse_out_by_source(spec)
@@ -65,8 +64,6 @@ def describe(dataset: MarkerDataset) -> dict[str, Any]:
 def _refuse_out_by_source(spec: ImportSpec) -> None:
     """BadInput if --out lies inside --source (the import would land among the recordings it
     reads) or holds it (--overwrite would put the recordings at stake)."""
-    from dlocli.rundir import resolved
-
     out, source = resolved(spec.out, "--out"), resolved(spec.source, "--source")
     if out == source or source in out.parents or out in source.parents:
         raise BadInput(

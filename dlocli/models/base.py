@@ -39,6 +39,7 @@ from dlocli.io import versions, write_bytes_atomic
 from dlocli.limits import refuse_unless_fits
 from dlocli.migrations import completed
 from dlocli.models.spec import ModelSpec, model_spec
+from dlocli.registry import models
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)
@@ -235,8 +236,6 @@ def node_actions(action: Tensor, n_segments: int) -> Tensor:
 def build_model(spec: ModelSpec | dict[str, Any], n_segments: int) -> DynamicsModel:
     """A fresh (untrained) model of the registered kind ``spec.name`` (a spec, or its fields
     as a dict); BadInput if its training would not fit in memory."""
-    from dlocli.registry import models
-
     spec = valid_model_spec(spec)
     refuse_oversized_model(spec, n_segments)
     return models.get(spec.name)(spec, n_segments)
@@ -254,8 +253,6 @@ def refuse_oversized_model(spec: ModelSpec, n_segments: int) -> None:
     """BadInput if the model's weights, gradients and Adam's two moments (4 float32 copies)
     exceed the memory this run may use. The model is built on the meta device, which counts
     its parameters exactly without allocating them."""
-    from dlocli.registry import models
-
     with torch.device("meta"):
         parameters = sum(p.numel() for p in models.get(spec.name)(spec, n_segments).parameters())
     refuse_unless_fits(

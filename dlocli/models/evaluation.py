@@ -18,6 +18,7 @@ import torch
 
 from dlocli.data import Dataset
 from dlocli.models.base import DynamicsModel
+from dlocli.plots import plot_rollout_figure
 
 HORIZONS = (5, 50)
 ROLL_BATCH = 256
@@ -115,8 +116,6 @@ def plot_rollout(
 ) -> Path:
     """PNG: true vs predicted rod over an open-loop rollout from the episode's second state,
     at a few instants (3D), and the error per step next to persistence's."""
-    from dlocli.plots import plot_rollout_figure
-
     start = 1 if dataset.episode_lengths[episode] > 1 else 0  # t = 1: s_{t-1} is recorded
     h = int(min(horizon, dataset.episode_lengths[episode] - start))
     state, actions, truth, previous = windows(dataset, [(episode, start)], h)

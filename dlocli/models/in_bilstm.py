@@ -29,6 +29,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from dlocli.models import fast_rollout
 from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, mlp, node_actions
 from dlocli.models.rnn import bilstm
 from dlocli.models.spec import INBiLSTMSpec, ModelSpec
@@ -56,8 +57,6 @@ class INBiLSTM(DynamicsModel):
     def rollout(self, state: Tensor, actions: Tensor, previous: Tensor | None = None) -> Tensor:
         """:meth:`DynamicsModel.rollout`; forward-only small batches on CPU (the planners')
         take :mod:`dlocli.models.fast_rollout`, several times faster at batch 1."""
-        from dlocli.models import fast_rollout
-
         if actions.dim() == 4 and fast_rollout.usable(self, state, actions, previous):
             self._check(state, actions[:, 0], previous)
             return fast_rollout.rollout(self, state, actions, previous)

@@ -23,6 +23,8 @@ import torch
 
 from dlocli.cancel import CancelToken
 from dlocli.errors import DloError
+from dlocli.markers.protocol import deform_score_cm
+from dlocli.models.base import resolve_device
 from dlocli.models.fitting import KeepBest, Progress, RolloutValidated
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
@@ -119,8 +121,6 @@ def predict_episodes(
 
 def scores_cm(model: MarkerModel, cable: Cable) -> list[float]:
     """The benchmark score (cm) of every episode of ``cable``."""
-    from dlocli.markers.protocol import deform_score_cm
-
     preds = predict_episodes(model, cable.episodes, cable.held)
     return [deform_score_cm(p, e) for p, e in zip(preds, cable.episodes, strict=True)]
 
@@ -143,8 +143,6 @@ def fit_markers(
     the validation history. The model ends in eval mode with the best validated weights.
     ``progress`` gets a :class:`~dlocli.models.fitting.RolloutValidated` after each
     validation; ``cancel`` stops the fit before the next gradient step once cancelled."""
-    from dlocli.models.base import resolve_device
-
     device = resolve_device(fit.device)
     torch.manual_seed(fit.seed)
     if not bool(model.fitted):

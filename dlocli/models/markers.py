@@ -26,9 +26,11 @@ import torch
 from torch import Tensor
 
 from dlocli.errors import BadInput
-from dlocli.models.base import mlp
+from dlocli.models import base
+from dlocli.models.base import checkpoint_spec, mlp, read_checkpoint, valid_model_spec, with_weights
 from dlocli.models.in_bilstm import init_forget_bias
 from dlocli.models.spec import ModelSpec
+from dlocli.registry import import_target, models
 
 FEATURES = 10  # relative position 3, velocity 3, held displacement 3, held flag 1
 FORM = "markers"
@@ -208,9 +210,6 @@ class MarkerMLP(MarkerModel):
 
 def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:
     """A fresh marker-form model of the registered kind ``spec.name``."""
-    from dlocli.models.base import valid_model_spec
-    from dlocli.registry import models
-
     spec = valid_model_spec(spec)
     form = _marker_form(models.get(spec.name))
     if form is None:
@@ -221,16 +220,12 @@ def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> Mar
 
 def _marker_form(rod_model: Any) -> type[MarkerModel] | None:
     """The marker-form class a registered model names (imported if named as a string)."""
-    from dlocli.registry import import_target
-
     form = getattr(rod_model, "marker_form", None)
     return import_target(form) if isinstance(form, str) else form
 
 
 def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:
     """A trained marker-form model from a checkpoint or run directory, in eval mode."""
-    from dlocli.models.base import read_checkpoint
-
     payload = read_checkpoint(path)
     if payload.get("form") != FORM:
         raise BadInput(f"{path} is a rod model; evaluate it on a rod dataset (`dlo collect`)")
@@ -240,8 +235,6 @@ def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerMo
 def load_planning_model(source: Any, device: str | torch.device = "cpu") -> torch.nn.Module:
     """A model a planner plans with, from a checkpoint (a path, or a file's bytes): a marker
     model if the checkpoint holds one, else the rod model."""
-    from dlocli.models import base
-
     from_bytes = isinstance(source, bytes)
     payload = base.read_checkpoint_bytes(source) if from_bytes else base.read_checkpoint(source)
     if payload.get("form") == FORM:
@@ -253,8 +246,6 @@ def marker_model_from_payload(
     payload: dict[str, Any], path: Any, device: str | torch.device = "cpu"
 ) -> MarkerModel:
     """The marker model a checkpoint's payload holds (named ``path`` in errors)."""
-    from dlocli.models.base import checkpoint_spec, with_weights
-
     spec = checkpoint_spec(payload, path)
     held = payload["state_dict"].get("held")
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:

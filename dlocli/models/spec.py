@@ -10,6 +10,7 @@ from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo, mod
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import RETIRED_TRAIN_FIELDS, model_data, without_retired_train_fields
+from dlocli.registry import models
 from dlocli.specs import MODEL_OPTIONS, Device, RetiredField, Spec, is_given
 
 
@@ -36,8 +37,6 @@ class ModelSpec(Spec):
     def saved_layout(cls, data: Any) -> Any:
         """A saved model spec (as data) without the fields of other models that the flat
         layout, one spec shared by every model, saved with it."""
-        from dlocli.registry import models
-
         name = data.get("name", cls.model_fields["name"].default) if isinstance(data, dict) else 0
         if not isinstance(name, str) or name not in models:
             return data  # validation names the problem
@@ -91,15 +90,11 @@ class MLPSpec(ModelSpec):
 
 def model_spec_classes() -> dict[str, type[ModelSpec]]:
     """The spec class of every registered model, by name."""
-    from dlocli.registry import models
-
     return {name: model_spec_class(name) for name in models.names()}
 
 
 def model_spec_class(name: str) -> type[ModelSpec]:
     """The spec class of the registered model ``name`` (UnknownName if there is none)."""
-    from dlocli.registry import models
-
     return models.spec_cls(name) or ModelSpec
 
 

@@ -44,6 +44,7 @@ from dlocli.errors import BadInput
 from dlocli.io import adopt_written, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
 from dlocli.processes import raise_if_stopped, start_worker
+from dlocli.resume import resumed_run_spec
 from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
 from dlocli.runs.checks import check_registered
 from dlocli.specs import CollectSpec, EnvSpec
@@ -116,8 +117,6 @@ def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> CollectSpec:
     """`dlo collect --resume RUN`: the spec of the run in ``run_dir`` (pass it to
     :func:`collect_random` with ``resume=True``); flags that contradict it are refused
     (``--workers`` may change: the data do not depend on it)."""
-    from dlocli.resume import resumed_run_spec
-
     return resumed_run_spec(
         CollectSpec, run_dir, overrides, "a collect", "dlo collect", free=frozenset({"workers"})
     )

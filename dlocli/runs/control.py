@@ -44,6 +44,7 @@ from dlocli.errors import BadInput
 from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
+from dlocli.registry import controllers
 from dlocli.rundir import owned
 from dlocli.specs import Device, EnvSpec
 from dlocli.threads import torch_threads, warn_if_oversubscribed
@@ -118,8 +119,6 @@ def check_video_path(path: Path | None, overwrite: bool) -> None:
 def check_inputs_used(spec: ControlSpec) -> None:
     """BadInput if the controller would ignore a given model or policy, or needs a policy
     it was not given (a learning agent never runs untrained here)."""
-    from dlocli.registry import controllers
-
     cls = controllers.get(spec.controller)
     learns = issubclass(cls, LearningAgent)
     if learns and spec.policy is None:

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from dlocli import __version__
 from dlocli.backends.rotations import state_change
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.shape_env import DLOShapeEnv, observation_space
@@ -138,8 +139,6 @@ def gym_env_spec(spec: EnvSpec) -> Any:
     """The ``gymnasium.envs.registration.EnvSpec`` that rebuilds ``spec``'s env: the id
     registered for its backend and task, with the task fields, seed and backend as kwargs."""
     import gymnasium as gym
-
-    import dlocli  # noqa: F401  (registers the dlocli/... ids)
 
     backend, task = spec.backend.name, spec.task.name
     wanted = {"backend": backend, "task": task}
@@ -320,8 +319,6 @@ def export_minari(
                 "re-collect it" + ("" if not skip_diverged else " or drop --skip-diverged")
             )
         _check_free_space(root, buffers)
-        from dlocli import __version__
-
         metadata = {
             "source": str(source.resolve()),
             "spec": spec.model_dump(mode="json"),

@@ -17,8 +17,10 @@ import numpy as np
 import dlocli.runs.online.trials as trials
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
+from dlocli.env.shape_env import make_env_from_spec
 from dlocli.errors import DloError
 from dlocli.executors import ClusterLost, LocalExecutor
+from dlocli.runs.collect import dataset_attrs
 from dlocli.runs.online.results import OnlineResults
 from dlocli.runs.online.spec import (
     OFFLINE,
@@ -56,8 +58,6 @@ class OnlineRun:
         path = self.paths.initial()
         if path.is_file():
             return load_dataset(path)
-        from dlocli.env.shape_env import make_env_from_spec
-        from dlocli.runs.collect import dataset_attrs
 
         env = make_env_from_spec(trials.env_spec(self.spec))
         episodes = []
@@ -281,7 +281,6 @@ class OnlineRun:
         path = self.paths.offline_data(k)
         if path.is_file():
             return load_dataset(path)
-        from dlocli.env.shape_env import make_env_from_spec
 
         data = load_dataset(self.paths.initial())
         env = make_env_from_spec(trials.env_spec(self.spec))

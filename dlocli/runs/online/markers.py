@@ -19,7 +19,10 @@ import numpy as np
 from dlocli.data import Dataset
 from dlocli.env.observation import MarkerLayout, held_markers, marker_layout
 from dlocli.errors import BadInput
+from dlocli.models.marker_training import Cable, fit_markers
+from dlocli.models.markers import build_marker_model
 from dlocli.models.splits import split_episodes
+from dlocli.processes import signal_token
 from dlocli.specs import EnvSpec
 
 #: the shortest run of complete frames worth training on
@@ -63,9 +66,6 @@ def update_marker_model(
     model: Any, data: Dataset, spec: Any, fit: Any, progress: Any = None
 ) -> list[dict[str, float]]:
     """Train the marker ``model`` on D (``spec``: the online spec) in place; its history."""
-    from dlocli.models.marker_training import Cable, fit_markers
-    from dlocli.processes import signal_token
-
     layout = run_marker_layout(spec)
     latency = spec.task.observation.latency_steps
     train_idx, val_idx = split_episodes(data.n_episodes, fit.val_fraction)
@@ -83,7 +83,5 @@ def update_marker_model(
 
 def new_marker_model(spec: Any) -> Any:
     """A fresh marker model of the run's model kind, for its markers."""
-    from dlocli.models.markers import build_marker_model
-
     layout = run_marker_layout(spec)
     return build_marker_model(spec.model, len(layout), layout.held)

@@ -16,6 +16,7 @@ from dlocli.controllers.base import references
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import episode_scores
 from dlocli.io import write_json_atomic, write_text_atomic
+from dlocli.plots import plot_learning_curve
 from dlocli.runs.online.spec import OnlineSpec, RunLayout
 from dlocli.runs.references import ReferenceTable
 
@@ -116,8 +117,6 @@ class OnlineResults:
     def write(self, wall: float, final: bool = False) -> dict[str, Any]:
         """Write metrics, summary and plot of the trials finished so far; with ``final``
         also checkpoints/final.pt. The summary, returned."""
-        from dlocli.plots import plot_learning_curve
-
         out = self.spec.out
         rows = self.rows()
         offline_rows = self.rows(offline=True) if self.spec.offline else []

@@ -10,8 +10,10 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.controllers.base import make_controller
 from dlocli.data import Episode
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
+from dlocli.env.shape_env import make_env_from_spec
 from dlocli.runs.online.spec import INITIAL, NOISE, REFERENCE, TRIAL, OnlineSpec, job_threads
 from dlocli.runs.references import reference_episode_scores
 from dlocli.specs import EnvSpec
@@ -50,8 +52,6 @@ class TimedController:
 def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[Episode, float]:
     """One trial of the spec's planner through the model ``checkpoint`` holds (seeds from
     (seed, k, j)), and the seconds the planner took in it."""
-    from dlocli.controllers.base import make_controller
-    from dlocli.env.shape_env import make_env_from_spec
     from dlocli.models.markers import load_planning_model
 
     env = make_env_from_spec(env_spec(spec))
@@ -91,8 +91,6 @@ def reference_episodes(
 ) -> list[tuple[str, int, dict[str, float]]]:
     """The reference episodes ``runs`` ((controller, trial) pairs) of iteration k, on one
     env, from the trials' starts (an executor's job)."""
-    from dlocli.env.shape_env import make_env_from_spec
-
     spec = OnlineSpec.model_validate_json(spec_json)
     env = make_env_from_spec(env_spec(spec))
     try:
