@@ -281,23 +281,27 @@ def plot(table: dict[tuple[str, str], dict[str, float]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     settings = list(SETTINGS)
-    fig, ax = plt.subplots(figsize=(10, 4.2))
-    shown = [n for n in LEARNERS if any((n, s) in table for s in settings) and n != "mpc-full"]
+    fig, ax = plt.subplots(figsize=(11, 4.6))
+    lines = {"zero": ("doing nothing", "--"), "random": ("random actions", "-."),
+             "mpc-full": ("mpc-full (exact state)", ":")}  # fmt: skip
+    shown = [n for n in LEARNERS if n not in lines and any((n, s) in table for s in settings)]
     width = 0.8 / len(shown)
     for i, name in enumerate(shown):
         x = [j + (i - (len(shown) - 1) / 2) * width for j, s in enumerate(settings)
              if (name, s) in table]  # fmt: skip
         y = [table[(name, s)]["final"] for s in settings if (name, s) in table]
         err = [table[(name, s)]["final_std"] for s in settings if (name, s) in table]
-        ax.bar(x, y, width, yerr=err, label=name, capsize=2)
-    full = table.get(("mpc-full", "clean"))
-    if full is not None:
-        ax.axhline(full["final"], color="k", lw=0.8, ls=":", label="mpc-full, exact state")
+        seeds = max(table[(name, s)]["seeds"] for s in settings if (name, s) in table)
+        ax.bar(x, y, width, yerr=err, label=f"{name} ({seeds} seeds)", capsize=2)
+    for name, (label, style) in lines.items():
+        if (name, "clean") in table:
+            ax.axhline(table[(name, "clean")]["final"], color="k", lw=0.9, ls=style, label=label)
     ax.set_xticks(range(len(settings)), settings, rotation=25, ha="right")
     ax.set_ylabel("final shape error (mm), mean of seeds")
     ax.set_yscale("log")
-    ax.set_title("Evaluated under each tracker setting (trained on clean markers)")
-    ax.legend(fontsize=8, ncol=3)
+    ax.set_title("Trained once on clean markers, evaluated under each tracker setting "
+                 "(same starts and goals)")  # fmt: skip
+    ax.legend(fontsize=8, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.32))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
