@@ -69,7 +69,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "air_damping": None,
     },
     "backend": {"gravity": 9.81},
-    "mpc": {"refresh": "inline"},
+    "mpc": {"refresh": "inline", "tracking": "estimate"},
     "pilco": {"policy_scale_floor": 0.01},
 }
 

@@ -235,3 +235,24 @@ def test_learning_agents_take_the_markers_observation():
             assert agent.act(obs).shape == (6,)
     finally:
         env.close()
+
+
+def test_raw_tracking_plans_from_the_report_as_it_is():
+    """tracking="raw": no blending and no latency bridging, the report is the state."""
+    from dlocli.controllers.base import make_controller
+
+    env = env_of("mujoco", noise_mm=5, latency_steps=2)
+    try:
+        planner = make_controller("mpc", env, model=marker_model(env),
+                                  options={"horizon": 2, "tracking": "raw"})  # fmt: skip
+        obs, _ = env.reset(seed=4)
+        planner.reset(env.goal)
+        for _ in range(3):
+            planner.act(obs)
+            obs, *_ = env.step(np.full(6, 0.2))
+        planner.act(obs)
+        seen = torch.as_tensor(env.split_observation(obs)["markers"], dtype=torch.float32)
+        free = ~torch.as_tensor(env.marker_layout.held)
+        assert torch.equal(planner._observed[0, free], seen[free])
+    finally:
+        env.close()

@@ -53,7 +53,7 @@ class ModelPlanner(Planner):
         self.model = model.eval()
         self.device = model_device(model)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
-        self.view = make_view(env, self.model, self.device)
+        self.view = make_view(env, self.model, self.device, self.spec.tracking == "raw")
         self._goal: torch.Tensor | None = None
         self._plan: torch.Tensor | None = None  # (H, A), the latest optimised plan
         self._cursor = 0  # actions of self._plan already executed

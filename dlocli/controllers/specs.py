@@ -45,6 +45,12 @@ class PlannerSpec(Spec):
         description="Start each re-plan from the previous plan shifted by the executed steps "
         "(else from zeros).",
     )
+    tracking: Literal["estimate", "raw"] = Field(
+        "estimate",
+        description="With the markers observation: 'estimate' blends each report with the "
+        "model's prediction, predicts missing markers and bridges the latency; 'raw' plans "
+        "from the report as it is (missing markers at their last seen place).",
+    )
 
 
 class MPCSpec(PlannerSpec):

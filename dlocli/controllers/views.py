@@ -33,7 +33,9 @@ MODEL_ERROR_MM = 1.0
 class RodView:
     """The full observation: segment positions and orientations, as observed."""
 
-    def __init__(self, env: Any, model: torch.nn.Module, device: torch.device) -> None:
+    def __init__(
+        self, env: Any, model: torch.nn.Module, device: torch.device, raw: bool = False
+    ) -> None:
         if getattr(env, "tracker", None) is not None:
             raise BadInput(
                 "this model predicts the rod's segments, but the task observes markers: plan "
@@ -68,7 +70,9 @@ class RodView:
 class MarkerView:
     """The markers observation, through a marker-form model (see the module docstring)."""
 
-    def __init__(self, env: Any, model: torch.nn.Module, device: torch.device) -> None:
+    def __init__(
+        self, env: Any, model: torch.nn.Module, device: torch.device, raw: bool = False
+    ) -> None:
         layout = getattr(env, "marker_layout", None)
         if layout is None:
             raise BadInput(
@@ -84,8 +88,10 @@ class MarkerView:
             )
         self.env, self.model, self.device = env, model, device
         spec = env.task_spec
-        self.latency = spec.observation.latency_steps
-        self.gain = kalman_gain(spec.observation.noise_mm, MODEL_ERROR_MM)
+        #: ``raw``: plan from the report as it is (no blending, gaps or latency bridged)
+        self.raw = raw
+        self.latency = 0 if raw else spec.observation.latency_steps
+        self.gain = 1.0 if raw else kalman_gain(spec.observation.noise_mm, MODEL_ERROR_MM)
         self.dt = spec.control_dt
         twist = np.array(np.broadcast_to(max_twist(spec), (2, 6)))
         self.scale = torch.as_tensor(twist, dtype=torch.float32, device=device)
@@ -126,7 +132,7 @@ class MarkerView:
     def _update_frame(self, seen: torch.Tensor, visible: torch.Tensor) -> None:
         """Blend the report of the delayed frame with the model's prediction of it."""
         held_now = self._held_at(self._poses[0])
-        if self._frame is None or (self.gain == 1.0 and bool(visible.all())):
+        if self._frame is None or self.raw or (self.gain == 1.0 and bool(visible.all())):
             frame = seen  # the first report, or a clean and whole one: nothing to blend
         else:
             before = self._frame if self._frame_before is None else self._frame_before
@@ -195,6 +201,9 @@ def kalman_gain(noise_mm: float, model_error_mm: float) -> float:
 VIEWS: dict[str, type[RodView] | type[MarkerView]] = {"rod": RodView, "markers": MarkerView}
 
 
-def make_view(env: Any, model: torch.nn.Module, device: torch.device) -> RodView | MarkerView:
-    """The view of ``model``'s form on ``env``; BadInput if the env observes another form."""
-    return VIEWS[getattr(model, "form", "rod")](env, model, device)
+def make_view(
+    env: Any, model: torch.nn.Module, device: torch.device, raw: bool = False
+) -> RodView | MarkerView:
+    """The view of ``model``'s form on ``env``; BadInput if the env observes another form.
+    ``raw``: a marker view plans from the report as it is."""
+    return VIEWS[getattr(model, "form", "rod")](env, model, device, raw)

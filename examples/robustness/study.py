@@ -74,6 +74,8 @@ def learners(options: argparse.Namespace) -> list[tuple[str, int]]:
 #: a learner named NAME-20k continues NAME's run to this many transitions (Algorithm 1
 #: resumes where it stopped: the same iterations, updates and seeds as one longer run)
 LONGER = {"-20k": 20000}
+#: a learner named NAME-raw is NAME's model planned from the tracker's raw report
+RAW = "-raw"
 
 
 def online_spec(options: argparse.Namespace, name: str, seed: int) -> Any:
@@ -179,14 +181,16 @@ def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> A
 
     if name in ("zero", "random"):
         return None
-    learned = options.out / "learners" / f"{name}-s{seed}"
+    raw = name.endswith(RAW)  # the same model, planned from the raw report
+    learned = options.out / "learners" / f"{name.removesuffix(RAW)}-s{seed}"
     if name.startswith("sac"):
         agent = make_controller("sac", env, seed=seed)
         agent.load_policy(learned / "policy")
         return agent
     final = sorted((learned / "checkpoints").glob("iter_*.pt"))[-1]
     model = load_planning_model(final)
-    return make_controller("mpc", env, seed=seed, model=model)
+    options_ = {"tracking": "raw"} if raw else None
+    return make_controller("mpc", env, options=options_, seed=seed, model=model)
 
 
 def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
@@ -198,7 +202,7 @@ def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
     jobs += [(options, "mpc-markers-noise5", s, setting)
              for s in range(options.noise_trained_seeds) for setting in SETTINGS]  # fmt: skip
     if options.learners is not None:  # these learners only, the longer runs among them
-        longer = [n for n in options.learners if n.endswith(tuple(LONGER))]
+        longer = [n for n in options.learners if n.endswith((*LONGER, RAW))]
         jobs += [(options, n, s, setting) for s in range(options.seeds) for n in longer
                  for setting in SETTINGS]  # fmt: skip
         jobs = [job for job in jobs if job[1] in options.learners]
@@ -253,6 +257,7 @@ LEARNERS = [
     "mpc-full",
     "mpc-markers",
     "mpc-markers-20k",
+    "mpc-markers-20k-raw",
     "mpc-markers-noise5",
     "sac-markers",
 ]
