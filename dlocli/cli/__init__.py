@@ -9,6 +9,7 @@ import ast
 import importlib
 import importlib.util
 import sys
+import textwrap
 import typing
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import typer
 import typer.main
+from typer._click import _textwrap as _click_textwrap
 from typer.core import TyperCommand, TyperGroup, TyperOption
 
 from dlocli import __version__
@@ -25,6 +27,11 @@ from dlocli.threads import fit_this_process
 
 if TYPE_CHECKING:  # Typer carries its own Click; these names are for annotations only
     from typer._click import Context, HelpFormatter
+
+# --help wraps at spaces only: a value such as optimizer=gauss-newton is copied from it, so it
+# must not be split at its hyphen (Typer's Click wraps with textwrap, which splits words at
+# hyphens by its wordsep_re; its whitespace-only pattern is textwrap's own)
+_click_textwrap.TextWrapper.wordsep_re = textwrap.TextWrapper.wordsep_simple_re
 
 # (command name, "module:function"); a command's module is imported only when that command
 # runs or shows its help, so `dlo --help` and `dlo --version` import no torch or simulator.
