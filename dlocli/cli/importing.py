@@ -1,4 +1,5 @@
-"""`dlo import`: recorded cable trajectories (DEFORM layout) into a marker dataset."""
+"""`dlo import`: recorded cable trajectories (DEFORM layout, any supported format) into a
+marker dataset."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from dlocli.markers.spec import ImportSpec
 def import_recordings(
     run: RunFlags,
 ) -> None:
-    """Import --source (train/*.pkl, eval/*.pkl: pickled (frames, 3, markers) lists, read
-    without running code) into OUT/dataset.h5 for `dlo train` and `dlo eval`; prints the
-    freeze and straight-line references' scores."""
+    """Import --source (train/ and eval/ of .pkl pickled (frames, 3, markers) lists, read
+    without running code, .npy/.npz/.h5 arrays or motion-capture .csv) into OUT/dataset.h5
+    for `dlo train` and `dlo eval`; prints the freeze and straight-line references' scores."""
     emit_summary(run_import(run.spec(), run.overwrite), run.json, "dlo import")

@@ -39,18 +39,24 @@ def read_trajectory(path: Path, budget_bytes: int = DEFAULT_BUDGET) -> np.ndarra
         raise BadInput(
             f"{path} is not a rectangular array of numbers; pass a (frames, 3, V) list"
         ) from exc
+    return checked(array, str(path))
+
+
+def checked(array: np.ndarray, name: str) -> np.ndarray:
+    """``array`` (frames, 3, V) of file ``name`` as (frames, V, 3) float64; BadInput unless it
+    has that shape, enough markers and frames, and finite numbers."""
     if array.ndim != 3 or array.shape[1] != 3:
-        raise BadInput(f"{path} has shape {array.shape}, expected (frames, 3, markers)")
+        raise BadInput(f"{name} has shape {array.shape}, expected (frames, 3, markers)")
     if array.shape[2] < MIN_MARKERS:
         raise BadInput(
-            f"{path} has {array.shape[2]} markers; at least {MIN_MARKERS} are needed "
+            f"{name} has {array.shape[2]} markers; at least {MIN_MARKERS} are needed "
             f"({HELD_PER_END} held at each end)"
         )
     if array.shape[0] < 3:
-        raise BadInput(f"{path} has {array.shape[0]} frames; at least 3 are needed")
+        raise BadInput(f"{name} has {array.shape[0]} frames; at least 3 are needed")
     if not np.isfinite(array).all():
-        raise BadInput(f"{path} contains NaN or inf positions; clean or drop that file")
-    return array.transpose(0, 2, 1).copy()
+        raise BadInput(f"{name} contains NaN or inf positions; clean or drop that file")
+    return array.transpose(0, 2, 1).astype(np.float64)
 
 
 def _read_regular(path: Path, limit: int) -> bytes:

@@ -9,7 +9,7 @@ import numpy as np
 from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic
-from dlocli.markers import deform, protocol
+from dlocli.markers import formats, protocol
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.spec import UNITS, ImportSpec
 from dlocli.rundir import owned, resolved
@@ -25,14 +25,18 @@ def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
     _refuse_out_by_source(spec)
     # everything is checked before --out is touched
-    trajectories = deform.read_folder(spec.source, spec.max_memory_mib * 2**20)
-    trajectories = in_metres(trajectories, spec)
-    n_markers = trajectories["train"][0][1].shape[1]
-    held = deform.held_markers(n_markers)
+    read = formats.read_folder(spec.source, spec.max_memory_mib * 2**20, spec.fill_gaps)
+    trajectories = in_metres(
+        {s: [(t.name, t.positions) for t in items] for s, items in read.items()}, spec
+    )
+    held = formats.held_mask(trajectories["train"][0][1].shape[1], spec.held)
     dataset = MarkerDataset.from_trajectories(
         trajectories, held, {"rate_hz": spec.rate_hz, "source": str(spec.source)}
     )
     summary = describe(dataset)
+    gaps = {f"{s}/{t.name}": t.gaps for s, items in read.items() for t in items if t.gaps}
+    if gaps:
+        summary["gaps_filled"] = gaps
     with owned(spec.out):
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
@@ -86,7 +90,7 @@ def in_metres(
             length = float(np.linalg.norm(np.diff(array[0], axis=0), axis=-1).sum())
             if not low <= length <= high:
                 raise BadInput(
-                    f"{spec.source}/{split}/{name}.pkl: the cable is {length:.4g} m long along "
+                    f"{spec.source}/{split}/{name}: the cable is {length:.4g} m long along "
                     f"its markers (read in {spec.units}), not {low:g}-{high:g} m; pass --units "
                     "with the recording's unit (m, cm or mm)"
                 )

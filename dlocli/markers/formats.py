@@ -1,0 +1,311 @@
+"""Recording formats `dlo import` reads, one reader per file suffix (:data:`READERS`).
+
+A cable folder holds ``train/`` and ``eval/``; each file in them is read by the reader of its
+suffix and gives one or more trajectories, (frames, V, 3) float64 in the recording's units:
+
+- ``.pkl``: DEFORM's pickled (frames, 3, V) lists (:mod:`~dlocli.markers.deform`).
+- ``.npy``: one array, (frames, 3, V) as DEFORM stores it or (frames, V, 3); with V >= 4 the
+  two never look alike. Loaded memory-mapped with ``allow_pickle=False``.
+- ``.npz``: one such array per key; a file of one key is named by its stem, otherwise each
+  trajectory is ``stem.key``.
+- ``.h5`` / ``.hdf5``: one such array per dataset (every group visited), named likewise.
+- ``.csv``: motion capture, one trajectory per file (:func:`read_csv`).
+
+Each array's shape and type are read before its numbers, and refused past the memory budget.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import stat
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dlocli.errors import BadInput
+from dlocli.markers import deform
+
+#: a reader: (file, memory budget in bytes, --fill-gaps) -> trajectories
+Reader = Callable[[Path, int, int], list["Trajectory"]]
+
+
+@dataclass
+class Trajectory:
+    name: str
+    positions: np.ndarray  # (frames, V, 3)
+    gaps: int = 0  # (frame, marker) cells the file left empty, filled by interpolation
+
+
+def read_folder(folder: Path, budget_bytes: int, fill_gaps: int = 0) -> dict[str, list[Trajectory]]:
+    """``{split: [Trajectory, ...]}`` from ``folder/train`` and ``folder/eval`` (files sorted
+    by name, any suffix of :data:`READERS`), read within ``budget_bytes`` of memory; every
+    trajectory must have the same marker count."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise BadInput(f"{folder} is not a folder; pass a cable folder holding train/ and eval/")
+    found = {
+        s: sorted(p for p in (folder / s).iterdir() if not p.name.startswith("."))
+        for s in deform.SPLITS
+        if (folder / s).is_dir()
+    }
+    if not found.get("train"):
+        raise BadInput(f"{folder}/train holds no recordings; pass a cable folder (e.g. DLO1)")
+    for path in (p for files in found.values() for p in files):
+        deform._require_utf8_name(path)
+        if path.suffix.lower() not in READERS:
+            raise BadInput(
+                f"{path}: unknown suffix {path.suffix or '(none)'!r}; recordings are "
+                f"{', '.join(READERS)} files (move other files out of the folder)"
+            )
+    out: dict[str, list[Trajectory]] = {}
+    counts: dict[int, str] = {}
+    kept = 0
+    for split, files in found.items():
+        out[split] = []
+        for path in files:
+            for item in READERS[path.suffix.lower()](path, max(0, budget_bytes - kept), fill_gaps):
+                kept += deform.KEPT_PER_BYTE * item.positions.nbytes
+                counts.setdefault(item.positions.shape[1], f"{path} ({item.name})")
+                if len(counts) > 1:
+                    (a, first), (b, other) = list(counts.items())[:2]
+                    raise BadInput(
+                        f"mixed marker counts: {first} has {a}, {other} has {b}; import one "
+                        "cable per folder"
+                    )
+                out[split].append(item)
+    return out
+
+
+def held_mask(n_markers: int, held: list[int] | None) -> np.ndarray:
+    """(V,) bool from marker indices (negative from the far end); None: DEFORM's two at each
+    end. BadInput unless the indices exist and some are held in each half of the cable."""
+    if held is None:
+        return deform.held_markers(n_markers)
+    mask = np.zeros(n_markers, dtype=bool)
+    for i in held:
+        if not -n_markers <= i < n_markers:
+            raise BadInput(
+                f"--held names marker {i}, but the recordings have {n_markers} markers "
+                f"(0 to {n_markers - 1}, or -1 for the last)"
+            )
+        mask[i] = True
+    half = n_markers // 2
+    if not (mask[:half].any() and mask[half:].any()):
+        raise BadInput(
+            f"--held {','.join(map(str, held))} holds no marker in one half of the cable; name "
+            "the markers each gripper holds (e.g. --held 0,-1)"
+        )
+    return mask
+
+
+# ----------------------------------------------------------------------------- arrays
+def _regular(path: Path) -> None:
+    """BadInput unless ``path`` is a regular file (a FIFO would block the read)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise BadInput(f"{path} cannot be read ({exc.strerror}); pass readable files") from exc
+    if not stat.S_ISREG(mode):
+        raise BadInput(f"{path} is not a regular file (a FIFO, device or socket); pass files")
+
+
+def _fits(name: str, shape: tuple[int, ...], dtype: np.dtype, budget: int) -> None:
+    """BadInput unless an array of numbers of ``shape`` fits the budget as float64 copies."""
+    if dtype.kind not in "fiu":
+        raise BadInput(f"{name} holds {dtype}, not numbers; store float positions")
+    needed = 2 * 8 * math.prod(shape)  # the float64 array and its transposed copy
+    if needed > budget:
+        raise BadInput(
+            f"{name} would take {needed / 2**20:.0f} MiB to read (shape {shape}), over the "
+            f"budget's {budget / 2**20:.0f} MiB left; raise --max-memory-mib or import fewer files"
+        )
+
+
+def from_array(array: np.ndarray, name: str) -> np.ndarray:
+    """(frames, 3, V) or (frames, V, 3) -> checked (frames, V, 3) float64."""
+    array = np.asarray(array)
+    if array.ndim == 3 and array.shape[1] != 3 and array.shape[2] == 3:
+        array = array.transpose(0, 2, 1)
+    if array.ndim != 3 or array.shape[1] != 3:
+        raise BadInput(
+            f"{name} has shape {array.shape}, expected (frames, 3, markers) or (frames, markers, 3)"
+        )
+    return deform.checked(np.asarray(array, dtype=np.float64), name)
+
+
+def _named(path: Path, key: str, many: bool) -> str:
+    return f"{path.stem}.{key}" if many else path.stem
+
+
+def read_pkl(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
+    return [Trajectory(path.stem, deform.read_trajectory(path, budget))]
+
+
+def read_npy(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
+    _regular(path)
+    try:
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise BadInput(f"{path} is not a readable .npy array ({str(exc)[:80]})") from exc
+    _fits(str(path), array.shape, array.dtype, budget)
+    return [Trajectory(path.stem, from_array(array, str(path)))]
+
+
+def read_npz(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
+    _regular(path)
+    out: list[Trajectory] = []
+    try:
+        with zipfile.ZipFile(path) as archive:
+            members = [m for m in archive.namelist() if m.endswith(".npy")]
+            if not members:
+                raise BadInput(f"{path} holds no arrays; save one array per trajectory")
+            for member in members:
+                name = f"{path}:{member[:-4]}"
+                with archive.open(member) as f:
+                    version = np.lib.format.read_magic(f)
+                    header = (
+                        np.lib.format.read_array_header_1_0
+                        if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0
+                    )
+                    shape, _, dtype = header(f)
+                    _fits(name, shape, dtype, budget)
+                    budget -= deform.KEPT_PER_BYTE * 8 * math.prod(shape)
+                    f.seek(0)
+                    array = np.lib.format.read_array(f, allow_pickle=False)
+                key = _named(path, member[:-4], len(members) > 1)
+                out.append(Trajectory(key, from_array(array, name)))
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise BadInput(f"{path} is not a readable .npz archive ({str(exc)[:80]})") from exc
+    return out
+
+
+def read_h5(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
+    import h5py
+
+    _regular(path)
+    try:
+        with h5py.File(path, "r") as f:
+            keys: list[str] = []
+            f.visititems(lambda k, v: keys.append(k) if isinstance(v, h5py.Dataset) else None)
+            if not keys:
+                raise BadInput(f"{path} holds no datasets; store one array per trajectory")
+            out = []
+            for key in keys:
+                name = f"{path}:{key}"
+                _fits(name, f[key].shape, f[key].dtype, budget)
+                budget -= deform.KEPT_PER_BYTE * 8 * math.prod(f[key].shape)
+                positions = from_array(f[key][()], name)
+                out.append(Trajectory(_named(path, key, len(keys) > 1), positions))
+    except OSError as exc:
+        raise BadInput(f"{path} is not a readable HDF5 file ({str(exc)[:80]})") from exc
+    return out
+
+
+# ----------------------------------------------------------------------------- csv
+#: leading columns a motion-capture export may have, skipped
+INDEX_COLUMNS = ("frame", "time")
+AXES = ("_x", "_y", "_z")
+
+
+def read_csv(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
+    """A motion-capture CSV: a header ``frame,time,m0_x,m0_y,m0_z,m1_x,...`` (``frame`` and
+    ``time`` optional, ignored: rows are frames in order at --rate-hz), then one row per frame.
+    Each marker is three columns ``NAME_x,NAME_y,NAME_z``; the marker order is the column
+    order. An empty cell is a gap: that marker is missing in that frame."""
+    text = deform._read_regular(path, budget // 4)  # the parsed floats take ~4x the text
+    try:
+        rows = list(csv.reader(io.StringIO(text.decode("utf-8-sig"))))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise BadInput(f"{path} is not a UTF-8 CSV file ({str(exc)[:60]})") from exc
+    if not rows:
+        raise BadInput(f"{path} is empty; write a header frame,time,m0_x,m0_y,m0_z,... and rows")
+    header = [h.strip().lower() for h in rows[0]]
+    skip = 0
+    while skip < len(header) and header[skip] in INDEX_COLUMNS:
+        skip += 1
+    columns = header[skip:]
+    triples = [columns[i : i + 3] for i in range(0, len(columns), 3)]
+    if not triples or any(
+        len(t) != 3 or [c[-2:] for c in t] != list(AXES) or len({c[:-2] for c in t}) != 1
+        for t in triples
+    ):
+        raise BadInput(
+            f"{path}: header {','.join(rows[0])[:80]!r} is not frame,time,m0_x,m0_y,m0_z,"
+            "m1_x,... (three columns NAME_x,NAME_y,NAME_z per marker)"
+        )
+    values = np.full((len(rows) - 1, len(columns)), np.nan)
+    for r, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise BadInput(
+                f"{path} line {r + 2} has {len(row)} cells, the header {len(header)}; "
+                "write every row in full (an empty cell is a gap)"
+            )
+        for c, cell in enumerate(row[skip:]):
+            if cell.strip():
+                values[r, c] = _number(cell, path, r + 2, header[skip + c])
+    positions = values.reshape(len(values), len(triples), 3)
+    missing = np.isnan(positions).any(axis=2)  # (frames, V)
+    gaps = int(missing.sum())
+    if gaps:
+        positions = _filled(positions, missing, fill_gaps, path)
+    return [Trajectory(path.stem, from_array(positions, str(path)), gaps)]
+
+
+def _number(cell: str, path: Path, line: int, column: str) -> float:
+    try:
+        value = float(cell)
+    except ValueError:
+        raise BadInput(
+            f"{path} line {line}, column {column}: {cell[:20]!r} is not a number; leave the "
+            "cell empty for a gap"
+        ) from None
+    if not math.isfinite(value):
+        raise BadInput(
+            f"{path} line {line}, column {column}: {cell[:20]!r} is not a finite number; "
+            "leave the cell empty for a gap"
+        )
+    return value
+
+
+def _filled(positions: np.ndarray, missing: np.ndarray, fill_gaps: int, path: Path) -> np.ndarray:
+    """Each marker's gaps interpolated linearly between the frames around them; BadInput for
+    a gap longer than ``fill_gaps`` frames or at the first or last frame."""
+    gaps, longest, edge = int(missing.sum()), 0, False
+    runs = []
+    for v in range(missing.shape[1]):
+        frames = np.flatnonzero(missing[:, v])
+        for run in np.split(frames, np.flatnonzero(np.diff(frames) > 1) + 1) if len(frames) else []:
+            longest = max(longest, len(run))
+            edge |= run[0] == 0 or run[-1] == len(missing) - 1
+            runs.append((v, run))
+    if edge or longest > fill_gaps:
+        why = "one at the first or last frame, which cannot be interpolated" if edge else ""
+        hint = "trim the recording" if edge else f"pass --fill-gaps {longest} to interpolate them"
+        raise BadInput(
+            f"{path} has {gaps} gaps (empty cells of a marker in a frame), the longest "
+            f"{longest} frames{'; ' + why if why else ''}; {hint}"
+        )
+    out = positions.copy()
+    for v, run in runs:
+        a, b = run[0] - 1, run[-1] + 1
+        w = ((run - a) / (b - a))[:, None]
+        out[run, v] = (1 - w) * positions[a, v] + w * positions[b, v]
+    return out
+
+
+#: suffix -> reader; a new format is one function and one entry here
+READERS: dict[str, Reader] = {
+    ".pkl": read_pkl,
+    ".npy": read_npy,
+    ".npz": read_npz,
+    ".h5": read_h5,
+    ".hdf5": read_h5,
+    ".csv": read_csv,
+}
