@@ -111,8 +111,10 @@ def test_the_user_names_the_held_markers(tmp_path: Path, capsys) -> None:
     assert json.loads(capsys.readouterr().out)["held_markers"] == [0, MARKERS - 1]
     assert _import(source, tmp_path / "o2", "--held", "0,1") == 2
     assert _import(source, tmp_path / "o3", "--held", "0,9") == 2
+    assert _import(source, tmp_path / "o4", "--held", ",".join(map(str, range(MARKERS)))) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and "one half" in err[0] and "marker 9" in err[1]
+    assert len(err) == 3 and "one half" in err[0] and "marker 9" in err[1] and "every" in err[2]
+    assert not any((tmp_path / o).exists() for o in ("o2", "o3", "o4"))
 
 
 def test_csv_gaps_are_refused_unless_filled(tmp_path: Path, capsys) -> None:
@@ -172,6 +174,7 @@ BAD: dict[str, tuple[Callable[[Path], None], str]] = {
     "empty h5": (lambda p: (p / "bad.h5").write_bytes(b""), "not a readable HDF5"),
     "h5 shape": (lambda p: _h5(p, np.zeros((5, 2))), "expected (frames, 3, markers)"),
     "empty csv": (lambda p: (p / "bad.csv").write_text(""), "is empty"),
+    "csv no rows": (_csv_edit(lambda ls: ls[:1]), "0 frames"),
     "csv header": (_csv_edit(lambda ls: ["frame,a,b", *ls[1:]]), "header"),
     "csv text": (_csv_edit(lambda ls: _cell(ls, "abc")), "'abc' is not a number"),
     "csv nan": (_csv_edit(lambda ls: _cell(ls, "nan")), "not a finite number"),

@@ -96,6 +96,8 @@ def held_mask(n_markers: int, held: list[int] | None) -> np.ndarray:
             )
         mask[i] = True
     half = n_markers // 2
+    if mask.all():
+        raise BadInput("--held names every marker; leave the free markers out of it")
     if not (mask[:half].any() and mask[half:].any()):
         raise BadInput(
             f"--held {','.join(map(str, held))} holds no marker in one half of the cable; name "
@@ -219,38 +221,24 @@ def read_csv(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
     ``time`` optional, ignored: rows are frames in order at --rate-hz), then one row per frame.
     Each marker is three columns ``NAME_x,NAME_y,NAME_z``; the marker order is the column
     order. An empty cell is a gap: that marker is missing in that frame."""
-    text = deform._read_regular(path, budget // 4)  # the parsed floats take ~4x the text
+    # the text and its decoded copy, then 8 bytes per cell (>= 2 bytes of text) as parsed
+    # rows (with their overhead) and again as stacked: about 16 times the text at worst
+    text = deform._read_regular(path, budget // 16)
     try:
-        rows = list(csv.reader(io.StringIO(text.decode("utf-8-sig"))))
+        reader = csv.reader(io.StringIO(text.decode("utf-8-sig")))
+        header = [h.strip().lower() for h in next(reader, [])]
+        if not header:
+            raise BadInput(
+                f"{path} is empty; write a header frame,time,m0_x,m0_y,m0_z,... and rows"
+            )
+        skip = _index_columns(header)
+        triples = _markers(header[skip:], path)
+        parsed = [_row(row, len(header), skip, path, reader.line_num) for row in reader]
     except (UnicodeDecodeError, csv.Error) as exc:
         raise BadInput(f"{path} is not a UTF-8 CSV file ({str(exc)[:60]})") from exc
-    if not rows:
-        raise BadInput(f"{path} is empty; write a header frame,time,m0_x,m0_y,m0_z,... and rows")
-    header = [h.strip().lower() for h in rows[0]]
-    skip = 0
-    while skip < len(header) and header[skip] in INDEX_COLUMNS:
-        skip += 1
-    columns = header[skip:]
-    triples = [columns[i : i + 3] for i in range(0, len(columns), 3)]
-    if not triples or any(
-        len(t) != 3 or [c[-2:] for c in t] != list(AXES) or len({c[:-2] for c in t}) != 1
-        for t in triples
-    ):
-        raise BadInput(
-            f"{path}: header {','.join(rows[0])[:80]!r} is not frame,time,m0_x,m0_y,m0_z,"
-            "m1_x,... (three columns NAME_x,NAME_y,NAME_z per marker)"
-        )
-    values = np.full((len(rows) - 1, len(columns)), np.nan)
-    for r, row in enumerate(rows[1:]):
-        if len(row) != len(header):
-            raise BadInput(
-                f"{path} line {r + 2} has {len(row)} cells, the header {len(header)}; "
-                "write every row in full (an empty cell is a gap)"
-            )
-        for c, cell in enumerate(row[skip:]):
-            if cell.strip():
-                values[r, c] = _number(cell, path, r + 2, header[skip + c])
-    positions = values.reshape(len(values), len(triples), 3)
+    values = np.array(parsed, dtype=np.float64).reshape(len(parsed), 3 * triples)
+    del parsed, text
+    positions = values.reshape(len(values), triples, 3)
     missing = np.isnan(positions).any(axis=2)  # (frames, V)
     gaps = int(missing.sum())
     if gaps:
@@ -258,18 +246,56 @@ def read_csv(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
     return [Trajectory(path.stem, from_array(positions, str(path)), gaps)]
 
 
-def _number(cell: str, path: Path, line: int, column: str) -> float:
+def _index_columns(header: list[str]) -> int:
+    """How many leading columns are frame numbers or times."""
+    skip = 0
+    while skip < len(header) and header[skip] in INDEX_COLUMNS:
+        skip += 1
+    return skip
+
+
+def _markers(columns: list[str], path: Path) -> int:
+    """The number of markers of the coordinate columns; BadInput unless NAME_x,NAME_y,NAME_z
+    triples."""
+    triples = [columns[i : i + 3] for i in range(0, len(columns), 3)]
+    if not triples or any(
+        len(t) != 3 or [c[-2:] for c in t] != list(AXES) or len({c[:-2] for c in t}) != 1
+        for t in triples
+    ):
+        raise BadInput(
+            f"{path}: header {','.join(columns)[:80]!r} is not frame,time,m0_x,m0_y,m0_z,"
+            "m1_x,... (three columns NAME_x,NAME_y,NAME_z per marker)"
+        )
+    return len(triples)
+
+
+def _row(row: list[str], width: int, skip: int, path: Path, line: int) -> np.ndarray:
+    """One frame's coordinates (NaN for an empty cell); BadInput for a ragged row or text."""
+    if len(row) != width:
+        raise BadInput(
+            f"{path} line {line} has {len(row)} cells, the header {width}; write every row "
+            "in full (an empty cell is a gap)"
+        )
+    return np.array(
+        [
+            _number(c, path, line, j + skip) if c.strip() else np.nan
+            for j, c in enumerate(row[skip:])
+        ]
+    )
+
+
+def _number(cell: str, path: Path, line: int, column: int) -> float:
     try:
         value = float(cell)
     except ValueError:
         raise BadInput(
-            f"{path} line {line}, column {column}: {cell[:20]!r} is not a number; leave the "
-            "cell empty for a gap"
+            f"{path} line {line}, column {column + 1}: {cell[:20]!r} is not a number; leave "
+            "the cell empty for a gap"
         ) from None
     if not math.isfinite(value):
         raise BadInput(
-            f"{path} line {line}, column {column}: {cell[:20]!r} is not a finite number; "
-            "leave the cell empty for a gap"
+            f"{path} line {line}, column {column + 1}: {cell[:20]!r} is not a finite "
+            "number; leave the cell empty for a gap"
         )
     return value
 
@@ -302,10 +328,6 @@ def _filled(positions: np.ndarray, missing: np.ndarray, fill_gaps: int, path: Pa
 
 #: suffix -> reader; a new format is one function and one entry here
 READERS: dict[str, Reader] = {
-    ".pkl": read_pkl,
-    ".npy": read_npy,
-    ".npz": read_npz,
-    ".h5": read_h5,
-    ".hdf5": read_h5,
-    ".csv": read_csv,
-}
+    ".pkl": read_pkl, ".npy": read_npy, ".npz": read_npz,
+    ".h5": read_h5, ".hdf5": read_h5, ".csv": read_csv,
+}  # fmt: skip
