@@ -210,3 +210,26 @@ def test_an_array_past_the_budget_is_refused_before_it_is_loaded(tmp_path: Path,
     assert _import(source, tmp_path / "out", "--max-memory-mib", "64") == 2
     assert "--max-memory-mib" in capsys.readouterr().err
     shutil.rmtree(source)
+
+
+def test_csv_markers_take_any_names_in_column_order(tmp_path: Path) -> None:
+    source = write_folder(tmp_path / "C", "npy")
+    array = swinging_cable(3)
+    names = ["tip", "b", "a", "c", "d", "end"]
+    text = _csv_text(array).splitlines()
+    text[0] = "time," + ",".join(f"{n}_{a}" for n in names for a in "xyz")
+    rows = [line.split(",", 1)[1] for line in text[1:]]  # drop the frame column
+    (source / "eval" / "9.csv").write_text("\n".join([text[0], *rows]) + "\n")
+    for path in source.glob("*/*.npy"):  # all in mm, as the CSV
+        np.save(path, np.load(path) * 1000)
+    assert _import(source, tmp_path / "out", "--units", "mm") == 0
+    data = load_dataset(tmp_path / "out")
+    np.testing.assert_allclose(data.episodes("eval")[-1], array.transpose(0, 2, 1), atol=1e-6)
+
+
+def test_a_csv_past_the_budget_is_refused_unread(tmp_path: Path, capsys) -> None:
+    source = write_folder(tmp_path / "C", "csv")
+    (source / "train" / "big.csv").write_bytes(b"frame\n" + b"0\n" * 600_000)
+    assert _import(source, tmp_path / "out", "--units", "mm", "--max-memory-mib", "16") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--max-memory-mib" in err, err
