@@ -360,13 +360,13 @@ def load_model(
     computes gradients for the actions only; :func:`~dlocli.models.training.train_model` unfreezes.
     ``expect``: the model spec the caller asked for; a different one in the file is refused.
     """
-    return _model_from_payload(read_checkpoint(path), path, device, expect)
+    return model_from_payload(read_checkpoint(path), path, device, expect)
 
 
 def load_model_bytes(checkpoint: bytes, device: str | torch.device = "cpu") -> DynamicsModel:
     """:func:`load_model` of a checkpoint file's bytes (a trial's copy of the driver's model),
     read in memory."""
-    return _model_from_payload(read_checkpoint_bytes(checkpoint), IN_MEMORY, device)
+    return model_from_payload(read_checkpoint_bytes(checkpoint), IN_MEMORY, device)
 
 
 #: how errors name a checkpoint read from bytes
@@ -378,12 +378,14 @@ def read_checkpoint_bytes(checkpoint: bytes) -> dict[str, Any]:
     return _checked_payload(io.BytesIO(checkpoint), IN_MEMORY)
 
 
-def _model_from_payload(
+def model_from_payload(
     payload: dict[str, Any],
     path: Path | str,
     device: str | torch.device,
     expect: ModelSpec | None = None,
 ) -> DynamicsModel:
+    """The rod model a checkpoint's payload holds (named ``path`` in errors); see
+    :func:`load_model`."""
     if payload.get("form") == "markers":
         raise BadInput(
             f"{path} is a marker-form model (trained on recorded markers); use it with "

@@ -237,9 +237,10 @@ def load_planning_model(source: Any, device: str | torch.device = "cpu") -> torc
     model if the checkpoint holds one, else the rod model."""
     from_bytes = isinstance(source, bytes)
     payload = base.read_checkpoint_bytes(source) if from_bytes else base.read_checkpoint(source)
+    name = base.IN_MEMORY if from_bytes else source
     if payload.get("form") == FORM:
-        return marker_model_from_payload(payload, base.IN_MEMORY if from_bytes else source, device)
-    return base.load_model_bytes(source, device) if from_bytes else base.load_model(source, device)
+        return marker_model_from_payload(payload, name, device)
+    return base.model_from_payload(payload, name, device)  # read once, not again by path
 
 
 def marker_model_from_payload(
