@@ -42,11 +42,13 @@ FRAMES, RATE = 120, 100.0
 SETTINGS = ReplaySettings(approach_s=0.5, settle_s=0.5)
 
 
+ROD_ARC = ARC - ARC[1]  # half-segment clamps: the grippers hold markers 1 and V-2
+ROD = float(ROD_ARC[-2])
+
+
 def _rod(young: float) -> BackendSpec:
     density = MASS / LENGTH / (np.pi * RADIUS**2)
-    rod = RodSpec(
-        length=LENGTH, n_segments=12, radius=RADIUS, density=density, clamp_compliance="rigid"
-    )  # as a calibration's rod: grippers hold rigidly
+    rod = RodSpec(length=ROD, n_segments=12, radius=RADIUS, density=density)
     return BackendSpec(rod=rod.model_copy(update={"young_bending": young}))
 
 
@@ -69,7 +71,7 @@ def _held_motion(seed: int) -> np.ndarray:
 
 def _simulate(young: float, seed: int) -> np.ndarray:
     backend = backends.get("mujoco")(_rod(young), control_dt=1 / RATE)
-    return replay(backend, _held_motion(seed), ARC, SETTINGS).simulated
+    return replay(backend, _held_motion(seed), ROD_ARC, SETTINGS).simulated
 
 
 def _write(folder: Path, recordings: dict[str, list[np.ndarray]]) -> Path:
@@ -91,7 +93,7 @@ def cable(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _spec_file(tmp_path: Path, **fields: object) -> Path:
     spec = {
-        "cable_length": LENGTH, "cable_mass": MASS, "rod_length": LENGTH, "rate_hz": RATE,
+        "cable_length": LENGTH, "cable_mass": MASS, "rod_length": ROD, "rate_hz": RATE,
         "backend": {"name": "mujoco", "rod": {"n_segments": 12, "radius": RADIUS}},
         "parameters": ["young_bending"], "approach_s": SETTINGS.approach_s,
         "settle_s": SETTINGS.settle_s, "train_trajectories": 1, "population": 4,
@@ -113,7 +115,7 @@ def test_replay_of_the_simulators_own_recording_is_exact(cable: Path) -> None:
     assert np.abs(again - recorded).max() < 1e-6  # deterministic
     held = deform.held_markers(len(ARC))
     softer = replay(backends.get("mujoco")(_rod(TRUE_E / 3), control_dt=1 / RATE),
-                    recorded, ARC, SETTINGS)  # fmt: skip
+                    recorded, ROD_ARC, SETTINGS)  # fmt: skip
     freeze = protocol.deform_score_cm(protocol.freeze(recorded, held), recorded)
     assert 0 < softer.score_cm < freeze
     assert softer.held_error_mm < 2.0  # the grippers follow the recorded held markers
@@ -221,7 +223,7 @@ def test_bad_inputs_get_one_line_and_exit_2(
     out = tmp_path / "out"
     cases = [
         (["--source", str(flat)], "expected (frames, 3, markers)"),
-        (["--source", str(cable), "--rod-length", "0.3"], "shorter than the end markers"),
+        (["--source", str(cable), "--rod-length", "0.3"], "shorter than the grip markers"),
         (["--source", str(cable), "--cable-length", "0.4"], "pass the cable's real length"),
     ]
     existing = tmp_path / "existing"
@@ -259,7 +261,7 @@ def test_simulated_markers_train_a_model_that_fine_tunes(cable: Path, tmp_path: 
 
     recordings = [deform.read_trajectory(cable / f"train/{i}.pkl") for i in range(2)]
     backend = backends.get("mujoco")(_rod(TRUE_E), control_dt=1 / RATE)
-    sims, dropped = simulate_markers(backend, recordings, ARC, 3, 0, SETTINGS)
+    sims, dropped = simulate_markers(backend, recordings, ROD_ARC, 3, 0, SETTINGS)
     assert dropped == 0 and len(sims) == 3
     for sim, rec in zip(sims, [recordings[0], recordings[1], recordings[0]], strict=True):
         # a rigid move of the recorded held motion: the end markers' separations are kept

@@ -22,7 +22,13 @@ import numpy as np
 from pydantic import ValidationError
 
 from dlocli.calibration import parameters as params
-from dlocli.calibration.replay import MarkerLayout, ReplaySettings, check_rod_fits, replay
+from dlocli.calibration.replay import (
+    MarkerLayout,
+    ReplaySettings,
+    check_rod_fits,
+    grip_markers,
+    replay,
+)
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.markers import deform, protocol
@@ -42,7 +48,7 @@ class Cable:
 
     train: list[tuple[str, np.ndarray]]
     eval: list[tuple[str, np.ndarray]]
-    arc: np.ndarray  # marker arc lengths on the rod (m)
+    arc: np.ndarray  # marker arc lengths from the rod's left grip (m)
     backend: BackendSpec  # the rod at the spec's (default) material
 
 
@@ -57,17 +63,16 @@ def load_cable(spec: CalibrateSpec) -> Cable:
         )
     found = deform.read_folder(spec.source)
     train, evaluation = found["train"], found.get("eval") or found["train"]
-    layout = MarkerLayout.from_recordings([r for _, r in train])
-    rod_length = spec.rod_length or layout.rod_length
+    grip = grip_markers(train[0][1].shape[1], spec.backend.rod.clamp_compliance)
+    layout = MarkerLayout.from_recordings([r for _, r in train]).between(grip)
+    rod_length = spec.rod_length or layout.span(grip)
     if spec.cable_length < rod_length:
         raise BadInput(
             f"cable_length {spec.cable_length:g} m is shorter than the rod between its "
-            f"outermost markers ({rod_length:.3f} m); pass the cable's real length"
+            f"grip markers ({rod_length:.3f} m); pass the cable's real length"
         )
-    everything = train + evaluation
-    check_rod_fits(
-        rod_length, [r for _, r in everything], [f"{spec.source}/{n}.pkl" for n, _ in everything]
-    )
+    everything = {f"{spec.source}/{s}/{n}.pkl": r for s, items in found.items() for n, r in items}
+    check_rod_fits(rod_length, list(everything.values()), list(everything), grip)
     rod = spec.backend.rod
     density = spec.cable_mass / spec.cable_length / rod.area
     try:
@@ -75,7 +80,7 @@ def load_cable(spec: CalibrateSpec) -> Cable:
         backend = BackendSpec.model_validate({**spec.backend.model_dump(), "rod": rod})
     except ValidationError as exc:
         raise BadInput(f"the cable's rod: {format_validation_error(exc)}") from None
-    arc = layout.arc * (rod_length / layout.rod_length)
+    arc = layout.arc * (rod_length / layout.span(grip))
     return Cable(train, evaluation, arc, backend)
 
 

@@ -1,13 +1,18 @@
 """Replay a recorded cable motion on a simulated rod and score it with the DEFORM protocol.
 
-The simulated rod is the cable between its outermost markers (what lies beyond them is in
-the grippers): its length is the markers' mean polyline length over the given recordings,
-its linear density the real cable's (mass / length). Marker i is read off the rod at the
-arc length of the mean marker spacing up to i (markers 0 and V-1 are the rod ends).
+The simulated rod is the cable between its grip points (what lies beyond them is in the
+grippers): its length is the markers' mean polyline length between them over the given
+recordings, its linear density the real cable's (mass / length). Where a gripper holds the
+rod depends on the rod's clamp (:func:`grip_markers`): a rigid clamp makes the end segment
+part of the gripper, so the grip is at the end markers and the held pair lies in that
+segment; a half-segment clamp lets the rod bend at the grip, so the grip is where the real
+cable leaves the gripper, at the inner held marker, and the outer one rides on the gripper.
+Marker i is read off the rod at the arc length of the mean marker spacing from the left
+grip to i (negative for a marker behind the left grip).
 
-Each gripper follows its end marker (position) and the direction from the end marker to its
-neighbour (the rod's axis at that end). The roll about that axis is not recorded; it is
-chosen by a :data:`ROLLS` rule. The recording is shifted into the backend's workspace
+Each gripper follows its grip marker (position) and the direction of its held marker pair
+(the rod's axis at that end). The roll about that axis is not recorded; it is chosen by a
+:data:`ROLLS` rule. The recording is shifted into the backend's workspace
 (physics does not depend on where the rod is: there is no floor) and shifted back.
 
 The rod starts at rest: from the backend's rest state the grippers move to the recording's
@@ -30,7 +35,7 @@ from dlocli.backends.base import Backend, GripperLimits
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize, quat_rotate
 from dlocli.errors import BadInput
 from dlocli.markers import protocol
-from dlocli.markers.deform import held_markers
+from dlocli.markers.deform import HELD_PER_END, held_markers
 
 WORKSPACE_MARGIN = 0.1  # m around the recorded gripper positions
 X_AXIS = np.array([1.0, 0.0, 0.0])
@@ -38,6 +43,12 @@ Z_AXIS = np.array([0.0, 0.0, 1.0])
 
 
 # --------------------------------------------------------------------------- rod geometry
+def grip_markers(n_markers: int, clamp_compliance: str) -> tuple[int, int]:
+    """The markers the left and right grippers hold the rod at (see the module doc)."""
+    inner = HELD_PER_END - 1 if clamp_compliance == "half-segment" else 0
+    return inner, n_markers - 1 - inner
+
+
 @dataclass(frozen=True)
 class MarkerLayout:
     """Where the markers sit on the simulated rod: arc lengths (m) from marker 0."""
@@ -55,32 +66,46 @@ class MarkerLayout:
         spacing = np.linalg.norm(np.diff(frames, axis=1), axis=-1).mean(0)
         return cls(np.concatenate([[0.0], np.cumsum(spacing)]))
 
+    def between(self, grip: tuple[int, int]) -> MarkerLayout:
+        """Arc lengths from the left grip marker (the rod's length: up to the right one)."""
+        return MarkerLayout(self.arc - self.arc[grip[0]])
 
-def largest_end_separation(recordings: list[np.ndarray]) -> float:
-    """The largest recorded distance (m) between the two end markers."""
-    return max(float(np.linalg.norm(r[:, -1] - r[:, 0], axis=-1).max()) for r in recordings)
+    def span(self, grip: tuple[int, int]) -> float:
+        """The rod's length between the grip markers (m)."""
+        return float(self.arc[grip[1]] - self.arc[grip[0]])
 
 
-def check_rod_fits(rod_length: float, recordings: list[np.ndarray], names: list[str]) -> None:
-    """BadInput if a rod of ``rod_length`` cannot span the recorded end markers."""
+def check_rod_fits(
+    rod_length: float, recordings: list[np.ndarray], names: list[str], grip: tuple[int, int]
+) -> None:
+    """BadInput if a rod of ``rod_length`` cannot span the recorded grip markers."""
     for name, rec in zip(names, recordings, strict=True):
-        span = float(np.linalg.norm(rec[:, -1] - rec[:, 0], axis=-1).max())
+        span = float(np.linalg.norm(rec[:, grip[1]] - rec[:, grip[0]], axis=-1).max())
         if span >= rod_length:
             raise BadInput(
-                f"the rod ({rod_length:.3f} m) is shorter than the end markers' separation "
-                f"in {name} ({span:.3f} m); give the cable's real length (or leave rod_length "
-                "unset to use the markers' span)"
+                f"the rod ({rod_length:.3f} m) is shorter than the grip markers' separation "
+                f"in {name} ({span:.3f} m); pass a --rod-length above that (the cable between "
+                "its grip markers)"
             )
 
 
 def markers_on_rod(backend: Backend, arc: np.ndarray) -> np.ndarray:
-    """(V,3) points of the simulated rod at arc lengths ``arc`` (m) from its left end."""
+    """(V,3) points of the simulated rod at arc lengths ``arc`` (m) from its left grip; a
+    point behind a grip (arc < 0 or > the rod's length) rides on that gripper's x axis."""
     centres = backend.segment_positions()
     axes = quat_rotate(backend.segment_quaternions(), X_AXIS)
     seg = backend.rod.segment_length
     index = np.clip((arc // seg).astype(int), 0, len(centres) - 1)
     along = arc - (index + 0.5) * seg
-    return centres[index] + along[:, None] * axes[index]
+    points = centres[index] + along[:, None] * axes[index]
+    grippers = backend.gripper_poses()
+    gripper_x = quat_rotate(grippers[:, 3:], X_AXIS)
+    tolerance = 1e-9 * seg  # the right grip marker's arc is the rod's length up to rounding
+    behind_left, behind_right = arc < -tolerance, arc > backend.rod.length + tolerance
+    points[behind_left] = grippers[0, :3] + arc[behind_left, None] * gripper_x[0]
+    beyond = arc[behind_right, None] - backend.rod.length
+    points[behind_right] = grippers[1, :3] + beyond * gripper_x[1]
+    return points
 
 
 # --------------------------------------------------------------------------- gripper poses
@@ -130,14 +155,18 @@ ROLLS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 }
 
 
-def gripper_targets(recording: np.ndarray, roll: str) -> np.ndarray:
-    """(T,2,7) gripper poses following a (T,V,3) recording: positions of the end markers,
-    x axes from the left end into the rod and from the rod into the right end."""
+def gripper_targets(
+    recording: np.ndarray, roll: str, grip: tuple[int, int] | None = None
+) -> np.ndarray:
+    """(T,2,7) gripper poses following a (T,V,3) recording: positions of the ``grip``
+    markers (default: the end markers), x axes along each end's held pair, from the left
+    end into the rod and from the rod into the right end."""
+    grip = grip or (0, recording.shape[1] - 1)
     left_axis = recording[:, 1] - recording[:, 0]
     right_axis = recording[:, -1] - recording[:, -2]
     poses = np.empty((len(recording), 2, 7))
     for side, (position, axis) in enumerate(
-        [(recording[:, 0], left_axis), (recording[:, -1], right_axis)]
+        [(recording[:, grip[0]], left_axis), (recording[:, grip[1]], right_axis)]
     ):
         axis = axis / np.linalg.norm(axis, axis=-1, keepdims=True)
         poses[:, side, :3] = position
@@ -214,10 +243,12 @@ def replay(
 ) -> Replay:
     """Drive ``backend`` with a (T,V,3) recording's held-marker motion (see module doc).
 
-    The backend's control period must be the recording's frame period."""
+    The backend's control period must be the recording's frame period; ``arc`` is measured
+    from the left grip marker (:meth:`MarkerLayout.between`)."""
     dt = backend.control_dt
     offset = workspace_offset(recording, backend)
-    targets = gripper_targets(recording + offset, settings.roll)
+    grip = grip_markers(recording.shape[1], backend.rod.clamp_compliance)
+    targets = gripper_targets(recording + offset, settings.roll, grip)
     backend.reset()
     backend.limits = fit_limits(np.concatenate([targets, backend.gripper_poses()[None]]), arc[-1])
     _approach(backend, targets[0], settings, dt)

@@ -14,16 +14,19 @@ from dlocli.specs import BackendSpec, RodSpec, Spec
 
 class CableRodSpec(RodSpec):
     """A cable's rod: 1 cm thick (the radius only sets the scale of E, since E I is fitted),
-    segments of about 4 cm (a held marker pair, 2-3 cm apart, lies in the held segment)."""
+    segments of about 4 cm (with rigid clamps a held marker pair, 2-3 cm apart, lies in the
+    held segment)."""
 
     radius: float = Field(
         0.005, ge=1e-4, le=0.1, description="Rod cross-section radius in metres (1e-4 to 0.1)."
     )
     n_segments: int = Field(24, ge=4, le=200, description="Number of rigid segments.")
     clamp_compliance: Literal["half-segment", "rigid"] = Field(
-        "rigid",
-        description="A gripper holds its recorded marker pair rigidly, and the replay steers "
-        "the gripper by that pair's direction: 'rigid' clamps, unlike a free rod's default.",
+        "half-segment",
+        description="How a held rod end bends in its gripper, and so where the gripper holds "
+        "it: 'half-segment' (a free rod's default) bends at the grip, which is then the inner "
+        "marker of each held pair (the outer one rides on the gripper); 'rigid' makes the end "
+        "segment part of the gripper, which then holds the rod at the end markers.",
     )
 
 
@@ -58,8 +61,9 @@ class CalibrateSpec(Spec):
         None,
         gt=0,
         le=10,
-        description="Length (m) of the simulated rod, the cable between its outermost "
-        "markers; None = the markers' mean polyline length over the train recordings.",
+        description="Length (m) of the simulated rod, the cable between its grip markers "
+        "(see clamp_compliance); None = the markers' mean polyline length between them over "
+        "the train recordings.",
     )
     rate_hz: float = Field(100.0, gt=0, le=10000, description="Frames per second recorded.")
     backend: CableBackendSpec = Field(

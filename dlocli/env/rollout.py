@@ -78,12 +78,18 @@ class NoisyPolicy:
         return np.clip(action, -1.0, 1.0)
 
 
-def rollout(env: Any, policy: Any, seed: int, on_step: OnStep | None = None) -> Episode:
-    """One episode of ``policy`` on ``env`` from ``env.reset(seed=seed)``.
+def rollout(
+    env: Any,
+    policy: Any,
+    seed: int,
+    on_step: OnStep | None = None,
+    options: dict[str, Any] | None = None,
+) -> Episode:
+    """One episode of ``policy`` on ``env`` from ``env.reset(seed=seed, options=options)``.
 
     ``on_step(t, reward, info)`` is called after every recorded step (t = 1, 2, ...).
     """
-    obs, _ = env.reset(seed=seed)
+    obs, _ = env.reset(seed=seed, options=options)
     policy.reset(env.goal)
     states, observations, commands, rewards = [env.state_parts()], [obs], [], []
     diverged = False

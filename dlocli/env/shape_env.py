@@ -43,7 +43,7 @@ from dlocli.env.observation import (
     markers_of_state,
 )
 from dlocli.env.options import resolve_env_options
-from dlocli.env.shapes import make_shape, max_twist
+from dlocli.env.shapes import episode_poses, make_shape, max_twist, shape_at
 from dlocli.env.spaces import (
     observation_layout,
     observation_slices,
@@ -221,6 +221,16 @@ class DLOShapeEnv(gym.Env):
         self.goal_gripper_poses = self.backend.gripper_poses()
         return self.backend.segment_positions().copy()
 
+    def _shape_at(self, poses: np.ndarray, what: str) -> np.ndarray:
+        """Settle the rod with its grippers at ``poses`` (2, 7); its segment centres."""
+        self.backend.reset(0)
+        if not shape_at(self.backend, self.task_spec, poses):
+            raise UnworkablePhysics(
+                f"the simulation diverged making the episode's {what} at the given gripper "
+                "poses; give poses the rod can reach (slack, inside the workspace)"
+            )
+        return self.backend.segment_positions().copy()
+
     # ------------------------------------------------------------------ gym API
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -231,9 +241,16 @@ class DLOShapeEnv(gym.Env):
         self._seeded = True
         super().reset(seed=seed)
         self.reset_generator_state = self.np_random.bit_generator.state
-        if self.task_spec.goal == "random" and not self._goal_given:
+        start_poses, goal_poses = episode_poses(options, self.backend.limits)
+        if goal_poses is not None:
+            self.goal = self._shape_at(goal_poses, "goal")
+            self.goal_gripper_poses = self.backend.gripper_poses()
+        elif self.task_spec.goal == "random" and not self._goal_given:
             self.goal = self.sample_goal(self.np_random)
-        self._random_shape(self.np_random, self.task_spec.reset_motion_steps)
+        if start_poses is not None:
+            self._shape_at(start_poses, "start")
+        else:
+            self._random_shape(self.np_random, self.task_spec.reset_motion_steps)
         self.envelope.reset()
         self.envelope.check_start(self.backend.gripper_poses())
         self._t = 0

@@ -12,15 +12,19 @@ Two ways (``TaskSpec.shapes``):
   maximum velocities, then held still while the rod settles.
 - ``near-rest``: piecewise-constant random gripper twists for ``reset_motion_steps`` control
   steps from rest, then settling: starts and goals a few centimetres apart (fast tests).
+
+An episode can also be given its gripper poses (``env.reset(options={"start_grippers": ...,
+"goal_grippers": ...})``, (2, 7) each: a recorded cell's poses): the grippers are driven
+there from rest like a random pose's, and the rod settles.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from dlocli.backends.base import Backend
+from dlocli.backends.base import Backend, GripperLimits
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize
-from dlocli.errors import BadInput
+from dlocli.errors import BadInput, BadOption
 from dlocli.specs import TaskSpec
 
 #: how many control steps a near-rest motion keeps one velocity before drawing the next
@@ -139,3 +143,49 @@ def random_motion(
 def settle(backend: Backend, steps: int) -> bool:
     """Hold the grippers still for ``steps`` control steps."""
     return all(backend.step(np.zeros((2, 6))) for _ in range(steps))
+
+
+# ----------------------------------------------------------------------------- given poses
+#: what ``env.reset(options=...)`` takes: (2, 7) gripper poses of the episode's start or goal
+POSE_OPTIONS = ("start_grippers", "goal_grippers")
+
+
+def episode_poses(
+    options: dict | None, limits: GripperLimits
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The start and goal gripper poses in reset ``options`` (None where not given);
+    BadOption for an unknown key or poses that are not (2, 7), finite, in the workspace."""
+    options = options or {}
+    unknown = sorted(set(options) - set(POSE_OPTIONS))
+    if unknown:
+        raise BadOption(
+            f"reset option {unknown[0]!r} is not known; the options are {', '.join(POSE_OPTIONS)}"
+        )
+    return tuple(_checked_poses(options.get(k), k, limits) for k in POSE_OPTIONS)  # type: ignore[return-value]
+
+
+def _checked_poses(poses: object, name: str, limits: GripperLimits) -> np.ndarray | None:
+    if poses is None:
+        return None
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape != (2, 7) or not np.all(np.isfinite(poses)):
+        raise BadOption(
+            f"reset option {name} must be finite (2, 7) gripper poses (x y z, w qx qy qz)"
+        )
+    if np.any(poses[:, :3] < limits.low) or np.any(poses[:, :3] > limits.high):
+        raise BadOption(f"reset option {name}: a gripper lies outside the task's workspace")
+    separation = float(np.linalg.norm(poses[1, :3] - poses[0, :3]))
+    if not limits.min_separation <= separation <= limits.max_separation:
+        raise BadOption(
+            f"reset option {name}: the grippers are {separation:.3f} m apart, outside the "
+            f"task's {limits.min_separation:.3f}-{limits.max_separation:.3f} m"
+        )
+    poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    return poses
+
+
+def shape_at(backend: Backend, task: TaskSpec, poses: np.ndarray) -> bool:
+    """Drive both grippers of ``backend`` (at rest) to ``poses`` (2, 7) and let the rod
+    settle; False if it diverged."""
+    both = np.array([True, True])
+    return drive_grippers(backend, task, poses, both) and settle(backend, task.reset_settle_steps)
