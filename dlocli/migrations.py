@@ -37,6 +37,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
     },
     "task": {
         "shapes": "near-rest",
+        "recorded_poses": None,
         "observe_velocity": False,
         "envelope": {
             "max_linear_speed": None,

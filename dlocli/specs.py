@@ -215,12 +215,18 @@ class TaskSpec(Spec):
     workspace_high: tuple[float, float, float] = Field(
         (0.8, 0.6, 1.4), description="Gripper workspace upper corner (x, y, z) in metres."
     )
-    shapes: Literal["random-pose", "near-rest"] = Field(
+    shapes: Literal["random-pose", "near-rest", "recorded"] = Field(
         "random-pose",
         description="How episode starts and goals are made: 'random-pose' drives the moving "
         "grippers to random poses in the pose region and lets the rod settle (the paper's "
         "scale: tens of cm apart); 'near-rest' moves them randomly for reset_motion_steps "
-        "from rest (a few cm apart; fast tests).",
+        "from rest (a few cm apart; fast tests); 'recorded' drives them to poses drawn from "
+        "recorded_poses (a recorded cell's).",
+    )
+    recorded_poses: Path | None = Field(
+        None,
+        description="recorded shapes: a .npy of (K, 2, 7) gripper poses (x y z in metres, "
+        "then the w x y z quaternion) that starts and goals are drawn from.",
     )
     pose_offset_low: tuple[float, float, float] = Field(
         (-0.3, -0.15, -0.15),
@@ -266,9 +272,12 @@ class TaskSpec(Spec):
 
     def inert_fields(self) -> set[str]:
         """Fields that do not change any result under this spec's ``shapes``."""
+        pose_region = {"pose_offset_low", "pose_offset_high", "pose_max_rotation"}
         if self.shapes == "near-rest":
-            return {"pose_offset_low", "pose_offset_high", "pose_max_rotation"}
-        return {"reset_motion_steps"}
+            return pose_region | {"recorded_poses"}
+        if self.shapes == "recorded":
+            return pose_region | {"reset_motion_steps"}
+        return {"reset_motion_steps", "recorded_poses"}
 
     @model_validator(mode="after")
     def _regions_ordered(self) -> TaskSpec:
@@ -277,6 +286,11 @@ class TaskSpec(Spec):
             pairs = zip(getattr(self, low), getattr(self, high), strict=True)
             if any(lo > hi for lo, hi in pairs):
                 raise ValueError(f"{low} must not exceed {high} in any axis")
+        if (self.shapes == "recorded") != (self.recorded_poses is not None):
+            raise ValueError(
+                "recorded_poses is the file of shapes 'recorded' (and of no other): give both "
+                "or neither"
+            )
         if self.min_separation > self.max_separation:
             raise ValueError(
                 f"min_separation {self.min_separation} exceeds max_separation {self.max_separation}"

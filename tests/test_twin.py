@@ -3,19 +3,22 @@ twin: the calibrated rod in the recorded cell, observed through the recorded mar
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+import yaml
 
 from dlocli.calibration.fit import Cable
-from dlocli.calibration.twin import TwinSettings, goal_gap_mm, make_twin
+from dlocli.calibration.twin import TwinSettings, goal_gap_mm, make_twin, write_twin_task
 from dlocli.controllers.views import MarkerView
 from dlocli.env.rollout import ActionSequence, rollout
 from dlocli.env.shape_env import make_env
-from dlocli.errors import BadOption
+from dlocli.errors import BadInput, BadOption
 from dlocli.markers import deform
 from dlocli.models.base import valid_model_spec
 from dlocli.models.markers import build_marker_model
-from dlocli.specs import BackendSpec, RodSpec
+from dlocli.specs import BackendSpec, EnvSpec, RodSpec, TaskSpec
 
 QUICK = {"shapes": "near-rest", "episode_steps": 5, "reset_motion_steps": 15,
          "reset_settle_steps": 20}  # fmt: skip
@@ -101,3 +104,32 @@ def test_the_twin_observes_the_recorded_markers_and_settles_at_recorded_poses() 
         assert env.task_spec.control_dt == pytest.approx(1 / RATE)
     finally:
         env.close()
+
+
+def test_a_twin_task_file_draws_starts_and_goals_from_recorded_poses(tmp_path: Path) -> None:
+    """`write_twin_task`: a --spec file any command takes; its episodes start at recorded
+    gripper poses, and a bad poses file is one BadInput naming it."""
+    grip_arc = ARC - ARC[1]
+    rod = RodSpec(length=float(grip_arc[-2]), n_segments=12, radius=0.005, density=500.0)
+    backend = BackendSpec(rod=rod)
+    recordings = [("0", _recording(0))]
+    cable = Cable(train=recordings, eval=recordings, arc=grip_arc, backend=backend)
+    twin = make_twin(cable, backend, RATE, TwinSettings(episode_steps=5))
+    path = write_twin_task(twin, [recordings[0][1]], tmp_path / "twin")
+    spec = EnvSpec.model_validate(yaml.safe_load(path.read_text()))
+    assert spec.task.shapes == "recorded"
+    poses = np.load(tmp_path / "twin" / "poses.npy")
+    assert poses.shape == (FRAMES // 10, 2, 7)
+    env = make_env(spec.backend, task=spec.task, seed=0, render_mode=None)
+    try:
+        env.reset(seed=1)
+        reached = env.backend.gripper_poses()[:, :3]
+        assert np.abs(poses[:, :, :3] - reached).max(axis=(1, 2)).min() < 1e-4
+    finally:
+        env.close()
+    np.save(tmp_path / "bad.npy", poses[:, :1])
+    bad = spec.task.model_copy(update={"recorded_poses": tmp_path / "bad.npy"})
+    with pytest.raises(BadInput, match="bad.npy holds no \\(K, 2, 7\\) array"):
+        make_env(spec.backend, task=bad, seed=0, render_mode=None)
+    with pytest.raises(ValueError, match="give both or neither"):
+        TaskSpec(shapes="recorded")

@@ -16,12 +16,14 @@ recorded one: :func:`goal_gap_mm` says how far it is), its start another frame's
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from dlocli.backends.base import REST_HEIGHT
 from dlocli.calibration.fit import Cable
 from dlocli.calibration.replay import grip_markers, gripper_targets
+from dlocli.io import atomic_path, write_text_atomic
 from dlocli.markers.deform import held_markers
 from dlocli.specs import BackendSpec, EnvSpec, ObservationSpec, TaskSpec
 
@@ -89,6 +91,33 @@ def make_twin(
     )
     spec = EnvSpec(backend=calibrated, task=task, seed=settings.seed)
     return Twin(spec, offset, grip, recordings)
+
+
+def recorded_poses(twin: Twin, recordings: list[np.ndarray], every: int = 10) -> np.ndarray:
+    """(K, 2, 7) the grippers' poses at every ``every``-th frame of ``recordings`` (e.g. the
+    train ones), inside the twin's separation limit: the shapes a twin task with
+    ``shapes: recorded`` draws its starts and goals from."""
+    limit = twin.spec.task.max_separation * twin.spec.backend.rod.length
+    poses = np.concatenate([twin.poses(r)[::every] for r in recordings])
+    separation = np.linalg.norm(poses[:, 1, :3] - poses[:, 0, :3], axis=-1)
+    return poses[separation <= limit]
+
+
+def write_twin_task(twin: Twin, recordings: list[np.ndarray], folder: Path) -> Path:
+    """FOLDER/twin.yaml, the twin's backend and task for any command's --spec, its starts and
+    goals drawn from FOLDER/poses.npy (:func:`recorded_poses` of ``recordings``)."""
+    import yaml
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(folder / "poses.npy") as tmp, open(tmp, "wb") as f:
+        np.save(f, recorded_poses(twin, recordings))
+    task = twin.spec.task.model_copy(
+        update={"shapes": "recorded", "recorded_poses": folder / "poses.npy"}
+    )
+    fields = {"backend": twin.spec.backend, "task": task}
+    dumped = {k: v.model_dump(mode="json") for k, v in fields.items()}
+    write_text_atomic(folder / "twin.yaml", yaml.safe_dump(dumped, sort_keys=False))
+    return folder / "twin.yaml"
 
 
 def marker_observation(

@@ -19,9 +19,10 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     command's --spec) and OUT/report.{json,md} (eval score before and after, next to
     DEFORM's published physics rows and the freeze reference).
 
-    Grippers follow the recorded end markers; the rod is the cable between its outermost
-    markers, with the cable's mass per length. `--resume OUT` continues after the last
-    finished generation (`--generations` may change there: more extends the search)."""
+    Grippers follow the inner marker of each recorded held pair (the end markers with
+    rigid clamps); the rod is the cable between them, with the cable's mass per length.
+    `--resume OUT` continues after the last finished generation (`--generations` may change
+    there: more extends the search)."""
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json) as bars:

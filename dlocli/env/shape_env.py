@@ -43,7 +43,13 @@ from dlocli.env.observation import (
     markers_of_state,
 )
 from dlocli.env.options import resolve_env_options
-from dlocli.env.shapes import episode_poses, make_shape, max_twist, shape_at
+from dlocli.env.shapes import (
+    episode_poses,
+    load_recorded_poses,
+    make_shape,
+    max_twist,
+    shape_at,
+)
 from dlocli.env.spaces import (
     observation_layout,
     observation_slices,
@@ -150,6 +156,12 @@ class DLOShapeEnv(gym.Env):
             held = (bool(self.backend.moving[0]), bool(self.backend.moving[1]))
             self.marker_layout = marker_layout(self.task_spec.observation, rod.length, n, held)
             self.tracker = Tracker(self.task_spec.observation, markers)
+        #: (K, 2, 7) the gripper poses of recorded shapes (None: other shapes)
+        self.recorded_poses = None
+        if self.task_spec.recorded_poses is not None:
+            self.recorded_poses = load_recorded_poses(
+                self.task_spec.recorded_poses, self.backend.limits
+            )
         self._goal_rng = np.random.default_rng([seed, 1])
         self._goal_given = goal is not None or self.task_spec.goal_file is not None
         #: (2,7) gripper poses that made the goal, when the env made it (None: a given goal)
@@ -205,7 +217,9 @@ class DLOShapeEnv(gym.Env):
         simulation diverged 10 times."""
         for attempt in range(1, 11):
             self.backend.reset(int(rng.integers(2**31)))
-            if make_shape(self.backend, self.task_spec, self.task.moving, rng, motion_steps):
+            shaped = make_shape(self.backend, self.task_spec, self.task.moving, rng,
+                                motion_steps, self.recorded_poses)  # fmt: skip
+            if shaped:
                 self.shape_attempts = attempt
                 return True
         self.shape_attempts = 10

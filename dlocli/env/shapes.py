@@ -13,12 +13,16 @@ Two ways (``TaskSpec.shapes``):
 - ``near-rest``: piecewise-constant random gripper twists for ``reset_motion_steps`` control
   steps from rest, then settling: starts and goals a few centimetres apart (fast tests).
 
-An episode can also be given its gripper poses (``env.reset(options={"start_grippers": ...,
+``recorded`` draws each start and goal from a file of gripper poses (``recorded_poses``: a
+recorded cell's, e.g. a calibrated twin's), driven there like a random pose's. An episode
+can also be given its gripper poses (``env.reset(options={"start_grippers": ...,
 "goal_grippers": ...})``, (2, 7) each: a recorded cell's poses): the grippers are driven
 there from rest like a random pose's, and the rod settles.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -41,12 +45,21 @@ def max_twist(task: TaskSpec) -> np.ndarray:
 
 
 def make_shape(
-    backend: Backend, task: TaskSpec, moving: np.ndarray, rng: np.random.Generator, steps: int
+    backend: Backend,
+    task: TaskSpec,
+    moving: np.ndarray,
+    rng: np.random.Generator,
+    steps: int,
+    recorded: np.ndarray | None = None,
 ) -> bool:
     """Move ``backend`` (already reset to rest) to a random shape; False if it diverged.
 
-    ``steps`` is the near-rest motion length (random-pose drives until the target is reached).
+    ``steps`` is the near-rest motion length (random-pose drives until the target is reached);
+    ``recorded``: the (K, 2, 7) poses of recorded shapes.
     """
+    if task.shapes == "recorded":
+        assert recorded is not None
+        return shape_at(backend, task, recorded[rng.integers(len(recorded))])
     if task.shapes == "random-pose":
         targets = draw_gripper_targets(backend, task, moving, rng)
         ok = drive_grippers(backend, task, targets, moving)
@@ -189,3 +202,21 @@ def shape_at(backend: Backend, task: TaskSpec, poses: np.ndarray) -> bool:
     settle; False if it diverged."""
     both = np.array([True, True])
     return drive_grippers(backend, task, poses, both) and settle(backend, task.reset_settle_steps)
+
+
+def load_recorded_poses(path: Path, limits: GripperLimits) -> np.ndarray:
+    """The (K, 2, 7) gripper poses of a ``recorded_poses`` file, each pair checked like a
+    reset option's; BadInput naming the file and the expected format."""
+    expected = "expected a .npy file of (K, 2, 7) gripper poses (x y z, w qx qy qz)"
+    try:
+        poses = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise BadInput(f"recorded_poses {path} could not be read; {expected}") from exc
+    if not isinstance(poses, np.ndarray) or poses.ndim != 3 or poses.shape[1:] != (2, 7):
+        raise BadInput(f"recorded_poses {path} holds no (K, 2, 7) array; {expected}")
+    if len(poses) == 0 or poses.dtype.kind not in "fiu":
+        raise BadInput(f"recorded_poses {path} holds no poses; {expected}")
+    try:
+        return np.stack([_checked_poses(p, f"pair {i}", limits) for i, p in enumerate(poses)])
+    except BadOption as exc:
+        raise BadInput(f"recorded_poses {path}: {exc}".replace("reset option ", "")) from None

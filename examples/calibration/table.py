@@ -1,15 +1,17 @@
-"""The calibration results (results/*/report.json) and the sim-to-real results
-(results/sim_to_real_*.json) as markdown tables.
+"""The calibration results (RESULTS/*/report.json) and the sim-to-real results
+(RESULTS/sim_to_real_*.json) as markdown tables; RESULTS defaults to results/ (today's rod),
+results/rigid/ holds the earlier rod's (rigid clamps).
 
-python examples/calibration/table.py > examples/calibration/results/summary.md
+python examples/calibration/table.py [RESULTS] > RESULTS/summary.md
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent / "results"
 
 
 def main() -> None:
@@ -40,6 +42,8 @@ def _seeds(values: list[float]) -> str:
 
 def sim_to_real_table() -> None:
     """Real eval score (cm) against the number of real train trajectories, per cable."""
+    if not any(RESULTS.glob("sim_to_real_*.json")):
+        return
     print("| cable | model | 0 real | 1 | 4 | 16 | 56 |")
     print("|---|---|---:|---:|---:|---:|---:|")
     for path in sorted(RESULTS.glob("sim_to_real_*.json")):

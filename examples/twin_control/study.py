@@ -12,6 +12,9 @@ Controllers (the gradient MPC with the marker model):
   mpc-twin-real  pre-trained on 56 simulated trajectories of the twin, fine-tuned on the
                  real train recordings (``train`` below; pre-training seed 0, fine-tuning 0-2)
   nothing, random  the references, on the same starts and goals
+  goal-poses     an oracle: drives the grippers straight to the poses that made the goal
+                 (which no other controller is given), then holds: how much of the task
+                 is placing the grippers
 
     DEFORM=/path/to/DEFORM/data_set python examples/twin_control/study.py train
     python examples/twin_control/study.py evaluate
@@ -41,7 +44,7 @@ HERE = Path(__file__).resolve().parent
 EXAMPLES = HERE.parent
 RECIPE = EXAMPLES / "real_cables" / "mlp.yaml"
 CABLES = ("DLO1", "DLO2", "DLO3", "DLO4")
-CONTROLLERS = ("nothing", "random", "mpc-real", "mpc-twin-real")
+CONTROLLERS = ("nothing", "random", "goal-poses", "mpc-real", "mpc-twin-real")
 START_BEFORE = 50  # frames between an episode's start and its goal (0.5 s)
 SIMULATED, PRETRAIN_STEPS, FINETUNE_STEPS = 56, 1000, 1000
 EPISODE_STREAM = 42
@@ -155,9 +158,29 @@ def controller_for(name: str, env: Any, options: argparse.Namespace, cable: str,
 
     if name in ("nothing", "random"):
         return None  # drawn per episode
+    if name == "goal-poses":
+        return GoalPoses(env)
     run = {"mpc-real": options.real / cable / f"mlp-s{seed}",
            "mpc-twin-real": options.out / cable / f"twin-real-s{seed}"}[name]  # fmt: skip
     return make_controller("mpc", env, seed=seed, model=load_planning_model(run))
+
+
+class GoalPoses:
+    """The oracle: the grippers driven to the goal's gripper poses at the task's limits."""
+
+    def __init__(self, env: Any) -> None:
+        self.env = env
+
+    def reset(self, goal: np.ndarray) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        from dlocli.env.shapes import gripper_twists_towards, max_twist
+
+        env = self.env
+        twists = gripper_twists_towards(env.backend.gripper_poses(), env.goal_gripper_poses,
+                                        env.task_spec, np.array([True, True]))  # fmt: skip
+        return (twists / max_twist(env.task_spec)).reshape(12)
 
 
 def marker_errors(env: Any, episode: Any) -> tuple[float, float]:
