@@ -68,14 +68,14 @@ def make_twin(
     n_markers = len(cable.arc)
     grip = grip_markers(n_markers, calibrated.rod.clamp_compliance)
     length = calibrated.rod.length
-    recordings = cable.eval
-    grips = np.concatenate([r[:, list(grip)] for _, r in recordings]).reshape(-1, 3)
+    recordings, everything = cable.eval, cable.train + cable.eval
+    grips = np.concatenate([r[:, list(grip)] for _, r in everything]).reshape(-1, 3)
     offset = np.array([0.0, 0.0, REST_HEIGHT * length]) - 0.5 * (grips.min(0) + grips.max(0))
     shifted = grips + offset
     low = (shifted.min(0) - WORKSPACE_MARGIN) / length
     high = (shifted.max(0) + WORKSPACE_MARGIN) / length
     separation = max(
-        float(np.linalg.norm(r[:, grip[1]] - r[:, grip[0]], axis=-1).max()) for _, r in recordings
+        float(np.linalg.norm(r[:, grip[1]] - r[:, grip[0]], axis=-1).max()) for _, r in everything
     )
     task = TaskSpec(
         name="bimanual",

@@ -11,12 +11,18 @@ Controllers (the gradient MPC with the marker model):
                  (examples/real_cables/run.sh, seeds 0-2)
   mpc-twin-real  pre-trained on 56 simulated trajectories of the twin, fine-tuned on the
                  real train recordings (``train`` below; pre-training seed 0, fine-tuning 0-2)
+  mpc-online     the marker model learned online in the twin by Algorithm 1 (`dlo online`:
+                 random episodes, then iterations of MPC trials; --budget transitions),
+                 starts and goals drawn from the train recordings' gripper poses
+  sac            SAC (stable-baselines3) trained in the twin at the same budget, same
+                 observation
   nothing, random  the references, on the same starts and goals
   goal-poses     an oracle: drives the grippers straight to the poses that made the goal
                  (which no other controller is given), then holds: how much of the task
                  is placing the grippers
 
     DEFORM=/path/to/DEFORM/data_set python examples/twin_control/study.py train
+    python examples/twin_control/study.py learn     # mpc-online and sac in the twin
     python examples/twin_control/study.py evaluate
     python examples/twin_control/study.py report    # table.md, results.csv, twin_control.png
 
@@ -44,7 +50,8 @@ HERE = Path(__file__).resolve().parent
 EXAMPLES = HERE.parent
 RECIPE = EXAMPLES / "real_cables" / "mlp.yaml"
 CABLES = ("DLO1", "DLO2", "DLO3", "DLO4")
-CONTROLLERS = ("nothing", "random", "goal-poses", "mpc-real", "mpc-twin-real")
+CONTROLLERS = ("nothing", "random", "goal-poses", "mpc-real", "mpc-twin-real", "mpc-online",
+               "sac")  # fmt: skip
 START_BEFORE = 50  # frames between an episode's start and its goal (0.5 s)
 SIMULATED, PRETRAIN_STEPS, FINETUNE_STEPS = 56, 1000, 1000
 EPISODE_STREAM = 42
@@ -151,6 +158,86 @@ def train(options: argparse.Namespace) -> None:
         print(line, flush=True)
 
 
+def twin_task_file(options: argparse.Namespace, cable: str, seed: int) -> Path:
+    """OUT/CABLE/twin/twin.yaml: the twin with starts and goals at train-recording poses."""
+    from dlocli.calibration.fit import load_cable
+    from dlocli.calibration.twin import write_twin_task
+
+    twin, spec = load_twin(cable, options, seed)
+    train = [r for _, r in load_cable(spec).train]
+    return write_twin_task(twin, train, options.out / cable / f"twin-s{seed}")
+
+
+def learn_job(job: tuple[argparse.Namespace, str, int, str]) -> str:
+    """Algorithm 1 (``mpc-online``) or SAC in the twin, ``options.budget`` transitions."""
+    options, cable, seed, name = job
+    import torch
+    import yaml
+
+    torch.set_num_threads(1)
+    out = options.out / cable / f"{name}-s{seed}"
+    began = time.perf_counter()
+    fields = yaml.safe_load(twin_task_file(options, cable, seed).read_text())
+    fields["task"]["goal"] = "random"
+    if name == "sac":
+        learn_sac(fields, seed, out, options.budget)
+    else:
+        learn_online(fields, seed, out, options)
+    return f"{cable} {name} seed {seed}: {time.perf_counter() - began:.0f} s"
+
+
+def learn_online(fields: dict, seed: int, out: Path, options: argparse.Namespace) -> None:
+    from dlocli.rundir import owned
+    from dlocli.runs.online import OnlineSpec
+    from dlocli.runs.online.loop import OnlineRun
+
+    steps, trials, initial = fields["task"]["episode_steps"], 5, 10
+    import yaml
+
+    recipe = yaml.safe_load(RECIPE.read_text())["model"]
+    spec = OnlineSpec.model_validate({
+        **fields, "seed": seed, "trials": trials, "initial_episodes": initial,
+        "iters": max(1, (options.budget // steps - initial) // trials), "model": recipe,
+        "fit": {"schedule": "steps", "update_steps": 500, "lr": 1e-3, "eval_every": 166,
+                "rollout_steps": 16, "rollout_start": 2},
+        "out": str(out), "threads": 1,
+    })  # fmt: skip
+    if (out / "checkpoints" / f"iter_{spec.iters + 1:03d}.pt").is_file():
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "spec.json").write_text(spec.model_dump_json(indent=1))
+    with owned(out):
+        run = OnlineRun(spec)
+        run.run()
+        # the model of every transition collected: one more update after the last trials
+        run.update_model(spec.iters + 1, run.dataset_until(spec.iters))
+
+
+def learn_sac(fields: dict, seed: int, out: Path, budget: int) -> None:
+    from dlocli.controllers.base import make_controller
+    from dlocli.env.shape_env import make_env
+    from dlocli.specs import EnvSpec
+
+    if (out / "policy" / "model.zip").is_file():
+        return
+    spec = EnvSpec.model_validate({**fields, "seed": seed})
+    env = make_env(spec.backend, task=spec.task, seed=seed, render_mode=None)
+    try:
+        agent = make_controller("sac", env, seed=seed)
+        agent.learn(budget)
+        agent.save_policy(out / "policy")
+    finally:
+        env.close()
+
+
+def learn(options: argparse.Namespace) -> None:
+    names = [n for n in ("mpc-online", "sac") if n in options.controllers]
+    jobs = [(options, c, s, n) for n in names for s in range(options.seeds)
+            for c in options.cables]  # fmt: skip
+    for line in run_jobs(learn_job, jobs, options.workers):
+        print(line, flush=True)
+
+
 # --------------------------------------------------------------------------- evaluation
 def controller_for(name: str, env: Any, options: argparse.Namespace, cable: str, seed: int) -> Any:
     from dlocli.controllers.base import make_controller
@@ -160,8 +247,16 @@ def controller_for(name: str, env: Any, options: argparse.Namespace, cable: str,
         return None  # drawn per episode
     if name == "goal-poses":
         return GoalPoses(env)
-    run = {"mpc-real": options.real / cable / f"mlp-s{seed}",
-           "mpc-twin-real": options.out / cable / f"twin-real-s{seed}"}[name]  # fmt: skip
+    if name == "sac":
+        agent = make_controller("sac", env, seed=seed)
+        agent.load_policy(options.out / cable / f"sac-s{seed}" / "policy")
+        return agent
+    if name == "mpc-online":
+        learned = options.out / cable / f"mpc-online-s{seed}" / "checkpoints"
+        run = sorted(learned.glob("iter_*.pt"))[-1]
+    else:
+        run = {"mpc-real": options.real / cable / f"mlp-s{seed}",
+               "mpc-twin-real": options.out / cable / f"twin-real-s{seed}"}[name]  # fmt: skip
     return make_controller("mpc", env, seed=seed, model=load_planning_model(run))
 
 
@@ -343,7 +438,7 @@ def run_jobs(function: Any, jobs: list[Any], workers: int) -> list[Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=("train", "evaluate", "report"))
+    parser.add_argument("command", choices=("train", "learn", "evaluate", "report"))
     parser.add_argument("--deform", type=Path, default=Path(os.environ.get("DEFORM", "DEFORM")))
     parser.add_argument("--real", type=Path, default=Path("runs/real"))
     parser.add_argument("--calibration", type=Path,
@@ -355,9 +450,11 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=6, help="episodes per seed")
     parser.add_argument("--steps", type=int, default=300, help="control steps per episode")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--budget", type=int, default=10000, help="transitions of mpc-online, sac")
     options = parser.parse_args()
     options.out.mkdir(parents=True, exist_ok=True)
-    {"train": train, "evaluate": evaluate, "report": report}[options.command](options)
+    commands = {"train": train, "learn": learn, "evaluate": evaluate, "report": report}
+    commands[options.command](options)
 
 
 if __name__ == "__main__":
