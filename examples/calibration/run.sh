@@ -2,18 +2,18 @@
 # Calibrate the simulated rod to each DEFORM cable (MuJoCo; PyBullet on DLO3) and keep the
 # small reports here. Usage:
 #   DEFORM=/path/to/DEFORM/data_set examples/calibration/run.sh [runs/calibration]
-# One cable at a time, two replay workers each. What was run for the committed results
-# (a 2-core machine shared with other jobs, 8-13 minutes per cable):
-#   examples/calibration/run.sh runs/calibration                       # DLO1-4, MuJoCo
-#   CABLES=DLO3 BACKENDS=pybullet GENERATIONS=3 examples/calibration/run.sh runs/calibration
-# (DLO4 was stopped after 2 generations and continued with
-#  `dlo calibrate --resume runs/calibration/DLO4-mujoco --generations 3`.)
-# Then sim-to-real on each cable (real runs from examples/real_cables/run.sh runs/real):
-#   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
-#     runs/calibration/$c-mujoco runs/real/$c/data runs/real/$c runs/sim_to_real/$c; done
+# One cable at a time, two replay workers each. What was run for the committed results of
+# today's rod (results/CABLE-mujoco; a 2-core machine shared with other jobs):
+#   examples/calibration/run.sh runs/calibration
 #   python examples/calibration/replay_choices.py $DEFORM/DLO3 0.998 0.0968 \
 #     examples/calibration/results/replay_choices_DLO3.json
 #   python examples/calibration/table.py > examples/calibration/results/summary.md
+# The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
+# train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
+#   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
+#     runs/calibration/$c-mujoco runs/real/$c/data runs/real/$c runs/sim_to_real/$c; done
+#   python examples/calibration/table.py examples/calibration/results/rigid \
+#     > examples/calibration/results/rigid/summary.md
 set -euo pipefail
 DEFORM=${DEFORM:?set DEFORM to the folder holding DLO1 ... DLO4}
 RUNS=${1:-runs/calibration}
