@@ -114,3 +114,18 @@ def test_fused_prediction_without_gradient_matches(name: str) -> None:
     torch.testing.assert_close(rolled[False], rolled[True], rtol=0, atol=1e-4 * scale)
     held = model.held.cpu().numpy()
     assert np.array_equal(rolled[False][:, :, held].numpy(), windows[:, 2:, held].numpy())
+
+
+def test_a_subclass_with_its_own_features_keeps_them() -> None:
+    """The fused steps compute the base class's features; a subclass's own are not skipped."""
+    from dlocli.models.markers import MarkerMLP
+
+    class Scaled(MarkerMLP):
+        def features(self, x, x_prev, held_next, held):
+            return 2 * super().features(x, x_prev, held_next, held)
+
+    model, windows = _model_and_windows("mlp", k=3)
+    scaled = Scaled(model.spec, MARKERS, model.held.numpy())
+    scaled.load_state_dict(model.state_dict())
+    loss = rollout_loss(scaled, windows, scaled.held)
+    assert not {"MLPRolloutBackward", "AdvanceBackward"} & _graph_nodes(loss.grad_fn)

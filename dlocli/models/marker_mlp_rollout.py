@@ -40,11 +40,9 @@ def linear_layers(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
     return [m for m in net if isinstance(m, torch.nn.Linear)]
 
 
-def usable(model: Any, x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
-    """Whether :func:`rollout` applies: the fused steps' conditions, and no gradient wanted
-    for the rollout's inputs."""
-    if not marker_steps.usable(model, x):
-        return False
+def usable(x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
+    """Whether :func:`rollout` applies where the fused steps do: no gradient is wanted for
+    the rollout's inputs."""
     wants = torch.is_grad_enabled() and any(t.requires_grad for t in (x, x_prev, held_future))
     return not wants
 

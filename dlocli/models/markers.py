@@ -134,8 +134,15 @@ class MarkerModel(torch.nn.Module):
         return torch.stack(out, 1)
 
     def _fusable(self, x: Tensor, lengths: Tensor | None) -> bool:
-        """Whether :meth:`_fused_step` applies (the distances it aims at take no gradient)."""
-        return marker_steps.usable(self, x) and (lengths is None or not lengths.requires_grad)
+        """Whether :meth:`_fused_step` applies: the distances it aims at take no gradient,
+        and a subclass changed neither the features nor the step (it fuses this class's)."""
+        own = (
+            type(self).features is MarkerModel.features
+            and type(self).forward is MarkerModel.forward
+        )
+        return (
+            own and marker_steps.usable(self, x) and (lengths is None or not lengths.requires_grad)
+        )
 
     def _fused_step(
         self,
@@ -245,7 +252,8 @@ class MarkerMLP(MarkerModel):
     ) -> Tensor:
         """:meth:`MarkerModel.rollout`; on CPU, with no gradient wanted for its inputs (as in
         training), the whole rollout is one operation (:mod:`~dlocli.models.marker_mlp_rollout`)."""
-        if marker_mlp_rollout.usable(self, x, x_prev, held_future):
+        own = type(self).predict is MarkerMLP.predict  # a subclass's network: step by step
+        if own and self._fusable(x, None) and marker_mlp_rollout.usable(x, x_prev, held_future):
             held = self.held if held is None else held
             return marker_mlp_rollout.rollout(self, x, x_prev, held_future, held,
                                               neighbour_distances(x))  # fmt: skip
