@@ -10,8 +10,11 @@ PyTorch operations and autograd; ``False``: dlocli.models.marker_steps and, for 
 the whole rollout as one operation, dlocli.models.marker_mlp_rollout), each with its own
 Adam. A gradient step is what `dlo train` does: draw windows, roll out, the loss,
 backward, clip, Adam. The variants' timings are interleaved (the machine may be shared);
-medians of the repeats, and new / old as the ratio. ``--data``: a marker dataset
-(`dlo import`); default a synthetic swinging cable (the timing hardly depends on the data).
+medians of the repeats, and new / old as the ratio. For a model with an ``nn.LSTM`` (the
+in-bilstm), the share of the new gradient step its k LSTM passes forward and backward take
+alone (oneDNN's, the same in both variants) is printed: what limits its ratio. ``--data``:
+a marker dataset (`dlo import`); default a synthetic swinging cable (the timing hardly
+depends on the data).
 """
 
 from __future__ import annotations
@@ -88,8 +91,22 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
+def lstm_seconds(model: MarkerModel, batch: int, k: int, steps: int) -> float:
+    """Seconds of the model's LSTM forward and backward, k times (one rollout's) at the
+    rollout's shapes, per gradient step."""
+    lstm = model.lstm
+    sequence = torch.randn(batch, len(model.held), lstm.input_size, device=model.device)
+    start = time.perf_counter()
+    for _ in range(steps):
+        for _ in range(k):
+            lstm(sequence.requires_grad_(True))[0].sum().backward()
+    _sync(model.device)
+    return (time.perf_counter() - start) / steps
+
+
 def compare(spec: TrainSpec, cable: Cable, k: int, args: argparse.Namespace) -> dict[str, float]:
-    """Median seconds per gradient step of both variants, interleaved."""
+    """Median seconds per gradient step of both variants, interleaved (and of the LSTM's
+    passes, for a model that has one)."""
     device = resolve_device(args.device)
     torch.manual_seed(0)
     model = build_marker_model(spec.model, len(cable.held), cable.held)
@@ -102,9 +119,14 @@ def compare(spec: TrainSpec, cable: Cable, k: int, args: argparse.Namespace) -> 
     for trainer in variants.values():
         trainer.seconds_per_step(args.batch, k, 1)  # warm-up (compiled loops load once)
     times: dict[str, list[float]] = {name: [] for name in variants}
+    has_lstm = isinstance(getattr(model, "lstm", None), torch.nn.LSTM)
     for _ in range(args.repeats):
         for name, trainer in variants.items():
             times[name].append(trainer.seconds_per_step(args.batch, k, args.steps))
+        if has_lstm:
+            times.setdefault("lstm", []).append(
+                lstm_seconds(variants["new"].model, args.batch, k, args.steps)
+            )
     return {name: float(np.median(t)) for name, t in times.items()}
 
 
@@ -125,14 +147,18 @@ def main() -> None:
           f"{args.threads} thread(s), device {args.device}, median of {args.repeats} x "
           f"{args.steps} gradient steps (windows, rollout, loss, backward, clip, Adam)"
           )  # fmt: skip
-    print(f"  {'recipe':10s} {'k':>4s} {'old steps/s':>12s} {'new steps/s':>12s} {'new/old':>8s}")
+    print(f"  {'recipe':10s} {'k':>4s} {'old steps/s':>12s} {'new steps/s':>12s} {'new/old':>8s}"
+          f"  {'LSTM share of new':>17s}")  # fmt: skip
     for recipe in args.recipes:
         raw = yaml.safe_load((RECIPES / f"{recipe}.yaml").read_text())
         spec = TrainSpec.model_validate({**raw, "device": args.device})
         for k in args.ks:
             per_step = compare(spec, cable, k, args)
             old, new = k / per_step["old"], k / per_step["new"]
-            print(f"  {recipe:10s} {k:4d} {old:12.0f} {new:12.0f} {new / old:7.2f}x", flush=True)
+            share = per_step["lstm"] / per_step["new"] if "lstm" in per_step else math.nan
+            shown = f"{share:17.0%}" if math.isfinite(share) else f"{'-':>17s}"
+            print(f"  {recipe:10s} {k:4d} {old:12.0f} {new:12.0f} {new / old:7.2f}x  {shown}",
+                  flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":
