@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from dlocli.models import marker_steps
 from dlocli.models.marker_steps import (
@@ -93,6 +94,7 @@ class MLPRollout(torch.autograd.Function):
         return out.transpose(0, 1).contiguous()
 
     @staticmethod
+    @once_differentiable
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         saved = ctx.saved_tensors
         layers = ctx.layers

@@ -26,6 +26,7 @@ import numba
 import numpy as np
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
@@ -222,6 +223,7 @@ class Features(torch.autograd.Function):
         return out
 
     @staticmethod
+    @once_differentiable
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         k = ctx.constants
         g_x, g_prev, g_next = (grad.new_zeros(*grad.shape[:2], 3) for _ in range(3))
@@ -246,6 +248,7 @@ class Advance(torch.autograd.Function):
         return out
 
     @staticmethod
+    @once_differentiable
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         before, lengths = ctx.saved_tensors
         k = ctx.constants
