@@ -10,6 +10,11 @@ augmented by the cable's end-to-end mirror (marker order reversed, ``fit.mirror`
 random rotation about the vertical axis (gravity keeps its direction). Validation rolls the
 held-out training trajectories out whole, by the benchmark's score, every ``eval_every``
 steps; the best weights are kept.
+
+On CPU the rollouts run through the fused operations of :mod:`dlocli.models.marker_steps`
+(and the MLP's whole rollout as one, :mod:`dlocli.models.marker_mlp_rollout`): the same
+loss and gradients, ~5x the rollout steps per second for the MLP recipe
+(``benchmarks/results/training_throughput.txt``); elsewhere plain PyTorch.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from dlocli.errors import BadInput
-from dlocli.models import base
+from dlocli.models import base, marker_mlp_rollout, marker_steps
 from dlocli.models.base import checkpoint_spec, mlp, read_checkpoint, valid_model_spec, with_weights
 from dlocli.models.in_bilstm import init_forget_bias
 from dlocli.models.spec import ModelSpec
@@ -56,6 +56,9 @@ class MarkerModel(torch.nn.Module):
         for name in SCALES:
             self.register_buffer(name, torch.ones(3))
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+        #: use the plain PyTorch operations throughout (the benchmarks' reference), not the
+        #: fused steps of :mod:`dlocli.models.marker_steps`
+        self.reference = False
 
     def predict(self, features: Tensor) -> Tensor:
         """Normalised accelerations (B, V, 3) from the features (B, V, FEATURES)."""
@@ -101,6 +104,10 @@ class MarkerModel(torch.nn.Module):
         ``spec.length_projection``, projected onto those neighbour distances. ``held``: the
         mask of another cable (models whose size does not depend on V); default the model's."""
         held = self.held if held is None else held
+        if self._fusable(x, lengths):
+            sweeps = self.spec.length_projection if lengths is not None else 0
+            return self._fused_step(x, x_prev, held_next, lengths,
+                                    marker_steps.step_constants(self, held, sweeps))  # fmt: skip
         acc = self.predict(self.features(x, x_prev, held_next, held)) * self.acceleration_scale
         nxt = torch.where(held[:, None], held_next, 2 * x - x_prev + acc)
         if lengths is not None and self.spec.length_projection:
@@ -114,10 +121,43 @@ class MarkerModel(torch.nn.Module):
         the held markers are read -> predicted frames (B, H, V, 3)."""
         lengths = neighbour_distances(x)
         out = []
+        if self._fusable(x, lengths):  # the step's constants prepared once
+            held = self.held if held is None else held
+            constants = marker_steps.step_constants(self, held, self.spec.length_projection)
+            for k in range(held_future.shape[1]):
+                x_prev, x = x, self._fused_step(x, x_prev, held_future[:, k], lengths, constants)
+                out.append(x)
+            return torch.stack(out, 1)
         for k in range(held_future.shape[1]):
             x_prev, x = x, self(x, x_prev, held_future[:, k], lengths, held)
             out.append(x)
         return torch.stack(out, 1)
+
+    def _fusable(self, x: Tensor, lengths: Tensor | None) -> bool:
+        """Whether :meth:`_fused_step` applies: the distances it aims at take no gradient,
+        and a subclass changed neither the features nor the step (it fuses this class's)."""
+        own = (
+            type(self).features is MarkerModel.features
+            and type(self).forward is MarkerModel.forward
+        )
+        return (
+            own and marker_steps.usable(self, x) and (lengths is None or not lengths.requires_grad)
+        )
+
+    def _fused_step(
+        self,
+        x: Tensor,
+        x_prev: Tensor,
+        held_next: Tensor,
+        lengths: Tensor | None,
+        constants: marker_steps.StepConstants,
+    ) -> Tensor:
+        """:meth:`forward` with its fixed arithmetic as two fused operations."""
+        if lengths is None:  # not read: no sweeps
+            lengths = x.new_zeros(x.shape[0], x.shape[1] - 1)
+        features = marker_steps.Features.apply(x, x_prev, held_next, constants)
+        acc = self.predict(features)
+        return marker_steps.Advance.apply(acc, x, x_prev, held_next, lengths, constants)
 
     @property
     def device(self) -> torch.device:
@@ -206,6 +246,18 @@ class MarkerMLP(MarkerModel):
 
     def predict(self, f: Tensor) -> Tensor:
         return self.net(f.reshape(len(f), -1)).view(len(f), self.n_segments, 3)
+
+    def rollout(
+        self, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor | None = None
+    ) -> Tensor:
+        """:meth:`MarkerModel.rollout`; on CPU, with no gradient wanted for its inputs (as in
+        training), the whole rollout is one operation (:mod:`~dlocli.models.marker_mlp_rollout`)."""
+        own = type(self).predict is MarkerMLP.predict  # a subclass's network: step by step
+        if own and self._fusable(x, None) and marker_mlp_rollout.usable(x, x_prev, held_future):
+            held = self.held if held is None else held
+            return marker_mlp_rollout.rollout(self, x, x_prev, held_future, held,
+                                              neighbour_distances(x))  # fmt: skip
+        return super().rollout(x, x_prev, held_future, held)
 
 
 def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:

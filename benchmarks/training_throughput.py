@@ -1,0 +1,165 @@
+"""Marker-model training throughput: rollout steps per second of `dlo train`'s gradient step,
+the plain PyTorch path (before issue 43) next to the fused one (the default), in one run.
+
+    python benchmarks/training_throughput.py [--data DATASET] [--ks 64 256] [--batch 32]
+        [--repeats 5] [--steps 2] [--threads 1] [--device cpu]
+
+For each recipe of examples/real_cables (mlp, in-bilstm) and each rollout length k: one
+model, copied twice with the same weights (``model.reference = True``: every step through
+PyTorch operations and autograd; ``False``: dlocli.models.marker_steps and, for the MLP,
+the whole rollout as one operation, dlocli.models.marker_mlp_rollout), each with its own
+Adam. A gradient step is what `dlo train` does: draw windows, roll out, the loss,
+backward, clip, Adam. The variants' timings are interleaved (the machine may be shared);
+medians of the repeats, and new / old as the ratio. For a model with an ``nn.LSTM`` (the
+in-bilstm), the share of the new gradient step its k LSTM passes forward and backward take
+alone (oneDNN's, the same in both variants) is printed: what limits its ratio. ``--data``:
+a marker dataset (`dlo import`); default a synthetic swinging cable (the timing hardly
+depends on the data).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from dlocli.markers.deform import held_markers
+from dlocli.models.base import resolve_device
+from dlocli.models.marker_training import Cable, WindowSampler, rollout_loss
+from dlocli.models.markers import MarkerModel, build_marker_model
+from dlocli.models.spec import TrainSpec
+
+RECIPES = Path(__file__).parents[1] / "examples" / "real_cables"
+
+
+def synthetic_cable(markers: int = 12, episodes: int = 8, frames: int = 500) -> Cable:
+    """A sagging cable whose ends swing (0.01 s frames), held at two markers per end."""
+    rng = np.random.default_rng(0)
+    s = np.linspace(0, 1, markers)[None, :]
+    recorded = []
+    for _ in range(episodes):
+        t = np.arange(frames)[:, None] / 100.0
+        phase, amp = rng.uniform(0, 6), rng.uniform(0.02, 0.08)
+        x = 0.8 * s + amp * np.sin(2 * np.pi * t + phase)
+        y = 0.05 * np.sin(np.pi * s) * np.cos(3 * t + phase)
+        z = 0.5 - 0.2 * np.sin(np.pi * s) + amp * np.sin(5 * t) * s
+        recorded.append(np.stack([x, y, z], -1))
+    return Cable(recorded, held_markers(markers))
+
+
+def load_cable(path: str | None) -> Cable:
+    if path is None:
+        return synthetic_cable()
+    from dlocli.data import load_dataset
+
+    data = load_dataset(path)
+    return Cable(data.episodes("train"), data.held)
+
+
+class Trainer:
+    """One variant: its model, Adam and window sampler (the same draws for both variants)."""
+
+    def __init__(self, model: MarkerModel, cable: Cable, spec: TrainSpec, device: torch.device):
+        self.model = model.to(device).train()
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=spec.lr)
+        self.sampler = WindowSampler([cable], spec, device)
+        self.device = device
+
+    def seconds_per_step(self, batch: int, k: int, steps: int) -> float:
+        _sync(self.device)
+        start = time.perf_counter()
+        for _ in range(steps):
+            loss = rollout_loss(self.model, *self.sampler.sample(batch, k))
+            if not math.isfinite(loss.item()):
+                raise RuntimeError("the loss diverged")
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+            self.optimizer.step()
+        _sync(self.device)
+        return (time.perf_counter() - start) / steps
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def lstm_seconds(model: MarkerModel, batch: int, k: int, steps: int) -> float:
+    """Seconds of the model's LSTM forward and backward, k times (one rollout's) at the
+    rollout's shapes, per gradient step."""
+    lstm = model.lstm
+    sequence = torch.randn(batch, len(model.held), lstm.input_size, device=model.device)
+    start = time.perf_counter()
+    for _ in range(steps):
+        for _ in range(k):
+            lstm(sequence.requires_grad_(True))[0].sum().backward()
+    _sync(model.device)
+    return (time.perf_counter() - start) / steps
+
+
+def compare(spec: TrainSpec, cable: Cable, k: int, args: argparse.Namespace) -> dict[str, float]:
+    """Median seconds per gradient step of both variants, interleaved (and of the LSTM's
+    passes, for a model that has one)."""
+    device = resolve_device(args.device)
+    torch.manual_seed(0)
+    model = build_marker_model(spec.model, len(cable.held), cable.held)
+    model.fit_normalization([(e, cable.held) for e in cable.episodes])
+    variants = {}
+    for name, reference in (("old", True), ("new", False)):
+        copied = copy.deepcopy(model)
+        copied.reference = reference
+        variants[name] = Trainer(copied, cable, spec, device)
+    for trainer in variants.values():
+        trainer.seconds_per_step(args.batch, k, 1)  # warm-up (compiled loops load once)
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    has_lstm = isinstance(getattr(model, "lstm", None), torch.nn.LSTM)
+    for _ in range(args.repeats):
+        for name, trainer in variants.items():
+            times[name].append(trainer.seconds_per_step(args.batch, k, args.steps))
+        if has_lstm:
+            times.setdefault("lstm", []).append(
+                lstm_seconds(variants["new"].model, args.batch, k, args.steps)
+            )
+    return {name: float(np.median(t)) for name, t in times.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default=None, help="a marker dataset; default synthetic")
+    parser.add_argument("--ks", type=int, nargs="+", default=[64, 256])
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=2, help="gradient steps per timing")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--recipes", nargs="+", default=["mlp", "in-bilstm"])
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cable = load_cable(args.data)
+    print(f"data {args.data or 'synthetic'}, {len(cable.held)} markers, batch {args.batch}, "
+          f"{args.threads} thread(s), device {args.device}, median of {args.repeats} x "
+          f"{args.steps} gradient steps (windows, rollout, loss, backward, clip, Adam)"
+          )  # fmt: skip
+    print(f"  {'recipe':10s} {'k':>4s} {'old steps/s':>12s} {'new steps/s':>12s} {'new/old':>8s}"
+          f"  {'LSTM share of new':>17s}")  # fmt: skip
+    for recipe in args.recipes:
+        raw = yaml.safe_load((RECIPES / f"{recipe}.yaml").read_text())
+        spec = TrainSpec.model_validate({**raw, "device": args.device})
+        for k in args.ks:
+            per_step = compare(spec, cable, k, args)
+            old, new = k / per_step["old"], k / per_step["new"]
+            share = per_step["lstm"] / per_step["new"] if "lstm" in per_step else math.nan
+            shown = f"{share:17.0%}" if math.isfinite(share) else f"{'-':>17s}"
+            print(f"  {recipe:10s} {k:4d} {old:12.0f} {new:12.0f} {new / old:7.2f}x  {shown}",
+                  flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
