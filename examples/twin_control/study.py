@@ -133,7 +133,7 @@ def train_job(job: tuple[argparse.Namespace, str, int]) -> str:
     """Pre-train on the twin (seed 0, once per cable), then fine-tune with ``seed``."""
     options, cable, seed = job
     root = options.out / cable
-    pretrained = root / "twin-s0"
+    pretrained = root / "pretrained-s0"
     if not (pretrained / "summary.json").is_file():
         dlo("train", "--spec", str(RECIPE), "--data", str(root / "sim"), "--seed", "0",
             "--update-steps", str(PRETRAIN_STEPS), "--out", str(pretrained),
