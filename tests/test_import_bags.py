@@ -94,16 +94,20 @@ def write_bag(
     storage: StoragePlugin = StoragePlugin.SQLITE3,
     topic: str = TOPIC,
     stamps_ns: list[int] | None = None,
+    received_ns: list[int] | None = None,
+    header_stamps: bool = True,
 ) -> Path:
     """A ROS 2 bag folder of ``frames`` (frames, V, 3), one message per frame on ``topic``,
-    stamped at ``rate_hz`` (or ``stamps_ns``), plus an unrelated topic."""
+    stamped at ``rate_hz`` (or ``stamps_ns``; 0 without ``header_stamps``) and received 2 ms
+    later (or at ``received_ns``), plus an unrelated topic."""
     stamps = stamps_ns or [START_NS + round(k * 1e9 / rate_hz) for k in range(len(frames))]
+    received = received_ns or [stamp + 2_000_000 for stamp in stamps]
     with Writer(path, version=9, storage_plugin=storage) as bag:
         markers = bag.add_connection(topic, msgtype, typestore=TYPES)
         other = bag.add_connection("/status", "std_msgs/msg/String", typestore=TYPES)
-        for frame, stamp in zip(frames, stamps, strict=True):
-            message = MESSAGES[msgtype](frame, stamp)
-            bag.write(markers, stamp + 2_000_000, TYPES.serialize_cdr(message, msgtype))
+        for frame, stamp, time in zip(frames, stamps, received, strict=True):
+            message = MESSAGES[msgtype](frame, stamp if header_stamps else 0)
+            bag.write(markers, time, TYPES.serialize_cdr(message, msgtype))
         text = TYPES.types["std_msgs/msg/String"](data="ok")
         bag.write(other, stamps[0], TYPES.serialize_cdr(text, "std_msgs/msg/String"))
     return path
@@ -142,6 +146,26 @@ def test_a_bag_round_trips_to_the_deform_dataset(
     for name in ("held", "split", "episode_lengths", "names"):
         np.testing.assert_array_equal(getattr(data, name), getattr(reference, name))
     assert data.rate_hz == reference.rate_hz
+
+
+def test_unset_header_stamps_fall_back_to_the_receive_times(
+    tmp_path: Path, reference: MarkerDataset
+) -> None:
+    for split, n in SPLITS.items():
+        (tmp_path / "C" / split).mkdir(parents=True)
+        for i in range(n):
+            frames = swinging_cable(i + (100 if split == "eval" else 0)).transpose(0, 2, 1)
+            late = [START_NS + k * 10**7 + (k % 2) * 10**6 for k in range(len(frames))]
+            write_bag(tmp_path / "C" / split / str(i), frames, received_ns=late)
+    # the headers at 100 Hz exactly, the receive times 0 or 1 ms late: the headers are read
+    assert dlo_import(tmp_path / "C", tmp_path / "out") == 0
+    np.testing.assert_array_equal(load_dataset(tmp_path / "out").positions, reference.positions)
+    # no header stamps: the receive times are, jittered by 1 ms (reported, resampled)
+    write_bag(tmp_path / "C" / "train" / "9", frames, received_ns=late, header_stamps=False)
+    assert dlo_import(tmp_path / "C", tmp_path / "o2", "--control-hz", "100") == 0
+    data = load_dataset(tmp_path / "o2")
+    assert data.episode_names("train")[-1] == "9" and len(data.episodes("train")[-1]) == 40
+    np.testing.assert_allclose(data.episodes("train")[-1], frames, atol=0.01)
 
 
 def test_the_only_markers_topic_needs_no_flag(tmp_path: Path) -> None:

@@ -22,6 +22,8 @@ from dlocli.markers.spec import DEFAULT_RATE_HZ, ImportSpec
 
 #: how far (a fraction of the median interval) an interval may be from it and be on time
 ON_TIME = 0.01
+#: an interval this many times the median one or longer skips frames
+GAP = 1.5
 #: significant digits of a rate read from timestamps (they are rounded by the recorder)
 RATE_DIGITS = 6
 
@@ -30,7 +32,7 @@ RATE_DIGITS = 6
 class Clock:
     """What a recording's frame times say."""
 
-    rate_hz: float  # its frame rate: the mean one when uniform, else 1 / the median interval
+    rate_hz: float  # its frame rate: the mean one, over the intervals that skip no frame
     uniform: bool
     irregular: int = 0  # intervals off the median by more than ON_TIME
     longest_gap_s: float = 0.0  # the longest interval
@@ -53,12 +55,14 @@ def clock(times: np.ndarray, name: str) -> Clock:
     if not off.any():
         mean = (len(times) - 1) / float(times[-1] - times[0])
         return Clock(_rounded(mean), uniform=True, longest_gap_s=float(steps.max()))
+    # the nominal interval: the mean of those that skip no frame (jitter averages out)
+    nominal = float(steps[steps < GAP * median].mean())
     return Clock(
-        _rounded(1.0 / median),
+        _rounded(1.0 / nominal),
         uniform=False,
         irregular=int(off.sum()),
         longest_gap_s=float(steps.max()),
-        missing=max(0, int(round(steps.max() / median)) - 1),
+        missing=max(0, int(round(steps.max() / nominal)) - 1),
     )
 
 
