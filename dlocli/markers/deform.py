@@ -12,11 +12,13 @@ from __future__ import annotations
 import os
 import stat
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from dlocli.data import load_dataset
+from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
+from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.plain_pickle import load_plain
 from dlocli.markers.spec import DEFAULT_MEMORY_MIB
 
@@ -136,13 +138,9 @@ def _require_utf8_name(path: Path) -> None:
         raise BadInput(f"{shown}: the file name is not valid UTF-8; rename the file") from None
 
 
-def imported(folder: Path | None) -> Any:
+def imported(folder: Path | None) -> MarkerDataset | None:
     """The marker dataset of the `dlo import` run directory ``folder``; None if it is not one
     (a cable folder holds train/)."""
-    from dlocli.data import load_dataset
-    from dlocli.dataset_format import DATASET_FILE
-    from dlocli.markers.dataset import MarkerDataset
-
     if folder is None or (Path(folder) / "train").exists():
         return None
     if not (Path(folder) / DATASET_FILE).is_file():
@@ -153,7 +151,7 @@ def imported(folder: Path | None) -> Any:
     return data
 
 
-def _episodes(data: Any) -> dict[str, list[tuple[str, np.ndarray]]]:
+def _episodes(data: MarkerDataset) -> dict[str, list[tuple[str, np.ndarray]]]:
     """``{split: [(name, (frames, V, 3) float64), ...]}`` of a marker dataset."""
     return {
         split: [
