@@ -18,6 +18,7 @@ EXTRAS = {
     "tensorboard": "tensorboard",
     "calibrate": "cma",
     "bridge": "zmq",
+    "ros": "rosbags",
 }
 
 

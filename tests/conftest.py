@@ -100,3 +100,17 @@ def marker_run(tmp_path_factory: pytest.TempPathFactory):
     model.fit_normalization([(e, held) for e in data.episodes("train")])
     save_checkpoint(model, root / "model.pt", {"form": FORM})
     return data.save(root / "dataset.h5"), root / "model.pt"
+
+
+@pytest.fixture(scope="session")
+def deform_reference(tmp_path_factory: pytest.TempPathFactory):
+    """tiny.write_cable's recordings (3 train, 2 eval) imported from DEFORM pickles: the
+    dataset every other format of the same recordings must give."""
+    from dlocli.data import load_dataset
+
+    from tiny import dlo_import, write_cable
+
+    root = tmp_path_factory.mktemp("deform")
+    write_cable(root / "CABLE", n_train=3, n_eval=2)
+    assert dlo_import(root / "CABLE", root / "out") == 0
+    return load_dataset(root / "out")

@@ -119,6 +119,7 @@ NEEDS = {
     "minari": ["export", "{tmp}/missing-run"],
     "calibrate": ["calibrate", "--source", "{tmp}"],
     "bridge": ["serve", "--address", "tcp://127.0.0.1:*"],
+    "ros": ["import", "--source", "{tmp}/cable"],  # a bag folder there: see below
     "tensorboard": None,
 }
 
@@ -132,6 +133,9 @@ def test_a_missing_extra_is_named_in_one_line(extra: str, tmp_path: Path) -> Non
     """The extra's module hidden (as if never installed): one line naming the extra, exit 2,
     nothing written."""
     out = tmp_path / "out"
+    bag = tmp_path / "cable" / "train" / "0"  # a ROS 2 bag folder, as `dlo import` sees one
+    bag.mkdir(parents=True)
+    (bag / "metadata.yaml").touch()
     argv = [arg.format(tmp=tmp_path) for arg in NEEDS[extra]]
     argv += [] if argv[0] == "serve" else ["--out", str(out)]  # serve writes nothing
     program = (

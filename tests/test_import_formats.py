@@ -15,7 +15,7 @@ import pytest
 from dlocli.data import load_dataset
 from dlocli.markers.dataset import MarkerDataset
 
-from tiny import MARKERS, run_dlo, swinging_cable, write_cable
+from tiny import MARKERS, dlo_import, swinging_cable
 
 SPLITS = {"train": 3, "eval": 2}
 
@@ -61,16 +61,9 @@ def write_folder(root: Path, fmt: str) -> Path:
     return root
 
 
-def _import(source: Path, out: Path, *extra: str) -> int:
-    return run_dlo(["import", "--source", str(source), "--out", str(out), "--json", *extra])
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory: pytest.TempPathFactory) -> MarkerDataset:
-    root = tmp_path_factory.mktemp("deform")
-    write_cable(root / "CABLE", n_train=SPLITS["train"], n_eval=SPLITS["eval"])
-    assert _import(root / "CABLE", root / "out") == 0
-    return load_dataset(root / "out")
+@pytest.fixture
+def reference(deform_reference: MarkerDataset) -> MarkerDataset:
+    return deform_reference
 
 
 def _same(data: MarkerDataset, reference: MarkerDataset) -> None:
@@ -87,7 +80,7 @@ def test_each_format_gives_the_deform_dataset(
 ) -> None:
     source = write_folder(tmp_path / "CABLE", fmt)
     units = ("--units", "mm") if fmt == "csv" else ()
-    assert _import(source, tmp_path / "out", *units) == 0
+    assert dlo_import(source, tmp_path / "out", *units) == 0
     _same(load_dataset(tmp_path / "out"), reference)
 
 
@@ -99,7 +92,7 @@ def test_one_npz_or_h5_file_may_hold_many_trajectories(tmp_path: Path) -> None:
     with h5py.File(tmp_path / "C" / "eval" / "b.h5", "w") as f:
         f.create_dataset("run/one", data=arrays[0])
         f.create_dataset("run/two", data=arrays[1])
-    assert _import(tmp_path / "C", tmp_path / "out") == 0
+    assert dlo_import(tmp_path / "C", tmp_path / "out") == 0
     data = load_dataset(tmp_path / "out")
     assert data.episode_names("train") == ["a.t0", "a.t1", "a.t2"]
     assert data.episode_names("eval") == ["b.run/one", "b.run/two"]
@@ -107,11 +100,11 @@ def test_one_npz_or_h5_file_may_hold_many_trajectories(tmp_path: Path) -> None:
 
 def test_the_user_names_the_held_markers(tmp_path: Path, capsys) -> None:
     source = write_folder(tmp_path / "C", "npy")
-    assert _import(source, tmp_path / "out", "--held", "0,-1") == 0
+    assert dlo_import(source, tmp_path / "out", "--held", "0,-1") == 0
     assert json.loads(capsys.readouterr().out)["held_markers"] == [0, MARKERS - 1]
-    assert _import(source, tmp_path / "o2", "--held", "0,1") == 2
-    assert _import(source, tmp_path / "o3", "--held", "0,9") == 2
-    assert _import(source, tmp_path / "o4", "--held", ",".join(map(str, range(MARKERS)))) == 2
+    assert dlo_import(source, tmp_path / "o2", "--held", "0,1") == 2
+    assert dlo_import(source, tmp_path / "o3", "--held", "0,9") == 2
+    assert dlo_import(source, tmp_path / "o4", "--held", ",".join(map(str, range(MARKERS)))) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and "one half" in err[0] and "marker 9" in err[1] and "every" in err[2]
     assert not any((tmp_path / o).exists() for o in ("o2", "o3", "o4"))
@@ -127,12 +120,12 @@ def test_csv_gaps_are_refused_unless_filled(tmp_path: Path, capsys) -> None:
         lines[t + 1] = ",".join(cells)
     path.write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
-    assert _import(source, out, "--units", "mm") == 2
+    assert dlo_import(source, out, "--units", "mm") == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "2 gaps" in err and "--fill-gaps 2" in err
     assert not out.exists()
-    assert _import(source, out, "--units", "mm", "--fill-gaps", "1") == 2
-    assert _import(source, out, "--units", "mm", "--fill-gaps", "2") == 0
+    assert dlo_import(source, out, "--units", "mm", "--fill-gaps", "1") == 2
+    assert dlo_import(source, out, "--units", "mm", "--fill-gaps", "2") == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["gaps_filled"] == {"train/1": 2}
     truth = swinging_cable(1).transpose(0, 2, 1)
@@ -195,7 +188,7 @@ def test_bad_files_get_one_line_and_nothing_is_written(tmp_path: Path, capsys, c
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    assert _import(source, out, "--overwrite") == 2
+    assert dlo_import(source, out, "--overwrite") == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and words in err, err
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
@@ -207,7 +200,7 @@ def test_an_array_past_the_budget_is_refused_before_it_is_loaded(tmp_path: Path,
         source / "train" / "big.npy", mode="w+", dtype=np.float64, shape=(600_000, 3, 6)
     )
     del big  # sparse on disk: 86 MiB as float64, 172 MiB read
-    assert _import(source, tmp_path / "out", "--max-memory-mib", "64") == 2
+    assert dlo_import(source, tmp_path / "out", "--max-memory-mib", "64") == 2
     assert "--max-memory-mib" in capsys.readouterr().err
     shutil.rmtree(source)
 
@@ -222,7 +215,7 @@ def test_csv_markers_take_any_names_in_column_order(tmp_path: Path) -> None:
     (source / "eval" / "9.csv").write_text("\n".join([text[0], *rows]) + "\n")
     for path in source.glob("*/*.npy"):  # all in mm, as the CSV
         np.save(path, np.load(path) * 1000)
-    assert _import(source, tmp_path / "out", "--units", "mm") == 0
+    assert dlo_import(source, tmp_path / "out", "--units", "mm") == 0
     data = load_dataset(tmp_path / "out")
     np.testing.assert_allclose(data.episodes("eval")[-1], array.transpose(0, 2, 1), atol=1e-6)
 
@@ -230,6 +223,6 @@ def test_csv_markers_take_any_names_in_column_order(tmp_path: Path) -> None:
 def test_a_csv_past_the_budget_is_refused_unread(tmp_path: Path, capsys) -> None:
     source = write_folder(tmp_path / "C", "csv")
     (source / "train" / "big.csv").write_bytes(b"frame\n" + b"0\n" * 600_000)
-    assert _import(source, tmp_path / "out", "--units", "mm", "--max-memory-mib", "16") == 2
+    assert dlo_import(source, tmp_path / "out", "--units", "mm", "--max-memory-mib", "16") == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--max-memory-mib" in err, err

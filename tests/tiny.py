@@ -185,3 +185,8 @@ def write_cable(root: Path, n_train: int = 4, n_eval: int = 2, **kw) -> Path:
             array = swinging_cable(i + (100 if split == "eval" else 0), **kw)
             (root / split / f"{i}.pkl").write_bytes(pickle.dumps(array.tolist()))
     return root
+
+
+def dlo_import(source: Path, out: Path, *flags: str) -> int:
+    """`dlo import --json` of ``source`` into ``out``; its exit code."""
+    return run_dlo(["import", "--source", str(source), "--out", str(out), "--json", *flags])

@@ -54,6 +54,7 @@ ALIASES: dict[str, str] = {
     "task.envelope.stop_after_lost_s": "stop-after-lost-s",
     "task.observation.kind": "observation",
     "task.observation.markers": "markers",
+    "task.observation.gripper_markers": "gripper-markers",
     "task.observation.noise_mm": "noise-mm",
     "task.observation.latency_steps": "latency-steps",
     "task.observation.dropout": "dropout",

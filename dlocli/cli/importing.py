@@ -15,6 +15,7 @@ def import_recordings(
     run: RunFlags,
 ) -> None:
     """Import --source (train/ and eval/ of .pkl pickled (frames, 3, markers) lists, read
-    without running code, .npy/.npz/.h5 arrays or motion-capture .csv) into OUT/dataset.h5
-    for `dlo train` and `dlo eval`; prints the freeze and straight-line references' scores."""
+    without running code, .npy/.npz/.h5 arrays, motion-capture .csv or ROS 2 bag folders)
+    into OUT/dataset.h5 for `dlo train` and `dlo eval`, resampled to --control-hz; prints the
+    freeze and straight-line references' scores."""
     emit_summary(run_import(run.spec(), run.overwrite), run.json, "dlo import")

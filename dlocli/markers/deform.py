@@ -15,7 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dlocli.data import load_dataset
+from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
+from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.plain_pickle import load_plain
 from dlocli.markers.spec import DEFAULT_MEMORY_MIB
 
@@ -90,8 +93,12 @@ def read_folder(
 ) -> dict[str, list[tuple[str, np.ndarray]]]:
     """``{split: [(file stem, (frames, V, 3)), ...]}`` from ``folder/train`` and
     ``folder/eval`` (sorted by name), read within ``budget_bytes`` of memory; every file must
-    have the same marker count."""
+    have the same marker count. A `dlo import` run directory (``folder/dataset.h5``, no
+    ``train/``) gives its dataset's episodes: any format it imported, in metres."""
     folder = Path(folder)
+    data = imported(folder)
+    if data is not None:
+        return _episodes(data)
     if not folder.is_dir():
         raise BadInput(
             f"{folder} is not a folder; pass a DEFORM cable folder holding train/ and eval/"
@@ -129,3 +136,28 @@ def _require_utf8_name(path: Path) -> None:
     except UnicodeEncodeError:
         shown = os.fsencode(path).decode("utf-8", "backslashreplace")
         raise BadInput(f"{shown}: the file name is not valid UTF-8; rename the file") from None
+
+
+def imported(folder: Path | None) -> MarkerDataset | None:
+    """The marker dataset of the `dlo import` run directory ``folder``; None if it is not one
+    (a cable folder holds train/)."""
+    if folder is None or (Path(folder) / "train").exists():
+        return None
+    if not (Path(folder) / DATASET_FILE).is_file():
+        return None
+    data = load_dataset(Path(folder))
+    if not isinstance(data, MarkerDataset):
+        raise BadInput(f"{folder} holds a rod dataset; pass a `dlo import` run or a cable folder")
+    return data
+
+
+def _episodes(data: MarkerDataset) -> dict[str, list[tuple[str, np.ndarray]]]:
+    """``{split: [(name, (frames, V, 3) float64), ...]}`` of a marker dataset."""
+    return {
+        split: [
+            (name, episode.astype(np.float64))
+            for name, episode in zip(data.episode_names(split), data.episodes(split), strict=True)
+        ]
+        for split in SPLITS
+        if data.episode_names(split)
+    }

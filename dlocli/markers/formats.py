@@ -9,7 +9,8 @@ suffix and gives one or more trajectories, (frames, V, 3) float64 in the recordi
 - ``.npz``: one such array per key; a file of one key is named by its stem, otherwise each
   trajectory is ``stem.key``.
 - ``.h5`` / ``.hdf5``: one such array per dataset (every group visited), named likewise.
-- ``.csv``: motion capture, one trajectory per file (:func:`read_csv`).
+- ``.csv``: motion capture, one trajectory per file (:func:`read_csv`), at its frame times.
+- a folder: a ROS 2 bag, one trajectory (:mod:`~dlocli.markers.rosbag`), at its stamps.
 
 Each array's shape and type are read before its numbers, and refused past the memory budget.
 """
@@ -40,12 +41,15 @@ class Trajectory:
     name: str
     positions: np.ndarray  # (frames, V, 3)
     gaps: int = 0  # (frame, marker) cells the file left empty, filled by interpolation
+    times: np.ndarray | None = None  # (frames,) seconds, when the file has timestamps
 
 
-def read_folder(folder: Path, budget_bytes: int, fill_gaps: int = 0) -> dict[str, list[Trajectory]]:
+def read_folder(
+    folder: Path, budget_bytes: int, fill_gaps: int = 0, bags: Reader | None = None
+) -> dict[str, list[Trajectory]]:
     """``{split: [Trajectory, ...]}`` from ``folder/train`` and ``folder/eval`` (files sorted
-    by name, any suffix of :data:`READERS`), read within ``budget_bytes`` of memory; every
-    trajectory must have the same marker count."""
+    by name, any suffix of :data:`READERS`; a folder in them is read by ``bags``), read within
+    ``budget_bytes`` of memory; every trajectory must have the same marker count."""
     folder = Path(folder)
     if not folder.is_dir():
         raise BadInput(f"{folder} is not a folder; pass a cable folder holding train/ and eval/")
@@ -58,7 +62,9 @@ def read_folder(folder: Path, budget_bytes: int, fill_gaps: int = 0) -> dict[str
         raise BadInput(f"{folder}/train holds no recordings; pass a cable folder (e.g. DLO1)")
     for path in (p for files in found.values() for p in files):
         deform._require_utf8_name(path)
-        if path.suffix.lower() not in READERS:
+        if path.is_dir():
+            _require_bag(path, bags)
+        elif path.suffix.lower() not in READERS:
             raise BadInput(
                 f"{path}: unknown suffix {path.suffix or '(none)'!r}; recordings are "
                 f"{', '.join(READERS)} files (move other files out of the folder)"
@@ -69,7 +75,8 @@ def read_folder(folder: Path, budget_bytes: int, fill_gaps: int = 0) -> dict[str
     for split, files in found.items():
         out[split] = []
         for path in files:
-            for item in READERS[path.suffix.lower()](path, max(0, budget_bytes - kept), fill_gaps):
+            read = bags if path.is_dir() and bags else READERS[path.suffix.lower()]
+            for item in read(path, max(0, budget_bytes - kept), fill_gaps):
                 kept += deform.KEPT_PER_BYTE * item.positions.nbytes
                 counts.setdefault(item.positions.shape[1], f"{path} ({item.name})")
                 if len(counts) > 1:
@@ -80,6 +87,18 @@ def read_folder(folder: Path, budget_bytes: int, fill_gaps: int = 0) -> dict[str
                     )
                 out[split].append(item)
     return out
+
+
+def _require_bag(path: Path, bags: Reader | None) -> None:
+    """BadInput unless the folder ``path`` is a ROS 2 bag (its metadata.yaml) and bags are
+    read."""
+    if not (path / "metadata.yaml").is_file():
+        raise BadInput(
+            f"{path} is a folder without metadata.yaml, not a ROS 2 bag; recordings are "
+            f"{', '.join(READERS)} files or bag folders (move other folders out)"
+        )
+    if bags is None:
+        raise BadInput(f"{path} is a ROS 2 bag; import it with `dlo import`")
 
 
 def held_mask(n_markers: int, held: list[int] | None) -> np.ndarray:
@@ -217,10 +236,11 @@ AXES = ("_x", "_y", "_z")
 
 
 def read_csv(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
-    """A motion-capture CSV: a header ``frame,time,m0_x,m0_y,m0_z,m1_x,...`` (``frame`` and
-    ``time`` optional, ignored: rows are frames in order at --rate-hz), then one row per frame.
-    Each marker is three columns ``NAME_x,NAME_y,NAME_z``; the marker order is the column
-    order. An empty cell is a gap: that marker is missing in that frame."""
+    """A motion-capture CSV: a header ``frame,time,m0_x,m0_y,m0_z,m1_x,...`` (both
+    optional; ``frame`` is ignored, ``time`` is each frame's time in seconds, else frames are
+    at --rate-hz), then one row per frame in time order. Each marker is three columns
+    ``NAME_x,NAME_y,NAME_z``; the marker order is the column order. An empty cell is a gap:
+    that marker is missing in that frame."""
     # the text and its decoded copy, then 8 bytes per cell (>= 2 bytes of text) as parsed
     # rows (with their overhead) and again as stacked: about 16 times the text at worst
     text = deform._read_regular(path, budget // 16)
@@ -233,7 +253,12 @@ def read_csv(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
             )
         skip = _index_columns(header)
         triples = _markers(header[skip:], path)
-        parsed = [_row(row, len(header), skip, path, reader.line_num) for row in reader]
+        clock = header.index("time") if "time" in header[:skip] else None
+        parsed, times = [], []
+        for row in reader:
+            parsed.append(_row(row, len(header), skip, path, reader.line_num))
+            if clock is not None:
+                times.append(_time(row[clock], path, reader.line_num, clock))
     except (UnicodeDecodeError, csv.Error) as exc:
         raise BadInput(f"{path} is not a UTF-8 CSV file ({str(exc)[:60]})") from exc
     values = np.array(parsed, dtype=np.float64).reshape(len(parsed), 3 * triples)
@@ -242,8 +267,9 @@ def read_csv(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
     missing = np.isnan(positions).any(axis=2)  # (frames, V)
     gaps = int(missing.sum())
     if gaps:
-        positions = _filled(positions, missing, fill_gaps, path)
-    return [Trajectory(path.stem, from_array(positions, str(path)), gaps)]
+        positions = filled(positions, missing, fill_gaps, path)
+    stamps = np.array(times) if clock is not None else None
+    return [Trajectory(path.stem, from_array(positions, str(path)), gaps, stamps)]
 
 
 def _index_columns(header: list[str]) -> int:
@@ -284,6 +310,19 @@ def _row(row: list[str], width: int, skip: int, path: Path, line: int) -> np.nda
     )
 
 
+def _time(cell: str, path: Path, line: int, column: int) -> float:
+    try:
+        value = float(cell)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise BadInput(
+            f"{path} line {line}, column {column + 1}: time {cell[:20]!r} is not a number of "
+            "seconds; write every frame's time or drop the time column"
+        )
+    return value
+
+
 def _number(cell: str, path: Path, line: int, column: int) -> float:
     try:
         value = float(cell)
@@ -300,7 +339,7 @@ def _number(cell: str, path: Path, line: int, column: int) -> float:
     return value
 
 
-def _filled(positions: np.ndarray, missing: np.ndarray, fill_gaps: int, path: Path) -> np.ndarray:
+def filled(positions: np.ndarray, missing: np.ndarray, fill_gaps: int, path: Path) -> np.ndarray:
     """Each marker's gaps interpolated linearly between the frames around them; BadInput for
     a gap longer than ``fill_gaps`` frames or at the first or last frame."""
     gaps, longest, edge = int(missing.sum()), 0, False
@@ -315,7 +354,7 @@ def _filled(positions: np.ndarray, missing: np.ndarray, fill_gaps: int, path: Pa
         why = "one at the first or last frame, which cannot be interpolated" if edge else ""
         hint = "trim the recording" if edge else f"pass --fill-gaps {longest} to interpolate them"
         raise BadInput(
-            f"{path} has {gaps} gaps (empty cells of a marker in a frame), the longest "
+            f"{path} has {gaps} gaps (a marker missing in a frame), the longest "
             f"{longest} frames{'; ' + why if why else ''}; {hint}"
         )
     out = positions.copy()

@@ -9,7 +9,7 @@ import numpy as np
 from dlocli.dataset_format import DATASET_FILE
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic
-from dlocli.markers import formats, protocol
+from dlocli.markers import deform, formats, protocol, rosbag, timing
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.spec import UNITS, ImportSpec
 from dlocli.rundir import owned, resolved
@@ -25,15 +25,16 @@ def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
     _refuse_out_by_source(spec)
     # everything is checked before --out is touched
-    read = formats.read_folder(spec.source, spec.max_memory_mib * 2**20, spec.fill_gaps)
-    trajectories = in_metres(
-        {s: [(t.name, t.positions) for t in items] for s, items in read.items()}, spec
-    )
+    budget = spec.max_memory_mib * 2**20
+    read = formats.read_folder(spec.source, budget, spec.fill_gaps, rosbag.reader(spec.topic))
+    kept = sum(deform.KEPT_PER_BYTE * t.positions.nbytes for items in read.values() for t in items)
+    timed, rate_hz, timing_report = timing.to_control_rate(read, spec, budget - kept)
+    trajectories = in_metres(timed, spec)
     held = formats.held_mask(trajectories["train"][0][1].shape[1], spec.held)
     dataset = MarkerDataset.from_trajectories(
-        trajectories, held, {"rate_hz": spec.rate_hz, "source": str(spec.source)}
+        trajectories, held, {"rate_hz": rate_hz, "source": str(spec.source)}
     )
-    summary = describe(dataset)
+    summary = {**describe(dataset), **timing_report}
     gaps = {f"{s}/{t.name}": t.gaps for s, items in read.items() for t in items if t.gaps}
     if gaps:
         summary["gaps_filled"] = gaps

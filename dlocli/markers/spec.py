@@ -20,7 +20,8 @@ class ImportSpec(Spec):
     """`dlo import`: recorded marker trajectories -> a marker dataset run directory."""
 
     cli_flags: ClassVar[tuple[str, ...]] = (
-        "source", "rate_hz", "units", "held", "fill_gaps", "max_memory_mib", "out",
+        "source", "topic", "rate_hz", "control_hz", "units", "held", "fill_gaps",
+        "max_memory_mib", "out",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("source",)
 
@@ -28,11 +29,28 @@ class ImportSpec(Spec):
         None,
         description="Folder of one cable's recordings in the DEFORM layout: train/ and eval/ "
         "of .pkl (DEFORM's pickled lists), .npy/.npz/.h5 ((frames, 3, markers) or (frames, "
-        "markers, 3) arrays) or .csv (frame,time,m0_x,m0_y,m0_z,m1_x,... one row per frame) "
-        "files.",
+        "markers, 3) arrays), .csv (frame,time,m0_x,m0_y,m0_z,m1_x,... one row per frame) "
+        "files or ROS 2 bag folders (one per trajectory; the 'ros' extra).",
     )
-    rate_hz: float = Field(
-        DEFAULT_RATE_HZ, gt=0, le=MAX_RATE_HZ, description="Frames per second of the recording."
+    topic: str | None = Field(
+        None,
+        max_length=1000,
+        description="The ROS 2 bags' topic of the tracked markers (PoseArray, MarkerArray or "
+        "PointCloud2); default: a bag's only topic of those types.",
+    )
+    rate_hz: float | None = Field(
+        None,
+        gt=0,
+        le=MAX_RATE_HZ,
+        description=f"Frames per second of recordings without timestamps (default "
+        f"{DEFAULT_RATE_HZ:g}); a CSV's time column and a bag's stamps give their own.",
+    )
+    control_hz: float | None = Field(
+        None,
+        gt=0,
+        le=MAX_RATE_HZ,
+        description="Resample every recording to this rate (linear interpolation), the "
+        "control rate of the models trained on it; default: the recordings' own rate.",
     )
     units: Literal["m", "cm", "mm"] = Field(
         "m",
@@ -48,8 +66,8 @@ class ImportSpec(Spec):
         0,
         ge=0,
         le=10_000,
-        description="Interpolate a CSV's gaps (empty cells) up to this many frames long; "
-        "0 refuses any gap.",
+        description="Interpolate gaps up to this many frames long (a CSV's empty cells, a "
+        "marker's NaN, frames missing between timestamps); 0 refuses any gap.",
     )
     max_memory_mib: int = Field(
         DEFAULT_MEMORY_MIB,

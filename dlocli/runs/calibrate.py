@@ -35,6 +35,7 @@ from dlocli.io import (
     write_json_atomic,
     write_text_atomic,
 )
+from dlocli.markers import deform
 from dlocli.registry import backends
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import owned
@@ -93,12 +94,27 @@ def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> CalibrateSpec:
     )
 
 
+def at_recorded_rate(spec: CalibrateSpec) -> CalibrateSpec:
+    """``spec`` replaying at the frame rate of the dataset a `dlo import` run directory as
+    --source states; BadInput if the spec sets another."""
+    data = deform.imported(spec.source)
+    if data is None or data.rate_hz == spec.rate_hz:
+        return spec
+    if "rate_hz" in spec.model_fields_set:
+        raise BadInput(
+            f"rate_hz {spec.rate_hz:g} in the spec, but {spec.source} was imported at "
+            f"{data.rate_hz:g} Hz; drop rate_hz (the import's rate is used)"
+        )
+    return spec.model_copy(update={"rate_hz": data.rate_hz})
+
+
 def run_calibration(
     spec: CalibrateSpec, overwrite: bool, show: Callable[[Event], None], resume: bool = False
 ) -> dict[str, Any]:
     """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary."""
     backends.check(spec.backend.name)
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
+    spec = at_recorded_rate(spec)
     cable = load_cable(spec)  # every input checked before OUT is touched
     names = draw_train(cable, spec)
     strategy = new_strategy(spec, cable)

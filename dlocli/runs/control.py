@@ -66,7 +66,7 @@ class ControlSpec(EnvSpec, CellChoice):
         "task.envelope.max_angular_acceleration", "task.envelope.stop_after_lost_s",
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
         "task.observation.latency_steps", "task.observation.dropout",
-        "task.observation.occlusion_probability",
+        "task.observation.occlusion_probability", "task.observation.gripper_markers",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
