@@ -232,7 +232,7 @@ def learn_sac(fields: dict, seed: int, out: Path, budget: int) -> None:
 
 def learn(options: argparse.Namespace) -> None:
     names = [n for n in ("mpc-online", "sac") if n in options.controllers]
-    jobs = [(options, c, s, n) for n in names for s in range(options.seeds)
+    jobs = [(options, c, s, n) for n in names for s in range(options.first_seed, options.seeds)
             for c in options.cables]  # fmt: skip
     for line in run_jobs(learn_job, jobs, options.workers):
         print(line, flush=True)
@@ -447,6 +447,7 @@ def main() -> None:
     parser.add_argument("--cables", type=lambda s: s.split(","), default=list(CABLES))
     parser.add_argument("--controllers", type=lambda s: s.split(","), default=list(CONTROLLERS))
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--first-seed", type=int, default=0, help="learn: seeds from this one")
     parser.add_argument("--episodes", type=int, default=6, help="episodes per seed")
     parser.add_argument("--steps", type=int, default=300, help="control steps per episode")
     parser.add_argument("--workers", type=int, default=2)
