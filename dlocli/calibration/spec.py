@@ -48,8 +48,9 @@ class CalibrateSpec(Spec):
 
     source: Path | None = Field(
         None,
-        description="Folder of one cable's recordings in the DEFORM layout: train/*.pkl and "
-        "eval/*.pkl, each a pickled (frames, 3, markers) list of metres.",
+        description="One cable's recordings: a folder in the DEFORM layout (train/*.pkl and "
+        "eval/*.pkl, each a pickled (frames, 3, markers) list of metres), or a `dlo import` "
+        "run directory (any format it reads).",
     )
     cable_length: float | None = Field(
         None, gt=0, le=10, description="The real cable's length in metres."

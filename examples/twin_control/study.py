@@ -333,9 +333,9 @@ def evaluate_job(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str
 def evaluate(options: argparse.Namespace) -> None:
     jobs = [(options, c, s, n) for n in options.controllers for c in options.cables
             for s in range(options.seeds)]  # fmt: skip
-    path = options.out / "evaluation.json"
-    rows = json.loads(path.read_text()) if path.is_file() else []
+    path = options.out / options.results
     for found in run_jobs(evaluate_job, jobs, options.workers):
+        rows = json.loads(path.read_text()) if path.is_file() else []
         keys = {(r["cable"], r["controller"], r["seed"]) for r in found}
         rows = [r for r in rows if (r["cable"], r["controller"], r["seed"]) not in keys] + found
         tmp = path.with_suffix(".tmp")
@@ -349,7 +349,7 @@ def evaluate(options: argparse.Namespace) -> None:
 
 # --------------------------------------------------------------------------- report
 def report(options: argparse.Namespace) -> None:
-    rows = json.loads((options.out / "evaluation.json").read_text())
+    rows = merged_rows(options.out)
     with open(HERE / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -360,6 +360,18 @@ def report(options: argparse.Namespace) -> None:
     (HERE / "table.md").write_text(markdown(table, rows, replay))
     plot(table, HERE / "twin_control.png")
     print((HERE / "table.md").read_text())
+
+
+def merged_rows(out: Path) -> list[dict[str, Any]]:
+    """Every OUT/evaluation*.json's rows (evaluations run side by side write apart), a
+    later file's rows replacing an earlier one's of the same cable, controller and seed."""
+    merged: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    for path in sorted(out.glob("evaluation*.json")):
+        found: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+        for row in json.loads(path.read_text()):
+            found.setdefault((row["cable"], row["controller"], row["seed"]), []).append(row)
+        merged.update(found)
+    return [row for rows in merged.values() for row in rows]
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[tuple[str, str], dict[str, float]]:
@@ -451,6 +463,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=6, help="episodes per seed")
     parser.add_argument("--steps", type=int, default=300, help="control steps per episode")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--results", default="evaluation.json",
+                        help="evaluate: the file under --out its rows go to")  # fmt: skip
     parser.add_argument("--budget", type=int, default=10000, help="transitions of mpc-online, sac")
     options = parser.parse_args()
     options.out.mkdir(parents=True, exist_ok=True)
