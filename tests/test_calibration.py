@@ -283,3 +283,27 @@ def test_simulated_markers_train_a_model_that_fine_tunes(cable: Path, tmp_path: 
     tuned = load_marker_model(tmp_path / "tuned").state_dict()
     for name, value in start.items():
         assert torch.allclose(value.float(), tuned[name].float(), atol=1e-6), name
+
+
+def test_the_grips_are_the_innermost_held_markers_of_each_end() -> None:
+    """Half-segment clamps bend at the grip: the gripper holds the rod where the cable
+    leaves it, the innermost held marker of its end; rigid clamps hold the end markers."""
+    from dlocli.calibration.replay import grip_markers
+
+    deform_layout = deform.held_markers(12)
+    assert grip_markers(deform_layout, "half-segment") == (1, 10)
+    assert grip_markers(deform_layout, "rigid") == (0, 11)
+    one_per_end = np.array([True] + [False] * 4 + [True])
+    assert grip_markers(one_per_end, "half-segment") == (0, 5)
+
+
+def test_an_import_run_is_calibrated_with_its_held_markers(cable: Path, tmp_path: Path) -> None:
+    assert run_dlo(["import", "--source", str(cable), "--held", "0,-1", "--out",
+                    str(tmp_path / "imported"), "--json"]) == 0  # fmt: skip
+    spec = CalibrateSpec(
+        source=tmp_path / "imported", cable_length=LENGTH, cable_mass=MASS, rod_length=LENGTH
+    )
+    held = load_cable(spec).held
+    assert held.tolist() == [True] + [False] * (len(ARC) - 2) + [True]
+    arc = load_cable(spec).arc
+    assert arc[0] == 0.0 and arc[-1] == pytest.approx(load_cable(spec).backend.rod.length)

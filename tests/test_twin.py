@@ -85,7 +85,7 @@ def test_the_twin_observes_the_recorded_markers_and_settles_at_recorded_poses() 
     rod = RodSpec(length=float(grip_arc[-2]), n_segments=12, radius=0.005, density=500.0)
     backend = BackendSpec(rod=rod)
     recordings = [("0", _recording(0)), ("1", _recording(1))]
-    cable = Cable(train=recordings, eval=recordings, arc=grip_arc, backend=backend)
+    cable = Cable(recordings, recordings, grip_arc, backend, deform.held_markers(len(ARC)))
     twin = make_twin(cable, backend, RATE, TwinSettings(episode_steps=5, noise_mm=2.0))
     env = make_env(twin.spec.backend, task=twin.spec.task, seed=0, render_mode=None)
     try:
@@ -113,7 +113,7 @@ def test_a_twin_task_file_draws_starts_and_goals_from_recorded_poses(tmp_path: P
     rod = RodSpec(length=float(grip_arc[-2]), n_segments=12, radius=0.005, density=500.0)
     backend = BackendSpec(rod=rod)
     recordings = [("0", _recording(0))]
-    cable = Cable(train=recordings, eval=recordings, arc=grip_arc, backend=backend)
+    cable = Cable(recordings, recordings, grip_arc, backend, deform.held_markers(len(ARC)))
     twin = make_twin(cable, backend, RATE, TwinSettings(episode_steps=5))
     path = write_twin_task(twin, [recordings[0][1]], tmp_path / "twin")
     spec = EnvSpec.model_validate(yaml.safe_load(path.read_text()))

@@ -16,6 +16,7 @@ import multiprocessing as mp
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,6 +51,7 @@ class Cable:
     eval: list[tuple[str, np.ndarray]]
     arc: np.ndarray  # marker arc lengths from the rod's left grip (m)
     backend: BackendSpec  # the rod at the spec's (default) material
+    held: np.ndarray  # (V,) which markers the grippers hold
 
 
 def load_cable(spec: CalibrateSpec) -> Cable:
@@ -63,7 +65,8 @@ def load_cable(spec: CalibrateSpec) -> Cable:
         )
     found = deform.read_folder(spec.source)
     train, evaluation = found["train"], found.get("eval") or found["train"]
-    grip = grip_markers(train[0][1].shape[1], spec.backend.rod.clamp_compliance)
+    held = held_of(spec.source, train[0][1].shape[1])
+    grip = grip_markers(held, spec.backend.rod.clamp_compliance)
     layout = MarkerLayout.from_recordings([r for _, r in train]).between(grip)
     rod_length = spec.rod_length or layout.span(grip)
     if spec.cable_length < rod_length:
@@ -71,7 +74,7 @@ def load_cable(spec: CalibrateSpec) -> Cable:
             f"cable_length {spec.cable_length:g} m is shorter than the rod between its "
             f"grip markers ({rod_length:.3f} m); pass the cable's real length"
         )
-    everything = {f"{spec.source}/{s}/{n}.pkl": r for s, items in found.items() for n, r in items}
+    everything = {f"{spec.source}/{s}/{n}": r for s, items in found.items() for n, r in items}
     check_rod_fits(rod_length, list(everything.values()), list(everything), grip)
     rod = spec.backend.rod
     density = spec.cable_mass / spec.cable_length / rod.area
@@ -81,7 +84,26 @@ def load_cable(spec: CalibrateSpec) -> Cable:
     except ValidationError as exc:
         raise BadInput(f"the cable's rod: {format_validation_error(exc)}") from None
     arc = layout.arc * (rod_length / layout.span(grip))
-    return Cable(train, evaluation, arc, backend)
+    return Cable(train, evaluation, arc, backend, held)
+
+
+def held_of(source: Path, n_markers: int) -> np.ndarray:
+    """(V,) the held markers: a `dlo import` run's (``--held``), else DEFORM's two per end;
+    BadInput unless both end markers are held and some marker is free."""
+    data = deform.imported(source)
+    held = deform.held_markers(n_markers) if data is None else np.asarray(data.held, dtype=bool)
+    if not (held[0] and held[-1]) or held.all():
+        raise BadInput(
+            f"{source}: calibration needs both end markers held and a free one between them; "
+            "import with --held naming the markers at the grippers"
+        )
+    return held
+
+
+def replay_settings(spec: CalibrateSpec, cable: Cable) -> ReplaySettings:
+    """How ``spec`` replays ``cable``'s recordings."""
+    held = tuple(bool(h) for h in cable.held)
+    return ReplaySettings(spec.roll, spec.approach_s, spec.settle_s, held)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -139,7 +161,7 @@ class Replayer:
             for split, items in (("train", cable.train), ("eval", cable.eval))
             for n, r in items
         }
-        settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s)
+        settings = replay_settings(spec, cable)
         args = (os.getpid(), recordings, cable.arc, settings, spec.rate_hz)
         self.workers = spec.workers
         self.pool = ProcessPoolExecutor(
@@ -205,7 +227,7 @@ def freeze_reference_cm(cable: Cable) -> float:
     """The freeze reference on the eval recordings (free markers stay at frame 1)."""
     scores = []
     for _, rec in cable.eval:
-        held = deform.held_markers(rec.shape[1])
+        held = cable.held
         scores.append(protocol.deform_score_cm(protocol.freeze(rec, held), rec))
     return float(np.mean(scores))
 

@@ -35,7 +35,7 @@ from dlocli.backends.base import Backend, GripperLimits
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize, quat_rotate
 from dlocli.errors import BadInput
 from dlocli.markers import protocol
-from dlocli.markers.deform import HELD_PER_END, held_markers
+from dlocli.markers.deform import held_markers
 
 WORKSPACE_MARGIN = 0.1  # m around the recorded gripper positions
 X_AXIS = np.array([1.0, 0.0, 0.0])
@@ -43,10 +43,16 @@ Z_AXIS = np.array([0.0, 0.0, 1.0])
 
 
 # --------------------------------------------------------------------------- rod geometry
-def grip_markers(n_markers: int, clamp_compliance: str) -> tuple[int, int]:
-    """The markers the left and right grippers hold the rod at (see the module doc)."""
-    inner = HELD_PER_END - 1 if clamp_compliance == "half-segment" else 0
-    return inner, n_markers - 1 - inner
+def grip_markers(held: np.ndarray, clamp_compliance: str) -> tuple[int, int]:
+    """The markers the left and right grippers hold the rod at (see the module doc), given
+    the (V,) held mask: the end markers, or the innermost of each end's held run."""
+    n_markers = len(held)
+    if clamp_compliance == "rigid":
+        return 0, n_markers - 1
+    free = np.flatnonzero(~np.asarray(held, dtype=bool))
+    if len(free) == 0:
+        return 0, n_markers - 1
+    return max(int(free[0]) - 1, 0), min(int(free[-1]) + 1, n_markers - 1)
 
 
 @dataclass(frozen=True)
@@ -218,6 +224,11 @@ class ReplaySettings:
     roll: str = "transported"
     approach_s: float = 1.0
     settle_s: float = 1.0
+    #: (V,) which markers the grippers hold; None: DEFORM's two at each end
+    held: tuple[bool, ...] | None = None
+
+    def held_mask(self, n_markers: int) -> np.ndarray:
+        return held_markers(n_markers) if self.held is None else np.array(self.held, dtype=bool)
 
 
 def workspace_offset(recording: np.ndarray, backend: Backend) -> np.ndarray:
@@ -247,12 +258,12 @@ def replay(
     from the left grip marker (:meth:`MarkerLayout.between`)."""
     dt = backend.control_dt
     offset = workspace_offset(recording, backend)
-    grip = grip_markers(recording.shape[1], backend.rod.clamp_compliance)
+    held = settings.held_mask(recording.shape[1])
+    grip = grip_markers(held, backend.rod.clamp_compliance)
     targets = gripper_targets(recording + offset, settings.roll, grip)
     backend.reset()
     backend.limits = fit_limits(np.concatenate([targets, backend.gripper_poses()[None]]), arc[-1])
     _approach(backend, targets[0], settings, dt)
-    held = held_markers(recording.shape[1])
     predicted = np.empty_like(recording)
     predicted[0] = markers_on_rod(backend, arc) - offset
     diverged_at = None

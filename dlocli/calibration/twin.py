@@ -24,7 +24,6 @@ from dlocli.backends.base import REST_HEIGHT
 from dlocli.calibration.fit import Cable
 from dlocli.calibration.replay import grip_markers, gripper_targets
 from dlocli.io import atomic_path, write_text_atomic
-from dlocli.markers.deform import held_markers
 from dlocli.specs import BackendSpec, EnvSpec, ObservationSpec, TaskSpec
 
 WORKSPACE_MARGIN = 0.1  # m around the recorded grip positions
@@ -49,6 +48,7 @@ class Twin:
     offset: np.ndarray  # (3,) added to a recording to put it in the twin's workspace
     grip: tuple[int, int]  # the grip markers
     recordings: list[tuple[str, np.ndarray]]  # the eval recordings, (T, V, 3) each
+    held: np.ndarray  # (V,) the held markers
 
     def poses(self, recording: np.ndarray) -> np.ndarray:
         """(T, 2, 7) the grippers' poses along a recording, in the twin's workspace."""
@@ -65,8 +65,7 @@ def make_twin(
 ) -> Twin:
     """The twin of ``cable`` (:func:`~dlocli.calibration.fit.load_cable`) with the fitted rod
     ``calibrated`` (its calibrated.yaml's backend)."""
-    n_markers = len(cable.arc)
-    grip = grip_markers(n_markers, calibrated.rod.clamp_compliance)
+    grip = grip_markers(cable.held, calibrated.rod.clamp_compliance)
     length = calibrated.rod.length
     recordings, everything = cable.eval, cable.train + cable.eval
     grips = np.concatenate([r[:, list(grip)] for _, r in everything]).reshape(-1, 3)
@@ -90,7 +89,7 @@ def make_twin(
         observation=marker_observation(cable.arc, grip, length, settings.noise_mm),
     )
     spec = EnvSpec(backend=calibrated, task=task, seed=settings.seed)
-    return Twin(spec, offset, grip, recordings)
+    return Twin(spec, offset, grip, recordings, cable.held)
 
 
 def recorded_poses(twin: Twin, recordings: list[np.ndarray], every: int = 10) -> np.ndarray:
@@ -139,5 +138,5 @@ def marker_observation(
 def goal_gap_mm(env: object, recorded: np.ndarray, twin: Twin) -> float:
     """Mean distance (mm) of the free markers of ``env``'s goal from the recorded frame's."""
     goal = env.goal_markers() - twin.offset  # type: ignore[attr-defined]
-    free = ~held_markers(len(recorded))
+    free = ~twin.held
     return float(np.linalg.norm(goal[free] - recorded[free], axis=-1).mean() * 1e3)

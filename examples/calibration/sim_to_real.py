@@ -25,13 +25,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from dlocli.calibration.fit import load_cable
-from dlocli.calibration.replay import ReplaySettings
+from dlocli.calibration.fit import load_cable, replay_settings
 from dlocli.calibration.simulate import simulate_markers
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.data import load_dataset
 from dlocli.markers.dataset import MarkerDataset
-from dlocli.markers.deform import held_markers
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec
 
@@ -59,10 +57,10 @@ def simulated_dataset(calibration: Path, out: Path) -> dict:
         yaml.safe_load((calibration / "calibrated.yaml").read_text())["backend"]
     )
     backend = backends.get(rod.name)(rod, control_dt=1.0 / spec.rate_hz)
-    settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s)
+    settings = replay_settings(spec, cable)
     sims, dropped = simulate_markers(backend, [r for _, r in cable.train], cable.arc,
                                      SIMULATED, 0, settings)  # fmt: skip
-    held = held_markers(sims[0].shape[1])
+    held = cable.held
     named = {"train": [(f"sim{i}", s) for i, s in enumerate(sims)]}
     data = MarkerDataset.from_trajectories(named, held, {"rate_hz": spec.rate_hz,
                                                          "source": str(calibration)})  # fmt: skip

@@ -103,25 +103,23 @@ def dlo(*argv: str) -> dict:
 def simulate(job: tuple[argparse.Namespace, str]) -> str:
     """OUT/CABLE/sim/dataset.h5: the twin under rigidly moved recorded held motion."""
     options, cable = job
-    from dlocli.calibration.fit import load_cable
-    from dlocli.calibration.replay import ReplaySettings
+    from dlocli.calibration.fit import load_cable, replay_settings
     from dlocli.calibration.simulate import simulate_markers
     from dlocli.markers.dataset import MarkerDataset
-    from dlocli.markers.deform import held_markers
     from dlocli.registry import backends
 
     out = options.out / cable / "sim"
     if (out / "dataset.h5").is_file():
         return f"{cable}: simulated data exists"
     twin, spec = load_twin(cable, options)
-    recordings = [r for _, r in load_cable(spec).train]
+    recorded = load_cable(spec)
+    recordings = [r for _, r in recorded.train]
     backend = backends.get(twin.spec.backend.name)(twin.spec.backend, control_dt=1 / spec.rate_hz)
-    settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s)
-    arc = load_cable(spec).arc
-    sims, dropped = simulate_markers(backend, recordings, arc, SIMULATED, 0, settings)
+    settings = replay_settings(spec, recorded)
+    sims, dropped = simulate_markers(backend, recordings, recorded.arc, SIMULATED, 0, settings)
     named = {"train": [(f"sim{i}", s) for i, s in enumerate(sims)]}
     data = MarkerDataset.from_trajectories(
-        named, held_markers(sims[0].shape[1]), {"rate_hz": spec.rate_hz, "source": "twin"}
+        named, recorded.held, {"rate_hz": spec.rate_hz, "source": "twin"}
     )
     out.mkdir(parents=True, exist_ok=True)
     data.save(out / "dataset.h5")
