@@ -63,9 +63,9 @@ def load_cable(spec: CalibrateSpec) -> Cable:
             "the cable's length and mass are needed; pass --cable-length and "
             "--cable-mass (metres, kilograms)"
         )
-    found = deform.read_folder(spec.source)
+    found, held = deform.read_recordings(spec.source)
+    check_held(held, spec.source)
     train, evaluation = found["train"], found.get("eval") or found["train"]
-    held = held_of(spec.source, train[0][1].shape[1])
     grip = grip_markers(held, spec.backend.rod.clamp_compliance)
     layout = MarkerLayout.from_recordings([r for _, r in train]).between(grip)
     rod_length = spec.rod_length or layout.span(grip)
@@ -87,17 +87,13 @@ def load_cable(spec: CalibrateSpec) -> Cable:
     return Cable(train, evaluation, arc, backend, held)
 
 
-def held_of(source: Path, n_markers: int) -> np.ndarray:
-    """(V,) the held markers: a `dlo import` run's (``--held``), else DEFORM's two per end;
-    BadInput unless both end markers are held and some marker is free."""
-    data = deform.imported(source)
-    held = deform.held_markers(n_markers) if data is None else np.asarray(data.held, dtype=bool)
+def check_held(held: np.ndarray, source: Path) -> None:
+    """BadInput unless both end markers are held and some marker is free."""
     if not (held[0] and held[-1]) or held.all():
         raise BadInput(
             f"{source}: calibration needs both end markers held and a free one between them; "
             "import with --held naming the markers at the grippers"
         )
-    return held
 
 
 def replay_settings(spec: CalibrateSpec, cable: Cable) -> ReplaySettings:

@@ -93,12 +93,8 @@ def read_folder(
 ) -> dict[str, list[tuple[str, np.ndarray]]]:
     """``{split: [(file stem, (frames, V, 3)), ...]}`` from ``folder/train`` and
     ``folder/eval`` (sorted by name), read within ``budget_bytes`` of memory; every file must
-    have the same marker count. A `dlo import` run directory (``folder/dataset.h5``, no
-    ``train/``) gives its dataset's episodes: any format it imported, in metres."""
+    have the same marker count."""
     folder = Path(folder)
-    data = imported(folder)
-    if data is not None:
-        return _episodes(data)
     if not folder.is_dir():
         raise BadInput(
             f"{folder} is not a folder; pass a DEFORM cable folder holding train/ and eval/"
@@ -136,6 +132,19 @@ def _require_utf8_name(path: Path) -> None:
     except UnicodeEncodeError:
         shown = os.fsencode(path).decode("utf-8", "backslashreplace")
         raise BadInput(f"{shown}: the file name is not valid UTF-8; rename the file") from None
+
+
+def read_recordings(
+    folder: Path, budget_bytes: int = DEFAULT_BUDGET
+) -> tuple[dict[str, list[tuple[str, np.ndarray]]], np.ndarray]:
+    """:func:`read_folder`'s recordings and the (V,) held markers (DEFORM's two per end); or,
+    from a `dlo import` run directory (``folder/dataset.h5``, no ``train/``), its dataset's
+    episodes (any format it imported, in metres) and its held markers (``--held``)."""
+    data = imported(folder)
+    if data is not None:
+        return _episodes(data), np.asarray(data.held, dtype=bool)
+    found = read_folder(folder, budget_bytes)
+    return found, held_markers(next(iter(found.values()))[0][1].shape[1])
 
 
 def imported(folder: Path | None) -> MarkerDataset | None:
