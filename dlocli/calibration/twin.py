@@ -23,6 +23,7 @@ import numpy as np
 from dlocli.backends.base import REST_HEIGHT
 from dlocli.calibration.fit import Cable
 from dlocli.calibration.replay import grip_markers, gripper_targets
+from dlocli.errors import BadInput
 from dlocli.io import atomic_path, write_text_atomic
 from dlocli.specs import BackendSpec, EnvSpec, ObservationSpec, TaskSpec
 
@@ -124,6 +125,11 @@ def marker_observation(
 ) -> ObservationSpec:
     """The recorded markers as the twin's observation: those between the grips on the rod,
     one behind each grip on its gripper (the mean of the two held pairs' spacings)."""
+    if grip[0] > 1 or grip[1] < len(arc) - 2:
+        raise BadInput(
+            "the twin observes at most one held marker behind each grip (on its gripper); "
+            "import the cable with at most two held markers at each end (--held)"
+        )
     inside = arc[grip[0] : grip[1] + 1] / length
     behind = [arc[grip[0]] - arc[0], arc[-1] - arc[grip[1]]]
     return ObservationSpec(
