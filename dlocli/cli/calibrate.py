@@ -19,8 +19,8 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     command's --spec) and OUT/report.{json,md} (eval score before and after, next to
     DEFORM's published physics rows and the freeze reference).
 
-    Grippers follow the inner marker of each recorded held pair (the end markers with
-    rigid clamps); the rod is the cable between them, with the cable's mass per length.
+    Grippers follow the innermost held marker of each end (the end markers with rigid
+    clamps); the rod is the cable between them, with the cable's mass per length.
     `--resume OUT` continues after the last finished generation (`--generations` may change
     there: more extends the search)."""
     run.refuse_with_resume(resume)
