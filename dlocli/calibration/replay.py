@@ -233,9 +233,13 @@ class ReplaySettings:
 
 def workspace_offset(recording: np.ndarray, backend: Backend) -> np.ndarray:
     """Shift (3,) that centres the recorded end markers at the backend's rest height."""
-    ends = recording[:, [0, -1]].reshape(-1, 3)
-    centre = 0.5 * (ends.min(0) + ends.max(0))
-    return np.array([0.0, 0.0, backend.rest_height]) - centre
+    return centring_offset(recording[:, [0, -1]].reshape(-1, 3), backend.rest_height)
+
+
+def centring_offset(points: np.ndarray, height: float) -> np.ndarray:
+    """Shift (3,) that puts the centre of the box around ``points`` (N,3) at (0, 0, height)."""
+    centre = 0.5 * (points.min(0) + points.max(0))
+    return np.array([0.0, 0.0, height]) - centre
 
 
 def fit_limits(targets: np.ndarray, rod_length: float) -> GripperLimits:

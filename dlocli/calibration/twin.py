@@ -22,12 +22,15 @@ import numpy as np
 
 from dlocli.backends.base import REST_HEIGHT
 from dlocli.calibration.fit import Cable
-from dlocli.calibration.replay import grip_markers, gripper_targets
+from dlocli.calibration.replay import (
+    WORKSPACE_MARGIN,
+    centring_offset,
+    grip_markers,
+    gripper_targets,
+)
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, write_text_atomic
 from dlocli.specs import BackendSpec, EnvSpec, ObservationSpec, TaskSpec
-
-WORKSPACE_MARGIN = 0.1  # m around the recorded grip positions
 
 
 @dataclass(frozen=True)
@@ -70,7 +73,7 @@ def make_twin(
     length = calibrated.rod.length
     recordings, everything = cable.eval, cable.train + cable.eval
     grips = np.concatenate([r[:, list(grip)] for _, r in everything]).reshape(-1, 3)
-    offset = np.array([0.0, 0.0, REST_HEIGHT * length]) - 0.5 * (grips.min(0) + grips.max(0))
+    offset = centring_offset(grips, REST_HEIGHT * length)
     shifted = grips + offset
     low = (shifted.min(0) - WORKSPACE_MARGIN) / length
     high = (shifted.max(0) + WORKSPACE_MARGIN) / length

@@ -73,7 +73,8 @@ def load_twin(cable: str, options: argparse.Namespace, seed: int = 0) -> Any:
     )
     backend = BackendSpec.model_validate(calibrated["backend"])
     settings = TwinSettings(episode_steps=options.steps, seed=seed)
-    return make_twin(load_cable(spec), backend, spec.rate_hz, settings), spec
+    recorded = load_cable(spec)
+    return make_twin(recorded, backend, spec.rate_hz, settings), spec, recorded
 
 
 def draw_episodes(twin: Any, seed: int, count: int) -> list[tuple[int, int, int]]:
@@ -103,7 +104,7 @@ def dlo(*argv: str) -> dict:
 def simulate(job: tuple[argparse.Namespace, str]) -> str:
     """OUT/CABLE/sim/dataset.h5: the twin under rigidly moved recorded held motion."""
     options, cable = job
-    from dlocli.calibration.fit import load_cable, replay_settings
+    from dlocli.calibration.fit import replay_settings
     from dlocli.calibration.simulate import simulate_markers
     from dlocli.markers.dataset import MarkerDataset
     from dlocli.registry import backends
@@ -111,8 +112,7 @@ def simulate(job: tuple[argparse.Namespace, str]) -> str:
     out = options.out / cable / "sim"
     if (out / "dataset.h5").is_file():
         return f"{cable}: simulated data exists"
-    twin, spec = load_twin(cable, options)
-    recorded = load_cable(spec)
+    twin, spec, recorded = load_twin(cable, options)
     recordings = [r for _, r in recorded.train]
     backend = backends.get(twin.spec.backend.name)(twin.spec.backend, control_dt=1 / spec.rate_hz)
     settings = replay_settings(spec, recorded)
@@ -158,11 +158,10 @@ def train(options: argparse.Namespace) -> None:
 
 def twin_task_file(options: argparse.Namespace, cable: str, seed: int) -> Path:
     """OUT/CABLE/twin/twin.yaml: the twin with starts and goals at train-recording poses."""
-    from dlocli.calibration.fit import load_cable
     from dlocli.calibration.twin import write_twin_task
 
-    twin, spec = load_twin(cable, options, seed)
-    train = [r for _, r in load_cable(spec).train]
+    twin, _, recorded = load_twin(cable, options, seed)
+    train = [r for _, r in recorded.train]
     return write_twin_task(twin, train, options.out / cable / f"twin-s{seed}")
 
 
@@ -300,7 +299,7 @@ def evaluate_job(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str
     from dlocli.env.shape_env import make_env
 
     torch.set_num_threads(1)
-    twin, _ = load_twin(cable, options, seed)
+    twin, _, _ = load_twin(cable, options, seed)
     env = make_env(twin.spec.backend, task=twin.spec.task, seed=seed)
     rows = []
     try:
