@@ -22,6 +22,13 @@ MARKERS = 12
 RECIPES = {  # examples/real_cables' models
     "mlp": {"name": "mlp", "hidden": 256, "layers": 2, "length_projection": 3},
     "in-bilstm": {"name": "in-bilstm", "hidden": 64, "length_projection": 3},
+    "attention": {
+        "name": "attention",
+        "hidden": 16,
+        "encoder_layers": 1,
+        "heads": 2,
+        "length_projection": 3,
+    },  # fmt: skip
 }
 
 
@@ -63,8 +70,10 @@ def test_fused_training_rollout_matches_the_plain_one(name: str) -> None:
 
 
 def test_training_takes_the_fused_path_by_default() -> None:
-    """The MLP's rollout is one autograd node; the in-bilstm's steps hold the fused ones."""
-    for name, node in (("mlp", "MLPRolloutBackward"), ("in-bilstm", "AdvanceBackward")):
+    """The MLP's rollout is one autograd node; the others' steps hold the fused ones."""
+    nodes = {"mlp": "MLPRolloutBackward", "in-bilstm": "AdvanceBackward",
+             "attention": "AdvanceBackward"}  # fmt: skip
+    for name, node in nodes.items():
         model, windows = _model_and_windows(name, k=3)
         assert not model.reference
         loss = rollout_loss(model, windows, model.held)

@@ -186,7 +186,7 @@ def test_bad_checkpoints_are_bad_input(name, real, tmp_path):
         with pytest.raises(BadInput):
             load_model(tmp_path / path)
     with pytest.raises(BadInput, match="requested"):
-        load_model(good, expect=model_spec({"name": name, **TINY, "hidden": 17}))
+        load_model(good, expect=model_spec({"name": name, **TINY, "hidden": 24}))
     (tmp_path / "empty_run").mkdir()
     with pytest.raises(BadInput, match="final.pt"):
         load_model(tmp_path / "empty_run")

@@ -25,6 +25,12 @@ models.register(
     "flattened state + action MLP baseline",
     spec="dlocli.models.spec:MLPSpec",
 )
+models.register(
+    "attention",
+    "dlocli.models.attention:AttentionDynamics",
+    "self-attention along the rod (graph-attention family, GA-Net)",
+    spec="dlocli.models.spec:AttentionSpec",
+)
 
 _EXPORTS = {
     "ModelSpec": "dlocli.models.spec",

@@ -33,6 +33,7 @@ from dlocli.models.spec import ModelSpec
 from dlocli.registry import import_target, models
 
 FEATURES = 10  # relative position 3, velocity 3, held displacement 3, held flag 1
+DESCRIPTORS = 9  # attention's: vectors to both neighbours 6, their lengths 2, cable length 1
 FORM = "markers"
 
 #: the normalisation buffers, fitted on the training data
@@ -90,6 +91,15 @@ class MarkerModel(torch.nn.Module):
                           (x - x_prev) / self.velocity_scale,
                           (held_next - x) * held / self.velocity_scale, flag], -1)  # fmt: skip
 
+    def descriptors(self, x: Tensor) -> Tensor | None:
+        """Per-marker inputs appended to :meth:`features` (B, V, D), for models that read
+        more of the cable's geometry; None (the default): none."""
+        return None
+
+    def _described(self, features: Tensor, x: Tensor) -> Tensor:
+        extra = self.descriptors(x)
+        return features if extra is None else torch.cat([features, extra], -1)
+
     # ------------------------------------------------------------------ the contract
     def forward(
         self,
@@ -108,7 +118,8 @@ class MarkerModel(torch.nn.Module):
             sweeps = self.spec.length_projection if lengths is not None else 0
             return self._fused_step(x, x_prev, held_next, lengths,
                                     marker_steps.step_constants(self, held, sweeps))  # fmt: skip
-        acc = self.predict(self.features(x, x_prev, held_next, held)) * self.acceleration_scale
+        features = self._described(self.features(x, x_prev, held_next, held), x)
+        acc = self.predict(features) * self.acceleration_scale
         nxt = torch.where(held[:, None], held_next, 2 * x - x_prev + acc)
         if lengths is not None and self.spec.length_projection:
             nxt = project_lengths(nxt, lengths, held, self.spec.length_projection)
@@ -156,7 +167,7 @@ class MarkerModel(torch.nn.Module):
         if lengths is None:  # not read: no sweeps
             lengths = x.new_zeros(x.shape[0], x.shape[1] - 1)
         features = marker_steps.Features.apply(x, x_prev, held_next, constants)
-        acc = self.predict(features)
+        acc = self.predict(self._described(features, x))
         return marker_steps.Advance.apply(acc, x, x_prev, held_next, lengths, constants)
 
     @property
@@ -258,6 +269,32 @@ class MarkerMLP(MarkerModel):
             return marker_mlp_rollout.rollout(self, x, x_prev, held_future, held,
                                               neighbour_distances(x))  # fmt: skip
         return super().rollout(x, x_prev, held_future, held)
+
+
+class MarkerAttention(MarkerModel):
+    """Self-attention over the markers (:mod:`dlocli.models.attention`). Besides a marker's
+    own features, its token holds the vectors to both neighbours (zero past the ends), their
+    lengths and the cable's length along the markers, all over the mean position scale: what
+    tells one cable from another, so one network can learn several cables (any count)."""
+
+    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
+        from dlocli.models.attention import AlongCable
+
+        super().__init__(spec, n_markers, held)
+        self.net = AlongCable(FEATURES + DESCRIPTORS, 3, spec)
+
+    def descriptors(self, x: Tensor) -> Tensor:
+        scale = self.position_scale.mean()
+        edges = (x[:, 1:] - x[:, :-1]) / scale  # (B, V-1, 3)
+        pad = torch.nn.functional.pad
+        to_next, to_previous = pad(edges, (0, 0, 0, 1)), pad(-edges, (0, 0, 1, 0))
+        spans = edges.norm(dim=-1)
+        length = spans.sum(1)[:, None, None].expand(-1, x.shape[1], 1)
+        return torch.cat([to_previous, to_next, to_previous.norm(dim=-1, keepdim=True),
+                          to_next.norm(dim=-1, keepdim=True), length], -1)  # fmt: skip
+
+    def predict(self, features: Tensor) -> Tensor:
+        return self.net(features)
 
 
 def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:

@@ -88,6 +88,21 @@ class MLPSpec(ModelSpec):
     layers: int = Field(4, gt=0, le=64, description="Hidden layers of the MLP.")
 
 
+class AttentionSpec(ModelSpec):
+    """The attention model's sizes: ``encoder_layers`` layers of width ``hidden`` with
+    ``heads`` heads."""
+
+    hidden: int = Field(64, gt=0, le=4096, description=ModelSpec.field_of("hidden").description)
+    encoder_layers: int = Field(3, gt=0, le=64, description="Transformer encoder layers.")
+    heads: int = Field(4, gt=0, le=64, description="Attention heads per encoder layer.")
+
+    @model_validator(mode="after")
+    def _heads_divide_width(self) -> AttentionSpec:
+        if self.hidden % self.heads:
+            raise ValueError(f"hidden ({self.hidden}) must be a multiple of heads ({self.heads})")
+        return self
+
+
 def model_spec_classes() -> dict[str, type[ModelSpec]]:
     """The spec class of every registered model, by name."""
     return {name: model_spec_class(name) for name in models.names()}
