@@ -2,10 +2,11 @@
 
     python examples/real_cables/report.py [runs/real]
 
-Reads RUNS/<cable>/<model>-s<seed>-eval/{summary,error_by_frame}.json and writes, beside
-this script, results.json, results.md and horizon.png: per cable, the DEFORM score of each
-model (mean ± std over seeds) next to the published rows and the references; the figure
-shows the score of the rollout cut at each horizon, so its right end is the benchmark score.
+Reads RUNS/<cable>/<model>-s<seed>-eval/{summary,error_by_frame}.json (runs without the
+curves, as kept in git, enter the tables only) and writes, beside this script,
+results.json, results.md and horizon.png: per cable, the DEFORM score of each model (mean ±
+std over seeds) next to the published rows and the references, with the longest training
+run's time; results.md keeps its notes below the tables; the figure shows the score of the rollout cut at each horizon, so its right end is the benchmark score.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ PUBLISHED = {
     "DER (physics)": ((1.96, 1.91, 1.86, 1.50), "17–18 ms"),
     "DEFORM": ((1.01, 0.97, 0.77, 0.85), "9–10 ms"),
 }
+#: results.md keeps what follows this line (written by hand) when the tables are rewritten
+NOTES = "<!-- notes: kept by report.py -->"
 REFERENCES = {
     "freeze": "freeze the free markers at frame 1",
     "straight_line": "straight line between the held ends",
@@ -39,24 +42,28 @@ def collect(runs: Path) -> dict:
         for summary_path in sorted((runs / cable).glob("*-s*-eval/summary.json")):
             model, seed = summary_path.parent.name.removesuffix("-eval").rsplit("-s", 1)
             summary = json.loads(summary_path.read_text())
-            curves = json.loads((summary_path.parent / "error_by_frame.json").read_text())
+            curves_path = summary_path.parent / "error_by_frame.json"  # not kept in git
+            curves = json.loads(curves_path.read_text()) if curves_path.is_file() else None
             entry = results.setdefault(cable, {}).setdefault(model, {"seeds": {}})
+            trained = json.loads((runs / cable / f"{model}-s{seed}" / "summary.json").read_text())
             entry["seeds"][seed] = {
                 "score_cm": summary["model_score_cm"],
+                "train_seconds": trained["seconds"],
                 "ms_per_step": summary["ms_per_step_1_thread"],
                 "horizons_mm": {
                     k.split("_")[-1]: v
                     for k, v in summary.items()
                     if k.startswith("model_error_mm_")
                 },  # fmt: skip
-                "abs_error_cm": curves["abs_error_cm"]["model"],
+                "abs_error_cm": curves and curves["abs_error_cm"]["model"],
             }
             for ref in REFERENCES:
                 reference = {
                     "score_cm": summary[f"{ref}_score_cm"],
-                    "abs_error_cm": curves["abs_error_cm"][ref],
+                    "abs_error_cm": curves and curves["abs_error_cm"][ref],
                 }
-                results[cable].setdefault(ref, reference)
+                if not results[cable].get(ref, {}).get("abs_error_cm"):
+                    results[cable][ref] = reference
     for cable in results.values():
         for entry in cable.values():
             if "seeds" in entry:
@@ -64,6 +71,7 @@ def collect(runs: Path) -> dict:
                 scores = [s["score_cm"] for s in seeds]
                 entry["mean_cm"], entry["std_cm"] = float(np.mean(scores)), float(np.std(scores))
                 entry["ms_per_step"] = float(np.median([s["ms_per_step"] for s in seeds]))
+                entry["train_seconds"] = float(max(s["train_seconds"] for s in seeds))
     return results
 
 
@@ -75,18 +83,18 @@ def table(results: dict) -> str:
     head = (
         "| method (cm, mean abs. error per coordinate, 5 s open loop) | "
         + " | ".join(CABLES)
-        + " | time per step |"
+        + " | time per step | training (longest run) |"
     )
-    lines = [head, "|---|" + "---:|" * len(CABLES) + "---|"]
+    lines = [head, "|---|" + "---:|" * len(CABLES) + "---|---|"]
     for ref, words in REFERENCES.items():
         row = [f"{results[c][ref]['score_cm']:.2f}" if c in results else "–" for c in CABLES]
-        lines.append(f"| {words} | " + " | ".join(row) + " | – |")
+        lines.append(f"| {words} | " + " | ".join(row) + " | – | – |")
     for name, (scores, time) in PUBLISHED.items():
         lines.append(
-            f"| {name}, published | " + " | ".join(f"{s:.2f}" for s in scores) + f" | {time} |"
+            f"| {name}, published | " + " | ".join(f"{s:.2f}" for s in scores) + f" | {time} | – |"
         )
     for model in models_of(results):
-        cells, times = [], []
+        cells, times, training = [], [], []
         for c in CABLES:
             e = results.get(c, {}).get(model)
             cells.append(
@@ -94,8 +102,14 @@ def table(results: dict) -> str:
             )
             if e:
                 times.append(e["ms_per_step"])
+                training.append(e["train_seconds"])
         t = f"{min(times):.2f}–{max(times):.2f} ms" if times else "–"
-        lines.append(f"| dlocli `{model}` (mean ± std, seeds) | " + " | ".join(cells) + f" | {t} |")
+        trained = f"{max(training) / 60:.1f} min" if training else "–"
+        lines.append(
+            f"| dlocli `{model}` (mean ± std, seeds) | "
+            + " | ".join(cells)
+            + f" | {t} | {trained} |"
+        )
     return "\n".join(lines)
 
 
@@ -121,6 +135,8 @@ def figure(results: dict, path: Path) -> None:
     colours = {
         "in-bilstm": "tab:blue",
         "mlp": "tab:orange",
+        "mlp-long": "tab:red",
+        "attention": "tab:purple",
         "freeze": "tab:gray",
         "straight_line": "tab:brown",
     }
@@ -131,6 +147,8 @@ def figure(results: dict, path: Path) -> None:
                 if "seeds" in entry
                 else [entry["abs_error_cm"]]
             )
+            if not all(curves):  # runs whose curves were not kept are left out of the figure
+                continue
             per_frame = np.mean(curves, 0)[2:]
             running = np.cumsum(per_frame) / np.arange(1, len(per_frame) + 1)
             t = np.arange(1, len(running) + 1) / 100.0
@@ -174,7 +192,9 @@ def main() -> None:
         + horizon_table(results)
         + "\n"
     )
-    (HERE / "results.md").write_text(text)
+    path = HERE / "results.md"
+    notes = path.read_text().partition(NOTES)[2] if path.is_file() else "\n"
+    path.write_text(text + "\n" + NOTES + notes)
     print(text)
 
 
