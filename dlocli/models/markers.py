@@ -27,6 +27,7 @@ from torch import Tensor
 
 from dlocli.errors import BadInput
 from dlocli.models import base, marker_mlp_rollout, marker_steps
+from dlocli.models.attention import AlongCable
 from dlocli.models.base import checkpoint_spec, mlp, read_checkpoint, valid_model_spec, with_weights
 from dlocli.models.in_bilstm import init_forget_bias
 from dlocli.models.spec import ModelSpec
@@ -278,8 +279,6 @@ class MarkerAttention(MarkerModel):
     tells one cable from another, so one network can learn several cables (any count)."""
 
     def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
-        from dlocli.models.attention import AlongCable
-
         super().__init__(spec, n_markers, held)
         self.net = AlongCable(FEATURES + DESCRIPTORS, 3, spec)
 
