@@ -135,7 +135,7 @@ def figure(results: dict, path: Path) -> None:
     colours = {
         "in-bilstm": "tab:blue",
         "mlp": "tab:orange",
-        "mlp-long": "tab:red",
+        "mlp-long": "tab:cyan",
         "attention": "tab:purple",
         "freeze": "tab:gray",
         "straight_line": "tab:brown",
