@@ -287,10 +287,10 @@ class MarkerAttention(MarkerModel):
         edges = (x[:, 1:] - x[:, :-1]) / scale  # (B, V-1, 3)
         pad = torch.nn.functional.pad
         to_next, to_previous = pad(edges, (0, 0, 0, 1)), pad(-edges, (0, 0, 1, 0))
-        spans = edges.norm(dim=-1)
-        length = spans.sum(1)[:, None, None].expand(-1, x.shape[1], 1)
-        return torch.cat([to_previous, to_next, to_previous.norm(dim=-1, keepdim=True),
-                          to_next.norm(dim=-1, keepdim=True), length], -1)  # fmt: skip
+        spans = edges.norm(dim=-1, keepdim=True)  # (B, V-1, 1)
+        length = spans.sum(1, keepdim=True).expand(-1, x.shape[1], 1)
+        return torch.cat([to_previous, to_next, pad(spans, (0, 0, 1, 0)),
+                          pad(spans, (0, 0, 0, 1)), length], -1)  # fmt: skip
 
     def predict(self, features: Tensor) -> Tensor:
         return self.net(features)
