@@ -22,14 +22,7 @@ from typing import Any
 #: added after runs were first saved, with the value that rebuilds what a saved run did before
 LEGACY_VALUES: dict[str, dict[str, Any]] = {
     "bench": {"planner": "mpc"},
-    "model": {
-        "velocity_input": False,
-        "absolute_position": True,
-        "length_projection": 0,
-        # the attention model's options: it came after them, so no run saved it without them
-        "encoder_layers": 3,
-        "heads": 4,
-    },
+    "model": {"velocity_input": False, "absolute_position": True, "length_projection": 0},
     "fit": {
         "mirror": False,
         "schedule": "epochs",
@@ -129,10 +122,10 @@ def without_legacy_values(kind: str, data: dict[str, Any]) -> dict[str, Any]:
 
 def model_data(data: dict[str, Any], fields: set[str], moved: dict[str, str]) -> dict[str, Any]:
     """A saved model spec for a model whose own spec has ``fields`` (and renames ``moved``):
-    without the other models' fields of the flat spec, which had no effect on it, nor the
-    legacy values of other models' options (completion adds every model's)."""
-    others = FLAT_MODEL_FIELDS.keys() | LEGACY_VALUES["model"].keys()
-    return {k: v for k, v in data.items() if k in fields or k in moved or k not in others}
+    without the other models' fields of the flat spec, which had no effect on it."""
+    return {
+        k: v for k, v in data.items() if k in fields or k in moved or k not in FLAT_MODEL_FIELDS
+    }
 
 
 def model_fingerprint_form(data: dict[str, Any], moved: dict[str, str]) -> dict[str, Any]:

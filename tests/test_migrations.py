@@ -86,12 +86,18 @@ def test_a_fingerprinted_field_needs_a_legacy_value(kind):
     )
 
 
+#: the models registered after the flat layout, with the options they came with (no saved
+#: spec of theirs lacks one); an option added to them later needs a legacy value
+ORIGINAL_OPTIONS_OF_NEWER_MODELS: dict[str, set[str]] = {"attention": {"encoder_layers", "heads"}}
+
+
 @pytest.mark.parametrize("name", sorted(model_spec_classes()))
 def test_a_model_option_needs_a_legacy_value(name):
     """Model specs are fingerprinted in the flat layout of the one spec every model shared:
     an option outside it (or its new name) is new."""
     cls = model_spec_classes()[name]
-    known = {*migrations.FLAT_MODEL_FIELDS, *cls.moved.values(), *migrations.LEGACY_VALUES["model"]}
+    known = {*migrations.FLAT_MODEL_FIELDS, *cls.moved.values(), *migrations.LEGACY_VALUES["model"],
+             *ORIGINAL_OPTIONS_OF_NEWER_MODELS.get(name, set())}  # fmt: skip
     assert set(cls.model_fields) <= known, (name, set(cls.model_fields) - known)
 
 

@@ -34,7 +34,7 @@ def test_a_plugin_model_brings_its_own_option(plugin_path, small_dataset_dir, tm
     assert shown.returncode == 0, shown.stderr
     text = " ".join(shown.stdout.split())
     assert "--depth" in text and "chain: Hidden layers of the per-segment network." in text
-    assert "One of: chain, in-bilstm, mlp." in text
+    assert "One of: attention, chain, in-bilstm, mlp." in text
 
     out = tmp_path / "run"
     res = dlo(plugin_path, "train", "--data", str(small_dataset_dir), "--model", "chain",

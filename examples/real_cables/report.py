@@ -6,7 +6,8 @@ Reads RUNS/<cable>/<model>-s<seed>-eval/{summary,error_by_frame}.json (runs with
 curves, as kept in git, enter the tables only) and writes, beside this script,
 results.json, results.md and horizon.png: per cable, the DEFORM score of each model (mean ±
 std over seeds) next to the published rows and the references, with the longest training
-run's time; results.md keeps its notes below the tables; the figure shows the score of the rollout cut at each horizon, so its right end is the benchmark score.
+run's time; results.md keeps its notes below the tables; the figure shows the score of the
+rollout cut at each horizon, so its right end is the benchmark score.
 """
 
 from __future__ import annotations
