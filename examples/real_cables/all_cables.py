@@ -21,12 +21,11 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 import yaml
 
 from dlocli.markers import deform
-from dlocli.models.marker_training import Cable, fit_markers, scores_cm
+from dlocli.models.marker_training import Cable, fit_markers, validation_score
 from dlocli.models.markers import build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.models.splits import split_episodes
@@ -50,7 +49,7 @@ def read_cables(source: Path, spec: TrainSpec) -> tuple[list[Cable], list[Cable]
 
 
 def score(model: torch.nn.Module, cable: Cable) -> float:
-    return round(float(np.mean(scores_cm(model, cable))), 4)
+    return round(validation_score(model, [cable]), 4)
 
 
 def main() -> None:
