@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from types import UnionType
 from typing import Annotated, Any, ClassVar, TypeVar, Union, get_args, get_origin
@@ -236,10 +237,17 @@ def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
         return f"{source}: field '{at}{retired.field}' is retired{why}; {fix}"
     if err["type"] == "extra_forbidden":
         return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
-    return f"{source}: field '{field}': {err['msg']} (got {_bounded_repr(err.get('input'))})"
+    return f"{source}: field '{field}': {err['msg']} (got {bounded_repr(err.get('input'))})"
 
 
-def _bounded_repr(value: Any) -> str:
+def flag_error(exc: ValidationError, flag: str) -> str:
+    """One line blaming ``flag`` for the first bad value and saying what is expected."""
+    err = exc.errors()[0]
+    what = err["msg"].removeprefix("Value error, ")
+    return f"{flag}: {what} (got {bounded_repr(err.get('input'))})"
+
+
+def bounded_repr(value: Any) -> str:
     """repr of a value cut to a few elements and levels: an input built from YAML aliases
     can expand to gigabytes if printed whole."""
     import reprlib
@@ -250,21 +258,31 @@ def _bounded_repr(value: Any) -> str:
 
 
 def resolve_spec(
-    cls: type[SpecT], spec_file: Path | None = None, overrides: dict[str, Any] | None = None
+    cls: type[SpecT],
+    spec_file: Path | None = None,
+    overrides: dict[str, Any] | None = None,
+    flag_name: Callable[[str], str] | None = None,
 ) -> SpecT:
     """Build a spec: defaults, then the spec file, then non-None overrides (dotted field paths).
 
     A spec the user writes is strict: a retired or misplaced field is refused. A run's own
     ``spec.json`` (``--spec RUN/spec.json`` re-runs it) is read as runs are: the layout of
-    the version that saved it is migrated (:meth:`Spec.saved_layout`, its load boundary)."""
+    the version that saved it is migrated (:meth:`Spec.saved_layout`, its load boundary).
+    With ``flag_name`` (a field's flag), a bad value an override gave is blamed on its flag."""
     saved = spec_file is not None and Path(spec_file).name == SAVED_SPEC
     data: dict[str, Any] = load_spec_file(spec_file) if spec_file is not None else {}
     if saved:
         data = cls.saved_layout(data)
-    for dotted, value in (overrides or {}).items():
-        if value is not None:
-            _set_dotted(data, dotted, value)
-    return validated(cls, data, str(spec_file or "spec"), None if saved else GIVEN)
+    given = {dotted: value for dotted, value in (overrides or {}).items() if value is not None}
+    for dotted, value in given.items():
+        _set_dotted(data, dotted, value)
+    try:
+        return cls.model_validate(data, context=None if saved else GIVEN)
+    except ValidationError as exc:
+        field = ".".join(str(part) for part in exc.errors()[0]["loc"])
+        if flag_name is not None and field in given:
+            raise BadInput(flag_error(exc, f"--{flag_name(field)}")) from None
+        raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
 
 
 def validated(

@@ -3,78 +3,19 @@ process, over the dlocli-cell protocol (real ZeroMQ sockets, the real MuJoCo rod
 
 from __future__ import annotations
 
-import csv
-import json
-import re
-import signal
-import socket
 import subprocess
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
-from tiny import control_with_policy, run_dlo
+from cells import control_argv as _control
+from cells import example_cell, served
+from cells import step_errors as _errors
+from cells import summary_of as _summary
+from tiny import run_dlo
 
 pytest.importorskip("zmq")
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-@contextmanager
-def example_cell() -> Iterator[str]:
-    """examples/bridge/robot_cell.py, the robot side a user writes, serving on a free port."""
-    address = f"tcp://127.0.0.1:{_free_port()}"
-    script = Path(__file__).resolve().parents[1] / "examples" / "bridge" / "robot_cell.py"
-    cell = subprocess.Popen([sys.executable, str(script), "--address", address])
-    try:
-        yield address
-    finally:
-        cell.kill()
-        cell.wait(timeout=30)
-
-
-@contextmanager
-def served(*flags: str, kill: bool = False) -> Iterator[str]:
-    """A `dlo serve` process on a free port; yields its address, stops it after (Ctrl-C, or
-    SIGKILL with ``kill``)."""
-    cell = subprocess.Popen(
-        [sys.executable, "-m", "dlocli.cli", "serve", "--address", "tcp://127.0.0.1:*", *flags],
-        stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        assert cell.stderr is not None
-        line = cell.stderr.readline()
-        found = re.search(r" at (tcp://\S+);", line)
-        assert found, f"dlo serve did not start: {line}{cell.stderr.read()}"
-        yield found.group(1)
-    finally:
-        if cell.poll() is None:
-            cell.send_signal(signal.SIGKILL if kill else signal.SIGINT)
-            code = cell.wait(timeout=30)
-            assert kill or code == 0, cell.stderr.read()  # Ctrl-C is how a server ends
-
-
-def _control(goal: Path, policy: Path, out: Path, *flags: str) -> list[str]:
-    """Twelve steps of the SAC policy towards the goal, with ``flags``."""
-    argv = control_with_policy(goal, policy, out)
-    argv[argv.index("--steps") + 1] = "12"
-    return [*argv, "--json", *flags]
-
-
-def _errors(out: Path) -> list[str]:
-    with open(out / "metrics.csv", newline="") as f:
-        return [row["shape_error_mm"] for row in csv.DictReader(f)]
-
-
-def _summary(out: Path) -> dict:
-    return json.loads((out / "summary.json").read_text())
 
 
 def test_a_bridged_run_equals_the_in_process_one(near_rest_goal, sac_policy, tmp_path):
@@ -97,8 +38,8 @@ def test_the_example_robot_cell_speaks_the_protocol(near_rest_goal, sac_policy, 
     here, there = tmp_path / "here", tmp_path / "there"
     assert run_dlo(_control(near_rest_goal, sac_policy, here)) == 0
     with example_cell() as address:
-        flags = ("--cell", address, "--cell-timeout-s", "20")  # the script starts Python
-        assert run_dlo(_control(near_rest_goal, sac_policy, there, *flags)) == 0
+        # the default timeout: the script builds its rod before it listens
+        assert run_dlo(_control(near_rest_goal, sac_policy, there, "--cell", address)) == 0
     assert _errors(there) == _errors(here)
 
 
@@ -184,33 +125,14 @@ def test_a_cell_of_another_rod_refuses_the_controller(near_rest_goal, sac_policy
 
 @pytest.mark.parametrize(
     "flags, problem",
-    [(["--cell", "localhost:5555"], "tcp://HOST:PORT"),
-     (["--cell", "tcp://127.0.0.1:1", "--cell-timeout-s", "0"], "cell_timeout_s")],
+    [(["--cell", "localhost:5555"], "--cell: 'localhost:5555' is not a cell address"),
+     (["--cell", "http://127.0.0.1:5555"], "--cell: 'http://127.0.0.1:5555' is not a cell"),
+     (["--cell", "tcp://127.0.0.1:*"], "--cell: 'tcp://127.0.0.1:*' names no port"),
+     (["--cell", "tcp://127.0.0.1:70000"], "a port is a number from 1 to 65535"),
+     (["--cell", "tcp://127.0.0.1:1", "--cell-timeout-s", "0"], "--cell-timeout-s")],
 )  # fmt: skip
 def test_bad_cell_flags_are_one_line(near_rest_goal, sac_policy, tmp_path, flags, problem, capsys):
     out = tmp_path / "run"
     assert run_dlo(_control(near_rest_goal, sac_policy, out, *flags)) == 2
     assert problem in capsys.readouterr().err
     assert not out.exists()
-
-
-def test_the_cell_answers_a_bad_request_and_serves_on(tmp_path):
-    import zmq
-
-    from dlocli.bridge import protocol
-
-    with served() as address:
-        context = zmq.Context()
-        socket = context.socket(zmq.REQ)
-        socket.setsockopt(zmq.RCVTIMEO, 10_000)
-        socket.connect(address)
-        for request, expected in [(b"not json", "error"), (protocol.encode("fly"), "error"),
-                                  (protocol.encode("hello", protocol="x", version=9), "error"),
-                                  (protocol.encode("reset", seed="abc"), "error"),
-                                  (protocol.encode("reset", limits={"workspace_low": 1}), "error"),
-                                  (protocol.encode("set_state", state="x"), "error"),
-                                  (protocol.encode("bye"), "bye")]:  # fmt: skip
-            socket.send(request)
-            assert protocol.decode(socket.recv())["type"] == expected
-        socket.close()
-        context.term()

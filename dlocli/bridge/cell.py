@@ -1,4 +1,5 @@
-"""A simulator served as a cell (``dlo serve``): the dlocli-cell protocol's REP side.
+"""A simulator served as a cell (``dlo serve``): what it does with the requests that passed
+the checks and the session of :mod:`dlocli.bridge.server`.
 
 In lockstep (the default) the rod steps when a command comes, so a bridged run equals an
 in-process one. In real time the cell keeps its own clock, as a robot does: a control period
@@ -17,18 +18,20 @@ from typing import Any
 import numpy as np
 
 from dlocli.backends.base import Backend
-from dlocli.bridge import protocol
+from dlocli.bridge import messages
+from dlocli.bridge.keys import require_keys_off_loopback
+from dlocli.bridge.server import CellHandler, Log
+from dlocli.bridge.server import serve as serve_handler
 from dlocli.bridge.spec import ServeSpec
 from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
-from dlocli.processes import raise_if_stopped
 
-#: how often the serving loop looks for a stop signal while no request comes (ms)
-POLL_MS = 100
+#: a simulated reset settles the rod in well under a second; this leaves room on a busy CPU
+RESET_TIMEOUT_S = 10.0
 
 
-class Cell:
-    """One backend behind the protocol: a request in, one reply out."""
+class Cell(CellHandler):
+    """A simulator behind the protocol, with the faults of a real cell it was asked for."""
 
     def __init__(self, backend: Backend, spec: ServeSpec) -> None:
         self.backend, self.spec = backend, spec
@@ -37,46 +40,30 @@ class Cell:
         self.step_count = self.late = self.dropped = 0
         self.clock_start = self.commanded_at = time.monotonic()
         self.seen: dict[str, np.ndarray] = {}  # the cable as the tracker last saw it
+        self.state_size = self.backend.get_state().size
+
+    def info(self) -> dict[str, Any]:
+        return {
+            "name": self.backend.name,
+            "backend": self.backend.spec.model_dump(mode="json"),
+            "control_dt": self.backend.control_dt,
+            "realtime": self.spec.realtime,
+            "n_segments": self.backend.n_segments,
+            "reset_timeout_s": RESET_TIMEOUT_S,
+        }
 
     # ------------------------------------------------------------------ requests
-    def handle(self, request: dict[str, Any]) -> bytes:
-        handler = getattr(self, f"_on_{request['type']}", None)
-        if handler is None:
-            raise BadInput(f"unknown request type {request['type']!r}")
-        return handler(request)
-
-    def _on_hello(self, request: dict[str, Any]) -> bytes:
-        spoken = (request.get("protocol"), request.get("version"))
-        if spoken != (protocol.PROTOCOL, protocol.VERSION):
-            raise BadInput(
-                f"this cell speaks {protocol.PROTOCOL} version {protocol.VERSION}, not "
-                f"{spoken[0]} {spoken[1]}"
-            )
-        self._check_same_rod(request)
-        return protocol.encode(
-            "welcome",
-            protocol=protocol.PROTOCOL,
-            version=protocol.VERSION,
-            cell={
-                "name": self.backend.name,
-                "backend": self.backend.spec.model_dump(mode="json"),
-                "control_dt": self.backend.control_dt,
-                "realtime": self.spec.realtime,
-                "n_segments": self.backend.n_segments,
-            },
-        )
-
-    def _on_reset(self, request: dict[str, Any]) -> bytes:
-        seed = request.get("seed")
-        self._apply_limits(request.get("limits") or {})
-        self.backend.reset(None if seed is None else int(seed))
+    def on_reset(self, request: messages.Reset) -> dict[str, Any]:
+        if request.limits is not None:
+            self._apply_limits(request.limits)
+        self.backend.reset(request.seed)
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
         self.clock_start = self.commanded_at = time.monotonic()
         return self._state(reset=True)
 
-    def _on_step(self, request: dict[str, Any]) -> bytes:
-        velocities = protocol.array(request, "velocities", (2, 6))
+    def on_step(self, request: messages.Step) -> dict[str, Any]:
+        velocities = np.array(request.velocities, dtype=np.float64)
         if self.spec.realtime:
             self._catch_up()
         if self.rng.random() < self.spec.drop_probability:
@@ -86,44 +73,49 @@ class Cell:
         self._advance(self.held)
         return self._state()
 
-    def _on_stop(self, request: dict[str, Any]) -> bytes:
+    def on_stop(self) -> dict[str, Any]:
         self.held = np.zeros((2, 6))
         return self._state()
 
-    def _on_get_state(self, request: dict[str, Any]) -> bytes:
-        return protocol.encode("snapshot", state=self.backend.get_state())
+    def on_get_state(self) -> dict[str, Any]:
+        return {"type": "snapshot", "state": self.backend.get_state()}
 
-    def _on_set_state(self, request: dict[str, Any]) -> bytes:
-        state = np.asarray(request.get("state"), dtype=np.float64)
+    def on_set_state(self, request: messages.SetState) -> dict[str, Any]:
+        if len(request.state) != self.state_size:
+            raise BadInput(
+                f"set_state request: a state of {len(request.state)} numbers, this cell's "
+                f"has {self.state_size} (send what get_state gave)"
+            )
+        state = np.array(request.state, dtype=np.float64)
+        quaternion_norms = np.linalg.norm(state[:14].reshape(2, 7)[:, 3:], axis=1)
+        if not np.allclose(quaternion_norms, 1.0, atol=1e-6):
+            raise BadInput("set_state request: the grippers' quaternions are not unit ones")
         self.backend.set_state(state)
         return self._state()
 
-    def _on_bye(self, request: dict[str, Any]) -> bytes:
-        return protocol.encode("bye")
+    def on_release(self) -> None:
+        self.held = np.zeros((2, 6))
 
     # ------------------------------------------------------------------ the rod
-    def _check_same_rod(self, request: dict[str, Any]) -> None:
-        theirs = request.get("backend")
-        ours = self.backend.spec.model_dump(mode="json")
-        if theirs != ours:
+    def _apply_limits(self, limits: messages.Limits) -> None:
+        """The controller's envelope, refused if the rod's start lies outside it."""
+        low, high = np.array(limits.workspace_low), np.array(limits.workspace_high)
+        start = self.backend.rest_gripper_poses()[:, :3]
+        separation = float(np.linalg.norm(start[1] - start[0]))
+        if np.any(start < low) or np.any(start > high):
             raise BadInput(
-                f"the controller's rod is not this cell's: start `dlo serve` with the same "
-                f"backend spec (this cell: {ours['name']}, {self.backend.n_segments} segments)"
+                "reset request: the limits' workspace excludes the grippers' start "
+                f"{np.round(start, 3).tolist()}: widen workspace_low/workspace_high"
             )
-        if request.get("control_dt") != self.backend.control_dt:
+        both_held = bool(self.backend.moving.all())
+        if both_held and not limits.min_separation <= separation <= limits.max_separation:
             raise BadInput(
-                f"control period {request.get('control_dt')} s asked, this cell steps "
-                f"{self.backend.control_dt} s: serve it with the task's control_dt"
+                f"reset request: the grippers start {separation:.3f} m apart, outside the "
+                f"limits' separation [{limits.min_separation:g}, {limits.max_separation:g}] m"
             )
-
-    def _apply_limits(self, limits: dict[str, Any]) -> None:
-        if not limits:
-            return
         own = self.backend.limits
-        own.low = np.asarray(limits["workspace_low"], dtype=np.float64)
-        own.high = np.asarray(limits["workspace_high"], dtype=np.float64)
-        own.min_separation = float(limits["min_separation"])
-        own.max_separation = float(limits["max_separation"])
+        own.low, own.high = low, high
+        own.min_separation, own.max_separation = limits.min_separation, limits.max_separation
 
     def _advance(self, velocities: np.ndarray) -> None:
         if self.spec.realtime:
@@ -143,7 +135,7 @@ class Cell:
             self.step_count += 1
             self.late += 1
 
-    def _state(self, reset: bool = False) -> bytes:
+    def _state(self, reset: bool = False) -> dict[str, Any]:
         if self.spec.delay_s > 0:
             time.sleep(self.spec.delay_s)
         tracked = reset or self.rng.random() >= self.spec.frame_loss_probability
@@ -152,8 +144,8 @@ class Cell:
                 "positions": self.backend.segment_positions(),
                 "quaternions": self.backend.segment_quaternions(),
             }
-        return protocol.encode(
-            "state",
+        return dict(
+            type="state",
             step=self.step_count,
             time=self.step_count * self.backend.control_dt,
             diverged=self.backend.diverged,
@@ -171,39 +163,14 @@ def _sleep_until(moment: float) -> None:
         time.sleep(remaining)
 
 
-def serve(spec: ServeSpec, ready: Callable[[str], None] | None = None) -> None:
+def serve(
+    spec: ServeSpec, ready: Callable[[str], None] | None = None, log: Log | None = None
+) -> None:
     """Serve ``spec.backend`` at ``spec.address`` until stopped (SIGINT, SIGTERM);
-    ``ready(address)`` is called once the socket listens."""
-    import zmq
-
+    ``ready(address)`` is called once the socket listens, ``log`` with each session event."""
+    require_keys_off_loopback(spec.address, spec.keys, "--address", "--keys")  # before the rod
     backend = make_backend(spec.backend, spec.control_dt)
-    context = zmq.Context()
-    socket = context.socket(zmq.REP)
-    socket.setsockopt(zmq.LINGER, 0)
     try:
-        try:
-            socket.bind(spec.address)
-        except zmq.ZMQError as exc:
-            raise BadInput(f"--address {spec.address}: cannot listen there ({exc})") from None
-        if ready is not None:
-            ready(socket.getsockopt_string(zmq.LAST_ENDPOINT))
-        _serve_loop(Cell(backend, spec), socket)
+        serve_handler(Cell(backend, spec), spec.address, spec.keys, spec.session_idle_s, ready, log)
     finally:
-        socket.close()
-        context.term()
         backend.close()
-
-
-def _serve_loop(cell: Cell, socket: Any) -> None:
-    while True:
-        raise_if_stopped()
-        if not socket.poll(POLL_MS):
-            continue
-        message = socket.recv()
-        try:
-            reply = cell.handle(protocol.decode(message))
-        except BadInput as exc:  # the controller hears why; the cell serves on
-            reply = protocol.encode("error", message=str(exc))
-        except (KeyError, TypeError, ValueError) as exc:  # a field missing or of a wrong kind
-            reply = protocol.encode("error", message=f"a malformed request: {exc!r}")
-        socket.send(reply)

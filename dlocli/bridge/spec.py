@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import ClassVar
 
 from pydantic import Field, field_validator
@@ -14,11 +15,15 @@ ADDRESS = re.compile(r"(tcp://[^\s:]+:(\d+|\*)|ipc://\S+)")
 
 
 def check_address(address: str) -> str:
-    if not ADDRESS.fullmatch(address):
+    found = ADDRESS.fullmatch(address)
+    if not found:
         raise ValueError(
             f"{address!r} is not a cell address: pass tcp://HOST:PORT (e.g. "
             "tcp://127.0.0.1:5555) or ipc://PATH"
         )
+    port = found.group(2)
+    if port is not None and port != "*" and not 1 <= int(port) <= 65535:
+        raise ValueError(f"{address!r}: a port is a number from 1 to 65535")
     return address
 
 
@@ -28,7 +33,8 @@ class ServeSpec(EnvSpec):
 
     cli_flags: ClassVar[tuple[str, ...]] = (
         "address", "backend.name", "backend.rod.n_segments", "task.control_dt", "realtime",
-        "delay_ms", "drop_probability", "frame_loss_probability", "hold_s", "seed",
+        "delay_ms", "drop_probability", "frame_loss_probability", "hold_s", "keys",
+        "session_idle_s", "seed",
     )  # fmt: skip
 
     address: str = Field(
@@ -61,6 +67,20 @@ class ServeSpec(EnvSpec):
         description="Real time: with no command for this long the cell stops the grippers.",
     )
 
+    keys: Path | None = Field(
+        None,
+        description="A folder of CURVE keys (`dlo keys DIR`): only controllers holding its "
+        "controller key get in, encrypted. Required off loopback (any address but "
+        "127.0.0.1, localhost and ipc://).",
+    )
+    session_idle_s: float = Field(
+        30.0,
+        gt=0.0,
+        le=3600.0,
+        description="A controller's session (from its hello) ends after this long without a "
+        "request; the grippers are stopped and another controller may take the cell.",
+    )
+
     _address = field_validator("address")(classmethod(lambda cls, v: check_address(v)))
 
     @property
@@ -89,6 +109,35 @@ class CellChoice(Spec):
         "(the steps done are kept).",
     )
 
+    cell_keys: Path | None = Field(
+        None,
+        description="The CURVE keys folder of the cell (`dlo keys DIR`, the same as its "
+        "`dlo serve --keys`): required for a cell off loopback.",
+    )
+
     _cell = field_validator("cell")(
-        classmethod(lambda cls, v: v if v is None else check_address(v))
+        classmethod(lambda cls, v: v if v is None else check_cell_address(v))
+    )
+
+
+def check_cell_address(address: str) -> str:
+    """A cell's address as a controller connects to it: a port number, not ``*``."""
+    check_address(address)
+    if address.startswith("tcp://") and address.endswith(":*"):
+        raise ValueError(
+            f"{address!r} names no port: a controller connects to the cell's port "
+            "(tcp://HOST:5555); '*' is for `dlo serve --address`"
+        )
+    return address
+
+
+class KeysSpec(Spec):
+    """`dlo keys`: CURVE key pairs for a cell and its controller, in a new folder."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = ("out",)
+
+    out: Path = Field(
+        Path("cell-keys"),
+        description="A new folder for the keys: cell.key(_secret) for `dlo serve --keys`, "
+        "controller.key(_secret) for `dlo control --cell-keys`; pass the same folder to both.",
     )

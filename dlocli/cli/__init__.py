@@ -48,6 +48,7 @@ COMMANDS = [
     ("bench", "dlocli.cli.bench:bench"),
     ("export", "dlocli.cli.export:export"),
     ("serve", "dlocli.cli.serve:serve"),
+    ("keys", "dlocli.cli.keys:keys"),
 ]
 #: other names of a command: they run it, --help lists only the command
 ALIASES = {"benchmark": "bench"}

@@ -166,7 +166,7 @@ class RunFlags:
     def spec(self) -> Any:
         """The run's spec: defaults, then the spec file, then the flags given; BadInput if
         it would write into a run it reads."""
-        spec = resolve_spec(self.spec_cls, self.spec_file, self.overrides)
+        spec = resolve_spec(self.spec_cls, self.spec_file, self.overrides, flag_name)
         refuse_outputs_in_inputs(spec)
         return spec
 

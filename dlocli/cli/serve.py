@@ -16,7 +16,9 @@ def serve(
     run: RunFlags,
 ) -> None:
     """Serve a simulator as a cell at --address until stopped (Ctrl-C, SIGTERM: exit 0):
-    controllers step it with `dlo control --cell ADDRESS`, as they would a robot."""
+    controllers step it with `dlo control --cell ADDRESS`, as they would a robot. One
+    controller at a time owns it (from its hello to its bye, or --session-idle-s without a
+    request); off loopback it needs --keys (`dlo keys DIR`)."""
     import typer
 
     spec = run.spec()
@@ -33,8 +35,11 @@ def serve(
             err=True,
         )
 
+    def log(line: str) -> None:
+        typer.echo(f"dlo serve: {line}", err=True)
+
     try:
-        serve_cell(spec, ready)
+        serve_cell(spec, ready, log)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: how a server is meant to end
         stop_handled()
         typer.echo(f"dlo serve: stopped serving at {bound[0]}", err=True)

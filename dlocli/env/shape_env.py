@@ -73,7 +73,7 @@ def make_backend(
     if cell is not None and cell.cell is not None:
         require("bridge", "--cell", "drop --cell to simulate in this process")
 
-        return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s)
+        return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s, cell.cell_keys)
     cls = backend_registry.get(spec.name)
     return cls(spec, control_dt=control_dt)
 

@@ -61,7 +61,7 @@ class ControlSpec(EnvSpec, CellChoice):
     cli_flags: ClassVar[tuple[str, ...]] = (
         "task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name",
         "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
-        "video_every", "cell", "cell_timeout_s", "task.envelope.max_linear_speed",
+        "video_every", "cell", "cell_timeout_s", "cell_keys", "task.envelope.max_linear_speed",
         "task.envelope.max_angular_speed", "task.envelope.max_linear_acceleration",
         "task.envelope.max_angular_acceleration", "task.envelope.stop_after_lost_s",
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",

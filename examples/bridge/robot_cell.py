@@ -1,39 +1,56 @@
 """A cell of your own: the robot side of the dlocli-cell protocol in one short script.
 
-    python examples/bridge/robot_cell.py --address tcp://0.0.0.0:5555
-    dlo control --goal shape.npy --checkpoint runs/model --cell tcp://ROBOT:5555
+    python examples/bridge/robot_cell.py --address tcp://127.0.0.1:5555
+    dlo control --goal shape.npy --checkpoint runs/model --cell tcp://127.0.0.1:5555
 
-It needs only pyzmq and numpy. Everything robot-specific is in `RobotCell`: replace its
-methods with your robot's and your tracker's. As shipped, they drive dlocli's own MuJoCo rod
-in this process, so the script runs as it is (and a controller cannot tell it from
-`dlo serve`). The protocol is in the README ("A robot bridge").
+    dlo keys --out keys                        # off loopback: keys for both sides
+    python examples/bridge/robot_cell.py --address tcp://0.0.0.0:5555 --keys keys
+    dlo control --goal shape.npy --checkpoint runs/model --cell tcp://ROBOT:5555 --cell-keys keys
+
+Everything robot-specific is in `RobotCell`: replace its methods with your robot's and your
+tracker's. As shipped, they drive dlocli's own MuJoCo rod in this process, so the script runs
+as it is (and a controller cannot tell it from `dlo serve`). Every request is checked, and one
+controller at a time owns the cell, by dlocli's own server (`dlocli.bridge.server`) before
+your methods run: a bad or foreign request gets an error and never reaches the robot. The
+protocol is in the README ("A robot bridge").
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import sys
+from pathlib import Path
 
 import numpy as np
-import zmq
+
+from dlocli.bridge.robot import Robot
+from dlocli.bridge.server import serve
+from dlocli.errors import BadInput
 
 
-class RobotCell:
+class RobotCell(Robot):
     """Your robot and tracker. Units: metres, seconds, radians; world frame, z up."""
 
-    def __init__(self, backend_spec: dict, control_dt: float) -> None:
-        # --- replace: connect to your robot and your tracker here ---
+    name = "robot"
+    reset_timeout_s = 30.0  # a real robot moves to its start pose and lets the cable settle
+
+    def __init__(self) -> None:
+        # --- replace: connect to your robot and your tracker here (before the cell listens) ---
         from dlocli.env.shape_env import make_backend
         from dlocli.specs import BackendSpec
 
-        self.rod = make_backend(BackendSpec.model_validate(backend_spec), control_dt)
+        spec, control_dt = BackendSpec(), 0.02  # the rod dlocli's default controller brings
+        self.rod = make_backend(spec, control_dt)
+        # a real robot passes backend=None: any controller of n_segments nodes may drive it
+        super().__init__(spec.rod.n_segments, control_dt, backend=spec.model_dump(mode="json"))
 
-    def reset(self, seed: int | None, limits: dict) -> None:
+    def reset(self, seed, limits) -> None:
         """Bring the grippers to the start pose and wait for the cable to settle; keep the
         grippers inside ``limits`` (workspace box, separation) from now on."""
-        own = self.rod.limits
-        own.low, own.high = np.array(limits["workspace_low"]), np.array(limits["workspace_high"])
-        own.min_separation, own.max_separation = limits["min_separation"], limits["max_separation"]
+        if limits is not None:
+            own = self.rod.limits
+            own.low, own.high = np.array(limits.workspace_low), np.array(limits.workspace_high)
+            own.min_separation, own.max_separation = limits.min_separation, limits.max_separation
         self.rod.reset(seed)
 
     def move(self, velocities: np.ndarray) -> None:
@@ -47,53 +64,32 @@ class RobotCell:
     def observe(self) -> dict:
         """The tracked cable and the grippers, as the protocol's ``state`` fields."""
         return {
-            "positions": self.rod.segment_positions().tolist(),
-            "quaternions": self.rod.segment_quaternions().tolist(),
-            "grippers": self.rod.gripper_poses().tolist(),
-            "diverged": bool(self.rod.diverged),
+            "positions": self.rod.segment_positions(),
+            "quaternions": self.rod.segment_quaternions(),
+            "grippers": self.rod.gripper_poses(),
+            "diverged": self.rod.diverged,
         }
 
 
-def serve(address: str) -> None:
-    socket = zmq.Context().socket(zmq.REP)
-    socket.bind(address)
-    robot, steps = None, 0
-    while True:
-        request = json.loads(socket.recv())
-        kind, reply = request["type"], {"type": "state"}
-        if kind == "hello":
-            robot = RobotCell(request["backend"], request["control_dt"])
-            n_segments = request["backend"]["rod"]["n_segments"]
-            reply = {
-                "type": "welcome",
-                "protocol": "dlocli-cell",
-                "version": 1,
-                "cell": {
-                    "name": "robot",
-                    "backend": request["backend"],
-                    "realtime": False,
-                    "control_dt": request["control_dt"],
-                    "n_segments": n_segments,
-                },
-            }
-        elif kind == "reset":
-            robot.reset(request.get("seed"), request["limits"])
-            steps = 0
-        elif kind == "step":
-            robot.move(np.array(request["velocities"]))
-            steps += 1
-        elif kind == "stop":
-            robot.stop()
-        elif kind == "bye":
-            reply = {"type": "bye"}
-        else:
-            reply = {"type": "error", "message": f"this cell does not do {kind!r}"}
-        if reply["type"] == "state":
-            reply |= robot.observe() | {"step": steps, "late": 0, "dropped": 0}
-        socket.send(json.dumps(reply).encode())
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--address", default="tcp://127.0.0.1:5555")
+    parser.add_argument("--keys", type=Path, help="a `dlo keys` folder; required off loopback")
+    args = parser.parse_args()
+    robot = RobotCell()  # what is slow happens before the cell listens
+
+    def say(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    try:
+        serve(robot, args.address, args.keys, ready=lambda at: say(f"serving at {at}; Ctrl-C "
+              "stops"), log=say)  # fmt: skip
+    except BadInput as exc:  # an address off loopback without keys, keys that do not load
+        say(f"error: {exc}")
+        sys.exit(2)
+    except KeyboardInterrupt:
+        say("stopped")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--address", default="tcp://127.0.0.1:5555")
-    serve(parser.parse_args().address)
+    main()
