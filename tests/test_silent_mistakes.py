@@ -5,12 +5,64 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
 from dlocli.bridge.remote import CellLost
+from dlocli.env.shape_env import make_env
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
+
+from tiny import file_digests, run_dlo
+
+
+def _one_line(argv: list[str], capsys, root: Path) -> str:
+    """The one error line of `dlo argv` (exit 2), which left every file under ``root`` as
+    it was."""
+    before = file_digests(root)
+    code = run_dlo(argv)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), err
+    assert file_digests(root) == before
+    return lines[0]
+
+
+# --------------------------------------------------------------------- separation limits
+@pytest.mark.parametrize(
+    ("task", "limits"),
+    [("single", {"min_separation": 0.92}),
+     ("bimanual", {"min_separation": 0.3, "max_separation": 0.7})],
+    ids=["min-above-rest", "max-below-rest"],
+)  # fmt: skip
+def test_goal_refuses_separation_limits_that_exclude_the_rest_separation(
+    task, limits, tmp_path, capsys
+):
+    """The grippers start every shape at rest, 0.9 rod lengths apart: limits without it held
+    them there and `dlo goal` wrote the rest shape as a goal breaking them, exit 0."""
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(yaml.safe_dump({"task": limits}))
+    out = tmp_path / "goal.npy"
+    argv = ["goal", "--spec", str(spec), "--task", task, "--out", str(out)]
+    line = _one_line(argv, capsys, tmp_path)
+    assert "min_separation" in line and "max_separation" in line and "0.9" in line, line
+    assert not out.exists()
+    np.save(out, np.zeros((20, 3)))  # an existing goal stays as it was
+    _one_line([*argv, "--overwrite"], capsys, tmp_path)
+
+
+def test_separation_limits_around_the_rest_separation_give_goals_inside_them():
+    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, min_separation=0.5,
+                   max_separation=0.92)  # fmt: skip
+    try:
+        poses = env.goal_gripper_poses
+        separation = np.linalg.norm(poses[1, :3] - poses[0, :3]) / env.backend.rod.length
+        assert 0.5 - 1e-9 <= separation <= 0.92 + 1e-9 and abs(separation - 0.9) > 0.01
+    finally:
+        env.close()
 
 
 # --------------------------------------------------------------------- a stopped run's reward

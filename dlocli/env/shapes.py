@@ -44,6 +44,30 @@ def max_twist(task: TaskSpec) -> np.ndarray:
     return np.array([task.max_linear_velocity] * 3 + [task.max_angular_velocity] * 3)
 
 
+def apply_task_limits(backend: Backend, task: TaskSpec) -> None:
+    """Set ``backend``'s gripper limits to ``task``'s workspace and separation (fractions of
+    the rod length). BadInput if the separation limits exclude the grippers' rest separation:
+    every start and goal is driven from rest, and the backend refuses any translation that
+    leaves the separation outside its limits, so the grippers would stay at rest."""
+    length, limits = backend.rod.length, backend.limits
+    limits.low = np.array(task.workspace_low) * length
+    limits.high = np.array(task.workspace_high) * length
+    limits.min_separation = task.min_separation * length
+    limits.max_separation = task.max_separation * length
+    if not backend.moving.all():  # one gripper: no separation to keep
+        return
+    rest = backend.rest_gripper_poses()
+    separation = float(np.linalg.norm(rest[1, :3] - rest[0, :3])) / length
+    if task.min_separation - 1e-9 <= separation <= task.max_separation + 1e-9:
+        return
+    raise BadInput(
+        f"task.min_separation {task.min_separation:g} to task.max_separation "
+        f"{task.max_separation:g} excludes the grippers' rest separation {separation:.3g} "
+        "(fractions of the rod length), where every start and goal begins, so the grippers "
+        f"could not move from there; set min_separation <= {separation:.3g} <= max_separation"
+    )
+
+
 def make_shape(
     backend: Backend,
     task: TaskSpec,
