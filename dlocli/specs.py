@@ -234,7 +234,8 @@ class TaskSpec(Spec):
     recorded_poses: Path | None = Field(
         None,
         description="recorded shapes: a .npy of (K, 2, 7) gripper poses (x y z in metres, "
-        "then the w x y z quaternion) that starts and goals are drawn from.",
+        "then the w x y z unit quaternion; norms within 1% of 1 are normalised) that starts "
+        "and goals are drawn from.",
     )
     pose_offset_low: tuple[float, float, float] = Field(
         (-0.3, -0.15, -0.15),

@@ -13,6 +13,7 @@ import yaml
 
 from dlocli.bridge.remote import CellLost
 from dlocli.env.shape_env import make_env
+from dlocli.errors import BadOption
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
 
@@ -86,3 +87,76 @@ def test_a_stopped_control_run_sums_the_rewards_of_the_steps_it_ran(near_rest_go
     assert summary["diverged"] is False and "stopped answering" in summary["stopped"]
     assert summary["cumulative_reward"] == pytest.approx(sum(rewards), abs=1e-3)
     assert summary["cumulative_reward"] > -1.5 * 4  # each step's reward lies in [-1.5, 0]
+
+
+# --------------------------------------------------------------------- given orientations
+QUICK = {"shapes": "near-rest", "episode_steps": 5, "reset_motion_steps": 5,
+         "reset_settle_steps": 5}  # fmt: skip
+#: (id, the right gripper's orientation, words the error holds)
+BAD_QUATERNIONS = [
+    ("zero", [0.0, 0.0, 0.0, 0.0], "norm 0"),
+    ("huge", [1e200, 0.0, 0.0, 0.0], "norm inf"),
+    ("scaled", [2.0, 0.0, 0.0, 0.0], "norm 2"),
+    ("nan", [np.nan, 0.0, 0.0, 0.0], "finite (2, 7)"),
+]
+
+
+@pytest.fixture(scope="module")
+def bimanual_env():
+    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, **QUICK)
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize(("case", "quaternion", "words"), BAD_QUATERNIONS,
+                         ids=[c[0] for c in BAD_QUATERNIONS])  # fmt: skip
+@pytest.mark.parametrize("option", ["start_grippers", "goal_grippers"])
+def test_a_reset_option_without_unit_quaternions_is_refused_naming_it(
+    bimanual_env, option, case, quaternion, words
+):
+    poses = bimanual_env.backend.rest_gripper_poses()
+    poses[1, 3:] = quaternion
+    with pytest.raises(BadOption) as refused:
+        bimanual_env.reset(seed=0, options={option: poses})
+    message = str(refused.value)
+    assert option in message and words in message and "\n" not in message, message
+    if case != "nan":
+        assert "right gripper" in message and "unit quaternion w x y z" in message, message
+
+
+def test_a_near_unit_quaternion_is_normalised(bimanual_env):
+    """A recording's rounding (norm 1.005) is no mistake: the gripper turns to the rotation."""
+    poses = bimanual_env.backend.rest_gripper_poses()
+    turned = np.array([np.cos(0.05), 0.0, 0.0, np.sin(0.05)])  # 0.1 rad about z: 10 steps
+    poses[1, 3:] = 1.005 * turned
+    bimanual_env.reset(seed=0, options={"start_grippers": poses})
+    reached = bimanual_env.backend.gripper_poses()[1, 3:]
+    assert np.abs(reached - turned).max() < 1e-4
+
+
+@pytest.mark.parametrize(("case", "quaternion", "words"), BAD_QUATERNIONS[:3],
+                         ids=[c[0] for c in BAD_QUATERNIONS[:3]])  # fmt: skip
+def test_recorded_poses_without_unit_quaternions_are_refused_naming_file_and_row(
+    case, quaternion, words, tmp_path, capsys
+):
+    poses = np.stack([make_env_rest_poses()] * 3)
+    poses[2, 1, 3:] = quaternion
+    recorded = tmp_path / "poses.npy"
+    np.save(recorded, poses)
+    spec = tmp_path / "spec.yaml"
+    task = {"name": "bimanual", "shapes": "recorded", "recorded_poses": str(recorded)}
+    spec.write_text(yaml.safe_dump({"task": task}))
+    argv = ["goal", "--spec", str(spec), "--out", str(tmp_path / "goal.npy")]
+    line = _one_line(argv, capsys, tmp_path)
+    assert f"recorded_poses {recorded}: row 2: the right gripper's" in line, line
+    assert words in line and "unit quaternion w x y z" in line, line
+    assert not (tmp_path / "goal.npy").exists()
+
+
+def make_env_rest_poses() -> np.ndarray:
+    """(2, 7) the grippers' rest poses of the default rod."""
+    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, **QUICK)
+    try:
+        return env.backend.rest_gripper_poses()
+    finally:
+        env.close()
