@@ -204,10 +204,18 @@ class TaskSpec(Spec):
         0.5, gt=0, le=10, description="Gripper angular speed at action 1 (rad/s, at most 10)."
     )
     max_separation: float = Field(
-        0.95, gt=0, lt=1, description="Largest gripper separation as a fraction of the rod length."
+        0.95,
+        gt=0,
+        lt=1,
+        description="Largest gripper separation as a fraction of the rod length (at least the "
+        "grippers' rest separation, 0.9).",
     )
     min_separation: float = Field(
-        0.2, ge=0, lt=1, description="Smallest gripper separation as a fraction of the rod length."
+        0.2,
+        ge=0,
+        lt=1,
+        description="Smallest gripper separation as a fraction of the rod length (at most the "
+        "grippers' rest separation, 0.9).",
     )
     workspace_low: tuple[float, float, float] = Field(
         (-0.8, -0.6, 0.3), description="Gripper workspace lower corner (x, y, z) in metres."
@@ -226,7 +234,8 @@ class TaskSpec(Spec):
     recorded_poses: Path | None = Field(
         None,
         description="recorded shapes: a .npy of (K, 2, 7) gripper poses (x y z in metres, "
-        "then the w x y z quaternion) that starts and goals are drawn from.",
+        "then the w x y z unit quaternion; norms within 1% of 1 are normalised) that starts "
+        "and goals are drawn from.",
     )
     pose_offset_low: tuple[float, float, float] = Field(
         (-0.3, -0.15, -0.15),

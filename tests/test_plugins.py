@@ -24,9 +24,13 @@ TINY_ONLINE = ["--iters", "2", "--trials", "2", "--steps", "15", "--epochs", "1"
                "--initial-episodes", "2", "--hidden", "8", "--seed", "3"]  # fmt: skip
 
 
-def with_plugin(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    """``python argv...`` in a fresh process whose path holds the plugin package."""
-    path = os.pathsep.join([str(PLUGIN), str(REPO), os.environ.get("PYTHONPATH", "")])
+def with_plugin(
+    *argv: str, cwd: Path = REPO, more: tuple[Path, ...] = ()
+) -> subprocess.CompletedProcess:
+    """``python argv...`` in a fresh process whose path holds the plugin package (and the
+    folders ``more``)."""
+    folders = [*map(str, more), str(PLUGIN), str(REPO), os.environ.get("PYTHONPATH", "")]
+    path = os.pathsep.join(folders)
     env = {**os.environ, "PYTHONPATH": path, "COLUMNS": "200"}
     return subprocess.run([sys.executable, *argv], capture_output=True, text=True, env=env,
                           cwd=cwd, timeout=600)  # fmt: skip
@@ -57,6 +61,50 @@ def test_a_plugin_command_is_listed_and_runs(tmp_path):
     # its errors get dlo's one line and exit code
     assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
     assert "none.npy" in missing.stderr
+
+
+BROKEN_ENTRY_POINTS = """[dlocli.commands]
+missing-module = dlo_no_such_module:run
+no-docstring = dlo_broken_plugin:undocumented
+"""
+
+
+def test_a_broken_plugin_command_breaks_no_other_command(tmp_path):
+    """An installed package whose commands are a missing module's and a function without a
+    docstring: `dlo --help` lists every command, the broken one as broken with a warning
+    naming the plugin, its entry point and the problem; running it is that line, exit 2."""
+    installed = tmp_path / "site"
+    info = installed / "dlo_broken_plugin-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: dlo-broken-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(BROKEN_ENTRY_POINTS)
+    (installed / "dlo_broken_plugin.py").write_text(
+        'def undocumented() -> None:\n    print("ran undocumented")\n'
+    )
+
+    def dlo_beside_it(*args: str) -> subprocess.CompletedProcess:
+        return with_plugin("-m", "dlocli", *args, more=(installed,))
+
+    shown = dlo_beside_it("--help")
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    rows = {line.split()[0]: line for line in shown.stdout.splitlines() if line.startswith("  ")}
+    assert {"goal", "control", "goal-length", "no-docstring"} <= set(rows), shown.stdout
+    assert "Length (m) of the polyline" in rows["goal-length"]  # the good plugin's, intact
+    assert "BROKEN" in rows["missing-module"] and "BROKEN" not in rows["no-docstring"]
+    warning = shown.stderr.strip()
+    assert warning.count("\n") == 0 and warning.startswith("warning: "), shown.stderr
+    for words in ("dlo-broken-plugin", "missing-module = dlo_no_such_module:run",
+                  "no module named 'dlo_no_such_module'"):  # fmt: skip
+        assert words in warning, warning
+    broken = dlo_beside_it("missing-module", "--help")
+    assert broken.returncode == 2 and broken.stderr.count("\n") == 1, broken.stderr
+    assert "dlo-broken-plugin" in broken.stderr and "dlo_no_such_module:run" in broken.stderr
+    assert "No module named 'dlo_no_such_module'" in broken.stderr
+    undocumented = dlo_beside_it("no-docstring")
+    assert undocumented.returncode == 0 and "ran undocumented" in undocumented.stdout
+    goal = tmp_path / "goal.npy"
+    made = dlo_beside_it("goal", "--out", str(goal), "--shapes", "near-rest")
+    assert made.returncode == 0 and goal.exists(), made.stderr[-3000:]
 
 
 def test_the_backends_segment_limit_reaches_the_spec(tmp_path):

@@ -22,10 +22,13 @@ from typer.core import TyperCommand, TyperGroup, TyperOption
 
 from dlocli import __version__
 from dlocli.cli.common import print_error
+from dlocli.errors import BadInput
 from dlocli.processes import handle_stop_signals
 from dlocli.threads import fit_this_process
 
 if TYPE_CHECKING:  # Typer carries its own Click; these names are for annotations only
+    from importlib.metadata import EntryPoint
+
     from typer._click import Context, HelpFormatter
 
 # --help wraps at spaces only: a value such as optimizer=gauss-newton is copied from it, so it
@@ -86,24 +89,39 @@ def _plain_metavars(command: TyperCommand) -> None:
             param.metavar = METAVARS.get(kind) or "VALUE"
 
 
-class _LazyCommands(Mapping[str, TyperCommand]):
-    """The commands by name, each built from its module on first use."""
+def _build_command(name: str, target: str) -> TyperCommand:
+    """The command ``name`` from its function ``target`` ("module:function")."""
+    module_name, _, attr = target.partition(":")
+    function = getattr(importlib.import_module(module_name), attr)
+    one = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
+                      rich_markup_mode=None)  # fmt: skip
+    one.command(name, cls=_Command)(function)
+    command = typer.main.get_command(one)
+    command.lazy_help = getattr(function, "lazy_help", {})
+    _plain_metavars(command)
+    return command
 
-    def __init__(self, targets: dict[str, str]) -> None:
+
+class _LazyCommands(Mapping[str, TyperCommand]):
+    """The commands by name, each built from its module on first use; a plugin's that cannot
+    be built is BadInput naming the plugin, its entry point and the problem."""
+
+    def __init__(self, targets: dict[str, str], plugins: Mapping[str, str]) -> None:
         self.targets = targets
+        self.plugins = plugins  # plugin command -> where it comes from
         self.built: dict[str, TyperCommand] = {}
 
     def __getitem__(self, name: str) -> TyperCommand:
         if name not in self.built:
-            module_name, _, attr = self.targets[name].partition(":")
-            function = getattr(importlib.import_module(module_name), attr)
-            one = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
-                              rich_markup_mode=None)  # fmt: skip
-            one.command(name, cls=_Command)(function)
-            command = typer.main.get_command(one)
-            command.lazy_help = getattr(function, "lazy_help", {})
-            _plain_metavars(command)
-            self.built[name] = command
+            try:
+                self.built[name] = _build_command(name, self.targets[name])
+            except Exception as exc:  # whatever a plugin's module raises on import
+                if name not in self.plugins:  # a built-in's failure is dlocli's bug: traceback
+                    raise
+                raise BadInput(
+                    f"{self.plugins[name]} is broken: {type(exc).__name__}: {exc}; fix or "
+                    "reinstall that package, or uninstall it"
+                ) from None
         return self.built[name]
 
     def __iter__(self) -> Iterator[str]:
@@ -115,14 +133,53 @@ class _LazyCommands(Mapping[str, TyperCommand]):
 
 def _first_docstring_line(target: str) -> str:
     """The first line of a command function's docstring, read from its source file without
-    importing the module."""
+    importing the module ("" where it has none, or is not a ``def`` of a source file);
+    ValueError naming the problem where the module or the function cannot be found."""
     module_name, _, attr = target.partition(":")
-    origin = importlib.util.find_spec(module_name).origin
-    tree = ast.parse(Path(origin).read_text(encoding="utf-8"))
-    function = next(
-        node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == attr
-    )
-    return (ast.get_docstring(function) or "").strip().splitlines()[0]
+    if not module_name or not attr.isidentifier():
+        raise ValueError(f"{target!r} is not 'module:function'")
+    spec = importlib.util.find_spec(module_name)
+    if spec is None:
+        raise ValueError(f"no module named {module_name!r}")
+    if spec.origin is None or not spec.origin.endswith(".py"):
+        return ""  # compiled, or a namespace package: no source to read
+    tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"), filename=spec.origin)
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == attr:
+            return ((ast.get_docstring(node) or "").strip().splitlines() or [""])[0]
+    bound = _other_names(tree)
+    if attr in bound or "*" in bound:
+        return ""  # bound by an import or an assignment: known only by importing it
+    raise ValueError(f"module {module_name} has no function {attr!r}")
+
+
+def _other_names(tree: ast.Module) -> set[str]:
+    """Names a module binds at its top level other than by ``def`` ("*": a star import)."""
+    names: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names |= {(a.asname or a.name).partition(".")[0] for a in node.names}
+        elif isinstance(node, ast.ClassDef):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+    return names
+
+
+def _listed_help(name: str, target: str, plugins: Mapping[str, str]) -> str:
+    """The help line of command ``name`` in `dlo --help`. A plugin's that cannot be read is
+    listed as broken, with a warning on stderr naming the plugin, its entry point and the
+    problem: one broken plugin hides no other command."""
+    if name not in plugins:
+        return _first_docstring_line(target)
+    try:
+        return _first_docstring_line(target)
+    except Exception as exc:  # a plugin's package may raise anything on import
+        problem = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+        sys.stderr.write(" ".join(f"warning: {plugins[name]} is broken: {problem}".split()))
+        sys.stderr.write("\n")
+        return f"BROKEN plugin command: `dlo {name}` says why"
 
 
 def _short_help(text: str, limit: int) -> str:
@@ -141,15 +198,24 @@ def _short_help(text: str, limit: int) -> str:
     return " ".join(sentence) + "..."
 
 
-def all_commands() -> list[tuple[str, str]]:
-    """The built-in commands, then those plugins add through the ``dlocli.commands``
-    entry-point group (``name = module:function``, a Typer command function); a plugin cannot
-    replace a built-in."""
+def plugin_commands() -> list[EntryPoint]:
+    """The commands plugins add through the ``dlocli.commands`` entry-point group
+    (``name = module:function``, a Typer command function); a plugin cannot replace a
+    built-in."""
     from importlib.metadata import entry_points
 
     built_in = dict(COMMANDS)
-    added = [(ep.name, ep.value) for ep in entry_points(group="dlocli.commands")]
-    return [*COMMANDS, *((name, target) for name, target in added if name not in built_in)]
+    return [ep for ep in entry_points(group="dlocli.commands") if ep.name not in built_in]
+
+
+def _plugin_origin(ep: EntryPoint) -> str:
+    """Where a plugin command comes from: its package and its entry point."""
+    dist = getattr(ep, "dist", None)  # set where the entry point came from a distribution
+    package = dist.name if dist is not None else "an unknown package"
+    return (
+        f"plugin command '{ep.name}' (package {package}, entry point dlocli.commands: "
+        f"{ep.name} = {ep.value})"
+    )
 
 
 class _LazyGroup(TyperGroup):
@@ -157,16 +223,19 @@ class _LazyGroup(TyperGroup):
 
     def __init__(self, **attrs: Any) -> None:
         super().__init__(**attrs)
-        self.listed = all_commands()
+        plugins = plugin_commands()
+        self.listed = [*COMMANDS, *((ep.name, ep.value) for ep in plugins)]
+        self.plugins = {ep.name: _plugin_origin(ep) for ep in plugins}
         targets = dict(self.listed)
         self.commands = _LazyCommands(
-            {**targets, **{alias: targets[name] for alias, name in ALIASES.items()}}
+            {**targets, **{alias: targets[name] for alias, name in ALIASES.items()}},
+            self.plugins,
         )
 
     def format_commands(self, ctx: Context, formatter: HelpFormatter) -> None:
         limit = formatter.width - 6 - max(len(name) for name, _ in self.listed)
         rows = [
-            (name, _short_help(_first_docstring_line(target), limit))
+            (name, _short_help(_listed_help(name, target, self.plugins), limit))
             for name, target in self.listed
         ]
         with formatter.section("Commands"):
@@ -209,6 +278,9 @@ def main() -> None:
     handle_stop_signals()
     try:
         code = app(standalone_mode=False)
+    except BadInput as exc:  # a broken plugin command, found as it is looked up
+        print_error(str(exc))
+        code = exc.exit_code
     except usage_error as exc:
         if exc.ctx is not None and type(exc).__name__ == "NoArgsIsHelpError":
             typer.echo(exc.ctx.get_help())

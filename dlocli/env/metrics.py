@@ -37,13 +37,22 @@ def score(initial_error: float, final_error: float) -> float:
 
 
 def episode_result(
-    initial_error: float, final_error: float, reward_sum: float, steps_run: int, steps: int
+    initial_error: float,
+    final_error: float,
+    reward_sum: float,
+    steps_run: int,
+    steps: int,
+    *,
+    diverged: bool,
 ) -> dict[str, float]:
     """One episode's numbers with their reference: initial and final error (mm), the score,
-    and the cumulative reward with the steps a diverged episode skipped counted at the clip."""
+    and the cumulative reward: ``reward_sum`` of the ``steps_run`` steps run, plus, only if
+    the rod ``diverged``, the steps of ``steps`` it skipped at the clip. An episode stopped
+    early (Ctrl-C, SIGTERM, a lost cell) is charged nothing for the steps it never ran."""
+    remainder = diverged_remainder(steps_run, steps) if diverged else 0.0
     return {
         "initial_error_mm": float(initial_error),
         "final_error_mm": float(final_error),
         "score": score(initial_error, final_error),
-        "cumulative_reward": float(reward_sum) + diverged_remainder(steps_run, steps),
+        "cumulative_reward": float(reward_sum) + remainder,
     }

@@ -130,11 +130,12 @@ def random_episode(env: Any, reset_seed: int, action_seed: Any) -> Episode:
 
 def episode_scores(episode: Episode, steps: int) -> dict[str, float]:
     """Initial and final error (mm), score and cumulative reward of a recorded episode of
-    ``steps`` steps (a diverged episode's missing steps at the clip)."""
+    ``steps`` steps (a diverged episode's missing steps at the clip, a shorter one's not)."""
     return episode_result(
         shape_error_mm(episode.positions[0], episode.goal),
         shape_error_mm(episode.positions[-1], episode.goal),
         float(np.sum(episode.rewards)),
         len(episode.rewards),
         steps,
+        diverged=bool(episode.diverged),
     )

@@ -44,6 +44,7 @@ from dlocli.env.observation import (
 )
 from dlocli.env.options import resolve_env_options
 from dlocli.env.shapes import (
+    apply_task_limits,
     episode_poses,
     load_recorded_poses,
     make_shape,
@@ -128,7 +129,7 @@ class DLOShapeEnv(gym.Env):
             )
         self.task: Task = make_task(self.task_spec.name)
         self.backend = make_backend(self.backend_spec, self.task_spec.control_dt, cell)
-        self._apply_limits()
+        apply_task_limits(self.backend, self.task_spec)
         self.envelope = Envelope(
             self.task_spec.envelope, self.backend.limits, self.task.moving,
             self.task_spec.control_dt,
@@ -184,14 +185,6 @@ class DLOShapeEnv(gym.Env):
         self._reported: np.ndarray | None = None  # (M, 3) the tracker's previous report
 
     # ------------------------------------------------------------------ setup
-    def _apply_limits(self) -> None:
-        spec, length = self.task_spec, self.backend.rod.length
-        limits = self.backend.limits
-        limits.low = np.array(spec.workspace_low) * length
-        limits.high = np.array(spec.workspace_high) * length
-        limits.min_separation = spec.min_separation * length
-        limits.max_separation = spec.max_separation * length
-
     def _initial_goal(self, goal: np.ndarray | Path | str | None) -> np.ndarray | None:
         if goal is None and self.task_spec.goal_file is not None:
             goal = self.task_spec.goal_file

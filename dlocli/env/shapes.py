@@ -17,7 +17,9 @@ Two ways (``TaskSpec.shapes``):
 recorded cell's, e.g. a calibrated twin's), driven there like a random pose's. An episode
 can also be given its gripper poses (``env.reset(options={"start_grippers": ...,
 "goal_grippers": ...})``, (2, 7) each: a recorded cell's poses): the grippers are driven
-there from rest like a random pose's, and the rod settles.
+there from rest like a random pose's, and the rod settles. Given orientations are unit
+quaternions w x y z: a norm within 1% of 1 (a recording's rounding) is normalised, any other
+(zero, scaled, not finite) is refused naming the option or the file's row.
 """
 
 from __future__ import annotations
@@ -42,6 +44,30 @@ TARGET_DRAWS = 100
 def max_twist(task: TaskSpec) -> np.ndarray:
     """(6,) the largest gripper twist: linear (m/s) then angular (rad/s) per component."""
     return np.array([task.max_linear_velocity] * 3 + [task.max_angular_velocity] * 3)
+
+
+def apply_task_limits(backend: Backend, task: TaskSpec) -> None:
+    """Set ``backend``'s gripper limits to ``task``'s workspace and separation (fractions of
+    the rod length). BadInput if the separation limits exclude the grippers' rest separation:
+    every start and goal is driven from rest, and the backend refuses any translation that
+    leaves the separation outside its limits, so the grippers would stay at rest."""
+    length, limits = backend.rod.length, backend.limits
+    limits.low = np.array(task.workspace_low) * length
+    limits.high = np.array(task.workspace_high) * length
+    limits.min_separation = task.min_separation * length
+    limits.max_separation = task.max_separation * length
+    if not backend.moving.all():  # one gripper: no separation to keep
+        return
+    rest = backend.rest_gripper_poses()
+    separation = float(np.linalg.norm(rest[1, :3] - rest[0, :3])) / length
+    if task.min_separation - 1e-9 <= separation <= task.max_separation + 1e-9:
+        return
+    raise BadInput(
+        f"task.min_separation {task.min_separation:g} to task.max_separation "
+        f"{task.max_separation:g} excludes the grippers' rest separation {separation:.3g} "
+        "(fractions of the rod length), where every start and goal begins, so the grippers "
+        f"could not move from there; set min_separation <= {separation:.3g} <= max_separation"
+    )
 
 
 def make_shape(
@@ -161,13 +187,17 @@ def settle(backend: Backend, steps: int) -> bool:
 # ----------------------------------------------------------------------------- given poses
 #: what ``env.reset(options=...)`` takes: (2, 7) gripper poses of the episode's start or goal
 POSE_OPTIONS = ("start_grippers", "goal_grippers")
+#: how far a given orientation's norm may lie from 1 and still be normalised (a recording's
+#: rounding or float32); farther, it is no unit quaternion (zero, scaled, another layout)
+QUATERNION_NORM_TOLERANCE = 0.01
 
 
 def episode_poses(
     options: dict | None, limits: GripperLimits
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The start and goal gripper poses in reset ``options`` (None where not given);
-    BadOption for an unknown key or poses that are not (2, 7), finite, in the workspace."""
+    BadOption for an unknown key or poses that are not (2, 7), finite, in the workspace, with
+    unit quaternions (norms within ``QUATERNION_NORM_TOLERANCE`` of 1 are normalised)."""
     options = options or {}
     unknown = sorted(set(options) - set(POSE_OPTIONS))
     if unknown:
@@ -180,11 +210,13 @@ def episode_poses(
 def _checked_poses(poses: object, name: str, limits: GripperLimits) -> np.ndarray | None:
     if poses is None:
         return None
-    poses = np.asarray(poses, dtype=np.float64)
+    expected = f"reset option {name} must be finite (2, 7) gripper poses (x y z, w qx qy qz)"
+    try:
+        poses = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError):  # text, objects, complex numbers
+        raise BadOption(expected) from None
     if poses.shape != (2, 7) or not np.all(np.isfinite(poses)):
-        raise BadOption(
-            f"reset option {name} must be finite (2, 7) gripper poses (x y z, w qx qy qz)"
-        )
+        raise BadOption(expected)
     if np.any(poses[:, :3] < limits.low) or np.any(poses[:, :3] > limits.high):
         raise BadOption(f"reset option {name}: a gripper lies outside the task's workspace")
     separation = float(np.linalg.norm(poses[1, :3] - poses[0, :3]))
@@ -193,8 +225,25 @@ def _checked_poses(poses: object, name: str, limits: GripperLimits) -> np.ndarra
             f"reset option {name}: the grippers are {separation:.3f} m apart, outside the "
             f"task's {limits.min_separation:.3f}-{limits.max_separation:.3f} m"
         )
+    _check_unit_quaternions(poses[:, 3:], name)
     poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
     return poses
+
+
+def _check_unit_quaternions(quaternions: np.ndarray, name: str) -> None:
+    """BadOption unless each of the (2, 4) finite ``quaternions`` has a norm within
+    ``QUATERNION_NORM_TOLERANCE`` of 1: a zero one has no direction, and normalising a huge
+    one overflows; either ended deep in the backend as non-finite gripper velocities."""
+    with np.errstate(over="ignore"):  # a norm past float's range is inf, refused below
+        norms = np.linalg.norm(quaternions, axis=1)
+    for side, quaternion, norm in zip(("left", "right"), quaternions, norms, strict=True):
+        if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
+            raise BadOption(
+                f"reset option {name}: the {side} gripper's orientation "
+                f"{np.array2string(quaternion, precision=3)} has norm {norm:.3g}; expected a "
+                f"unit quaternion w x y z (a norm within 1 +- {QUATERNION_NORM_TOLERANCE:g} "
+                "is normalised)"
+            )
 
 
 def shape_at(backend: Backend, task: TaskSpec, poses: np.ndarray) -> bool:
@@ -206,7 +255,7 @@ def shape_at(backend: Backend, task: TaskSpec, poses: np.ndarray) -> bool:
 
 def load_recorded_poses(path: Path, limits: GripperLimits) -> np.ndarray:
     """The (K, 2, 7) gripper poses of a ``recorded_poses`` file, each pair checked like a
-    reset option's; BadInput naming the file and the expected format."""
+    reset option's; BadInput naming the file, the row and the expected format."""
     expected = "expected a .npy file of (K, 2, 7) gripper poses (x y z, w qx qy qz)"
     try:
         poses = np.load(path, allow_pickle=False)
@@ -217,6 +266,6 @@ def load_recorded_poses(path: Path, limits: GripperLimits) -> np.ndarray:
     if len(poses) == 0 or poses.dtype.kind not in "fiu":
         raise BadInput(f"recorded_poses {path} holds no poses; {expected}")
     try:
-        return np.stack([_checked_poses(p, f"pair {i}", limits) for i, p in enumerate(poses)])
+        return np.stack([_checked_poses(p, f"row {i}", limits) for i, p in enumerate(poses)])
     except BadOption as exc:
         raise BadInput(f"recorded_poses {path}: {exc}".replace("reset option ", "")) from None

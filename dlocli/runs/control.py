@@ -319,7 +319,12 @@ def summarise(
     latency = np.array([r["latency_ms"] for r in records])
     reward = float(sum(r["reward"] for r in records))
     result = episode_result(
-        initial_error, errors[-1], reward, len(records), spec.task.episode_steps
+        initial_error,
+        errors[-1],
+        reward,
+        len(records),
+        spec.task.episode_steps,
+        diverged=diverged,
     )
     return {
         "initial_error_mm": round(initial_error, 3),
