@@ -80,11 +80,16 @@ def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
     run_dir.mkdir(parents=True, exist_ok=True)
     key = run_dir.resolve()
     outermost = key not in _held
+    found = None
     if outermost:
         _held[key] = [_acquire(run_dir, shared), 1]
+        try:
+            found = _Found(run_dir, created, had_lock)
+        except BaseException:
+            os.close(_held.pop(key)[0])
+            raise
     else:
         _held[key][1] += 1
-    found = _Found(run_dir, created, had_lock) if outermost else None
     refused = False
     try:
         yield run_dir
@@ -165,7 +170,7 @@ def _remove_created(run_dir: Path, created: Path | None, had_lock: bool) -> None
         (run_dir / LOCK_FILE).unlink(missing_ok=True)
     if created is None:
         return
-    for folder in (run_dir, *run_dir.parents):
+    for folder in (run_dir, *run_dir.parents):  # ``created`` is one of them
         try:
             folder.rmdir()
         except OSError:  # something appeared meanwhile: it stays
@@ -191,7 +196,8 @@ def _remove_if_unused(found: _Found) -> bool:
     longer the lock (:func:`_acquire`)."""
     if [p.name for p in found.run_dir.iterdir()] != [LOCK_FILE]:
         return False
-    _remove_created(found.run_dir, found.created, had_lock=False)
+    # the folders above stay: a bench's job locks share theirs with other processes
+    _remove_created(found.run_dir, found.run_dir if found.created else None, had_lock=False)
     return True
 
 
