@@ -11,6 +11,11 @@ its own jobs, see :mod:`dlocli.bench.run`); a writer excludes everyone.
 spec names (datasets, checkpoints, goal files). ``--resume`` refuses a run whose spec or
 inputs changed since, unless told ``--accept-changes``; then the new fingerprints are
 recorded and the change is the user's.
+
+A run refused (a :class:`~dlocli.errors.DloError`) before its first result, having written
+only its start files (``spec.json``, ``fingerprints.json``) and empty folders, is undone:
+a directory it created is removed, lock file and created parents included; one that existed
+gets its start files back as they were and loses only the lock file the run added.
 """
 
 from __future__ import annotations
@@ -25,8 +30,15 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from dlocli.errors import BadInput
-from dlocli.io import LOCK_FILE, read_json, record_written, run_dir_entries, write_json_atomic
+from dlocli.errors import BadInput, DloError
+from dlocli.io import (
+    LOCK_FILE,
+    read_json,
+    record_written,
+    run_dir_entries,
+    write_bytes_atomic,
+    write_json_atomic,
+)
 
 try:  # POSIX; elsewhere runs are not locked
     import fcntl
@@ -34,6 +46,10 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None  # type: ignore[assignment]
 
 FINGERPRINTS_FILE = "fingerprints.json"
+#: what a run writes before its first result (a run refused with only these is undone)
+START_FILES = frozenset({"spec.json", FINGERPRINTS_FILE})
+#: a start file larger than this is not dlo's (nor kept in memory to be put back)
+MAX_START_BYTES = 1 << 24
 #: spec fields that name what a run writes, not what it reads
 OUTPUT_FIELDS = frozenset({"out", "video", "plot"})
 
@@ -59,45 +75,129 @@ def owned(run_dir: Path, *, shared: bool = False) -> Iterator[Path]:
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise BadInput(f"--out {run_dir} is a file; pass a directory path")
-    created = not run_dir.exists()
+    created = _first_missing(run_dir)
+    had_lock = os.path.lexists(run_dir / LOCK_FILE)
     run_dir.mkdir(parents=True, exist_ok=True)
     key = run_dir.resolve()
     outermost = key not in _held
+    found = None
     if outermost:
         _held[key] = [_acquire(run_dir, shared), 1]
+        try:
+            found = _Found(run_dir, created, had_lock)
+        except BaseException:
+            os.close(_held.pop(key)[0])
+            raise
     else:
         _held[key][1] += 1
-    before = run_dir_entries(run_dir) if outermost else set()
+    refused = False
     try:
         yield run_dir
+    except DloError:
+        refused = True
+        raise
     finally:
         _held[key][1] -= 1
-        if outermost:
-            _record_and_release(run_dir, key, before, created, shared)
+        if found is not None:
+            _record_and_release(found, key, shared, refused)
 
 
-def _record_and_release(
-    run_dir: Path, key: Path, before: set[str], created: bool, shared: bool
-) -> None:
+class _Found:
+    """What a run directory held when a run took it: its entries, the signature of each file
+    (a file replaced atomically gets a new inode) and the bytes of its start files."""
+
+    def __init__(self, run_dir: Path, created: Path | None, had_lock: bool) -> None:
+        self.run_dir, self.created, self.had_lock = run_dir, created, had_lock
+        self.entries = run_dir_entries(run_dir)
+        self.signatures = _signatures(run_dir, self.entries)
+        self.start_bytes = {
+            name: (run_dir / name).read_bytes()
+            for name, (mode, _, size, _) in self.signatures.items()
+            if name in START_FILES and stat.S_ISREG(mode) and size <= MAX_START_BYTES
+        }
+
+    def undo(self) -> bool:
+        """Put the directory back as it was found if the run wrote nothing but start files
+        and folders left empty; True if so (then the lock file it added is gone too)."""
+        now = run_dir_entries(self.run_dir)
+        signatures = _signatures(self.run_dir, now)
+        changed = {e for e in now | self.entries if signatures.get(e) != self.signatures.get(e)}
+        new_folders = {e for e in now - self.entries if stat.S_ISDIR(signatures[e][0])}
+        files = changed - new_folders  # a file in a new folder is itself new: a result
+        if self.entries - now or not files <= START_FILES:
+            return False
+        if any(name in self.entries and name not in self.start_bytes for name in files):
+            return False  # a start file that was a link or a folder: not ours to rewrite
+        for name in files:
+            if name in self.start_bytes:
+                write_bytes_atomic(self.run_dir / name, self.start_bytes[name])
+            else:
+                (self.run_dir / name).unlink()
+        for folder in sorted(new_folders, key=lambda e: -e.count(os.sep)):  # deepest first
+            (self.run_dir / folder).rmdir()
+        _remove_created(self.run_dir, self.created, self.had_lock)
+        return True
+
+
+def _signatures(run_dir: Path, entries: set[str]) -> dict[str, tuple[int, int, int, int]]:
+    """(mode, inode, size, mtime) of each entry, links not followed; directories by mode only
+    (their times change with what is written inside)."""
+    found = {}
+    for entry in entries:
+        with contextlib.suppress(FileNotFoundError):
+            info = os.lstat(run_dir / entry)
+            if stat.S_ISDIR(info.st_mode):
+                found[entry] = (info.st_mode, 0, 0, 0)
+            else:
+                found[entry] = (info.st_mode, info.st_ino, info.st_size, info.st_mtime_ns)
+    return found
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The outermost folder of ``path`` that does not exist yet (what ``mkdir -p`` creates)."""
+    missing = None
+    for folder in (path, *path.parents):
+        if os.path.lexists(folder):
+            break
+        missing = folder
+    return missing
+
+
+def _remove_created(run_dir: Path, created: Path | None, had_lock: bool) -> None:
+    """Remove the lock file unless it was there before, then the folders from ``run_dir`` up
+    to ``created`` that this run made, as long as they are empty."""
+    if not had_lock:
+        (run_dir / LOCK_FILE).unlink(missing_ok=True)
+    if created is None:
+        return
+    for folder in (run_dir, *run_dir.parents):  # ``created`` is one of them
+        try:
+            folder.rmdir()
+        except OSError:  # something appeared meanwhile: it stays
+            return
+        if folder == created:
+            return
+
+
+def _record_and_release(found: _Found, key: Path, shared: bool, refused: bool) -> None:
     try:
-        if shared or not _remove_if_unused(run_dir, created):
-            record_written(run_dir, before)
+        undone = refused and not shared and found.undo()
+        if not undone and (shared or not _remove_if_unused(found)):
+            record_written(found.run_dir, found.entries)
     except OSError:
         pass  # a full disk: unrecorded files are refused by --overwrite, never deleted
     finally:
         os.close(_held.pop(key)[0])  # closing the descriptor releases the lock
 
 
-def _remove_if_unused(run_dir: Path, created: bool) -> bool:
-    """A run refused before it wrote anything leaves no lock file (nor the directory it
-    created); True if so. Unlinked while still locked: a process that opened the old file
-    sees that it is no longer the lock (:func:`_acquire`)."""
-    if [p.name for p in run_dir.iterdir()] != [LOCK_FILE]:
+def _remove_if_unused(found: _Found) -> bool:
+    """A run that wrote nothing leaves no lock file (nor the directory it created); True if
+    so. Unlinked while still locked: a process that opened the old file sees that it is no
+    longer the lock (:func:`_acquire`)."""
+    if [p.name for p in found.run_dir.iterdir()] != [LOCK_FILE]:
         return False
-    (run_dir / LOCK_FILE).unlink(missing_ok=True)
-    if created:
-        with contextlib.suppress(OSError):  # something appeared meanwhile: it stays
-            run_dir.rmdir()
+    # the folders above stay: a bench's job locks share theirs with other processes
+    _remove_created(found.run_dir, found.run_dir if found.created else None, had_lock=False)
     return True
 
 

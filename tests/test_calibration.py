@@ -219,10 +219,15 @@ def test_bad_inputs_get_one_line_and_exit_2(
     flat = tmp_path / "FLAT"
     (flat / "train").mkdir(parents=True)
     (flat / "train/0.pkl").write_bytes(pickle.dumps(np.zeros((50, 2, 6)).tolist()))
+    pair = shutil.copytree(cable, tmp_path / "PAIR")  # the right end's two markers meet
+    frames = np.array(pickle.loads((pair / "eval/0.pkl").read_bytes()))  # (T, 3, V)
+    frames[7, :, -2] = frames[7, :, -1]
+    (pair / "eval/0.pkl").write_bytes(pickle.dumps(frames.tolist()))
     spec = _spec_file(tmp_path)
     out = tmp_path / "out"
     cases = [
         (["--source", str(flat)], "expected (frames, 3, markers)"),
+        (["--source", str(pair)], "PAIR/eval/0: its right end markers 4 and 5 coincide in frame 7"),
         (["--source", str(cable), "--rod-length", "0.3"], "shorter than the grip markers"),
         (["--source", str(cable), "--cable-length", "0.4"], "pass the cable's real length"),
     ]

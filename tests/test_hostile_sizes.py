@@ -5,6 +5,7 @@ limit, so a regression fails fast instead of swapping."""
 
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import struct
@@ -178,12 +179,19 @@ def _huge_declared_frame() -> bytes:
     return b"\x80\x04\x95" + struct.pack("<Q", 2**62) + b"]."  # a FRAME of 4 EiB
 
 
+def _memo_index_far_out(index: int = 160_000_000) -> bytes:
+    """A list of one float stored in the memo at ``index``: the unpickler sizes its memo to
+    twice the highest index (2.4 GB here before this was refused)."""
+    return b"\x80\x04]r" + struct.pack("<I", index) + b"(G" + struct.pack(">d", 0.1) + b"e."
+
+
 def _over_the_budget() -> bytes:
     return pickle.dumps(np.zeros((4000, 3, 30)).tolist())  # 360,000 numbers: 21 MiB to read
 
 
 BOMBS = [
     (_memo_fan_out, "memo reference"),
+    (_memo_index_far_out, "memo index 160000000"),
     (_huge_declared_bytes, "not a readable pickle"),
     (_huge_declared_frame, "not a readable pickle"),
     (_over_the_budget, "over the budget"),
@@ -201,3 +209,33 @@ def test_a_recording_past_the_memory_budget_is_refused_before_it_is_built(write,
     assert done.returncode == 2, done.stderr[-2000:]
     assert len(lines) == 1 and words in lines[0] and "z.pkl" in lines[0], done.stderr[-2000:]
     assert not (tmp_path / "out").exists()
+
+
+_PEAK = """
+import json, resource, sys, time
+resource.setrlimit(resource.RLIMIT_AS, (2**30, 2**30))  # a regression fails, not swaps
+from dlocli.errors import BadInput
+from dlocli.markers.plain_pickle import load_plain
+data = sys.stdin.buffer.read()
+before, start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, time.perf_counter()
+try:
+    load_plain(data, "z.pkl", 2**40)
+    refusal = None
+except BadInput as exc:
+    refusal = str(exc)
+grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+print(json.dumps({"refusal": refusal, "seconds": time.perf_counter() - start, "grown_kib": grown}))
+"""
+
+
+def test_a_memo_index_far_out_is_refused_at_once_in_little_memory():
+    """Even under a budget that would allow it: no plain pickle stores an object in the memo
+    past the opcodes before it, and the memo is never read (a memo reference is refused)."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    done = subprocess.run([sys.executable, "-c", _PEAK], input=_memo_index_far_out(),
+                          capture_output=True, timeout=60, env=env)  # fmt: skip
+    assert done.returncode == 0, done.stderr.decode()[-2000:]
+    found = json.loads(done.stdout)
+    assert "memo index 160000000" in found["refusal"] and "z.pkl" in found["refusal"]
+    # 2.4 GB and 6 s before: within a megabyte and a millisecond now
+    assert found["grown_kib"] < 64 * 1024 and found["seconds"] < 1.0, found

@@ -14,6 +14,8 @@ import dlocli  # noqa: F401  (registers the dlocli/... Gymnasium ids recover_env
 from dlocli.cli import app
 from dlocli.data import Dataset, Episode, load_dataset
 
+from tiny import file_digests
+
 minari = pytest.importorskip("minari")
 
 runner = CliRunner()
@@ -106,6 +108,32 @@ def test_existing_id_is_refused_unless_overwrite(collected, minari_root):
     assert res.exit_code == 0, res.output
     assert minari.load_dataset(name).total_steps == 15
     assert [p.name for p in minari_root.iterdir()] == ["dlocli"], "no staging left behind"
+
+
+def test_a_nested_or_escaping_id_is_refused(tmp_path, collected, minari_root):
+    """A dataset's folder holds its own data only; an id leads to a folder in the root."""
+    assert run("export", str(collected), "--dataset-id", "dlocli/tiny-v1").exit_code == 0
+    (minari_root / "notes").write_text("mine\n")
+    (tmp_path / "outside").mkdir()
+    (minari_root / "elsewhere").symlink_to(tmp_path / "outside")
+    before = file_digests(tmp_path)
+    for name, words in [("dlocli/tiny-v1/inner-v0", "inside the Minari dataset dlocli/tiny-v1"),
+                        ("dlocli/tiny-v1/data/inner-v0", "like dlocli/inner-v0"),
+                        ("notes/inner-v0", "is a file"),
+                        ("elsewhere/inner-v0", "leads out of")]:  # fmt: skip
+        res = run("export", str(collected), "--dataset-id", name)
+        assert res.exit_code == 2 and words in _one_error_line(res), res.output
+        assert file_digests(tmp_path) == before
+    assert sorted(p.name for p in minari_root.iterdir()) == ["dlocli", "elsewhere", "notes"]
+    assert not any((tmp_path / "outside").iterdir())
+    assert minari.load_dataset("dlocli/tiny-v1").total_steps == 15
+
+
+def test_a_relative_out_is_the_folder_it_names(tmp_path, collected, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # Minari joined a relative root onto itself
+    res = run("export", str(collected), "--out", "datasets", "--dataset-id", "dlocli/rel-v0")
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "datasets" / "dlocli/rel-v0" / "data" / "metadata.json").is_file()
 
 
 def test_the_earlier_flag_names_still_work_hidden(tmp_path, collected, minari_root):

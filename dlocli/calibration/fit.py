@@ -26,6 +26,7 @@ from dlocli.calibration import parameters as params
 from dlocli.calibration.replay import (
     MarkerLayout,
     ReplaySettings,
+    check_end_pairs,
     check_rod_fits,
     grip_markers,
     replay,
@@ -65,6 +66,8 @@ def load_cable(spec: CalibrateSpec) -> Cable:
         )
     found, held = deform.read_recordings(spec.source)
     check_held(held, spec.source)
+    everything = {f"{spec.source}/{s}/{n}": r for s, items in found.items() for n, r in items}
+    check_end_pairs(list(everything.values()), list(everything))
     train, evaluation = found["train"], found.get("eval") or found["train"]
     grip = grip_markers(held, spec.backend.rod.clamp_compliance)
     layout = MarkerLayout.from_recordings([r for _, r in train]).between(grip)
@@ -74,7 +77,6 @@ def load_cable(spec: CalibrateSpec) -> Cable:
             f"cable_length {spec.cable_length:g} m is shorter than the rod between its "
             f"grip markers ({rod_length:.3f} m); pass the cable's real length"
         )
-    everything = {f"{spec.source}/{s}/{n}": r for s, items in found.items() for n, r in items}
     check_rod_fits(rod_length, list(everything.values()), list(everything), grip)
     rod = spec.backend.rod
     density = spec.cable_mass / spec.cable_length / rod.area

@@ -38,6 +38,9 @@ from dlocli.markers import protocol
 from dlocli.markers.deform import held_markers
 
 WORKSPACE_MARGIN = 0.1  # m around the recorded gripper positions
+#: closest two held markers at one end may be (m): the gripper's axis runs through them
+#: (DEFORM's come no closer than 14 mm)
+MIN_PAIR_GAP = 1e-3
 X_AXIS = np.array([1.0, 0.0, 0.0])
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 
@@ -93,6 +96,22 @@ def check_rod_fits(
                 f"in {name} ({span:.3f} m); pass a --rod-length above that (the cable between "
                 "its grip markers)"
             )
+
+
+def check_end_pairs(recordings: list[np.ndarray], names: list[str]) -> None:
+    """BadInput if the two markers at an end of a recording come closer than MIN_PAIR_GAP
+    in some frame: the gripper's axis runs through them (:func:`gripper_targets`)."""
+    for name, rec in zip(names, recordings, strict=True):
+        last = rec.shape[1] - 1
+        for side, (a, b) in (("left", (0, 1)), ("right", (last - 1, last))):
+            gaps = np.linalg.norm(rec[:, b] - rec[:, a], axis=-1)
+            if gaps.min() < MIN_PAIR_GAP:
+                raise BadInput(
+                    f"{name}: its {side} end markers {a} and {b} coincide in frame "
+                    f"{int(gaps.argmin())} ({gaps.min() * 1e3:.2f} mm apart), so the gripper "
+                    "there has no direction; fix the recording's markers or move it out of "
+                    "the source folder"
+                )
 
 
 def markers_on_rod(backend: Backend, arc: np.ndarray) -> np.ndarray:

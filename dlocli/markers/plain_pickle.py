@@ -4,8 +4,10 @@ A pickle is a program for a small machine; a recording is only lists (or tuples)
 Before anything is built, the program is read opcode by opcode (:mod:`pickletools`, which
 builds nothing) and refused unless every opcode builds numbers or lists, no object is used
 twice (a memo reference: how a few kilobytes fan out into gigabytes), every number fits in
-a float, and what loading builds fits the budget. Only then does pickle build it, with
-every global (class, function) refused as well.
+a float, no object is stored in the memo at an index past what the pickle built so far
+(the unpickler sizes its memo to the highest index: one opcode would take gigabytes), and
+what loading builds fits the budget. Only then does pickle build it, with every global
+(class, function) refused as well.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ NUMBERS = frozenset({"FLOAT", "BINFLOAT", "INT", "BININT", "BININT1", "BININT2",
                      "LONG1", "LONG4"})  # fmt: skip
 CONTAINERS = frozenset({"EMPTY_LIST", "LIST", "EMPTY_TUPLE", "TUPLE", "TUPLE1", "TUPLE2",
                         "TUPLE3"})  # fmt: skip
+#: opcodes that store the object on top of the stack in the memo at the index they name
+MEMO_PUTS = frozenset({"PUT", "BINPUT", "LONG_BINPUT"})
 #: opcodes that name a class or function (module and name in the argument or the two texts
 #: before it)
 GLOBALS = frozenset({"GLOBAL", "STACK_GLOBAL", "INST"})
@@ -37,6 +41,8 @@ GLOBALS = frozenset({"GLOBAL", "STACK_GLOBAL", "INST"})
 BYTES_PER_NUMBER = 48
 #: bytes per list or tuple: the object and its over-allocated slots
 BYTES_PER_CONTAINER = 120
+#: bytes per memo slot: the unpickler's table of pointers grows to twice the highest index
+BYTES_PER_MEMO_SLOT = 16
 
 
 class _NoGlobals(pickle.Unpickler):
@@ -49,8 +55,9 @@ class _NoGlobals(pickle.Unpickler):
 def load_plain(data: bytes, name: str, budget_bytes: int) -> Any:
     """The lists of numbers pickled in ``data`` (the bytes of file ``name``); BadInput if it
     holds anything else or loading it would take more than ``budget_bytes`` of memory."""
-    numbers, containers = _scan(data, name)
-    needed = len(data) + numbers * BYTES_PER_NUMBER + containers * BYTES_PER_CONTAINER
+    numbers, containers, memo_slots = _scan(data, name)
+    needed = (len(data) + numbers * BYTES_PER_NUMBER + containers * BYTES_PER_CONTAINER
+              + memo_slots * BYTES_PER_MEMO_SLOT)  # fmt: skip
     if needed > budget_bytes:
         raise BadInput(
             f"{name} would take {needed / 2**20:.0f} MiB to read ({numbers} numbers), over "
@@ -65,13 +72,13 @@ def load_plain(data: bytes, name: str, budget_bytes: int) -> Any:
         ) from exc
 
 
-def _scan(data: bytes, name: str) -> tuple[int, int]:
-    """(numbers, containers) the pickle builds; BadInput at its first opcode that is not
-    plain data (text is passed over to name the global it may spell, then refused)."""
-    numbers = containers = 0
+def _scan(data: bytes, name: str) -> tuple[int, int, int]:
+    """(numbers, containers, memo slots) the pickle builds; BadInput at its first opcode that
+    is not plain data (text is passed over to name the global it may spell, then refused)."""
+    numbers = containers = highest_put = memoized = 0
     texts: list[str] = []
     try:
-        for opcode, arg, _ in pickletools.genops(data):
+        for count, (opcode, arg, _) in enumerate(pickletools.genops(data)):
             if opcode.name in GLOBALS:
                 spelled = arg.replace(" ", ".") if isinstance(arg, str) else ".".join(texts)
                 raise _refused(name, f"it names {spelled}")
@@ -86,13 +93,20 @@ def _scan(data: bytes, name: str) -> tuple[int, int]:
                     raise _refused(name, f"it holds an integer of {arg.bit_length()} bits, too "
                                    "large for a float")  # fmt: skip
             containers += opcode.name in CONTAINERS
+            memoized += opcode.name == "MEMOIZE"
+            if opcode.name in MEMO_PUTS:
+                if arg >= count:  # each object stored was built by an opcode before
+                    raise _refused(name, f"it stores an object at memo index {arg}, past the "
+                                   f"{count} opcodes before it (the memo would take "
+                                   f"{arg * BYTES_PER_MEMO_SLOT / 2**20:.0f} MiB)")  # fmt: skip
+                highest_put = max(highest_put, arg + 1)
     except (ValueError, EOFError) as exc:  # truncated, or a length past the end of the file
         raise BadInput(
             f"{name} is not a readable pickle ({str(exc)[:80]}); re-download it"
         ) from exc
     if texts:
         raise _refused(name, "it holds text")
-    return numbers, containers
+    return numbers, containers, highest_put + memoized
 
 
 def _kind(opcode: str) -> str:

@@ -169,8 +169,7 @@ def _collect(
     else:
         out = prepare_run_dir(out, overwrite)
         shutil.rmtree(parts, ignore_errors=True)  # --overwrite: an earlier run's episodes
-        parts.mkdir()
-        write_json_atomic(parts / PROGRESS_FILE, {"seconds": 0.0})
+        parts.mkdir()  # no progress file yet: a run refused before its first episode is undone
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         record_fingerprints(out, spec)
         done = set()

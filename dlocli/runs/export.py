@@ -188,7 +188,8 @@ def minari_root(root: Path | None) -> Path:
     ``~/.minari/datasets``); created if missing."""
     from minari.storage import get_dataset_path
 
-    root = Path(root) if root is not None else Path(get_dataset_path())
+    # absolute: Minari joins a relative root onto itself (root/.../data/root/.../data)
+    root = Path(root).absolute() if root is not None else Path(get_dataset_path())
     if root.exists() and not root.is_dir():
         raise BadInput(f"--out {root} is a file; pass a directory for Minari datasets")
     root.mkdir(parents=True, exist_ok=True)
@@ -209,7 +210,34 @@ def _minari_root_set(root: Path) -> Iterator[None]:
             os.environ[ROOT_ENV] = old
 
 
+def _check_place(root: Path, dataset_id: str) -> None:
+    """BadInput if the dataset's folder would lie inside another dataset's folder, below a
+    file, or outside ``root`` (through a linked namespace folder)."""
+    folder = root
+    for part in Path(dataset_id).parts[:-1]:
+        folder = folder / part
+        if not os.path.lexists(folder):
+            break
+        if not folder.is_dir():
+            raise BadInput(
+                f"--dataset-id {dataset_id}: {folder} is a file, not a namespace folder; pass "
+                "another --dataset-id"
+            )
+        if (folder / "data").is_dir():
+            raise BadInput(
+                f"--dataset-id {dataset_id} would be written inside the Minari dataset "
+                f"{folder.relative_to(root)} ({folder}); pass an id outside it, like "
+                f"{folder.relative_to(root).parent / Path(dataset_id).name}"
+            )
+    if not (root / dataset_id).resolve().is_relative_to(root.resolve()):
+        raise BadInput(
+            f"--dataset-id {dataset_id} leads out of {root} through a link; pass another "
+            "--dataset-id"
+        )
+
+
 def _check_target(target: Path, dataset_id: str, root: Path, overwrite: bool) -> None:
+    _check_place(root, dataset_id)
     if not target.exists():
         return
     if not (target / "data").is_dir():
