@@ -37,7 +37,7 @@ def test_online_learns_the_marker_model_from_the_reports(marker_run):
     import torch
 
     payload = torch.load(marker_run / "checkpoints" / "iter_02.pt", weights_only=True)
-    assert payload["form"] == "markers"
+    assert payload["form"] == "markers" and payload["control_dt"] == 0.02
 
 
 def test_control_plans_through_the_marker_model_under_faults(marker_run, near_rest_goal, tmp_path):
@@ -77,7 +77,7 @@ def test_bad_observation_settings_get_one_line(flags, says, tmp_path, capsys):
 
 def test_markers_off_the_rod_get_one_line(tmp_path, capsys):
     spec = tmp_path / "spec.yaml"
-    arcs = "    marker_arc_lengths: [0, 0.5, 1.2]\n"
+    arcs = "    marker_arc_lengths: [0, 0.5, 1.7]\n"  # past half a rod length behind the end
     spec.write_text("task:\n  observation:\n    kind: markers\n" + arcs)
     assert run_dlo(["online", "--spec", str(spec), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip()
