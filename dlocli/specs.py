@@ -117,10 +117,12 @@ class ObservationSpec(Spec):
         description="Markers M, evenly spaced from the rod's left end to its right end, where "
         "the grippers hold it (unless marker_arc_lengths places them).",
     )  # fmt: skip
-    marker_arc_lengths: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] | None = Field(
+    marker_arc_lengths: tuple[Annotated[float, Field(ge=-0.5, le=1.5)], ...] | None = Field(
         None,
-        description="Where the markers sit, as fractions of the rod length from its left end "
-        "(0 to 1, increasing); those on a held end segment move with its gripper.",
+        description="Where the markers sit, as fractions of the rod length from its left end, "
+        "increasing: 0 to 1 on the rod (those on a held end segment move with its gripper), "
+        "below 0 or above 1 on the left or right gripper, that far behind the rod's end along "
+        "its axis (as gripper_markers places one; then set gripper_markers 0).",
     )
     gripper_markers: float = Field(
         0.05, ge=0.0, le=0.5,
@@ -165,6 +167,11 @@ class ObservationSpec(Spec):
             raise ValueError("marker_arc_lengths must increase along the rod")
         if arcs is not None and len(arcs) < 2:
             raise ValueError("marker_arc_lengths: give at least 2 markers")
+        if arcs is not None and self.gripper_markers > 0 and (arcs[0] < 0 or arcs[-1] > 1):
+            raise ValueError(
+                "marker_arc_lengths below 0 or above 1 place markers on the grippers: set "
+                "gripper_markers 0 (--gripper-markers 0)"
+            )
         if self.kind == "full" and self.faults():
             raise ValueError(
                 f"{', '.join(self.faults())} apply to tracked markers: set observation kind "
