@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, model_validator
 
 from dlocli.backend_spec import (
     DEFAULT_DAMPING_TIME,
@@ -161,8 +161,14 @@ class ObservationSpec(Spec):
         return {n: getattr(self, n) for n in names if getattr(self, n) != fields[n].default}
 
     @model_validator(mode="after")
-    def _markers_consistent(self) -> ObservationSpec:
+    def _markers_consistent(self, info: ValidationInfo) -> ObservationSpec:
         arcs = self.marker_arc_lengths
+        counted = "markers" in self.model_fields_set and is_given(info)  # saved runs: as saved
+        if arcs is not None and counted and self.markers != len(arcs):
+            raise ValueError(
+                f"markers {self.markers}, but marker_arc_lengths places {len(arcs)}: drop "
+                "--markers (the arc lengths count them) or give as many arc lengths"
+            )
         if arcs is not None and any(b <= a for a, b in zip(arcs, arcs[1:], strict=False)):
             raise ValueError("marker_arc_lengths must increase along the rod")
         if arcs is not None and len(arcs) < 2:

@@ -82,6 +82,12 @@ def test_markers_off_the_rod_get_one_line(tmp_path, capsys):
     assert run_dlo(["online", "--spec", str(spec), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "marker_arc_lengths" in err, err
+    # a marker count the arc lengths contradict (a calibrated spec holds them): not ignored
+    spec.write_text("task:\n  observation:\n    marker_arc_lengths: [0, 0.5, 1]\n")
+    argv = ["online", "--spec", str(spec), "--observation", "markers", "--markers", "4"]
+    assert run_dlo([*argv, "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "drop --markers" in err, err
 
 
 def test_control_observes_two_held_markers_per_end(near_rest_goal, tmp_path, capsys):
