@@ -148,6 +148,18 @@ def test_the_own_cable_page_runs_end_to_end(tmp_path: Path, monkeypatch, layout:
     assert control["cell_dropped_commands"] == 0
 
 
+def test_the_pages_seconds_are_its_recipes_steps_at_its_import_rate() -> None:
+    """The recipe counts its rollouts in steps; the page states them in seconds at the rate
+    its import line resamples to."""
+    commands = {argv[1]: argv for argv in page_commands()}
+    imported, train = commands["import"], commands["train"]
+    hz = float(imported[imported.index("--control-hz") + 1])
+    recipe = yaml.safe_load((ROOT / train[train.index("--spec") + 1]).read_text())
+    k = recipe["rollout_steps"]
+    text = " ".join(PAGE.read_text(encoding="utf-8").split())
+    assert f"up to {k} steps, {k / hz:g} s at the import's {hz:g} Hz" in text
+
+
 def test_calibrate_reads_an_import_at_its_rate_or_refuses_another(tmp_path: Path, capsys) -> None:
     write_recordings(tmp_path / "mycable")
     imported = tmp_path / "imported"
