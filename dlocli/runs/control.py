@@ -60,15 +60,14 @@ class ControlSpec(EnvSpec, CellChoice):
     moved: ClassVar[dict[str, str]] = {"model": "checkpoint", "steps": "task.episode_steps"}
     cli_flags: ClassVar[tuple[str, ...]] = (
         "task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name",
-        "task.name", "task.shapes", "task.episode_steps", "task.control_dt", "seed", "device",
-        "threads", "video",
+        "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
         "video_every", "cell", "cell_timeout_s", "task.envelope.max_linear_speed",
         "task.envelope.max_angular_speed", "task.envelope.max_linear_acceleration",
         "task.envelope.max_angular_acceleration", "task.envelope.stop_after_lost_s",
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
         "task.observation.latency_steps", "task.observation.dropout",
         "task.observation.occlusion_probability", "task.observation.gripper_markers",
-        "task.observation.marker_arc_lengths",
+        "task.observation.marker_arc_lengths", "task.control_dt",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
