@@ -136,6 +136,15 @@ class Dataset:
     def n_transitions(self) -> int:
         return int(self.episode_lengths.sum())
 
+    @property
+    def control_dt(self) -> float | None:
+        """The control period (s) the data were collected at, from the run spec it holds;
+        None where it holds none."""
+        spec = self.attrs.get("spec")
+        task = spec.get("task") if isinstance(spec, dict) else None
+        dt = task.get("control_dt") if isinstance(task, dict) else None
+        return float(dt) if isinstance(dt, (int, float)) and dt > 0 else None
+
     def state_offsets(self) -> np.ndarray:
         """Index of each episode's first state in the state arrays, (E,)."""
         return np.concatenate([[0], np.cumsum(self.episode_lengths + 1)[:-1]]).astype(np.int64)

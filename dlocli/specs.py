@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, model_validator
 
 from dlocli.backend_spec import (
     DEFAULT_DAMPING_TIME,
@@ -117,10 +117,12 @@ class ObservationSpec(Spec):
         description="Markers M, evenly spaced from the rod's left end to its right end, where "
         "the grippers hold it (unless marker_arc_lengths places them).",
     )  # fmt: skip
-    marker_arc_lengths: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] | None = Field(
+    marker_arc_lengths: tuple[Annotated[float, Field(ge=-0.5, le=1.5)], ...] | None = Field(
         None,
-        description="Where the markers sit, as fractions of the rod length from its left end "
-        "(0 to 1, increasing); those on a held end segment move with its gripper.",
+        description="Where the markers sit, as fractions of the rod length from its left end, "
+        "increasing: 0 to 1 on the rod (those on a held end segment move with its gripper), "
+        "below 0 or above 1 on the left or right gripper, that far behind the rod's end along "
+        "its axis (as gripper_markers places one; then set gripper_markers 0).",
     )
     gripper_markers: float = Field(
         0.05, ge=0.0, le=0.5,
@@ -159,12 +161,23 @@ class ObservationSpec(Spec):
         return {n: getattr(self, n) for n in names if getattr(self, n) != fields[n].default}
 
     @model_validator(mode="after")
-    def _markers_consistent(self) -> ObservationSpec:
+    def _markers_consistent(self, info: ValidationInfo) -> ObservationSpec:
         arcs = self.marker_arc_lengths
+        counted = "markers" in self.model_fields_set and is_given(info)  # saved runs: as saved
+        if arcs is not None and counted and self.markers != len(arcs):
+            raise ValueError(
+                f"markers {self.markers}, but marker_arc_lengths places {len(arcs)}: drop "
+                "--markers (the arc lengths count them) or give as many arc lengths"
+            )
         if arcs is not None and any(b <= a for a, b in zip(arcs, arcs[1:], strict=False)):
             raise ValueError("marker_arc_lengths must increase along the rod")
         if arcs is not None and len(arcs) < 2:
             raise ValueError("marker_arc_lengths: give at least 2 markers")
+        if arcs is not None and self.gripper_markers > 0 and (arcs[0] < 0 or arcs[-1] > 1):
+            raise ValueError(
+                "marker_arc_lengths below 0 or above 1 place markers on the grippers: set "
+                "gripper_markers 0 (--gripper-markers 0)"
+            )
         if self.kind == "full" and self.faults():
             raise ValueError(
                 f"{', '.join(self.faults())} apply to tracked markers: set observation kind "

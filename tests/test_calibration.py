@@ -23,10 +23,11 @@ import yaml
 from dlocli.calibration.fit import load_cable
 from dlocli.calibration.replay import ReplaySettings, replay
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.env.observation import marker_layout
 from dlocli.io import written_by_dlo
 from dlocli.markers import deform, protocol
 from dlocli.registry import backends
-from dlocli.specs import BackendSpec, RodSpec
+from dlocli.specs import BackendSpec, ObservationSpec, RodSpec
 
 from tiny import file_digests, run_dlo
 
@@ -140,6 +141,13 @@ def test_calibration_recovers_the_stiffness(cable: Path, tmp_path: Path) -> None
     assert report["eval_calibrated_cm"] < report["eval_default_cm"]
     calibrated = yaml.safe_load((out / "calibrated.yaml").read_text())
     assert calibrated["backend"]["rod"]["young_bending"] == fitted
+    # the recordings' rate and markers: two held at each end, the outer ones on the grippers
+    assert calibrated["task"]["control_dt"] == pytest.approx(1 / RATE)
+    observation = ObservationSpec(kind="markers", **calibrated["task"]["observation"])
+    layout = marker_layout(observation, ROD, 12, (True, True))
+    assert layout.held.tolist() == deform.held_markers(len(ARC)).tolist()
+    assert layout.on_gripper.tolist() == [True, False, False, False, False, True]
+    assert np.allclose(layout.arc, arc, atol=1e-5)  # where the replays read them off the rod
     _rehearse_on(out / "calibrated.yaml", BackendSpec.model_validate(calibrated["backend"]))
 
 
@@ -168,6 +176,8 @@ def _rehearse_on(spec_file: Path, rod: BackendSpec) -> None:
         "3",
         "--shapes",
         "near-rest",
+        "--observation",
+        "markers",
         "--out",
         str(out / "control"),
     ]

@@ -121,6 +121,22 @@ def test_layout_needs_held_and_free_markers():
     assert layout.held.sum() == 1  # a cantilever: only the left end is held
 
 
+def test_arc_lengths_past_the_rods_ends_sit_on_the_grippers():
+    """Two held markers at each end (DEFORM's layout): the outer ones on the grippers, placed
+    as gripper_markers places its one."""
+    arcs = ObservationSpec(kind="markers", marker_arc_lengths=(-0.1, 0.0, 0.5, 1.0, 1.1),
+                           gripper_markers=0)  # fmt: skip
+    layout = marker_layout(arcs, 0.8, 20, (True, True))
+    assert layout.on_gripper.tolist() == [True, False, False, False, True]
+    assert layout.holder.tolist() == [0, 0, -1, 1, 1]
+    both = ObservationSpec(kind="markers", marker_arc_lengths=(0.0, 0.5, 1.0), gripper_markers=0.1)
+    same = marker_layout(both, 0.8, 20, (True, True))
+    for name in ("arc", "segment", "offset", "holder", "lever", "on_gripper"):
+        assert np.allclose(getattr(layout, name), getattr(same, name)), name
+    with pytest.raises(ValueError, match="gripper_markers 0"):  # both would place them
+        ObservationSpec(kind="markers", marker_arc_lengths=(-0.1, 0.5, 1.0))
+
+
 def test_dataset_keeps_the_reports(tmp_path):
     env = env_of("mujoco", dropout=0.3)
     try:

@@ -10,7 +10,7 @@ import pytest
 
 from dlocli.data import load_dataset
 
-from tiny import file_digests, run_dlo
+from tiny import dlo_import, file_digests, run_dlo, write_cable
 
 FAULTS = ["--noise-mm", "2", "--latency-steps", "1", "--dropout", "0.05"]
 OCCLUSION = ["--occlusion-probability", "0.1"]
@@ -37,7 +37,7 @@ def test_online_learns_the_marker_model_from_the_reports(marker_run):
     import torch
 
     payload = torch.load(marker_run / "checkpoints" / "iter_02.pt", weights_only=True)
-    assert payload["form"] == "markers"
+    assert payload["form"] == "markers" and payload["control_dt"] == 0.02
 
 
 def test_control_plans_through_the_marker_model_under_faults(marker_run, near_rest_goal, tmp_path):
@@ -77,8 +77,41 @@ def test_bad_observation_settings_get_one_line(flags, says, tmp_path, capsys):
 
 def test_markers_off_the_rod_get_one_line(tmp_path, capsys):
     spec = tmp_path / "spec.yaml"
-    arcs = "    marker_arc_lengths: [0, 0.5, 1.2]\n"
+    arcs = "    marker_arc_lengths: [0, 0.5, 1.7]\n"  # past half a rod length behind the end
     spec.write_text("task:\n  observation:\n    kind: markers\n" + arcs)
     assert run_dlo(["online", "--spec", str(spec), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "marker_arc_lengths" in err, err
+    # a marker count the arc lengths contradict (a calibrated spec holds them): not ignored
+    spec.write_text("task:\n  observation:\n    marker_arc_lengths: [0, 0.5, 1]\n")
+    argv = ["online", "--spec", str(spec), "--observation", "markers", "--markers", "4"]
+    assert run_dlo([*argv, "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "drop --markers" in err, err
+
+
+def test_control_observes_two_held_markers_per_end(near_rest_goal, tmp_path, capsys):
+    """A model of a cable held by two markers at each end (DEFORM's layout, `dlo import`'s
+    default) plans through `dlo control`'s flags: the outer held markers on the grippers."""
+    write_cable(tmp_path / "cable", n_train=3, n_eval=1)  # 6 markers at 100 Hz
+    assert dlo_import(tmp_path / "cable", tmp_path / "data") == 0
+    assert load_dataset(tmp_path / "data").held.tolist() == [1, 1, 0, 0, 1, 1]
+    assert run_dlo(["train", "--data", str(tmp_path / "data"), "--model", "mlp", "--hidden", "8",
+                    "--update-steps", "2", "--rollout-steps", "2", "--eval-every", "2",
+                    "--device", "cpu", "--out", str(tmp_path / "model")]) == 0  # fmt: skip
+    argv = ["control", "--goal", str(near_rest_goal), "--checkpoint", str(tmp_path / "model"),
+            "--observation", "markers", "--control-dt", "0.01", "--steps", "3",
+            "--shapes", "near-rest"]  # fmt: skip
+    out = tmp_path / "control"
+    arcs = ["--marker-arc-lengths", "-0.1,0,0.4,0.6,1,1.1", "--gripper-markers", "0"]
+    assert run_dlo([*argv, *arcs, "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 3 and not summary["diverged"]
+    observed = json.loads((out / "spec.json").read_text())["task"]["observation"]
+    assert observed["marker_arc_lengths"] == [-0.1, 0, 0.4, 0.6, 1, 1.1]
+    # one held marker at each end is another layout: refused in one line
+    wrong = tmp_path / "wrong"
+    assert run_dlo([*argv, "--markers", "6", "--gripper-markers", "0", "--out", str(wrong)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "4 held" in err and "2 held" in err, err
+    assert not wrong.exists()

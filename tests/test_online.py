@@ -105,6 +105,10 @@ def test_reduced_run_writes_everything(uninterrupted):
     assert summary["transitions"] == 2 * 15 + 4 * 15
     saved = json.loads((out / "spec.json").read_text())
     assert saved["iters"] == 2 and saved["model"]["hidden"] == 16
+    from dlocli.models.base import read_checkpoint
+
+    for name in ("iter_01.pt", "final.pt"):  # the period the model steps by
+        assert read_checkpoint(out / "checkpoints" / name)["control_dt"] == 0.02
     # where the time went: model updates, planning, the rest of the trials (simulation)
     assert summary["train_seconds"] > 0 and summary["mpc_seconds"] > 0
     assert summary["simulation_seconds"] > 0

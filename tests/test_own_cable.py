@@ -1,6 +1,7 @@
 """docs/own_cable.md runs as written: its `dlo` lines, read from the page itself, on a tiny
 synthetic recording (a motion-capture CSV in mm at 120 Hz), with only their counts cut, end
-to end: import, calibrate, train, evaluate, a served cell and control through it."""
+to end: import, calibrate, train, evaluate, a served cell and control through it; for a cable
+held by one marker at each end, as the page's line says, and by two (DEFORM's layout)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+import yaml
 
 from dlocli.data import load_dataset
 
@@ -91,9 +94,17 @@ def _prepared(argv: list[str], address: str, page_address: str) -> list[str]:
     return words + CUTS.get(words[1], [])
 
 
-def test_the_own_cable_page_runs_end_to_end(tmp_path: Path, monkeypatch) -> None:
+#: the page's --held, and DEFORM's two held markers at each end in its place
+LAYOUTS = {"page": None, "two-per-end": "0,1,-2,-1"}
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_the_own_cable_page_runs_end_to_end(tmp_path: Path, monkeypatch, layout: str) -> None:
     assert "docs/own_cable.md" in (ROOT / "README.md").read_text(encoding="utf-8")
     commands = page_commands()
+    held_flag = commands[0].index("--held") + 1
+    held = commands[0][held_flag] if LAYOUTS[layout] is None else LAYOUTS[layout]
+    commands[0][held_flag] = held
     steps = [argv[1] for argv in commands]
     assert steps == ["import", "calibrate", "train", "eval", "goal", "serve", "control"]
     monkeypatch.chdir(tmp_path)
@@ -120,14 +131,33 @@ def test_the_own_cable_page_runs_end_to_end(tmp_path: Path, monkeypatch) -> None
             cell.send_signal(signal.SIGINT)
             cell.wait(timeout=30)
     data = load_dataset(tmp_path / "runs" / "mycable")
-    assert data.rate_hz == 50.0 and data.n_markers == MARKERS
-    assert np.flatnonzero(data.held).tolist() == [0, MARKERS - 1]
-    assert (tmp_path / "runs" / "mycable-sim" / "calibrated.yaml").is_file()
+    assert data.rate_hz == 100.0 and data.n_markers == MARKERS  # the recipe's rate
+    held_markers = [int(i) % MARKERS for i in held.split(",")]
+    assert np.flatnonzero(data.held).tolist() == sorted(held_markers)
+    calibrated = yaml.safe_load((tmp_path / "runs/mycable-sim/calibrated.yaml").read_text())
+    assert calibrated["task"]["control_dt"] == pytest.approx(1 / data.rate_hz)
+    arcs = calibrated["task"]["observation"]["marker_arc_lengths"]
+    assert len(arcs) == MARKERS and sum(a < 0 or a > 1 for a in arcs) == len(held_markers) - 2
+    model = torch.load(tmp_path / "runs/mycable-model/checkpoints/final.pt", weights_only=True)
+    assert model["control_dt"] == pytest.approx(1 / data.rate_hz)
+    assert model["state_dict"]["held"].tolist() == data.held.tolist()
     evaluation = json.loads((tmp_path / "runs/mycable-eval/summary.json").read_text())
     assert np.isfinite(evaluation["model_score_cm"])
     control = json.loads((tmp_path / "runs/mycable-control/summary.json").read_text())
     assert control["steps"] == 5 and not control["diverged"]
     assert control["cell_dropped_commands"] == 0
+
+
+def test_the_pages_seconds_are_its_recipes_steps_at_its_import_rate() -> None:
+    """The recipe counts its rollouts in steps; the page states them in seconds at the rate
+    its import line resamples to."""
+    commands = {argv[1]: argv for argv in page_commands()}
+    imported, train = commands["import"], commands["train"]
+    hz = float(imported[imported.index("--control-hz") + 1])
+    recipe = yaml.safe_load((ROOT / train[train.index("--spec") + 1]).read_text())
+    k = recipe["rollout_steps"]
+    text = " ".join(PAGE.read_text(encoding="utf-8").split())
+    assert f"up to {k} steps, {k / hz:g} s at the import's {hz:g} Hz" in text
 
 
 def test_calibrate_reads_an_import_at_its_rate_or_refuses_another(tmp_path: Path, capsys) -> None:

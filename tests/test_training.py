@@ -119,6 +119,7 @@ def test_train_and_eval_commands(small_dataset_dir, tmp_path):
     assert (run / "metrics.csv").read_text().splitlines()[0] == "epoch,train_loss,val_loss,seconds"
     assert json.loads((run / "spec.json").read_text())["model"]["hidden"] == 16
     assert "optimizer" in read_checkpoint(run)
+    assert read_checkpoint(run)["control_dt"] == 0.02  # the collected data's control period
     assert load_model(run).spec.hidden == 16
 
     plot = tmp_path / "eval.png"

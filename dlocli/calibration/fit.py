@@ -6,7 +6,8 @@ generation the candidates and their scores are written (atomically) to OUT/histo
 resumed run replays that history through a CMA-ES of the same seed (ask/tell are
 deterministic), so it continues exactly where the finished generations left it. The best
 material is scored on every eval recording next to the spec's own (the "default material"),
-written as a backend spec (OUT/calibrated.yaml, for any command's --spec) and reported.
+written as a spec for any command's --spec (OUT/calibrated.yaml: the rod, with the
+recordings' control period and marker layout, :func:`recorded_task`) and reported.
 """
 
 from __future__ import annotations
@@ -32,11 +33,12 @@ from dlocli.calibration.replay import (
     replay,
 )
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.env.observation import marker_layout
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.markers import deform, protocol
 from dlocli.processes import exit_with_parent, raise_if_stopped
 from dlocli.registry import backends
-from dlocli.specs import BackendSpec, RodSpec, format_validation_error
+from dlocli.specs import BackendSpec, ObservationSpec, RodSpec, format_validation_error
 
 HISTORY_FILE = "history.json"
 CALIBRATED_SPEC = "calibrated.yaml"
@@ -235,8 +237,36 @@ def rod_spec(cable: Cable, names: list[str], unit: np.ndarray) -> BackendSpec:
     return cable.backend.model_copy(update={"rod": params.decode(names, unit, cable.backend.rod)})
 
 
-def calibrated_yaml(backend: BackendSpec) -> str:
-    """The backend spec any command takes through --spec (a YAML of its ``backend`` field)."""
+def calibrated_yaml(backend: BackendSpec, task: dict[str, Any] | None = None) -> str:
+    """The spec any command takes through --spec: the fitted rod (its ``backend`` field) and
+    what ``task`` (:func:`recorded_task`) says of the recordings."""
     import yaml
 
-    return yaml.safe_dump({"backend": backend.model_dump(mode="json")}, sort_keys=False)
+    fields = {"backend": backend.model_dump(mode="json"), **({"task": task} if task else {})}
+    return yaml.safe_dump(fields, sort_keys=False)
+
+
+def recorded_task(cable: Cable, rate_hz: float) -> tuple[dict[str, Any], str | None]:
+    """The task fields a calibrated spec carries from the recordings, and why the observation
+    is left out, if it is: the control period of the recordings (the models trained on them
+    step by it), and where their markers sit (the layout `--observation markers` observes:
+    marker i at its arc length from the left grip over the rod's length, a held marker behind
+    a grip on its gripper), unless the simulated rod's ends would hold other markers than the
+    recording's."""
+    task: dict[str, Any] = {"control_dt": 1.0 / rate_hz}
+    rod = cable.backend.rod
+    arcs = [round(float(a), 6) for a in cable.arc / rod.length]
+    try:
+        observation = ObservationSpec(markers=len(arcs), marker_arc_lengths=tuple(arcs),
+                                      gripper_markers=0.0)  # fmt: skip
+        held = marker_layout(observation, rod.length, rod.n_segments, (True, True)).held
+    except (ValidationError, BadInput) as exc:
+        return task, f"the markers cannot be placed on the rod ({str(exc).splitlines()[0]})"
+    if not np.array_equal(held, cable.held):
+        return task, (
+            f"the rod's held ends hold markers {np.flatnonzero(held).tolist()}, the recording "
+            f"{np.flatnonzero(cable.held).tolist()} (see clamp_compliance)"
+        )
+    fields = observation.model_dump(mode="json", include={"markers", "marker_arc_lengths",
+                                                          "gripper_markers"})  # fmt: skip
+    return {**task, "observation": fields}, None

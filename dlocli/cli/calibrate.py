@@ -15,8 +15,9 @@ from dlocli.runs.calibrate import resumed_spec, run_calibration
 @spec_flags(CalibrateSpec)
 def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     """Fit the rod's material (--parameters) to the --source cable's train recordings by
-    CMA-ES on the DEFORM replay score; write OUT/calibrated.yaml (a backend spec for any
-    command's --spec) and OUT/report.{json,md} (eval score before and after, next to
+    CMA-ES on the DEFORM replay score; write OUT/calibrated.yaml (a spec for any command's
+    --spec: the rod, the recordings' control period and where their markers sit for
+    --observation markers) and OUT/report.{json,md} (eval score before and after, next to
     DEFORM's published physics rows and the freeze reference).
 
     Grippers follow the innermost held marker of each end (the end markers with rigid

@@ -38,6 +38,7 @@ ALIASES: dict[str, str] = {
     "task.goal": "goal-mode",
     "task.goal_file": "goal",
     "task.episode_steps": "steps",
+    "task.control_dt": "control-dt",
     "task.shapes": "shapes",
     "model.name": "model",
     "fit.schedule": "schedule",
@@ -55,6 +56,7 @@ ALIASES: dict[str, str] = {
     "task.observation.kind": "observation",
     "task.observation.markers": "markers",
     "task.observation.gripper_markers": "gripper-markers",
+    "task.observation.marker_arc_lengths": "marker-arc-lengths",
     "task.observation.noise_mm": "noise-mm",
     "task.observation.latency_steps": "latency-steps",
     "task.observation.dropout": "dropout",
@@ -104,7 +106,7 @@ def _flag_type(annotation: Any) -> tuple[Any, str, str]:
     annotation = strip_none(annotation)
     if get_origin(annotation) is Literal:
         return str, "|".join(str(a) for a in get_args(annotation)), ""
-    if get_origin(annotation) is list:
+    if get_origin(annotation) in (list, tuple):
         return str, "A,B,...", " Comma-separated."
     if annotation in METAVARS:
         return annotation, METAVARS[annotation], ""
@@ -147,7 +149,7 @@ def _option(spec_cls: type[Spec], dotted: str, required: bool = False) -> tuple[
 def _value(spec_cls: type[Spec], dotted: str, value: Any) -> Any:
     """A flag's value as the field takes it (a comma-separated list split)."""
     annotation = strip_none(field_info(spec_cls, dotted).annotation)
-    if value is not None and get_origin(annotation) is list:
+    if value is not None and get_origin(annotation) in (list, tuple):
         return [part.strip() for part in str(value).split(",") if part.strip()]
     return value
 

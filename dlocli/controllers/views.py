@@ -25,6 +25,7 @@ import torch
 from dlocli.env.observation import axis_x
 from dlocli.env.shapes import max_twist
 from dlocli.errors import BadInput
+from dlocli.models.base import check_control_rate
 
 #: what the marker model's one-step prediction is taken to err by, per coordinate (mm)
 MODEL_ERROR_MM = 1.0
@@ -205,5 +206,11 @@ def make_view(
     env: Any, model: torch.nn.Module, device: torch.device, raw: bool = False
 ) -> RodView | MarkerView:
     """The view of ``model``'s form on ``env``; BadInput if the env observes another form.
-    ``raw``: a marker view plans from the report as it is."""
+    ``raw``: a marker view plans from the report as it is; BadInput if the model learned
+    from data at another control period than the task's."""
+    task = getattr(env, "task_spec", None)
+    if task is not None:
+        check_control_rate(model, task.control_dt, "the planner's model", "the task runs",
+                           "re-train it on data at {used_hz} Hz, or set the task's control_dt "
+                           "to {dt}")  # fmt: skip
     return VIEWS[getattr(model, "form", "rod")](env, model, device, raw)

@@ -11,7 +11,9 @@ segment pivot about them, so a held marker further in is predicted a few mm off.
 
 The rod's end point does not show how a gripper turns, so by default each gripper carries
 a marker of its own, behind the rod's end on the gripper's axis (arc length -d or L + d):
-held, and placed by the gripper's pose alone.
+held, and placed by the gripper's pose alone. Markers placed by ``marker_arc_lengths`` below
+0 or beyond L sit on the grippers the same way (a recorded cable's held marker behind where
+it leaves the gripper, as DEFORM's arms hold two markers at each end).
 
 A goal shape holds segment centres only, so all of a goal's markers lie on its polyline.
 
@@ -74,8 +76,9 @@ def marker_layout(
         arc = np.linspace(0.0, length, spec.markers)
     else:
         arc = np.asarray(spec.marker_arc_lengths, dtype=np.float64) * length
-    on_rod = len(arc)
-    on_gripper = np.zeros(on_rod, dtype=bool)
+    # marker_arc_lengths past the rod's ends: on a gripper, as gripper_markers places them
+    on_gripper = (arc < -1e-9 * length) | (arc > (1 + 1e-9) * length)
+    on_rod = int((~on_gripper).sum())
     if spec.gripper_markers > 0:
         behind = spec.gripper_markers * length
         arc = np.concatenate([[-behind], arc, [length + behind]])

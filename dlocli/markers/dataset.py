@@ -87,6 +87,11 @@ class MarkerDataset:
     def rate_hz(self) -> float:
         return float(self.attrs.get("rate_hz", DEFAULT_RATE_HZ))
 
+    @property
+    def control_dt(self) -> float:
+        """The period (s) between frames: a model trained on them predicts one such step."""
+        return 1.0 / self.rate_hz
+
     def episodes(self, split: str | None = None) -> list[np.ndarray]:
         """Each episode's frames (T_e + 1, V, 3), of one split (None: all)."""
         ends = np.cumsum(self.episode_lengths + 1)

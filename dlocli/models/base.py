@@ -47,6 +47,9 @@ ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
 CHECKPOINT_FORMAT = "dlocli-checkpoint"
 CHECKPOINT_VERSION = 3  # 2: model specs have velocity_input; 3: absolute_position
 FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
+#: the payload key of the control period (s) of the data a model learned from: one model step
+#: is one such period (checkpoints written before it have none, and are taken as they are)
+CONTROL_DT = "control_dt"
 _STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
 
 
@@ -423,4 +426,26 @@ def with_weights(
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()[0][:160]
         raise BadInput(f"checkpoint {path} weights do not fit {model.spec.name} ({first})") from exc
-    return model.to(resolve_device(device)).eval().requires_grad_(False)
+    model = model.to(resolve_device(device)).eval().requires_grad_(False)
+    dt = payload.get(CONTROL_DT)
+    #: the control period (s) of the model's training data; None: not recorded (older ones)
+    model.control_dt = float(dt) if isinstance(dt, (int, float)) and dt > 0 else None
+    return model
+
+
+def check_control_rate(
+    model: torch.nn.Module, control_dt: float, name: str, used: str, fix: str
+) -> None:
+    """BadInput if ``model`` (called ``name``) learned from data at another control period than
+    the ``control_dt`` (s) it is ``used`` at ("the task runs", "--data is"): each of its steps
+    would stand for the wrong time. ``fix`` ends the line; ``{dt}`` and ``{hz}`` in it are the
+    model's period (s) and rate, ``{used_hz}`` the other rate. A model that does not record
+    its period passes (nothing to compare: checkpoints written before they recorded it)."""
+    trained = getattr(model, "control_dt", None)
+    if trained is None or abs(trained - control_dt) <= 1e-4 * control_dt:
+        return
+    ours = {"dt": f"{trained:.6g}", "hz": f"{1 / trained:.6g}", "used_hz": f"{1 / control_dt:.6g}"}
+    raise BadInput(
+        f"{name} was trained on data at {ours['hz']} Hz ({ours['dt']} s steps) but {used} at "
+        f"{ours['used_hz']} Hz ({control_dt:.6g} s); {fix.format(**ours)}"
+    )

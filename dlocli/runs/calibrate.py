@@ -21,6 +21,7 @@ from dlocli.calibration.fit import (
     freeze_reference_cm,
     load_cable,
     mean_score,
+    recorded_task,
     recordings_digest,
     rod_spec,
 )
@@ -116,6 +117,7 @@ def run_calibration(
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
     spec = at_recorded_rate(spec)
     cable = load_cable(spec)  # every input checked before OUT is touched
+    task, unobserved = recorded_task(cable, spec.rate_hz)
     names = draw_train(cable, spec)
     strategy = new_strategy(spec, cable)
     with owned(spec.out):
@@ -157,7 +159,10 @@ def run_calibration(
         summary = _summary(spec, cable, names, history, best, before, after, fit_seconds)
         summary["recordings_sha256"] = digest
         summary["calibrated"] = calibrated.model_dump(mode="json")
-        write_text_atomic(out / CALIBRATED_SPEC, calibrated_yaml(calibrated))
+        summary["task"] = task
+        if unobserved is not None:
+            summary["observation_left_out"] = unobserved
+        write_text_atomic(out / CALIBRATED_SPEC, calibrated_yaml(calibrated, task))
         write_report(out, summary)
         summary["out"] = str(out)
     return summary

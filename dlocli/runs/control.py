@@ -67,6 +67,7 @@ class ControlSpec(EnvSpec, CellChoice):
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
         "task.observation.latency_steps", "task.observation.dropout",
         "task.observation.occlusion_probability", "task.observation.gripper_markers",
+        "task.observation.marker_arc_lengths", "task.control_dt",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
@@ -139,10 +140,13 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
     if spec.checkpoint is None:
         return None
-    from dlocli.models.base import resolve_device
+    from dlocli.models.base import check_control_rate, resolve_device
     from dlocli.models.markers import load_planning_model
 
     model = load_planning_model(spec.checkpoint, resolve_device(spec.device))
+    check_control_rate(model, spec.task.control_dt, f"model {spec.checkpoint}", "the task runs",
+                       "re-train it on data at {used_hz} Hz, or pass --control-dt {dt} (task."
+                       "control_dt) to control at the model's rate")  # fmt: skip
     found = model.n_segments
     if getattr(model, "form", "rod") == "rod" and found != n_segments:  # markers: the view
         raise BadInput(

@@ -12,7 +12,7 @@ from dlocli.errors import BadInput
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
-from dlocli.models.base import load_model
+from dlocli.models.base import check_control_rate, load_model
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.markers import load_marker_model
 from dlocli.models.spec import EvalSpec
@@ -39,6 +39,9 @@ def run_evaluation(spec: EvalSpec, overwrite: bool = False) -> dict[str, Any]:
             f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "
             f"{dataset.n_segments}; evaluate on matching data"
         )
+    if dataset.control_dt is not None:
+        check_control_rate(net, dataset.control_dt, f"model {spec.checkpoint}",
+                           f"{spec.data} is", "evaluate it on data at {hz} Hz")  # fmt: skip
     if spec.out is None:
         return _evaluation_summary(spec, net, dataset)
     with owned(spec.out):  # one writer per run directory

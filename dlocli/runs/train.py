@@ -21,8 +21,10 @@ from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_tex
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.protocol import deform_score_cm, freeze
 from dlocli.models.base import (
+    CONTROL_DT,
     DynamicsModel,
     build_model,
+    check_control_rate,
     load_model,
     read_checkpoint,
     resolve_device,
@@ -52,6 +54,7 @@ def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dic
     if spec.init_from is not None:
         expect = spec.model if "model" in spec.model_fields_set else None
         model = load_model(spec.init_from, device, expect=expect)
+        check_init_rate(model, spec, dataset)
         opt_state = read_checkpoint(spec.init_from).get("optimizer")
         if model.n_segments != dataset.n_segments:
             raise BadInput(
@@ -61,6 +64,18 @@ def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dic
         return model, opt_state if isinstance(opt_state, dict) else None
     torch.manual_seed(spec.seed)
     return build_model(spec.model, dataset.n_segments).to(device), None
+
+
+def check_init_rate(model: Any, spec: TrainSpec, dataset: Dataset | MarkerDataset) -> None:
+    """BadInput if the --init-from model learned from data at another control period."""
+    if dataset.control_dt is not None:
+        check_control_rate(model, dataset.control_dt, f"--init-from {spec.init_from}",
+                           f"--data {spec.data} is", "fine-tune it on data at {hz} Hz")  # fmt: skip
+
+
+def recorded_rate(dataset: Dataset | MarkerDataset) -> dict[str, float]:
+    """What a checkpoint records of the data's control period (nothing where it is unknown)."""
+    return {} if dataset.control_dt is None else {CONTROL_DT: dataset.control_dt}
 
 
 def load_training_data(spec: TrainSpec) -> Dataset:
@@ -134,6 +149,7 @@ def _train_in(
         record_fingerprints(out, spec)
         done = ResumePoint()
     ckpt_dir = out / "checkpoints"
+    rate = recorded_rate(dataset)
     best = KeepBest(val_loss=done.best_val_loss)
     history = list(done.history)
     scalars = Scalars(out)
@@ -143,10 +159,10 @@ def _train_in(
         scalars.add(record.count, "loss", train=record.train_loss, val=record.val_loss)
         _write_metrics(out / "metrics.csv", history)
         if best.count == record.count:  # the best so far
-            save_checkpoint(model, ckpt_dir / "best.pt", {"epoch": record.count})
+            save_checkpoint(model, ckpt_dir / "best.pt", {"epoch": record.count, **rate})
         point = {"epoch": record.count, "generator": gen.get_state(),
                  "history": [r.as_row() for r in history], "best_val_loss": best.val_loss,
-                 "optimizer": optimizer.state_dict()}  # fmt: skip
+                 "optimizer": optimizer.state_dict(), **rate}  # fmt: skip
         save_checkpoint(model, out / LAST_CHECKPOINT, point)
 
     try:
@@ -156,8 +172,8 @@ def _train_in(
                      cancel=signal_token())  # fmt: skip
     finally:
         scalars.close()
-    save_checkpoint(model, ckpt_dir / "final.pt",
-                    {"epoch": spec.epochs, "optimizer": result.optimizer_state})  # fmt: skip
+    final = {"epoch": spec.epochs, "optimizer": result.optimizer_state, **rate}
+    save_checkpoint(model, ckpt_dir / "final.pt", final)
     eval_eps = result.val_episodes if len(result.val_episodes) else result.train_episodes
     last = history[-1] if history else None
     summary: dict[str, Any] = {
@@ -237,6 +253,7 @@ def run_marker_training(
     torch.manual_seed(spec.seed)
     if spec.init_from is not None:  # fine-tuning: the checkpoint's model and normalization
         model = load_marker_model(spec.init_from)
+        check_init_rate(model, spec, dataset)
         if not np.array_equal(model.held.cpu().numpy(), dataset.held):
             raise BadInput(
                 f"--init-from {spec.init_from} was trained on another marker layout than "
@@ -250,7 +267,8 @@ def run_marker_training(
     result = fit(model, dataset, spec, progress=progress, cancel=signal_token())
     history = result.history
     seconds = list(accumulate(r.seconds for r in history))  # since the fit started
-    save_checkpoint(model, out / "checkpoints" / "final.pt", {"form": FORM})
+    final = {"form": FORM, **recorded_rate(dataset)}
+    save_checkpoint(model, out / "checkpoints" / "final.pt", final)
     lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
     lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
               for r, s in zip(history, seconds, strict=True)]  # fmt: skip

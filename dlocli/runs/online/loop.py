@@ -145,6 +145,7 @@ class OnlineRun:
                 "train_seconds": time.perf_counter() - start,
                 "threads": threads,
                 "device": str(device),
+                "control_dt": self.spec.task.control_dt,
                 **extra,
             },
         )
@@ -185,6 +186,7 @@ class OnlineRun:
             "form": FORM, "iteration": k, "val_score_cm": best, "threads": threads,
             "train_seconds": time.perf_counter() - start,
             "device": str(resolve_device(self.spec.fit.device)),
+            "control_dt": self.spec.task.control_dt,
         })  # fmt: skip
 
     def _validations(self, k: int) -> Callable[[Any], None]:
@@ -273,7 +275,8 @@ class OnlineRun:
                 train_like_online(  # as long as the online model had trained by iteration k
                     model, data, fit, k, progress=self._validations(k)
                 )
-            save_checkpoint(model, ckpt, {"iteration": k, "offline": 1})
+            save_checkpoint(model, ckpt, {"iteration": k, "offline": 1,
+                                          "control_dt": self.spec.task.control_dt})  # fmt: skip
         self.run_trials(k, ckpt, offline=True)
 
     def _random_data(self, k: int, n_transitions: int) -> Dataset:
