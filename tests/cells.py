@@ -56,9 +56,7 @@ def listening(argv: list[str], pattern: str, kill: bool = False) -> Iterator[tup
 
 
 @contextmanager
-def served(
-    *flags: str, kill: bool = False, address: str = "tcp://127.0.0.1:*"
-) -> Iterator[str]:
+def served(*flags: str, kill: bool = False, address: str = "tcp://127.0.0.1:*") -> Iterator[str]:
     """A `dlo serve` process; yields its address, stops it after (Ctrl-C, or SIGKILL with
     ``kill``)."""
     argv = [sys.executable, "-m", "dlocli.cli", "serve", "--address", address, *flags]

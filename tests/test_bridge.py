@@ -8,11 +8,11 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from cells import control_argv as _control
 from cells import example_cell, served
 from cells import step_errors as _errors
 from cells import summary_of as _summary
+
 from tiny import run_dlo
 
 pytest.importorskip("zmq")

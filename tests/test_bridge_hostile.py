@@ -14,7 +14,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-
 from cells import (
     EXAMPLE,
     RawClient,
@@ -27,6 +26,7 @@ from cells import (
     step_errors,
     summary_of,
 )
+
 from tiny import run_dlo
 
 zmq = pytest.importorskip("zmq")
@@ -39,8 +39,9 @@ def _hello(client: RawClient, **changes) -> dict:
     from dlocli.bridge import protocol
     from dlocli.specs import BackendSpec
 
-    hello = {"protocol": protocol.PROTOCOL, "version": protocol.VERSION,
-             "backend": BackendSpec().model_dump(mode="json"), "control_dt": 0.02} | changes  # fmt: skip
+    backend = BackendSpec().model_dump(mode="json")
+    hello = {"protocol": protocol.PROTOCOL, "version": protocol.VERSION, "backend": backend,
+             "control_dt": 0.02} | changes  # fmt: skip
     return client.ask("hello", **hello)
 
 
@@ -49,6 +50,13 @@ def _peak_rss_mb(pid: int) -> float:
         if line.startswith("VmHWM:"):
             return int(line.split()[1]) / 1024
     raise AssertionError("no VmHWM")
+
+
+def _reset_with(token: str, **limits) -> bytes:
+    """A reset whose limits are sane but for ``limits``."""
+    sane = {"workspace_low": [-1, -1, 0], "workspace_high": [1, 1, 2], "min_separation": 0.1,
+            "max_separation": 1.0}  # fmt: skip
+    return json.dumps({"type": "reset", "session": token, "limits": sane | limits}).encode()
 
 
 def _assault(address: str) -> None:
@@ -70,12 +78,9 @@ def _assault(address: str) -> None:
         [b'{"type": "step", "session": "%s", ' % token.encode(), b'"velocities": []}'],  # 2 frames
         [b'{"type": "reset", "session": "%s", "seed": 1e999}' % token.encode()],
         [b'{"type": "reset", "session": "%s", "seed": -1}' % token.encode()],
-        [json.dumps({"type": "reset", "session": token, "limits": {
-            "workspace_low": [float("nan"), 0, 0], "workspace_high": [1, 1, 1],
-            "min_separation": 0.1, "max_separation": 1.0}}).encode()],  # fmt: skip
-        [json.dumps({"type": "reset", "session": token, "limits": {
-            "workspace_low": [0.0], "workspace_high": [1, 1, 1],
-            "min_separation": 0.1, "max_separation": 1.0}}).encode()],  # fmt: skip
+        [_reset_with(token, workspace_low=[float("nan"), 0, 0])],
+        [_reset_with(token, workspace_low=[0.0])],
+        [_reset_with(token, min_separation=2.0)],
         [json.dumps({"type": "step", "session": token, "velocities": [[1e999] * 6] * 2}).encode()],
         [json.dumps({"type": "step", "session": token, "velocities": [["x"] * 6] * 2}).encode()],
         [json.dumps({"type": "step", "session": token, "velocities": [[True] * 6] * 2}).encode()],

@@ -14,8 +14,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from dlocli.errors import BadInput
 from dlocli.bridge.protocol import VERSION
+from dlocli.errors import BadInput
 from dlocli.spec_base import bounded_repr
 
 #: a float that is a number (JSON's 1e999 reads as infinity: refused)
@@ -59,7 +59,7 @@ class Limits(Message):
 
     @model_validator(mode="after")
     def _ordered(self) -> Limits:
-        if not all(lo < hi for lo, hi in zip(self.workspace_low, self.workspace_high)):
+        if not all(lo < hi for lo, hi in zip(self.workspace_low, self.workspace_high, strict=True)):
             raise ValueError("workspace_low must lie below workspace_high on every axis")
         if not self.min_separation < self.max_separation:
             raise ValueError("min_separation must be less than max_separation")

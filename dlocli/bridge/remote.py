@@ -23,6 +23,19 @@ class CellLost(DloError):
     """The cell failed mid-run (exit 1): it stopped answering, another controller took it, or
     it answered nonsense. The run stops, its finished steps kept."""
 
+    def __init__(self, what: str, steps_kept: bool = True) -> None:
+        self.what = what
+        ending = (
+            "the run stopped and its finished steps are kept"
+            if steps_kept
+            else "the run stopped before its first step; nothing was written"
+        )
+        super().__init__(f"{what}; {ending}")
+
+    def before_first_step(self) -> CellLost:
+        """The same loss, said of a run that had not finished a step."""
+        return CellLost(self.what, steps_kept=False)
+
 
 class RemoteCell(Backend):
     """The rod of ``spec`` stepped by the cell at ``address`` (``keys``: the CURVE keys
@@ -114,8 +127,7 @@ class RemoteCell(Backend):
     def _refusal(self, kind: str, error: messages.Error) -> DloError:
         if error.code in ("busy", "no_session") and self._session:
             return CellLost(
-                f"the cell at {self.address} is no longer this controller's ({error.message}); "
-                "the run stopped and its finished steps are kept"
+                f"the cell at {self.address} is no longer this controller's ({error.message})"
             )
         if error.code in ("busy", "cell_fault") or self._answered and kind == "step":
             return CellLost(f"the cell at {self.address} refused {kind}: {error.message}")
@@ -130,8 +142,7 @@ class RemoteCell(Backend):
                 "address (and --cell-keys, if the cell has keys)"
             )
         return CellLost(
-            f"the cell at {self.address} stopped answering (no reply within {waited_s:g} "
-            "s); the run stopped and its finished steps are kept"
+            f"the cell at {self.address} stopped answering (no reply within {waited_s:g} s)"
         )
 
     def _fault(self, what: str) -> DloError:
@@ -140,7 +151,7 @@ class RemoteCell(Backend):
         line = f"the cell at {self.address} broke the protocol: {what}"
         if not self._answered:
             return BadInput(f"{line}; is it a dlocli-cell version {protocol.VERSION} cell?")
-        return CellLost(f"{line}; the run stopped and its finished steps are kept")
+        return CellLost(line)
 
     def _drop_socket(self) -> None:
         if self._socket is not None:
@@ -177,8 +188,7 @@ class RemoteCell(Backend):
             return
         raise CellLost(
             f"the cell at {self.address} was reset or stepped by someone else (its step "
-            f"{step}, this controller's {expected}); the run stopped and its finished steps "
-            "are kept"
+            f"{step}, this controller's {expected})"
         )
 
     # ------------------------------------------------------------------ the backend

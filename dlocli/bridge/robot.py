@@ -1,6 +1,6 @@
 """A robot as a cell: subclass :class:`Robot`, fill in its four methods with your robot's and
-your tracker's calls, and serve it with :func:`dlocli.bridge.server.serve`. Every request is checked, and the session
-kept, by the same code as `dlo serve` (:mod:`dlocli.bridge.server`) before your methods run.
+your tracker's calls, and serve it with :func:`dlocli.bridge.server.serve`. Every request is
+checked, and the session kept, by the same code as `dlo serve` before your methods run.
 ``examples/bridge/robot_cell.py`` is one in a page.
 """
 
@@ -98,4 +98,3 @@ class Robot(CellHandler):
             "late": 0,
             "dropped": 0,
         }
-

@@ -129,6 +129,13 @@ class DLOShapeEnv(gym.Env):
             )
         self.task: Task = make_task(self.task_spec.name)
         self.backend = make_backend(self.backend_spec, self.task_spec.control_dt, cell)
+        try:  # a cell's session ends with the env that could not be built
+            self._set_up(goal, seed, render_mode)
+        except BaseException:
+            self.backend.close()
+            raise
+
+    def _set_up(self, goal: Any, seed: int, render_mode: str | None) -> None:
         apply_task_limits(self.backend, self.task_spec)
         self.envelope = Envelope(
             self.task_spec.envelope, self.backend.limits, self.task.moving,

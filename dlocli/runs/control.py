@@ -222,7 +222,7 @@ def _run_closed_loop(
     finally:
         env.close()
     if loop.lost is not None and not loop.records:  # lost before the first step: nothing kept
-        raise loop.lost
+        raise loop.lost.before_first_step()
     summary = summarise(loop.records, loop.initial_error, spec, loop.diverged, wall) | counts
     write_metrics(out / "metrics.csv", loop.records)
     plot_errors(out / "plots" / "error.png", loop.records, loop.initial_error, spec.controller)
