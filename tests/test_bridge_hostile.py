@@ -140,9 +140,9 @@ def test_an_intruder_gets_busy_and_the_running_controller_its_own_result(
     near_rest_goal, sac_policy, tmp_path
 ):
     here, there = tmp_path / "here", tmp_path / "there"
-    argv = control_argv(near_rest_goal, sac_policy, there, steps=100)
+    argv = control_argv(near_rest_goal, sac_policy, there, steps=200)
     argv.remove("--json")  # its progress lines say when the steps have begun
-    assert run_dlo(control_argv(near_rest_goal, sac_policy, here, steps=100)) == 0
+    assert run_dlo(control_argv(near_rest_goal, sac_policy, here, steps=200)) == 0
     with served("--delay-ms", "20") as address:  # lockstep: the delay changes no number
         control = subprocess.Popen(
             [sys.executable, "-m", "dlocli.cli", *argv, "--cell", address],
