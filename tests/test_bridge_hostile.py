@@ -274,3 +274,31 @@ def test_a_controller_believes_no_reply_that_breaks_the_protocol(changes, proble
     with lying_cell(changes) as address, pytest.raises(CellLost, match=problem):
         make_env("mujoco", "single", seed=0, render_mode=None, episode_steps=5,
                  reset_motion_steps=2, reset_settle_steps=2, cell=address)  # fmt: skip
+
+
+def test_a_controller_killed_mid_run_frees_its_cell_after_the_idle_time(
+    near_rest_goal, sac_policy, tmp_path, capsys
+):
+    here, there = tmp_path / "here", tmp_path / "there"
+    assert run_dlo(control_argv(near_rest_goal, sac_policy, here)) == 0
+    killed = control_argv(near_rest_goal, sac_policy, tmp_path / "killed", steps=400)
+    killed.remove("--json")  # its progress lines say when the steps have begun
+    # long enough for the controller's imports between its hello and its first reset
+    with served("--session-idle-s", "8", "--delay-ms", "10") as address:
+        control = subprocess.Popen(
+            [sys.executable, "-m", "dlocli.cli", *killed, "--cell", address],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert control.stdout is not None
+        assert control.stdout.readline().startswith("step")
+        control.kill()
+        control.communicate(timeout=60)
+        started = time.monotonic()
+        argv = control_argv(near_rest_goal, sac_policy, there, "--cell", address)
+        assert run_dlo(argv) == 2  # the dead controller's session still owns the cell
+        line = capsys.readouterr().err.strip()
+        assert "is busy" in line and "wait" in line and len(line.splitlines()) == 1, line
+        assert not there.exists()
+        time.sleep(max(0.0, 8.5 - (time.monotonic() - started)))
+        assert run_dlo(argv) == 0  # the cell freed itself (and stopped the grippers)
+    assert step_errors(there) == step_errors(here)

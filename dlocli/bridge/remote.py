@@ -129,6 +129,11 @@ class RemoteCell(Backend):
             return CellLost(
                 f"the cell at {self.address} is no longer this controller's ({error.message})"
             )
+        if error.code == "busy" and kind == "hello":
+            return BadInput(
+                f"the cell at {self.address} is busy ({error.message.removeprefix('busy: ')}): "
+                "wait for that controller to end (or stop it) and run again"
+            )
         if error.code in ("busy", "cell_fault") or self._answered and kind == "step":
             return CellLost(f"the cell at {self.address} refused {kind}: {error.message}")
         return BadInput(f"the cell at {self.address} refused {kind}: {error.message}")
