@@ -302,3 +302,40 @@ def test_a_controller_killed_mid_run_frees_its_cell_after_the_idle_time(
         time.sleep(max(0.0, 8.5 - (time.monotonic() - started)))
         assert run_dlo(argv) == 0  # the cell freed itself (and stopped the grippers)
     assert step_errors(there) == step_errors(here)
+
+
+def test_a_robot_whose_own_code_fails_answers_cell_fault_and_serves_on():
+    """The robot's driver raising inside a request is the cell's fault, said in one reply:
+    the serving loop (the one the example and `dlo serve` share) goes on."""
+    import runpy
+
+    from dlocli.bridge.server import CellServer
+
+    robot_cell = runpy.run_path(str(EXAMPLE))["RobotCell"]
+
+    class Jammed(robot_cell):
+        jam = True
+
+        def move(self, velocities):
+            if self.jam:
+                raise RuntimeError("joint 3 over torque")
+            super().move(velocities)
+
+    robot = Jammed()
+    server = CellServer(robot, log=lambda line: None)
+
+    def ask(kind: str, **fields) -> dict:
+        return json.loads(server.answer([json.dumps({"type": kind, **fields}).encode()]))
+
+    from dlocli.bridge import protocol
+
+    token = ask("hello", protocol=protocol.PROTOCOL, version=protocol.VERSION,
+                backend=robot.backend, control_dt=robot.control_dt)["session"]  # fmt: skip
+    assert ask("reset", session=token, seed=0)["step"] == 0
+    fault = ask("step", session=token, velocities=STILL)
+    assert fault["code"] == "cell_fault" and "joint 3 over torque" in fault["message"], fault
+    robot.jam = False
+    assert ask("step", session=token, velocities=STILL)["step"] == 1
+    assert ask("set_state", session=token, state=[0.0])["code"] == "refused"
+    assert ask("bye", session=token)["type"] == "bye"
+    assert ask("stop", session=token)["code"] == "no_session"
