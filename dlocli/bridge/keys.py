@@ -2,10 +2,10 @@
 ZeroMQ CURVE keys on both sides (encryption, and only controllers holding a key the cell
 knows get through).
 
-One folder of keys serves both sides (``dlo keys DIR``): the cell reads ``cell.key_secret``
-and lets in the public keys ``*.key`` beside it; a controller reads ``controller.key_secret``
-and ``cell.key`` (so it talks to this cell and no other). Copy the folder to the controller's
-machine, or only the two files it reads.
+One folder of keys serves both sides (``dlo keys --out DIR``): the cell reads
+``cell.key_secret`` and lets in the public keys ``*.key`` beside it; a controller reads
+``controller.key_secret`` and ``cell.key`` (so it talks to this cell and no other). Copy the
+folder to the controller's machine, or only the two files it reads.
 """
 
 from __future__ import annotations
@@ -53,8 +53,8 @@ def require_keys_off_loopback(address: str, keys: Path | None, flag: str, keys_f
     if keys is None and not is_loopback(address):
         raise BadInput(
             f"{flag} {address} is reachable from other machines: a cell off loopback needs "
-            f"CURVE keys; make them with `dlo keys DIR` and pass {keys_flag} DIR on both sides "
-            "(or use tcp://127.0.0.1:PORT or ipc://PATH on one machine)"
+            f"CURVE keys; make them with `dlo keys --out DIR` and pass {keys_flag} DIR on both "
+            "sides (or use tcp://127.0.0.1:PORT or ipc://PATH on one machine)"
         )
 
 
@@ -94,7 +94,7 @@ def _load(folder: Path, name: str, secret: bool, flag: str) -> tuple[bytes, byte
     path = folder / (f"{name}.key_secret" if secret else f"{name}.key")
     if not path.is_file():
         raise BadInput(
-            f"{flag} {folder}: no {path.name} there; make the keys with `dlo keys {folder}`"
+            f"{flag} {folder}: no {path.name} there; make the keys with `dlo keys --out {folder}`"
         )
     try:
         public, secret_key = zmq.auth.load_certificate(path)

@@ -69,7 +69,7 @@ class ServeSpec(EnvSpec):
 
     keys: Path | None = Field(
         None,
-        description="A folder of CURVE keys (`dlo keys DIR`): only controllers holding its "
+        description="A folder of CURVE keys (`dlo keys --out DIR`): only controllers holding its "
         "controller key get in, encrypted. Required off loopback (any address but "
         "127.0.0.1, localhost and ipc://).",
     )
@@ -111,7 +111,7 @@ class CellChoice(Spec):
 
     cell_keys: Path | None = Field(
         None,
-        description="The CURVE keys folder of the cell (`dlo keys DIR`, the same as its "
+        description="The CURVE keys folder of the cell (`dlo keys --out DIR`, the same as its "
         "`dlo serve --keys`): required for a cell off loopback.",
     )
 

@@ -18,7 +18,7 @@ def serve(
     """Serve a simulator as a cell at --address until stopped (Ctrl-C, SIGTERM: exit 0):
     controllers step it with `dlo control --cell ADDRESS`, as they would a robot. One
     controller at a time owns it (from its hello to its bye, or --session-idle-s without a
-    request); off loopback it needs --keys (`dlo keys DIR`)."""
+    request); off loopback it needs --keys (`dlo keys --out DIR`)."""
     import typer
 
     spec = run.spec()
