@@ -279,8 +279,10 @@ def resolve_spec(
     try:
         return cls.model_validate(data, context=None if saved else GIVEN)
     except ValidationError as exc:
-        field = ".".join(str(part) for part in exc.errors()[0]["loc"])
-        if flag_name is not None and field in given:
+        first = exc.errors()[0]
+        field = ".".join(str(part) for part in first["loc"])
+        # an option the chosen model lacks is named by its field (model.depth), not its flag
+        if flag_name is not None and field in given and first["type"] != "extra_forbidden":
             raise BadInput(flag_error(exc, f"--{flag_name(field)}")) from None
         raise BadInput(format_validation_error(exc, str(spec_file or "spec"))) from exc
 

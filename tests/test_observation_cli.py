@@ -56,7 +56,7 @@ def test_control_plans_through_the_marker_model_under_faults(marker_run, near_re
 @pytest.mark.parametrize(
     ("flags", "says"),
     [
-        (["--observation", "markers", "--noise-mm", "-1"], "noise_mm"),
+        (["--observation", "markers", "--noise-mm", "-1"], "--noise-mm"),
         (["--noise-mm", "2"], "--observation markers"),
         (["--observation", "markers", "--latency-steps", "15"], "shorter than the episode"),
         (["--observation", "markers", "--dropout", "1"], "dropout"),
