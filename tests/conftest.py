@@ -79,7 +79,7 @@ def marker_run(tmp_path_factory: pytest.TempPathFactory):
     untrained marker model fitted to its scales: ``(dataset.h5, checkpoint.pt)``."""
     import numpy as np
 
-    from dlocli.markers.dataset import MarkerDataset
+    from dlocli.data import MarkerDataset
     from dlocli.markers.deform import held_markers
     from dlocli.models.base import save_checkpoint
     from dlocli.models.markers import FORM, build_marker_model

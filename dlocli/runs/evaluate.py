@@ -7,10 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from dlocli.data import Dataset, load_dataset
+from dlocli.data import Dataset, MarkerDataset, load_dataset
 from dlocli.errors import BadInput
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
-from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
 from dlocli.models.base import check_control_rate, load_model
 from dlocli.models.evaluation import evaluate_model, plot_rollout

@@ -15,11 +15,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from dlocli.data import Dataset, load_dataset
+from dlocli.data import Dataset, MarkerDataset, load_dataset
+from dlocli.data.protocol import deform_score_cm, freeze
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
-from dlocli.markers.dataset import MarkerDataset
-from dlocli.markers.protocol import deform_score_cm, freeze
 from dlocli.models.base import (
     CONTROL_DT,
     DynamicsModel,

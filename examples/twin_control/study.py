@@ -106,7 +106,7 @@ def simulate(job: tuple[argparse.Namespace, str]) -> str:
     options, cable = job
     from dlocli.calibration.fit import replay_settings
     from dlocli.calibration.simulate import simulate_markers
-    from dlocli.markers.dataset import MarkerDataset
+    from dlocli.data import MarkerDataset
     from dlocli.registry import backends
 
     out = options.out / cable / "sim"
