@@ -273,7 +273,7 @@ def test_simulated_markers_train_a_model_that_fine_tunes(cable: Path, tmp_path: 
     marker model from that checkpoint (its weights and normalization)."""
     from dlocli.calibration.simulate import simulate_markers
     from dlocli.data import MarkerDataset
-    from dlocli.models.markers import load_marker_model
+    from dlocli.models.checkpoints import load_marker_model
 
     recordings = [deform.read_trajectory(cable / f"train/{i}.pkl") for i in range(2)]
     backend = backends.get("mujoco")(_rod(TRUE_E), control_dt=1 / RATE)

@@ -238,7 +238,7 @@ def learn(options: argparse.Namespace) -> None:
 # --------------------------------------------------------------------------- evaluation
 def controller_for(name: str, env: Any, options: argparse.Namespace, cable: str, seed: int) -> Any:
     from dlocli.controllers.base import make_controller
-    from dlocli.models.markers import load_planning_model
+    from dlocli.models.checkpoints import load_planning_model
 
     if name in ("nothing", "random"):
         return None  # drawn per episode
