@@ -41,7 +41,7 @@ FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
 #: is one such period (checkpoints written before it have none, and are taken as they are)
 CONTROL_DT = "control_dt"
 #: the payload key of the model's form, and the forms a checkpoint may hold
-FORM = "form"
+FORM_KEY = "form"
 FORMS = (ROD, MARKERS)
 #: how errors name a checkpoint read from bytes
 IN_MEMORY = "the model checkpoint in memory"
@@ -66,7 +66,7 @@ def save_checkpoint(
         **(extra or {}),
         "format": CHECKPOINT_FORMAT,
         "format_version": CHECKPOINT_VERSION,
-        FORM: model_form(model),
+        FORM_KEY: model_form(model),
         "model_spec": model.spec.model_dump(mode="json"),
         "n_segments": model.n_segments,
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
@@ -138,7 +138,7 @@ def _checked_payload(source: Path | io.BytesIO, path: Path | str) -> dict[str, A
 def checkpoint_form(payload: dict[str, Any], path: Path | str) -> str:
     """The form of the model a checkpoint's payload holds (the rod's where it has no tag:
     written before marker models existed); BadInput for a tag this dlocli does not know."""
-    form = payload.get(FORM, ROD)
+    form = payload.get(FORM_KEY, ROD)
     if form not in FORMS:
         raise BadInput(
             f"checkpoint {path} holds a model of form {str(form)[:40]!r}, not one of "
