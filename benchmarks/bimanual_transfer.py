@@ -42,7 +42,8 @@ from dlocli.controllers.base import make_controller
 from dlocli.controllers.mpc import GradientMPC, MPCSpec
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
-from dlocli.models.base import build_model, load_model
+from dlocli.models.base import build_model
+from dlocli.models.checkpoints import load_model
 from dlocli.models.training import train_model
 from dlocli.resume import saved_spec
 from dlocli.runs.online import TRAIN

@@ -38,7 +38,8 @@ import torch
 import dlocli
 from dlocli.controllers.base import Controller, make_controller
 from dlocli.controllers.planning import ModelPlanner
-from dlocli.models.base import ModelSpec, build_model, load_model
+from dlocli.models.base import ModelSpec, build_model
+from dlocli.models.checkpoints import load_model
 
 PAPER_LIKE = {"optimizer": "adam", "iterations": 50, "warm_start": False, "restarts": 1}
 

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dlocli.models.base import read_checkpoint
+from dlocli.models.checkpoints import read_checkpoint
 from dlocli.runs.online import OnlineSpec, resume_online, start_online
 
 QUICK = {

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from dlocli.data import load_dataset
-from dlocli.models.base import read_checkpoint
+from dlocli.models.checkpoints import read_checkpoint
 from dlocli.runs.online import OnlineSpec, RunLayout, start_online
 
 PAPER = {"iters": 20, "trials": 50, "steps": 200, "epochs": 50, "initial_episodes": 10}

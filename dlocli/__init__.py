@@ -40,8 +40,8 @@ _LAZY = {
     "random_dataset": "dlocli.runs.collect:random_dataset",
     # models
     "build_model": "dlocli.models.base:build_model",
-    "load_model": "dlocli.models.base:load_model",
-    "save_checkpoint": "dlocli.models.base:save_checkpoint",
+    "load_model": "dlocli.models.checkpoints:load_model",
+    "save_checkpoint": "dlocli.models.checkpoints:save_checkpoint",
     "fit": "dlocli.models.fit:fit",
     "train_model": "dlocli.models.training:train_model",
     # control, episodes and their scores

@@ -58,7 +58,7 @@ def _gigabytes(n_bytes: float) -> str:
 
 def refuse_oversized_dataset(episodes: int, episode_steps: int, n_segments: int) -> None:
     """BadInput if a dataset of ``episodes`` episodes would not fit in memory. Its float32
-    arrays (:mod:`dlocli.data`) hold N x (3 + 4) + 2 x 7 numbers per state and 2 x 6 + 1 per
+    arrays (:mod:`dlocli.data.rod`) hold N x (3 + 4) + 2 x 7 numbers per state and 2 x 6 + 1 per
     transition, three times over while it is assembled and saved (the episodes, their
     concatenation, the file's image)."""
     per_episode = (episode_steps + 1) * (n_segments * 7 + 14) + episode_steps * 13

@@ -9,7 +9,7 @@ without one.
 
 Applied only where saved data is read: run spec.json, resumed or given with ``--spec``
 (:meth:`dlocli.specs.Spec.saved_layout`, :func:`dlocli.resume.saved_spec`), checkpoints
-(:func:`dlocli.models.base.checkpoint_spec`) and bench fingerprints
+(:func:`dlocli.models.checkpoints.checkpoint_spec`) and bench fingerprints
 (:func:`dlocli.bench.spec.fingerprint`); validating a spec migrates nothing, and a spec the
 user writes (:data:`dlocli.specs.GIVEN`) is told a retired field's replacement instead.
 """

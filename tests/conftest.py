@@ -79,10 +79,10 @@ def marker_run(tmp_path_factory: pytest.TempPathFactory):
     untrained marker model fitted to its scales: ``(dataset.h5, checkpoint.pt)``."""
     import numpy as np
 
-    from dlocli.markers.dataset import MarkerDataset
+    from dlocli.data import MarkerDataset
     from dlocli.markers.deform import held_markers
-    from dlocli.models.base import save_checkpoint
-    from dlocli.models.markers import FORM, build_marker_model
+    from dlocli.models.checkpoints import save_checkpoint
+    from dlocli.models.markers import build_marker_model
 
     rng = np.random.default_rng(0)
     line = np.stack([np.linspace(0, 0.8, 6), np.zeros(6), np.full(6, 0.5)], -1)
@@ -98,7 +98,7 @@ def marker_run(tmp_path_factory: pytest.TempPathFactory):
     root = tmp_path_factory.mktemp("markers")
     model = build_marker_model({"name": "in-bilstm", "hidden": 8}, 6, held)
     model.fit_normalization([(e, held) for e in data.episodes("train")])
-    save_checkpoint(model, root / "model.pt", {"form": FORM})
+    save_checkpoint(model, root / "model.pt")  # tagged with the model's form
     return data.save(root / "dataset.h5"), root / "model.pt"
 
 

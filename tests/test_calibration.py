@@ -23,9 +23,10 @@ import yaml
 from dlocli.calibration.fit import load_cable
 from dlocli.calibration.replay import ReplaySettings, replay
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.io import written_by_dlo
-from dlocli.markers import deform, protocol
+from dlocli.markers import deform
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec
 
@@ -271,8 +272,8 @@ def test_simulated_markers_train_a_model_that_fine_tunes(cable: Path, tmp_path: 
     """Simulated data of the rod is a marker dataset `dlo train` takes; --init-from starts a
     marker model from that checkpoint (its weights and normalization)."""
     from dlocli.calibration.simulate import simulate_markers
-    from dlocli.markers.dataset import MarkerDataset
-    from dlocli.models.markers import load_marker_model
+    from dlocli.data import MarkerDataset
+    from dlocli.models.checkpoints import load_marker_model
 
     recordings = [deform.read_trajectory(cable / f"train/{i}.pkl") for i in range(2)]
     backend = backends.get("mujoco")(_rod(TRUE_E), control_dt=1 / RATE)

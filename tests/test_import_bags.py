@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dlocli.data import load_dataset
-from dlocli.markers.dataset import MarkerDataset
+from dlocli.data import MarkerDataset, load_dataset
 
 from tiny import dlo_import, swinging_cable
 

@@ -12,8 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
-from dlocli.data import load_dataset
-from dlocli.markers.dataset import MarkerDataset
+from dlocli.data import MarkerDataset, load_dataset
 
 from tiny import MARKERS, dlo_import, swinging_cable
 

@@ -142,3 +142,13 @@ def test_no_module_over_500_lines():
     }
     over = {name: n for name, n in long.items() if name not in OVER_THE_LIMIT}
     assert not over, f"modules over {MAX_MODULE_LINES} lines (split them by idea): {over}"
+
+
+def test_data_and_models_do_not_import_the_recordings_room():
+    """Datasets and models sit below `dlocli/markers/` (importing recordings): what both need
+    of recorded cables (the marker dataset, the DEFORM protocol) lives in `dlocli/data/`."""
+    graph = import_graph()
+    low = [m for m in graph if m.startswith(("dlocli.data", "dlocli.models"))]
+    assert len(low) > 20, "the check would be vacuous: no data or models modules found"
+    upward = {m: sorted(i for i in graph[m] if i.startswith("dlocli.markers")) for m in low}
+    assert not {m: i for m, i in upward.items() if i}, upward

@@ -88,15 +88,15 @@ LAZY_IMPORTS = {
     ("dlocli.cli.train", "dlocli.runs.train"): _CLI_RUNNER,
     # `dlo online --help` and `dlo control --help` load these modules' specs
     ("dlocli.runs.control", "dlocli.models.base"): "torch; on the `dlo control --help` path",
-    ("dlocli.runs.control", "dlocli.models.markers"): "torch; on the `dlo control --help` path",
+    ("dlocli.runs.control", "dlocli.models.checkpoints"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.online.loop", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.fitting"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.update_steps"): _TORCH,
-    ("dlocli.runs.online.loop", "dlocli.models.markers"): _TORCH,
+    ("dlocli.runs.online.loop", "dlocli.models.checkpoints"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.runs.online.markers"): _TORCH,
-    ("dlocli.runs.online.results", "dlocli.models.base"): _TORCH,
+    ("dlocli.runs.online.results", "dlocli.models.checkpoints"): _TORCH,
     ("dlocli.runs.online.run", "dlocli.models.base"): _TORCH,
-    ("dlocli.runs.online.trials", "dlocli.models.markers"): _TORCH,
+    ("dlocli.runs.online.trials", "dlocli.models.checkpoints"): _TORCH,
     # an optional library, only for a fallback
     ("dlocli.backends.pybullet_chain", "dlocli.backends.render"): (
         "matplotlib, only when PyBullet cannot render"

@@ -14,7 +14,8 @@ from dlocli import migrations
 from dlocli.bench.run import BenchRun
 from dlocli.bench.spec import FREE_FIELDS, BenchSpec
 from dlocli.controllers.mpc import MPCSpec
-from dlocli.models.base import build_model, load_model, save_checkpoint
+from dlocli.models.base import build_model
+from dlocli.models.checkpoints import load_model, save_checkpoint
 from dlocli.models.spec import TrainSpec, UpdateSpec, model_spec_classes
 from dlocli.resume import load_saved_spec
 from dlocli.specs import BackendSpec, RodSpec, TaskSpec, resolve_spec

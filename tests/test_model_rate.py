@@ -74,7 +74,7 @@ def test_planners_refuse_a_model_of_another_rate(recorded):
     """What `dlo online`'s and `dlo bench`'s trials build: a planner through a model."""
     from dlocli.controllers.base import make_controller
     from dlocli.env.shape_env import make_env
-    from dlocli.models.markers import load_planning_model
+    from dlocli.models.checkpoints import load_planning_model
     from dlocli.specs import BackendSpec, ObservationSpec, TaskSpec
 
     model = load_planning_model(recorded / "model")

@@ -11,13 +11,8 @@ import torch
 
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
-from dlocli.models.base import (
-    build_model,
-    load_model,
-    load_model_bytes,
-    resolve_device,
-    save_checkpoint,
-)
+from dlocli.models.base import build_model, resolve_device
+from dlocli.models.checkpoints import load_model, load_model_bytes, save_checkpoint
 from dlocli.models.spec import model_spec
 from dlocli.registry import models
 

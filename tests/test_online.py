@@ -105,7 +105,7 @@ def test_reduced_run_writes_everything(uninterrupted):
     assert summary["transitions"] == 2 * 15 + 4 * 15
     saved = json.loads((out / "spec.json").read_text())
     assert saved["iters"] == 2 and saved["model"]["hidden"] == 16
-    from dlocli.models.base import read_checkpoint
+    from dlocli.models.checkpoints import read_checkpoint
 
     for name in ("iter_01.pt", "final.pt"):  # the period the model steps by
         assert read_checkpoint(out / "checkpoints" / name)["control_dt"] == 0.02
@@ -141,7 +141,7 @@ def test_threads_override_reaches_the_workers_and_the_update_and_warns_once(
     ran with 2 torch threads, where the default gives a trial 1; on 2 CPUs that is 4 busy
     threads: one warning, once."""
     from dlocli import threads
-    from dlocli.models.base import read_checkpoint
+    from dlocli.models.checkpoints import read_checkpoint
 
     first, _ = uninterrupted
     assert {load_dataset(f).attrs["threads"] for f in (first / "data").glob("iter_*/*.h5")} == {1}

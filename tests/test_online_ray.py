@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 from dlocli.cli import app
 from dlocli.data import load_dataset
 from dlocli.io import run_dir_entries, written_by_dlo
-from dlocli.models.base import read_checkpoint
+from dlocli.models.checkpoints import read_checkpoint
 
 ray = pytest.importorskip("ray")
 runner = CliRunner()

@@ -14,9 +14,8 @@ import h5py
 import numpy as np
 import pytest
 
-from dlocli.data import Dataset, load_dataset
-from dlocli.markers import deform, protocol
-from dlocli.markers.dataset import MarkerDataset
+from dlocli.data import Dataset, MarkerDataset, load_dataset, protocol
+from dlocli.markers import deform
 from dlocli.registry import models
 
 from tiny import FRAMES, MARKERS, run_dlo, swinging_cable, write_cable

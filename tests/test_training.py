@@ -10,7 +10,8 @@ import torch
 from typer.testing import CliRunner
 
 from dlocli.data import load_dataset
-from dlocli.models.base import build_model, load_model, read_checkpoint
+from dlocli.models.base import build_model
+from dlocli.models.checkpoints import load_model, read_checkpoint
 from dlocli.models.evaluation import evaluate_model
 from dlocli.models.fitting import Validated
 from dlocli.models.training import (

@@ -15,7 +15,8 @@ from typer.testing import CliRunner
 from dlocli.cli import app
 from dlocli.data import load_dataset
 from dlocli.migrations import LEGACY_VALUES
-from dlocli.models.base import build_model, read_checkpoint
+from dlocli.models.base import build_model
+from dlocli.models.checkpoints import read_checkpoint
 from dlocli.models.spec import TrainSpec, UpdateSpec
 from dlocli.models.step_schedule import recent_rows, sample_batch, train_steps
 from dlocli.models.training import (

@@ -37,7 +37,7 @@ from dlocli.env.shape_env import load_goal, make_env, make_goal
 from dlocli.errors import UnknownName
 from dlocli.io import atomic_path, read_json, write_json_atomic
 from dlocli.models.base import build_model, resolve_device
-from dlocli.models.markers import load_planning_model
+from dlocli.models.checkpoints import load_planning_model
 from dlocli.models.update_steps import train_like_online
 from dlocli.registry import controllers
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode

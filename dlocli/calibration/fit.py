@@ -33,9 +33,10 @@ from dlocli.calibration.replay import (
     replay,
 )
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.errors import BadInput, UnworkablePhysics
-from dlocli.markers import deform, protocol
+from dlocli.markers import deform
 from dlocli.processes import exit_with_parent, raise_if_stopped
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec, format_validation_error

@@ -33,8 +33,8 @@ import numpy as np
 
 from dlocli.backends.base import Backend, GripperLimits
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize, quat_rotate
+from dlocli.data import protocol
 from dlocli.errors import BadInput
-from dlocli.markers import protocol
 from dlocli.markers.deform import held_markers
 
 WORKSPACE_MARGIN = 0.1  # m around the recorded gripper positions

@@ -15,10 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dlocli.data import load_dataset
-from dlocli.dataset_format import DATASET_FILE
+from dlocli.data import DATASET_FILE, MarkerDataset, load_dataset
 from dlocli.errors import BadInput
-from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.plain_pickle import load_plain
 from dlocli.markers.spec import DEFAULT_MEMORY_MIB
 

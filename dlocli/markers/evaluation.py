@@ -10,9 +10,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from dlocli.data import MarkerDataset, protocol
 from dlocli.io import atomic_path
-from dlocli.markers import protocol
-from dlocli.markers.dataset import MarkerDataset
 from dlocli.models.marker_training import predict_episodes
 from dlocli.models.markers import MarkerModel
 from dlocli.threads import torch_threads

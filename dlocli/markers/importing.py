@@ -6,11 +6,10 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.dataset_format import DATASET_FILE
+from dlocli.data import DATASET_FILE, MarkerDataset, protocol
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic
-from dlocli.markers import deform, formats, protocol, rosbag, timing
-from dlocli.markers.dataset import MarkerDataset
+from dlocli.markers import deform, formats, rosbag, timing
 from dlocli.markers.spec import UNITS, ImportSpec
 from dlocli.rundir import owned, resolved
 

@@ -7,10 +7,9 @@ from typing import ClassVar, Literal
 
 from pydantic import Field
 
+from dlocli.data.markers import DEFAULT_RATE_HZ, MAX_RATE_HZ
 from dlocli.specs import Spec
 
-DEFAULT_RATE_HZ = 100.0
-MAX_RATE_HZ = 100_000
 DEFAULT_MEMORY_MIB = 1024
 #: metres per unit of a recording's coordinates
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}

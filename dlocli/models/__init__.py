@@ -37,9 +37,9 @@ _EXPORTS = {
     "model_spec": "dlocli.models.spec",
     "DynamicsModel": "dlocli.models.base",
     "build_model": "dlocli.models.base",
-    "load_model": "dlocli.models.base",
+    "load_model": "dlocli.models.checkpoints",
     "resolve_device": "dlocli.models.base",
-    "save_checkpoint": "dlocli.models.base",
+    "save_checkpoint": "dlocli.models.checkpoints",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -16,16 +16,13 @@ Shapes and units (every model, every device):
 
 Every model predicts the change of the state in normalised units (dataset statistics held in
 buffers, so they travel with the checkpoint), adds it to the state and renormalises the
-quaternions. Build one with :func:`build_model`, load a trained one with :func:`load_model`.
+quaternions. Build one with :func:`build_model`, load a trained one with
+:func:`dlocli.models.checkpoints.load_model`.
 """
 
 from __future__ import annotations
 
-import io
-import pickle
-import zipfile
 from abc import ABC, abstractmethod
-from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -35,21 +32,13 @@ from torch import Tensor
 
 from dlocli.backends.rotations import state_change
 from dlocli.errors import BadInput
-from dlocli.io import versions, write_bytes_atomic
 from dlocli.limits import refuse_unless_fits
-from dlocli.migrations import completed
 from dlocli.models.spec import ModelSpec, model_spec
 from dlocli.registry import models
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)
 ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
-CHECKPOINT_FORMAT = "dlocli-checkpoint"
-CHECKPOINT_VERSION = 3  # 2: model specs have velocity_input; 3: absolute_position
-FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
-#: the payload key of the control period (s) of the data a model learned from: one model step
-#: is one such period (checkpoints written before it have none, and are taken as they are)
-CONTROL_DT = "control_dt"
 _STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
 
 
@@ -286,153 +275,7 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     return torch.device("cuda", index)
 
 
-# ---------------------------------------------------------------------- checkpoints
-def save_checkpoint(model: DynamicsModel, path: Path, extra: dict[str, Any] | None = None) -> Path:
-    """Write weights, model spec, normalisation and versions atomically to ``path``.
-
-    ``extra`` must hold only what ``torch.load(weights_only=True)`` accepts (tensors, numbers,
-    strings, lists, dicts: e.g. an optimizer's ``state_dict()``).
-    """
-    payload = {
-        **(extra or {}),
-        "format": CHECKPOINT_FORMAT,
-        "format_version": CHECKPOINT_VERSION,
-        "model_spec": model.spec.model_dump(mode="json"),
-        "n_segments": model.n_segments,
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "versions": versions(),
-    }
-    image = io.BytesIO()  # serialise in memory: a full disk is then one clean OSError
-    torch.save(payload, image)
-    path = Path(path)
-    write_bytes_atomic(path, image.getbuffer())  # a view: no second copy
-    return path
-
-
-def checkpoint_path(path: Path) -> Path:
-    """A checkpoint file, or a run directory's ``checkpoints/final.pt``."""
-    path = Path(path)
-    if path.is_dir():
-        final = path / FINAL_CHECKPOINT
-        if not final.is_file():
-            raise BadInput(f"run directory {path} has no {FINAL_CHECKPOINT}; run `dlo train`")
-        return final
-    if not path.is_file():
-        raise BadInput(f"model checkpoint {path} does not exist; pass a .pt file or run directory")
-    return path
-
-
-def read_checkpoint(path: Path) -> dict[str, Any]:
-    """The checkpoint's payload (CPU tensors), loaded with ``weights_only=True``; BadInput if
-    it is not a dlocli checkpoint."""
-    path = checkpoint_path(path)
-    return _checked_payload(path, path)
-
-
-def _checked_payload(source: Path | io.BytesIO, path: Path | str) -> dict[str, Any]:
-    """The payload of the checkpoint in ``source`` (a file, or its bytes), named ``path`` in
-    errors."""
-    try:
-        if not zipfile.is_zipfile(source):  # what torch.save writes; a text file fed to
-            raise zipfile.BadZipFile  # torch's loader for older checkpoints fails unforeseen
-        if isinstance(source, io.BytesIO):
-            source.seek(0)  # is_zipfile read it
-        payload = torch.load(source, map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError, OSError, ValueError,
-            zipfile.BadZipFile) as exc:  # fmt: skip
-        # torch's text is pages long (a weights_only tutorial); ours says what to pass instead
-        raise BadInput(
-            f"{path} is not a readable model checkpoint (torch.load with weights_only=True "
-            "refused it); pass a .pt file written by `dlo train`, or its run directory"
-        ) from exc
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise BadInput(f"{path} is not a dlocli model checkpoint; pass one written by `dlo train`")
-    if not isinstance(payload.get("state_dict"), dict) or not isinstance(
-        payload.get("n_segments"), int
-    ):
-        raise BadInput(f"checkpoint {path} lacks weights or segment count; retrain it")
-    return payload
-
-
-def load_model(
-    path: Path, device: str | torch.device = "cpu", expect: ModelSpec | None = None
-) -> DynamicsModel:
-    """A trained model from a checkpoint or run directory, in eval mode on ``device``.
-
-    Its parameters are frozen (``requires_grad`` False), so a planner's backward pass
-    computes gradients for the actions only; :func:`~dlocli.models.training.train_model` unfreezes.
-    ``expect``: the model spec the caller asked for; a different one in the file is refused.
-    """
-    return model_from_payload(read_checkpoint(path), path, device, expect)
-
-
-def load_model_bytes(checkpoint: bytes, device: str | torch.device = "cpu") -> DynamicsModel:
-    """:func:`load_model` of a checkpoint file's bytes (a trial's copy of the driver's model),
-    read in memory."""
-    return model_from_payload(read_checkpoint_bytes(checkpoint), IN_MEMORY, device)
-
-
-#: how errors name a checkpoint read from bytes
-IN_MEMORY = "the model checkpoint in memory"
-
-
-def read_checkpoint_bytes(checkpoint: bytes) -> dict[str, Any]:
-    """:func:`read_checkpoint` of a checkpoint file's bytes."""
-    return _checked_payload(io.BytesIO(checkpoint), IN_MEMORY)
-
-
-def model_from_payload(
-    payload: dict[str, Any],
-    path: Path | str,
-    device: str | torch.device,
-    expect: ModelSpec | None = None,
-) -> DynamicsModel:
-    """The rod model a checkpoint's payload holds (named ``path`` in errors); see
-    :func:`load_model`."""
-    if payload.get("form") == "markers":
-        raise BadInput(
-            f"{path} is a marker-form model (trained on recorded markers); use it with "
-            "`dlo eval` on a marker dataset"
-        )
-    spec = checkpoint_spec(payload, path)
-    if expect is not None and valid_model_spec(expect) != spec:
-        raise BadInput(
-            f"checkpoint {path} holds model {spec.model_dump()} but {expect.model_dump()} "
-            "was requested; pass the matching --model or another checkpoint"
-        )
-    return with_weights(build_model(spec, payload["n_segments"]), payload, path, device)
-
-
-def checkpoint_spec(payload: dict[str, Any], path: Path | str) -> ModelSpec:
-    """The model spec a checkpoint's payload holds (older ones' layout migrated, their
-    missing fields at their legacy values); BadInput if it is not one."""
-    saved = payload.get("model_spec")
-    if not isinstance(saved, dict):
-        raise BadInput(f"checkpoint {path} holds no model spec; retrain it")
-    saved = ModelSpec.saved_layout(completed("model", saved))
-    return valid_model_spec(saved, f"checkpoint {path} model spec")
-
-
-def with_weights(
-    model: torch.nn.Module, payload: dict[str, Any], path: Path | str, device: str | torch.device
-) -> Any:
-    """``model`` with the checkpoint's finite weights, on ``device``, in eval mode, frozen;
-    BadInput if they are not finite or do not fit."""
-    weights = payload["state_dict"].values()
-    if not all(torch.is_tensor(w) and bool(torch.isfinite(w).all()) for w in weights):
-        raise BadInput(f"checkpoint {path} holds NaN or inf weights (training diverged); retrain")
-    try:
-        model.load_state_dict(payload["state_dict"])
-    except RuntimeError as exc:
-        first = str(exc).strip().splitlines()[0][:160]
-        raise BadInput(f"checkpoint {path} weights do not fit {model.spec.name} ({first})") from exc
-    model = model.to(resolve_device(device)).eval().requires_grad_(False)
-    dt = payload.get(CONTROL_DT)
-    #: the control period (s) of the model's training data; None: not recorded (older ones)
-    model.control_dt = float(dt) if isinstance(dt, (int, float)) and dt > 0 else None
-    return model
-
-
+# ---------------------------------------------------------------------- control periods
 def check_control_rate(
     model: torch.nn.Module, control_dt: float, name: str, used: str, fix: str
 ) -> None:

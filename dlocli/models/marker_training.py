@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from dlocli.cancel import CancelToken
+from dlocli.data.protocol import deform_score_cm
 from dlocli.errors import DloError
-from dlocli.markers.protocol import deform_score_cm
 from dlocli.models.base import resolve_device
 from dlocli.models.fitting import KeepBest, Progress, RolloutValidated
 from dlocli.models.markers import MarkerModel

@@ -13,7 +13,8 @@ ones) and a held flag, each divided by a scale fitted on the training data (buff
 they travel with the checkpoint).
 
 A registered model names its marker form in its class attribute ``marker_form`` (a class,
-or ``"module:attr"`` of one). Build one with :func:`build_marker_model`.
+or ``"module:attr"`` of one). Build one with :func:`build_marker_model`, load a trained one with
+:func:`dlocli.models.checkpoints.load_marker_model`.
 """
 
 from __future__ import annotations
@@ -25,17 +26,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
-from dlocli.models import base, marker_mlp_rollout, marker_steps
+from dlocli.models import marker_mlp_rollout, marker_steps
 from dlocli.models.attention import AlongCable
-from dlocli.models.base import checkpoint_spec, mlp, read_checkpoint, valid_model_spec, with_weights
+from dlocli.models.base import mlp, valid_model_spec
 from dlocli.models.in_bilstm import init_forget_bias
 from dlocli.models.spec import ModelSpec
 from dlocli.registry import import_target, models
 
 FEATURES = 10  # relative position 3, velocity 3, held displacement 3, held flag 1
 DESCRIPTORS = 9  # attention's: vectors to both neighbours 6, their lengths 2, cable length 1
-FORM = "markers"
+FORM = MARKERS
 
 #: the normalisation buffers, fitted on the training data
 SCALES = ("position_scale", "velocity_scale", "acceleration_scale")
@@ -310,47 +312,3 @@ def _marker_form(rod_model: Any) -> type[MarkerModel] | None:
     """The marker-form class a registered model names (imported if named as a string)."""
     form = getattr(rod_model, "marker_form", None)
     return import_target(form) if isinstance(form, str) else form
-
-
-def load_marker_model(path: Any, device: str | torch.device = "cpu") -> MarkerModel:
-    """A trained marker-form model from a checkpoint or run directory, in eval mode."""
-    payload = read_checkpoint(path)
-    if payload.get("form") != FORM:
-        raise BadInput(f"{path} is a rod model; evaluate it on a rod dataset (`dlo collect`)")
-    return marker_model_from_payload(payload, path, device)
-
-
-def load_planning_model(source: Any, device: str | torch.device = "cpu") -> torch.nn.Module:
-    """A model a planner plans with, from a checkpoint (a path, or a file's bytes): a marker
-    model if the checkpoint holds one, else the rod model."""
-    from_bytes = isinstance(source, bytes)
-    payload = base.read_checkpoint_bytes(source) if from_bytes else base.read_checkpoint(source)
-    name = base.IN_MEMORY if from_bytes else source
-    if payload.get("form") == FORM:
-        return marker_model_from_payload(payload, name, device)
-    return base.model_from_payload(payload, name, device)  # read once, not again by path
-
-
-def marker_model_from_payload(
-    payload: dict[str, Any], path: Any, device: str | torch.device = "cpu"
-) -> MarkerModel:
-    """The marker model a checkpoint's payload holds (named ``path`` in errors)."""
-    spec = checkpoint_spec(payload, path)
-    held = payload["state_dict"].get("held")
-    if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:
-        raise BadInput(f"checkpoint {path} lacks its held-marker mask; retrain it")
-    model = with_weights(build_marker_model(spec, len(held), held.numpy()), payload, path, device)
-    _check_scales(model, path)
-    return model
-
-
-def _check_scales(model: MarkerModel, path: Any) -> None:
-    """BadInput unless every normalisation scale is positive: a zero divides the features
-    into NaN, and every score with them (training keeps them at least 1e-6)."""
-    for name in SCALES:
-        scale = getattr(model, name)
-        if not bool((scale > 0).all()):
-            raise BadInput(
-                f"checkpoint {path}: {name} holds {scale.cpu().tolist()}, not positive "
-                "numbers (the training data's spread); retrain it"
-            )

@@ -10,7 +10,7 @@ Run directory (every file written atomically)::
     episodes/episode_EEEEEE.h5        one file per finished episode (a one-episode dataset),
                                       written as soon as the episode ends
     episodes/progress.json            {"seconds": collecting time of the episodes kept so far}
-    dataset.h5                        all episodes in index order (format: :mod:`dlocli.data`)
+    dataset.h5                        all episodes in index order (format: :mod:`dlocli.data.rod`)
     summary.json                      episodes, transitions, diverged_episodes, seconds, ...
 
 ``episodes/`` exists from the start of a run until its end: ``dataset.h5`` and then

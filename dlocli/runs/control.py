@@ -141,7 +141,7 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     if spec.checkpoint is None:
         return None
     from dlocli.models.base import check_control_rate, resolve_device
-    from dlocli.models.markers import load_planning_model
+    from dlocli.models.checkpoints import load_planning_model
 
     model = load_planning_model(spec.checkpoint, resolve_device(spec.device))
     check_control_rate(model, spec.task.control_dt, f"model {spec.checkpoint}", "the task runs",

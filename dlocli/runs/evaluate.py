@@ -7,14 +7,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from dlocli.data import Dataset, load_dataset
+from dlocli.data import Dataset, MarkerDataset, load_dataset
 from dlocli.errors import BadInput
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
-from dlocli.markers.dataset import MarkerDataset
 from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
-from dlocli.models.base import check_control_rate, load_model
+from dlocli.models.base import check_control_rate
+from dlocli.models.checkpoints import load_model
 from dlocli.models.evaluation import evaluate_model, plot_rollout
-from dlocli.models.markers import load_marker_model
 from dlocli.models.spec import EvalSpec
 from dlocli.rundir import owned
 
@@ -31,9 +30,7 @@ def run_evaluation(spec: EvalSpec, overwrite: bool = False) -> dict[str, Any]:
     dataset = load_dataset(spec.data)
     if isinstance(dataset, MarkerDataset):
         dataset.require_split("eval")
-        net = load_marker_model(spec.checkpoint, spec.device)
-    else:
-        net = load_model(spec.checkpoint, spec.device)
+    net = load_model(spec.checkpoint, spec.device, form=dataset.form)  # the data's form
     if dataset.n_segments != net.n_segments:
         raise BadInput(
             f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "

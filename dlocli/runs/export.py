@@ -1,4 +1,4 @@
-"""Export a dataset (:mod:`dlocli.data`) as a Minari dataset (``dlo export --format minari``).
+"""Export a dataset (:mod:`dlocli.data.rod`) as a Minari dataset (``dlo export --format minari``).
 
 Offline-RL libraries read Minari datasets (``minari.load_dataset(id)``); Minari is optional
 (``pip install 'dlocli[minari]'``) and imported only here, when used. Each dlocli episode of

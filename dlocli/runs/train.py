@@ -15,25 +15,22 @@ from typing import Any
 import numpy as np
 import torch
 
-from dlocli.data import Dataset, load_dataset
+from dlocli.data import Dataset, MarkerDataset, load_dataset
+from dlocli.data.protocol import deform_score_cm, freeze
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
-from dlocli.markers.dataset import MarkerDataset
-from dlocli.markers.protocol import deform_score_cm, freeze
-from dlocli.models.base import (
+from dlocli.models.base import DynamicsModel, build_model, check_control_rate, resolve_device
+from dlocli.models.checkpoints import (
     CONTROL_DT,
-    DynamicsModel,
-    build_model,
-    check_control_rate,
+    load_marker_model,
     load_model,
     read_checkpoint,
-    resolve_device,
     save_checkpoint,
 )
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.fit import fit
 from dlocli.models.fitting import FitRecord, KeepBest, Progress
-from dlocli.models.markers import FORM, build_marker_model, load_marker_model
+from dlocli.models.markers import FORM, build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.plots import plot_losses
 from dlocli.processes import signal_token
@@ -267,8 +264,7 @@ def run_marker_training(
     result = fit(model, dataset, spec, progress=progress, cancel=signal_token())
     history = result.history
     seconds = list(accumulate(r.seconds for r in history))  # since the fit started
-    final = {"form": FORM, **recorded_rate(dataset)}
-    save_checkpoint(model, out / "checkpoints" / "final.pt", final)
+    save_checkpoint(model, out / "checkpoints" / "final.pt", recorded_rate(dataset))
     lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
     lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
               for r, s in zip(history, seconds, strict=True)]  # fmt: skip

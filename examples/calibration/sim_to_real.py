@@ -28,8 +28,7 @@ import yaml
 from dlocli.calibration.fit import load_cable, replay_settings
 from dlocli.calibration.simulate import simulate_markers
 from dlocli.calibration.spec import CalibrateSpec
-from dlocli.data import load_dataset
-from dlocli.markers.dataset import MarkerDataset
+from dlocli.data import MarkerDataset, load_dataset
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec
 

@@ -177,7 +177,7 @@ def evaluate(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str, An
 
 def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> Any:
     from dlocli.controllers.base import make_controller
-    from dlocli.models.markers import load_planning_model
+    from dlocli.models.checkpoints import load_planning_model
 
     if name in ("zero", "random"):
         return None

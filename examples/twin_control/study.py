@@ -106,7 +106,7 @@ def simulate(job: tuple[argparse.Namespace, str]) -> str:
     options, cable = job
     from dlocli.calibration.fit import replay_settings
     from dlocli.calibration.simulate import simulate_markers
-    from dlocli.markers.dataset import MarkerDataset
+    from dlocli.data import MarkerDataset
     from dlocli.registry import backends
 
     out = options.out / cable / "sim"
@@ -238,7 +238,7 @@ def learn(options: argparse.Namespace) -> None:
 # --------------------------------------------------------------------------- evaluation
 def controller_for(name: str, env: Any, options: argparse.Namespace, cable: str, seed: int) -> Any:
     from dlocli.controllers.base import make_controller
-    from dlocli.models.markers import load_planning_model
+    from dlocli.models.checkpoints import load_planning_model
 
     if name in ("nothing", "random"):
         return None  # drawn per episode

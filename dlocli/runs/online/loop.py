@@ -89,13 +89,8 @@ class OnlineRun:
         episodes of D; for k = 1 all of D is new), seeded per iteration like the epochs."""
         import torch
 
-        from dlocli.models.base import (
-            build_model,
-            load_model,
-            read_checkpoint,
-            resolve_device,
-            save_checkpoint,
-        )
+        from dlocli.models.base import build_model, resolve_device
+        from dlocli.models.checkpoints import load_model, read_checkpoint, save_checkpoint
         from dlocli.models.fitting import FitRecord
         from dlocli.models.update_steps import update_model
 
@@ -156,9 +151,9 @@ class OnlineRun:
         weights; checkpointed as iteration k."""
         import torch
 
-        from dlocli.models.base import resolve_device, save_checkpoint
+        from dlocli.models.base import resolve_device
+        from dlocli.models.checkpoints import load_marker_model, save_checkpoint
         from dlocli.models.fitting import RolloutValidated
-        from dlocli.models.markers import FORM, load_marker_model
         from dlocli.runs.online.markers import new_marker_model, update_marker_model
 
         if k == 1:
@@ -183,7 +178,7 @@ class OnlineRun:
             threads = torch.get_num_threads()
         best = min((r["val_score_cm"] for r in history), default=float("nan"))
         save_checkpoint(model, self.paths.checkpoint(k), {
-            "form": FORM, "iteration": k, "val_score_cm": best, "threads": threads,
+            "iteration": k, "val_score_cm": best, "threads": threads,
             "train_seconds": time.perf_counter() - start,
             "device": str(resolve_device(self.spec.fit.device)),
             "control_dt": self.spec.task.control_dt,
@@ -258,7 +253,8 @@ class OnlineRun:
         """Paper Fig. 7: a model trained from scratch on ``n_transitions`` random transitions."""
         import torch
 
-        from dlocli.models.base import build_model, resolve_device, save_checkpoint
+        from dlocli.models.base import build_model, resolve_device
+        from dlocli.models.checkpoints import save_checkpoint
         from dlocli.models.update_steps import train_like_online
 
         ckpt = self.paths.checkpoint(k, offline=True)

@@ -92,7 +92,7 @@ class OnlineResults:
     def train_seconds(self, k: int) -> float:
         """The time iteration k's model update took (0 before it is done); read once from
         its checkpoint, which never changes after it is written."""
-        from dlocli.models.base import read_checkpoint
+        from dlocli.models.checkpoints import read_checkpoint
 
         if k not in self._train_seconds:
             path = self.paths.checkpoint(k)

@@ -52,7 +52,7 @@ class TimedController:
 def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[Episode, float]:
     """One trial of the spec's planner through the model ``checkpoint`` holds (seeds from
     (seed, k, j)), and the seconds the planner took in it."""
-    from dlocli.models.markers import load_planning_model
+    from dlocli.models.checkpoints import load_planning_model
 
     env = make_env_from_spec(env_spec(spec))
     try:

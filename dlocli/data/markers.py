@@ -21,26 +21,29 @@ Attributes: ``rate_hz`` (frames per second), ``source`` (where it was imported f
 from __future__ import annotations
 
 import io
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from dlocli.dataset_checks import check_fields
-from dlocli.dataset_format import FORMAT, FORMAT_VERSION
+from dlocli.data.checks import check_fields
+from dlocli.data.format import FORMAT_VERSION, MARKERS, write_header
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
-from dlocli.markers.spec import DEFAULT_RATE_HZ, MAX_RATE_HZ
 
-FORM = "markers"
+#: frames per second of a recording that does not say
+DEFAULT_RATE_HZ = 100.0
+MAX_RATE_HZ = 100_000
 SPLIT_CODES = {"train": 0, "eval": 1}
 ARRAYS = ("episode_lengths", "positions", "held", "split", "names")
 
 
 @dataclass
 class MarkerDataset:
+    #: the ``form`` of its file (:mod:`dlocli.data.format`)
+    form: ClassVar[str] = MARKERS
+
     episode_lengths: np.ndarray
     positions: np.ndarray
     held: np.ndarray
@@ -117,12 +120,7 @@ class MarkerDataset:
 
         image = io.BytesIO()
         with h5py.File(image, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["form"] = FORM
-            f.attrs["n_segments"] = self.n_markers
-            for key, value in self.attrs.items():
-                f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
+            write_header(f, self.form, self.n_markers, self.attrs)
             for name in ARRAYS[:-1]:
                 f.create_dataset(name, data=getattr(self, name))
             f.create_dataset("names", data=self.names.astype(object), dtype=h5py.string_dtype())

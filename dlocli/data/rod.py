@@ -26,26 +26,23 @@ Attributes: ``format``, ``format_version``, ``n_segments``, ``spec`` (JSON of th
 run spec), ``rod`` (JSON material), ``versions`` (JSON), ``max_linear_velocity``,
 ``max_angular_velocity`` (what action 1 means, m/s and rad/s).
 
-Read it with :func:`load_dataset`; the state of a segment used by the models is
+Read it with :func:`dlocli.data.load_dataset`; the state of a segment used by the models is
 ``concat(position, quaternion)`` (7 numbers), see :meth:`Dataset.transitions`.
 """
 
 from __future__ import annotations
 
 import io
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from dlocli.dataset_checks import check_fields
-from dlocli.dataset_format import DATASET_FILE, FORMAT, FORMAT_VERSION
+from dlocli.data.checks import check_fields
+from dlocli.data.format import FORMAT_VERSION, ROD, write_header
 from dlocli.errors import BadInput
 from dlocli.io import write_bytes_atomic
-from dlocli.markers.dataset import FORM as MARKER_FORM
-from dlocli.markers.dataset import MarkerDataset, read_marker_arrays
 
 STATE_ARRAYS = ("positions", "quaternions", "grippers")
 EPISODE_ARRAYS = ("actions", "rewards")
@@ -74,6 +71,9 @@ class Episode:
 @dataclass
 class Dataset:
     """Episodes held in memory as concatenated arrays (see the module docstring)."""
+
+    #: the ``form`` of its file (:mod:`dlocli.data.format`)
+    form: ClassVar[str] = ROD
 
     episode_lengths: np.ndarray
     positions: np.ndarray
@@ -214,12 +214,7 @@ class Dataset:
 
         image = io.BytesIO()  # HDF5 writes into memory; the disk sees one Python write
         with h5py.File(image, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["form"] = "rod"
-            f.attrs["n_segments"] = self.n_segments
-            for key, value in self.attrs.items():
-                f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
+            write_header(f, self.form, self.n_segments, self.attrs)
             for name in ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged"):
                 f.create_dataset(name, data=getattr(self, name))
             for name in OBSERVED_ARRAYS:
@@ -230,37 +225,15 @@ class Dataset:
         return path
 
 
-def load_dataset(path: Path) -> Dataset | MarkerDataset:
-    """Load a dataset file (or a run directory holding ``dataset.h5``); BadInput if not one.
-    A rod dataset is a :class:`Dataset`; a marker dataset (recorded marker positions, e.g.
-    from `dlo import`) a :class:`~dlocli.markers.dataset.MarkerDataset`."""
-    import h5py
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / DATASET_FILE
-    if not path.is_file():
-        raise BadInput(
-            f"dataset {path} does not exist; make one with `dlo collect --random --out DIR`"
-        )
-    try:
-        with h5py.File(path, "r") as f:
-            if f.attrs.get("format") != FORMAT:
-                raise BadInput(f"{path} is not a dlocli dataset (no format={FORMAT} attribute)")
-            if _decode_attr(f.attrs.get("form", "rod")) == MARKER_FORM:
-                attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
-                return read_marker_arrays(f, path, attrs)
-            names = ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
-            missing = [n for n in names if n not in f]
-            if missing:
-                raise BadInput(f"dataset {path} lacks {', '.join(missing)}; re-collect it")
-            arrays = {n: f[n][()] for n in names}
-            arrays |= {n: f[n][()] for n in OBSERVED_ARRAYS if n in f}
-            attrs = {k: _decode_attr(v) for k, v in f.attrs.items()}
-    except OSError as exc:
-        raise BadInput(
-            f"dataset {path} is not a readable HDF5 file ({exc}); re-collect it"
-        ) from exc
+def read_rod_arrays(f: Any, path: Path, attrs: dict[str, Any]) -> Dataset:
+    """A rod dataset from an open HDF5 file (called by :func:`dlocli.data.load_dataset`);
+    BadInput on the first thing that breaks the format."""
+    names = ("episode_lengths", *STATE_ARRAYS, *EPISODE_ARRAYS, "goals", "diverged")
+    missing = [n for n in names if n not in f]
+    if missing:
+        raise BadInput(f"dataset {path} lacks {', '.join(missing)}; re-collect it")
+    arrays = {n: f[n][()] for n in names}
+    arrays |= {n: f[n][()] for n in OBSERVED_ARRAYS if n in f}
     data = Dataset(**arrays, attrs=attrs)
     _check_consistent(data, path)
     check_fields(arrays, attrs, path, FORMAT_VERSION)
@@ -278,17 +251,6 @@ def _observed(datasets: Any, cat: Any = None) -> dict[str, np.ndarray | None]:
         "markers": np.concatenate([np.asarray(d.markers, np.float32) for d in datasets]),
         "visible": np.concatenate([np.asarray(d.visible, bool) for d in datasets]),
     }
-
-
-def _decode_attr(value: Any) -> Any:
-    if isinstance(value, bytes):
-        value = value.decode()
-    if isinstance(value, str) and value[:1] in "[{":
-        try:
-            return json.loads(value)
-        except ValueError:
-            return value
-    return value.item() if isinstance(value, np.generic) else value
 
 
 def _check_consistent(data: Dataset, path: Path) -> None:

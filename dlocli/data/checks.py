@@ -1,4 +1,5 @@
-"""Field-by-field checks of a dataset file as loaded (format: :mod:`dlocli.data`).
+"""Field-by-field checks of a dataset file as loaded (formats: :mod:`dlocli.data.rod`,
+:mod:`dlocli.data.markers`).
 
 Each check takes the file's arrays by name (and its attributes), skips a field the file does
 not hold (a marker dataset has positions only), and raises BadInput naming the field, what
