@@ -10,6 +10,9 @@ sigma(z) = 1.2 mm + 1.9 mm/m^2 (z - 0.4 m)^2).
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import ClassVar
+
 from pydantic import Field, model_validator
 
 from dlocli.spec_base import Spec
@@ -93,15 +96,27 @@ class TrackerSpec(Spec):
     spacing: float = Field(
         0.025, gt=0.0, le=1.0, description="Spacing of the tracked chain's nodes (rod lengths)."
     )
-    iterations: int = Field(12, ge=1, le=200, description="EM iterations per frame.")
+    iterations: int = Field(8, ge=1, le=200, description="EM iterations per frame.")
     outlier_weight: float = Field(
         0.1, ge=0.0, lt=1.0, description="Prior probability that a point is not the cable's."
     )
     smoothness: float = Field(
-        1.0, ge=0.0, description="Weight of the chain keeping its predicted shape (Laplacian)."
-    )
+        1.0, ge=0.0,
+        description="Weight of a seen node's share of the chain's shape: the Laplacian of the "
+        "chain's move from its predicted shape.",
+    )  # fmt: skip
+    hidden_smoothness: float = Field(
+        50.0, ge=0.0,
+        description="The same weight at a hidden node: a hidden span moves as the seen "
+        "cable beside it does.",
+    )  # fmt: skip
     bending: float = Field(
-        10.0, ge=0.0, description="Weight of the chain's curvature itself (a cable is smooth)."
+        10.0, ge=0.0,
+        description="Weight of a seen node's curvature itself (sparse points zigzag; a cable "
+        "is smooth).",
+    )  # fmt: skip
+    hidden_bending: float = Field(
+        0.0, ge=0.0, description="The same weight at a hidden node (it keeps its shape)."
     )
     length_sweeps: int = Field(
         40, ge=0, le=1000, description="Sweeps that bring the chain back to its rest spacing."
@@ -110,10 +125,40 @@ class TrackerSpec(Spec):
         0.02, ge=0.0, description="Pull of a seen node towards its predicted position."
     )
     hidden_weight: float = Field(
-        0.5, ge=0.0, description="Pull of a hidden node towards its predicted position."
+        0.01, ge=0.0, description="Pull of a hidden node towards its predicted position."
     )
     visible_support: float = Field(
         0.3, gt=0.0, le=1.0,
         description="A node is seen when the points it explains reach this fraction of the "
         "points per node of the whole cable.",
     )  # fmt: skip
+
+
+class TrackSpec(Spec):
+    """`dlo track`: recorded point-cloud frame sequences -> a marker dataset run directory."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "source", "markers", "gripper_markers", "length", "radius", "out",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("source",)
+
+    source: Path | None = Field(
+        None,
+        description="Folder of .npz frame sequences, one per episode (dlocli.tracking.frames: "
+        "points, counts, times, extrinsics, and held, the held markers' positions): train/ "
+        "and eval/ subfolders, or the files themselves (all train).",
+    )
+    markers: int = Field(
+        10, ge=2, le=1000,
+        description="Markers to track, evenly spaced from the cable's left end to its right "
+        "end, where the grippers hold it.",
+    )  # fmt: skip
+    gripper_markers: float = Field(
+        0.05, ge=0.0, le=0.5,
+        description="A marker on each gripper this far behind the cable's end (a fraction of "
+        "its length; 0: none); needs the recorded held positions.",
+    )  # fmt: skip
+    length: float = Field(1.0, gt=0.0, le=100.0, description="The cable's length (m).")
+    radius: float = Field(0.01, gt=0.0, le=1.0, description="The cable's radius (m).")
+    tracker: TrackerSpec = Field(default_factory=TrackerSpec, description="The tracker.")
+    out: Path = Field(Path("runs/track"), description="Run directory for the dataset.")
