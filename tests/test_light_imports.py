@@ -86,6 +86,7 @@ LAZY_IMPORTS = {
     ("dlocli.cli.eval", "dlocli.runs.evaluate"): _CLI_RUNNER,
     ("dlocli.cli.train", "dlocli.models.fitting"): _CLI_RUNNER,
     ("dlocli.cli.train", "dlocli.runs.train"): _CLI_RUNNER,
+    ("dlocli.cli.track", "dlocli.runs.track"): "scipy; `dlo track --help` needs only the spec",
     # `dlo online --help` and `dlo control --help` load these modules' specs
     ("dlocli.runs.control", "dlocli.models.base"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.control", "dlocli.models.markers"): "torch; on the `dlo control --help` path",

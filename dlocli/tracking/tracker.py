@@ -42,6 +42,7 @@ HISTORY = 3  # frames of tracked markers the prior sees
 FIRST_FRAME_ITERATIONS = 3  # times the per-frame EM iterations, for the first frame
 MIN_SIGMA = 1e-3  # m: the mixture's narrowest width
 GATE = 4.0  # points farther than this many node spacings from the predicted chain: stray
+FAR = 1e6  # m^2: the squared distance that gives a node no points
 
 
 @dataclass
@@ -92,6 +93,7 @@ class CableTracker:
         self._history: list[np.ndarray] = []
         self._chain: np.ndarray | None = None
         self._seen = np.ones(len(self.chain_arc), dtype=bool)
+        self._loose_ends: list[int] = []
 
     @classmethod
     def for_layout(cls, layout, radius: float, spec=None, prior=None) -> CableTracker:
@@ -178,8 +180,13 @@ class CableTracker:
         points = points[near_points(points, predicted, GATE * self._spacing)]
         nodes, sigma2 = predicted.copy(), self._spacing**2
         support, resp = np.zeros(len(nodes)), None
+        # an end node the robot does not place takes no points: a mixture's end component
+        # sits inside the cloud's end; the chain's shape carries it straight on instead
+        loose_ends = [k for k in (0, len(nodes) - 1) if not pinned[k]]
+        self._loose_ends = loose_ends
         for _ in range(iterations):
             d2 = _squared_distances(points, nodes)
+            d2[:, loose_ends] = FAR
             if resp is not None:  # the width of the last responsibilities around the new nodes
                 sigma2 = max(float((resp * d2).sum() / max(3.0 * resp.sum(), 1e-12)),
                              MIN_SIGMA**2)  # fmt: skip
@@ -225,7 +232,11 @@ class CableTracker:
         return np.linalg.solve(matrix, rhs)
 
     def _visibility(self, support: np.ndarray) -> np.ndarray:
-        """(K,) each node's points over the cable's points per node (0 to 1)."""
+        """(K,) each node's points over the cable's points per node (0 to 1); a loose end
+        node (it takes no points) is seen when its neighbour is."""
+        support = support.copy()
+        for end in self._loose_ends:
+            support[end] = support[1 if end == 0 else -2]
         per_node = float(support.sum()) / len(support)
         if per_node <= 0:
             return np.zeros(len(support))
