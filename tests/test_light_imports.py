@@ -98,6 +98,9 @@ LAZY_IMPORTS = {
     ("dlocli.runs.online.results", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.run", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.trials", "dlocli.models.markers"): _TORCH,
+    ("dlocli.env.observation", "dlocli.tracking.observer"): (
+        "scipy and the camera, only for the pointcloud observation"
+    ),
     # an optional library, only for a fallback
     ("dlocli.backends.pybullet_chain", "dlocli.backends.render"): (
         "matplotlib, only when PyBullet cannot render"
