@@ -197,6 +197,4 @@ class DepthCamera:
         candidates = np.flatnonzero(valid & ((hits.kind == TABLE) | (hits.kind == GRIPPER)))
         if wanted == 0 or len(candidates) == 0:
             return np.zeros(0, dtype=np.int64)
-        chosen = rng.choice(candidates, size=min(wanted, len(candidates)), replace=False)
-        hits.segment[chosen] = -1
-        return chosen
+        return rng.choice(candidates, size=min(wanted, len(candidates)), replace=False)

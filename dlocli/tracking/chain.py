@@ -35,23 +35,32 @@ def laplacian(count: int) -> np.ndarray:
 
 
 def keep_lengths(
-    nodes: np.ndarray, rest: np.ndarray, pinned: np.ndarray, sweeps: int = 4
+    nodes: np.ndarray, rest: np.ndarray, pinned: np.ndarray, sweeps: int = 4, tolerance=1e-4
 ) -> np.ndarray:
     """(K,3) nodes moved towards neighbour distances ``rest`` (K-1,): red-black sweeps (the
     even edges, then the odd ones, none sharing a node) that split each edge's error between
-    its ends, all of it to the free end beside a ``pinned`` node."""
+    its ends, all of it to the free end beside a ``pinned`` node; done early once every
+    edge is within ``tolerance`` of its length (relative)."""
     nodes = nodes.copy()
     free = (~pinned).astype(np.float64)
+    halves = []
+    for parity in (0, 1):  # each half's edges, their ends' freedom and their shares
+        a = np.arange(parity, len(nodes) - 1, 2)
+        share = free[a] + free[a + 1]
+        weight = np.where(share > 0, 1.0 / np.maximum(share, 1.0), 0.0)
+        halves.append((a, a + 1, rest[a], weight, free[a, None], free[a + 1, None]))
     for _ in range(sweeps):
-        for parity in (0, 1):
-            a = np.arange(parity, len(nodes) - 1, 2)
-            edge = nodes[a + 1] - nodes[a]
-            length = np.maximum(np.linalg.norm(edge, axis=1), 1e-12)
-            share = free[a] + free[a + 1]
-            scale = np.where(share > 0, (length - rest[a]) / length / np.maximum(share, 1), 0.0)
-            move = scale[:, None] * edge
-            nodes[a] += free[a, None] * move
-            nodes[a + 1] -= free[a + 1, None] * move
+        worst = 0.0
+        for a, b, length0, weight, free_a, free_b in halves:
+            edge = nodes[b] - nodes[a]
+            length = np.maximum(np.sqrt(np.einsum("ij,ij->i", edge, edge)), 1e-12)
+            error = (length - length0) / length
+            worst = max(worst, float(np.abs(error).max(initial=0.0)))
+            move = (error * weight)[:, None] * edge
+            nodes[a] += free_a * move
+            nodes[b] -= free_b * move
+        if worst < tolerance:
+            break
     return nodes
 
 
