@@ -12,9 +12,10 @@ from dlocli.tracking.spec import TrackSpec
 def track(
     run: RunFlags,
 ) -> None:
-    """Track the cable through --source's .npz point-cloud frame sequences (one per episode,
-    train/ and eval/) into OUT/dataset.h5 of --markers markers for `dlo train` and `dlo
-    eval`; the tracker's options through --spec (tracker.*)."""
+    """Track the cable through --source's recorded clouds (.npz frame sequences or ROS 2 bags
+    of PointCloud2, one per episode, train/ and eval/) into OUT/dataset.h5 of --markers
+    markers for `dlo train` and `dlo eval`; the tracker's options through --spec
+    (tracker.*)."""
     from dlocli.runs.track import run_track
 
     emit_summary(run_track(run.spec(), run.overwrite), run.json, "dlo track")

@@ -1,6 +1,7 @@
-"""`dlo track`: recorded point clouds (``.npz`` frame sequences) into a marker dataset.
+"""`dlo track`: recorded point clouds (``.npz`` frame sequences, ROS 2 bags of PointCloud2)
+into a marker dataset.
 
-Each file is one episode; the tracker follows the cable through its frames, ordered from
+Each file or bag is one episode; the tracker follows the cable through its frames, ordered from
 the grippers where the file records the held markers' positions, and the tracked markers
 are saved as `dlo import` saves recorded ones, for `dlo train` and `dlo eval`.
 """
@@ -18,12 +19,14 @@ from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic
 from dlocli.markers.dataset import MarkerDataset
 from dlocli.rundir import owned
+from dlocli.tracking.bags import is_bag, read_cloud_bag
 from dlocli.tracking.frames import FrameSequence, load_frames
 from dlocli.tracking.spec import TrackSpec
 from dlocli.tracking.tracker import CableTracker
 
 SPLITS = ("train", "eval")
 RATE_TOLERANCE = 0.05  # the files' frame rates may differ by this share
+BAG_BUDGET = 2**30  # bytes one bag's clouds may take
 
 
 def recorded_markers(spec: TrackSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -37,22 +40,41 @@ def recorded_markers(spec: TrackSpec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def episode_files(source: Path) -> dict[str, list[Path]]:
-    """The ``.npz`` files of each split: train/ and eval/, or the folder's own (train)."""
+    """The episodes (``.npz`` files, bag folders) of each split: train/ and eval/, or the
+    folder's own (train)."""
     if not source.is_dir():
-        raise BadInput(f"--source {source} is not a folder; pass the folder of .npz frame files")
-    split = {name: sorted((source / name).glob("*.npz")) for name in SPLITS}
+        raise BadInput(f"--source {source} is not a folder; pass the folder of recorded clouds")
+    split = {name: _episodes(source / name) for name in SPLITS}
     if not any(split.values()):
-        split = {"train": sorted(source.glob("*.npz")), "eval": []}
+        split = {"train": _episodes(source), "eval": []}
     if not split["train"]:
         raise BadInput(
-            f"--source {source} holds no .npz frame sequences (in train/ or the folder itself)"
+            f"--source {source} holds no .npz frame sequences or ROS 2 bag folders (in train/ "
+            "or the folder itself)"
         )
     return split
 
 
+def _episodes(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix == ".npz" or is_bag(p))
+
+
+def read_episode(spec: TrackSpec, path: Path) -> FrameSequence:
+    if not is_bag(path):
+        return load_frames(path)
+    if spec.camera_position is None:
+        raise BadInput(
+            f"{path} is a ROS 2 bag: pass --camera-position X,Y,Z (m, world frame), where the "
+            "camera saw the clouds from"
+        )
+    return read_cloud_bag(path, spec.topic, np.array(spec.camera_position), BAG_BUDGET)
+
+
 def track_file(spec: TrackSpec, path: Path, arc: np.ndarray, held: np.ndarray) -> dict:
     """One episode's tracked markers (F, M, 3), visibility and timing."""
-    sequence = load_frames(path)
+    sequence = read_episode(spec, path)
     robot = _held_positions(sequence, path, spec, int(held.sum()))
     if len(sequence.frames) < 2:
         raise BadInput(f"{path} holds {len(sequence.frames)} frame; an episode needs at least 2")

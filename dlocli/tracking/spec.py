@@ -18,16 +18,28 @@ class TrackSpec(Spec):
     """`dlo track`: recorded point-cloud frame sequences -> a marker dataset run directory."""
 
     cli_flags: ClassVar[tuple[str, ...]] = (
-        "source", "markers", "gripper_markers", "length", "radius", "out",
+        "source", "topic", "camera_position", "markers", "gripper_markers", "length", "radius",
+        "out",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("source",)
 
     source: Path | None = Field(
         None,
-        description="Folder of .npz frame sequences, one per episode (dlocli.tracking.frames: "
-        "points, counts, times, extrinsics, and held, the held markers' positions): train/ "
-        "and eval/ subfolders, or the files themselves (all train).",
+        description="Folder of recorded clouds, one episode per .npz frame sequence "
+        "(dlocli.tracking.frames: points, counts, times, extrinsics, and held, the held "
+        "markers' positions) or ROS 2 bag folder (PointCloud2 in the world frame; the 'ros' "
+        "extra): train/ and eval/ subfolders, or the episodes themselves (all train).",
     )
+    topic: str | None = Field(
+        None, max_length=1000,
+        description="The bags' topic of the cable's clouds (PointCloud2); default: a bag's "
+        "only PointCloud2 topic.",
+    )  # fmt: skip
+    camera_position: list[float] | None = Field(
+        None, min_length=3, max_length=3,
+        description="The camera's position (x,y,z, m, world frame) for bags, whose clouds do "
+        "not say where they were seen from.",
+    )  # fmt: skip
     markers: int = Field(
         10, ge=2, le=1000,
         description="Markers to track, evenly spaced from the cable's left end to its right "
