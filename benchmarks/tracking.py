@@ -1,6 +1,7 @@
 """The depth camera and the tracker on simulated episodes (issue 54, parts 1 and 2).
 
     python benchmarks/tracking.py [--backends mujoco,pybullet] [--seeds 3] [--steps 200]
+                                  [--marker-model CHECKPOINT]
 
 1. Ray casting: milliseconds per frame of ``DepthCamera.capture`` (rays, table, faults) by
    resolution and backend, and the cable points a frame holds, at the start of seed 0.
@@ -14,6 +15,9 @@
    t = 1 s; also its error over the hidden frames alone).
 3. Frames per second of the tracker alone at 2,000 points, on one thread: a noisy camera of
    800 x 600 pixels, each frame's cloud drawn down to 2,000 points.
+
+The trackers predict with the cable's continuity, or with ``--marker-model``, a marker model
+trained on the same markers at the camera's rate (``MarkerModelPrior``).
 """
 
 from __future__ import annotations
@@ -25,12 +29,14 @@ for _name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from dlocli.env.shape_env import make_env  # noqa: E402
 from dlocli.specs import TaskSpec  # noqa: E402
 from dlocli.tracking.camera import CloudFrame, DepthCamera  # noqa: E402
+from dlocli.tracking.marker_prior import MarkerModelPrior  # noqa: E402
 from dlocli.tracking.measure import (  # noqa: E402
     HiddenSpan,
     env_layout,
@@ -72,11 +78,12 @@ def ray_times(env, repeats: int = 10) -> list[str]:
     return rows
 
 
-def errors(env, condition: str, camera: DepthCamera, seeds: int, steps: int) -> str:
+def errors(env, condition: str, camera: DepthCamera, seeds: int, steps: int, model=None) -> str:
     layout = env_layout(env)
     runs = []
     for seed in range(seeds):
-        tracker = CableTracker.for_layout(layout, env.backend.rod.radius)
+        prior = None if model is None else MarkerModelPrior.load(model, layout.held)
+        tracker = CableTracker.for_layout(layout, env.backend.rod.radius, prior=prior)
         hidden = HIDDEN if condition == "hidden" else None
         runs.append(track_episode(env, camera, tracker, layout, seed, steps, hidden=hidden))
     every = np.concatenate([run.errors.ravel() for run in runs])
@@ -129,6 +136,7 @@ def main() -> None:
     parser.add_argument("--backends", default="mujoco,pybullet")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--marker-model", type=Path, default=None, help="the trackers' prior")
     args = parser.parse_args()
     for backend in args.backends.split(","):
         env = make_env(backend, TaskSpec(name="single", goal="random"), seed=0,
@@ -139,7 +147,8 @@ def main() -> None:
               f"{args.steps} steps, oracle motion, 160x120 at 25 Hz)")  # fmt: skip
         print(f"  {'condition':9s} {'mean':>7s} {'p95':>7s} {'points':>7s} {'track ms':>9s}")
         for condition, camera in cameras(env.backend.rod.length).items():
-            print(errors(env, condition, camera, args.seeds, args.steps), flush=True)
+            line = errors(env, condition, camera, args.seeds, args.steps, args.marker_model)
+            print(line, flush=True)
         print(f"{backend}: the tracker alone, one thread")
         print(frames_per_second(env))
         env.close()
