@@ -61,6 +61,8 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
             "occlusion_probability": 0.0,
             "occlusion_markers": 3,
             "occlusion_steps": 10,
+            "camera": None,
+            "tracker": None,
         },
     },
     "rod": {

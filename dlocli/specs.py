@@ -25,6 +25,7 @@ from dlocli.backend_spec import (
     default_backend,
     segment_limit_error,
 )
+from dlocli.camera_spec import CameraSpec, TrackerSpec
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEED
 from dlocli.spec_base import (
     GIVEN,
@@ -105,12 +106,15 @@ class EnvelopeSpec(Spec):
 
 class ObservationSpec(Spec):
     """What every controller, agent and online trial observes of the rod: the simulator's
-    exact state ("full"), or tracked marker positions ("markers") with a tracker's faults."""
+    exact state ("full"), tracked marker positions ("markers") with a tracker's faults, or
+    the markers a tracker finds in a depth camera's point clouds ("pointcloud")."""
 
-    kind: Literal["full", "markers"] = Field(
+    kind: Literal["full", "markers", "pointcloud"] = Field(
         "full",
         description="'full': every segment's position, orientation and velocity, exact and "
-        "at once; 'markers': positions of tracked markers only, with the faults below.",
+        "at once; 'markers': positions of tracked markers only, with the faults below; "
+        "'pointcloud': the markers the tracker finds in a depth camera's clouds (the camera "
+        "and tracker options, through --spec).",
     )
     markers: int = Field(
         10, ge=2, le=1000,
@@ -153,6 +157,12 @@ class ObservationSpec(Spec):
         3, ge=1, le=1000, description="Neighbouring markers an occlusion hides."
     )
     occlusion_steps: int = Field(10, ge=1, le=MAX_COUNT, description="Frames an occlusion lasts.")
+    camera: CameraSpec | None = Field(
+        None, description="The depth camera of the pointcloud observation (None: the defaults)."
+    )
+    tracker: TrackerSpec | None = Field(
+        None, description="The tracker of the pointcloud observation (None: the defaults)."
+    )
 
     def faults(self) -> dict[str, Any]:
         """The tracker faults set away from their defaults (a clean tracker: empty)."""
@@ -178,12 +188,22 @@ class ObservationSpec(Spec):
                 "marker_arc_lengths below 0 or above 1 place markers on the grippers: set "
                 "gripper_markers 0 (--gripper-markers 0)"
             )
+        if self.kind == "pointcloud" and self.faults():
+            raise ValueError(
+                f"{', '.join(self.faults())} fault tracked markers; a pointcloud observation's "
+                "faults are its camera's: set camera.noise_mm, camera.invalid_fraction, ..."
+            )
         if self.kind == "full" and self.faults():
             raise ValueError(
                 f"{', '.join(self.faults())} apply to tracked markers: set observation kind "
                 "'markers' (--observation markers)"
             )
         return self
+
+    @property
+    def reports_markers(self) -> bool:
+        """Whether the controller sees markers (tracked ones, or found in point clouds)."""
+        return self.kind != "full"
 
     def marker_count(self) -> int:
         """M: the markers on the rod, and those on the grippers."""

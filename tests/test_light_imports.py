@@ -86,6 +86,7 @@ LAZY_IMPORTS = {
     ("dlocli.cli.eval", "dlocli.runs.evaluate"): _CLI_RUNNER,
     ("dlocli.cli.train", "dlocli.models.fitting"): _CLI_RUNNER,
     ("dlocli.cli.train", "dlocli.runs.train"): _CLI_RUNNER,
+    ("dlocli.cli.track", "dlocli.runs.track"): "scipy; `dlo track --help` needs only the spec",
     # `dlo online --help` and `dlo control --help` load these modules' specs
     ("dlocli.runs.control", "dlocli.models.base"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.control", "dlocli.models.checkpoints"): "torch; on the `dlo control --help` path",
@@ -97,6 +98,9 @@ LAZY_IMPORTS = {
     ("dlocli.runs.online.results", "dlocli.models.checkpoints"): _TORCH,
     ("dlocli.runs.online.run", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.trials", "dlocli.models.checkpoints"): _TORCH,
+    ("dlocli.env.observation", "dlocli.tracking.observer"): (
+        "scipy and the camera, only for the pointcloud observation"
+    ),
     # an optional library, only for a fallback
     ("dlocli.backends.pybullet_chain", "dlocli.backends.render"): (
         "matplotlib, only when PyBullet cannot render"

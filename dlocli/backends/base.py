@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dlocli.backends.facts import BackendFacts
+from dlocli.backends.rays import GRIPPER_HALF_EXTENTS, RayHits, cast_on_shapes
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.specs import BackendSpec, RodSpec, segment_limit_error
 
@@ -311,6 +312,34 @@ class Backend(BackendFacts, ABC):
         self, width: int = 480, height: int = 360, goal: np.ndarray | None = None
     ) -> np.ndarray:
         """RGB image (height, width, 3) uint8 of the rod (and the goal shape, if given)."""
+
+    def cast_rays(
+        self, origin: np.ndarray, directions: np.ndarray, grippers: bool = True
+    ) -> RayHits:
+        """What rays from ``origin`` (3,) along unit ``directions`` (R,3) hit first: the rod
+        (which segment), a held end's gripper (unless ``grippers`` is False: then rays pass
+        through them), or nothing (a depth camera's view).
+
+        The default casts them analytically on the reported segments (capsules) and gripper
+        boxes; a simulator with its own ray casting overrides it."""
+        return cast_on_shapes(
+            np.asarray(origin, dtype=np.float64),
+            np.asarray(directions, dtype=np.float64),
+            self.segment_positions(),
+            self.segment_quaternions(),
+            self.rod.segment_length,
+            self.rod.radius,
+            self.held_gripper_poses() if grippers else np.zeros((0, 7)),
+            self.gripper_half_extents(),
+        )
+
+    def held_gripper_poses(self) -> np.ndarray:
+        """(G,7) the poses of the grippers that hold a rod end (a free end has none)."""
+        return self.gripper_poses()[: 2 if self.spec.held_ends == "both" else 1]
+
+    def gripper_half_extents(self) -> np.ndarray:
+        """(3,) a gripper box's half extents (m) along its x, y, z axes."""
+        return np.array(GRIPPER_HALF_EXTENTS) * self.rod.length
 
     def raw_physics_seconds(self, control_steps: int) -> float:
         """Seconds per control step of bare physics stepping (no wrapper), for benchmarks.

@@ -65,6 +65,7 @@ from dlocli.backends.mujoco_welded import (
     WELD_SOLIMP,
     WeldedMujocoRod,
 )
+from dlocli.backends.rays import CABLE, GRIPPER, NOTHING, RayHits
 from dlocli.backends.rotations import quat_multiply, quat_normalize
 from dlocli.specs import BackendSpec, RodSpec
 
@@ -73,6 +74,9 @@ from dlocli.specs import BackendSpec, RodSpec
 #: joint at the gripper 2 E I / l, the compliance of the rod's half segment at its end
 STUB_LENGTH = 0.5
 RAYLEIGH_BETA = 0.05  # s; joint damping = beta * bending stiffness EI/l
+#: the grippers' geom group (MuJoCo draws groups 0 to 2), and the groups rays see without them
+GRIPPER_GROUP = 2
+RAY_GROUPS_WITHOUT_GRIPPERS = np.array([1, 1, 0, 1, 1, 1], dtype=np.uint8)
 
 
 # --------------------------------------------------------------------------- model building
@@ -348,9 +352,44 @@ class MujocoCable(MujocoFacts, WeldedMujocoRod):
         self._joint_stiffness = np.ones(len(joints))
         self._joint_stiffness[0] += stubs[0]
         self._joint_stiffness[-1] += stubs[1]
+        self._bind_ray_labels()
         self._rod_origins = d.xpos[rod]  # segment start points
         self._rod_axes = d.xmat[rod, 0::3]  # x axis (first xmat column) of each segment
         self._rod_quats = d.xquat[rod]
+
+    def _bind_ray_labels(self) -> None:
+        """What each geom is to a ray: its kind and rod segment (rays skip the invisible
+        clamp stubs and a free end's gripper, whose alpha is 0)."""
+        m, rod = self.model, self._rod_bodies
+        body = m.geom_bodyid
+        self._geom_kind = np.full(m.ngeom + 1, NOTHING, dtype=np.int8)  # [-1]: no hit
+        self._geom_segment = np.full(m.ngeom + 1, -1, dtype=np.int32)
+        on_rod = (body >= rod.start) & (body < rod.stop)
+        self._geom_kind[:-1][on_rod] = CABLE
+        self._geom_segment[:-1][on_rod] = body[on_rod] - rod.start
+        grippers = np.isin(body, [m.body("grip0").id, m.body("grip1").id])
+        self._geom_kind[:-1][grippers] = GRIPPER
+        # a group of their own (still drawn) so that rays can pass through them
+        m.geom_group[grippers] = GRIPPER_GROUP
+
+    def cast_rays(
+        self, origin: np.ndarray, directions: np.ndarray, grippers: bool = True
+    ) -> RayHits:
+        """MuJoCo's rays (``mj_multiRay``) on the cable's and grippers' geoms."""
+        vec = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1)
+        count = len(vec) // 3
+        geom = np.empty(count, dtype=np.int32)
+        dist = np.empty(count)
+        if count:
+            pnt = np.ascontiguousarray(origin, dtype=np.float64)
+            # mocap grippers are static bodies to MuJoCo: flg_static keeps them
+            groups = None if grippers else RAY_GROUPS_WITHOUT_GRIPPERS
+            mujoco.mj_multiRay(self.model, self.data, pnt, vec, groups, 1, -1, geom, dist, None,
+                               count, 100.0 * self.rod.length)  # fmt: skip
+        missed = geom < 0
+        return RayHits(
+            np.where(missed, np.inf, dist), self._geom_kind[geom], self._geom_segment[geom]
+        )
 
     def _state_is_sane(self) -> bool:
         # NaN and huge values already fail _advance through MuJoCo's warnings; what is left

@@ -48,6 +48,7 @@ from dlocli.backends.base import (
 )
 from dlocli.backends.facts import PybulletFacts
 from dlocli.backends.pybullet_model import ChainModel
+from dlocli.backends.pybullet_rays import RayScene
 from dlocli.backends.pybullet_render import ChainCamera
 from dlocli.backends.pybullet_rotations import (
     right_product,
@@ -57,6 +58,7 @@ from dlocli.backends.pybullet_rotations import (
     wxyz,
     xyzw,
 )
+from dlocli.backends.rays import RayHits
 from dlocli.backends.rotations import quat_normalize, quat_rotate
 from dlocli.specs import BackendSpec
 
@@ -103,6 +105,7 @@ class PybulletChain(PybulletFacts, Backend):
         self._gains = (float(k[0]), float(k[1]), float(d[0]), float(d[1]))
         self._frames: tuple[np.ndarray, np.ndarray] | None = None  # cached link frames
         self._camera = ChainCamera(self._client, self.rod, self.rest_height)
+        self._ray_scene: RayScene | None = None  # made at the first cast_rays
         self._build()
         self._rest_state = self._settle_rest()
 
@@ -440,6 +443,21 @@ class PybulletChain(PybulletFacts, Backend):
     def segment_quaternions(self) -> np.ndarray:
         return quat_normalize(wxyz(self._link_frames()[1]))  # unit, w >= 0
 
+    def cast_rays(
+        self, origin: np.ndarray, directions: np.ndarray, grippers: bool = True
+    ) -> RayHits:
+        """PyBullet's rays (``rayTestBatch``) on a copy of the rod and grippers
+        (:mod:`dlocli.backends.pybullet_rays`)."""
+        if self._ray_scene is None:
+            self._ray_scene = RayScene(
+                self.n_segments, self.model.seg_length, self.rod.radius,
+                self.gripper_half_extents(),
+            )  # fmt: skip
+        held = self.held_gripper_poses() if grippers else np.zeros((0, 7))
+        self._ray_scene.place(*self._link_frames(), held)
+        directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        return self._ray_scene.cast(origin, directions, 100.0 * self.rod.length)
+
     # ----------------------------------------------------------------- rendering
     def render(
         self, width: int = 480, height: int = 360, goal: np.ndarray | None = None
@@ -461,6 +479,9 @@ class PybulletChain(PybulletFacts, Backend):
             return np.full((height, width, 3), 255, dtype=np.uint8)
 
     def close(self) -> None:
+        if self._ray_scene is not None:
+            self._ray_scene.close()
+            self._ray_scene = None
         if self._client >= 0 and p.isConnected(physicsClientId=self._client):
             p.disconnect(physicsClientId=self._client)
         self._client = -1

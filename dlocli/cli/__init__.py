@@ -43,6 +43,7 @@ COMMANDS = [
     ("goal", "dlocli.cli.goal:goal"),
     ("collect", "dlocli.cli.collect:collect"),
     ("import", "dlocli.cli.importing:import_recordings"),
+    ("track", "dlocli.cli.track:track"),
     ("calibrate", "dlocli.cli.calibrate:calibrate"),
     ("train", "dlocli.cli.train:train"),
     ("eval", "dlocli.cli.eval:evaluate"),

@@ -143,6 +143,22 @@ def held_markers(layout: MarkerLayout, grippers: np.ndarray) -> np.ndarray:
     return np.where(layout.held[:, None], placed, 0.0)
 
 
+def marker_tracker(
+    spec: ObservationSpec, layout: MarkerLayout, backend: Any, control_dt: float
+) -> Any:
+    """What reports the markers: :class:`Tracker` (the markers observation's faults on the
+    true markers), or for the pointcloud observation a depth camera on ``backend`` and the
+    cable tracker (:class:`dlocli.tracking.observer.CloudObserver`, the same interface)."""
+    if spec.kind != "pointcloud":
+        return Tracker(spec, len(layout))
+    from dlocli.tracking.observer import CloudObserver
+
+    def held_of(grippers: np.ndarray) -> np.ndarray:
+        return held_markers(layout, grippers)[layout.held]
+
+    return CloudObserver(spec, backend, layout, control_dt, held_of)
+
+
 class Tracker:
     """A marker tracker's faults (:class:`ObservationSpec`) on true marker frames; its own
     random stream, so faults never change the starts and goals the env draws."""

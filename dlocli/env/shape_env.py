@@ -39,6 +39,7 @@ from dlocli.env.observation import (
     Tracker,
     held_markers,
     marker_layout,
+    marker_tracker,
     markers_of_shape,
     markers_of_state,
 )
@@ -158,12 +159,13 @@ class DLOShapeEnv(gym.Env):
         self._state_space = observation_space(n, velocity)
         #: where the markers sit (None with the full observation) and the tracker's faults
         self.marker_layout: MarkerLayout | None = None
-        self.tracker: Tracker | None = None
+        self.tracker: Tracker | None = None  # or a CloudObserver, alike
         if markers is not None:
             rod = self.backend.rod
             held = (bool(self.backend.moving[0]), bool(self.backend.moving[1]))
             self.marker_layout = marker_layout(self.task_spec.observation, rod.length, n, held)
-            self.tracker = Tracker(self.task_spec.observation, markers)
+            self.tracker = marker_tracker(self.task_spec.observation, self.marker_layout,
+                                          self.backend, self.task_spec.control_dt)  # fmt: skip
         #: (K, 2, 7) the gripper poses of recorded shapes (None: other shapes)
         self.recorded_poses = None
         if self.task_spec.recorded_poses is not None:

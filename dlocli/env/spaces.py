@@ -34,7 +34,7 @@ def observation_layout(
 def observed_markers(task: TaskSpec) -> int | None:
     """M with the task's markers observation, None with the full one."""
     observation = task.observation
-    return observation.marker_count() if observation.kind == "markers" else None
+    return observation.marker_count() if observation.reports_markers else None
 
 
 #: bound of each column of every part of the observation (rows repeat it)

@@ -50,6 +50,13 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "5 mm + latency 1": {"noise_mm": 5.0, "latency_steps": 1},
     "all": {"noise_mm": 5.0, "latency_steps": 1, "dropout": 0.05,
             "occlusion_probability": 0.05, "occlusion_markers": 3, "occlusion_steps": 10},
+    # a depth camera and the tracker in place of the marker tracker (the pointcloud
+    # observation): the camera's defaults (depth noise, stray points, grippers in view), and
+    # without its faults
+    "camera": {"kind": "pointcloud"},
+    "camera clean": {"kind": "pointcloud", "camera": {"noise_mm": 0.0, "noise_growth_mm": 0.0,
+                                                      "invalid_fraction": 0.0,
+                                                      "stray_fraction": 0.0}},
 }  # fmt: skip
 
 

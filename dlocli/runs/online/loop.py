@@ -96,7 +96,7 @@ class OnlineRun:
 
         if self.paths.checkpoint(k).is_file():
             return
-        if self.spec.task.observation.kind == "markers":
+        if self.spec.task.observation.reports_markers:
             self.update_marker_model(k, data)
             return
         device = resolve_device(self.spec.fit.device)

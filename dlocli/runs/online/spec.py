@@ -84,7 +84,7 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
 
     @model_validator(mode="after")
     def _offline_needs_full(self) -> OnlineSpec:
-        if self.offline and self.task.observation.kind == "markers":
+        if self.offline and self.task.observation.reports_markers:
             raise ValueError("--offline compares rod models: drop it with --observation markers")
         return self
 

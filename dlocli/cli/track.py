@@ -1,0 +1,21 @@
+"""`dlo track`: recorded point clouds of a cable into a marker dataset."""
+
+from __future__ import annotations
+
+from dlocli.cli.common import emit_summary, handle_errors
+from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.tracking.spec import TrackSpec
+
+
+@handle_errors
+@spec_flags(TrackSpec)
+def track(
+    run: RunFlags,
+) -> None:
+    """Track the cable through --source's recorded clouds (.npz frame sequences or ROS 2 bags
+    of PointCloud2, one per episode, train/ and eval/) into OUT/dataset.h5 of --markers
+    markers for `dlo train` and `dlo eval`; the tracker's options through --spec
+    (tracker.*)."""
+    from dlocli.runs.track import run_track
+
+    emit_summary(run_track(run.spec(), run.overwrite), run.json, "dlo track")

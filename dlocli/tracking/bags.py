@@ -1,0 +1,99 @@
+"""ROS 2 bags of a depth camera's cable clouds (``sensor_msgs/msg/PointCloud2``), for
+`dlo track` (the ``ros`` extra: rosbags, a pure-Python reader).
+
+A bag folder is one episode; every message on the clouds' topic is a frame: its points'
+x, y, z, taken in the world frame (transform the clouds there first: the tracker reads no
+tf), at its header stamp (or the time the bag received it where the stamp is zero), in
+stamp order. Points with a NaN coordinate (an organised cloud's pixels without depth) are
+left out. The camera's position is given: the tracker moves each point away from it, from
+the cable's surface to its axis.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dlocli.errors import BadInput
+from dlocli.extras import require
+from dlocli.markers.rosbag import FRAMES, POINT_CLOUD
+from dlocli.tracking.camera import CloudFrame
+from dlocli.tracking.frames import FrameSequence
+
+
+def is_bag(path: Path) -> bool:
+    """Whether ``path`` is a rosbag2 folder (it holds a metadata.yaml)."""
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+def read_cloud_bag(
+    path: Path, topic: str | None, camera_position: np.ndarray, budget: int
+) -> FrameSequence:
+    """The frames of one bag; BadInput naming the fault (a topic of another type, ...)."""
+    require("ros", "reading a ROS 2 bag", "save the clouds as .npz frame sequences")
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    size = sum(p.stat().st_size for p in path.iterdir() if p.is_file())
+    if 4 * size > budget:  # the messages, decoded one at a time, and their points kept
+        raise BadInput(f"{path} holds {size / 2**20:.0f} MiB, too large to track at once")
+    clouds, stamps = [], []
+    try:
+        with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as bag:
+            connections = cloud_connections(bag.connections, topic, path)
+            for connection, received, raw in bag.messages(connections=connections):
+                message = bag.deserialize(raw, connection.msgtype)
+                points, stamp = FRAMES[POINT_CLOUD](message, path)
+                clouds.append(points[np.isfinite(points).all(axis=1)])
+                stamps.append(stamp if stamp else received)
+    except BadInput:
+        raise
+    except Exception as exc:  # a third-party parser of the file: any failure is the file's
+        raise BadInput(f"{path} is not a readable ROS 2 bag ({str(exc)[:80]})") from exc
+    return _sequence(path, clouds, stamps, camera_position)
+
+
+def cloud_connections(connections: list[Any], topic: str | None, path: Path) -> list[Any]:
+    """The connections of the clouds' topic; BadInput naming the bag's topics otherwise."""
+    listed = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in connections}))[:200]
+    if topic is None:
+        topics = {c.topic for c in connections if c.msgtype == POINT_CLOUD}
+        if len(topics) != 1:
+            raise BadInput(
+                f"{path} has {len(topics)} PointCloud2 topics among {listed or 'none'}; pass "
+                "--topic NAME"
+            )
+        topic = topics.pop()
+    chosen = [c for c in connections if c.topic == topic]
+    if not chosen:
+        raise BadInput(f"{path} has no topic {topic!r}; its topics: {listed or 'none'}")
+    if any(c.msgtype != POINT_CLOUD for c in chosen):
+        raise BadInput(
+            f"{path}: topic {topic} carries {chosen[0].msgtype}, not the cable's clouds; pass "
+            "a topic of sensor_msgs/msg/PointCloud2 messages"
+        )
+    return chosen
+
+
+def _sequence(
+    path: Path, clouds: list[np.ndarray], stamps: list[int], camera_position: np.ndarray
+) -> FrameSequence:
+    if len(clouds) < 2:
+        raise BadInput(f"{path} has {len(clouds)} clouds on the topic; an episode needs 2")
+    order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")
+    stamps_ns = np.array(stamps, dtype=np.int64)[order]
+    if (np.diff(stamps_ns) <= 0).any():
+        raise BadInput(f"{path}: two clouds share a stamp; record each frame once")
+    if not len(clouds[order[0]]):
+        raise BadInput(f"{path}: the first cloud has no points; the tracker starts from it")
+    extrinsics = np.eye(4)
+    extrinsics[:3, 3] = camera_position
+    times = (stamps_ns - stamps_ns[0]) / 1e9
+    frames = [
+        CloudFrame(clouds[i], extrinsics, np.eye(3), float(t),
+                   np.full(len(clouds[i]), -1, dtype=np.int32))
+        for i, t in zip(order, times, strict=True)
+    ]  # fmt: skip
+    return FrameSequence(frames, None)

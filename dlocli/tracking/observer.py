@@ -1,0 +1,83 @@
+"""The pointcloud observation: the env's markers from a depth camera and the tracker.
+
+:class:`CloudObserver` takes the place of the markers observation's tracker
+(:class:`dlocli.env.observation.Tracker`, same ``reset``/``report``/``lost``): every
+``1 / (rate_hz * control_dt)`` control steps the camera takes a frame of the backend's
+scene and the tracker finds the markers in it; between frames the last ones stand. The
+robot knows its grippers: the held markers are placed from their poses at every step, as
+the markers observation does, and reported seen (a gripper may hide them from the camera).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from dlocli.backends.base import Backend
+from dlocli.camera_spec import CameraSpec, TrackerSpec
+from dlocli.specs import ObservationSpec
+from dlocli.tracking.camera import DepthCamera
+from dlocli.tracking.tracker import CableTracker, TrackedFrame
+
+
+class CloudObserver:
+    """A depth camera of ``spec.camera`` on ``backend`` and a tracker of ``layout``'s
+    markers (a :class:`dlocli.env.observation.MarkerLayout`), stepped every ``control_dt``
+    seconds; ``held_of`` places the held markers (H,3) for gripper poses (2,7)."""
+
+    def __init__(
+        self,
+        spec: ObservationSpec,
+        backend: Backend,
+        layout: Any,
+        control_dt: float,
+        held_of: Callable[[np.ndarray], np.ndarray],
+    ) -> None:
+        self.backend, self.layout, self.held_of = backend, layout, held_of
+        camera = spec.camera or CameraSpec()
+        self.camera = DepthCamera(camera, backend.rod.length)
+        self.tracker = CableTracker.for_layout(
+            layout, backend.rod.radius, spec.tracker or TrackerSpec()
+        )
+        self.every = max(1, round(1.0 / (camera.rate_hz * control_dt)))
+        self.control_dt = control_dt
+        self.rng = np.random.default_rng(0)
+        self._steps = 0
+        self._last: TrackedFrame | None = None
+        #: whether the latest frame held no cable point
+        self.lost = False
+
+    def reset(self, rng: np.random.Generator, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Start an episode: the camera must see the cable (BadInput if it cannot); the true
+        ``frame`` is not read (the camera looks at the backend)."""
+        del frame
+        self.rng, self._steps = rng, 0
+        self.camera.check_view(self.backend)
+        self._last = self.tracker.start(self._capture(), self._held())
+        return self._reported()
+
+    def report(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The markers after a control step: a new frame's at the camera's rate, else the
+        last frame's, the held ones where the grippers are now."""
+        del frame
+        self._steps += 1
+        if self._steps % self.every == 0 or self._last is None:
+            self._last = self.tracker.step(self._capture(), self._held())
+        return self._reported()
+
+    def _capture(self):
+        cloud = self.camera.capture(self.backend, self.rng, self._steps * self.control_dt)
+        self.lost = len(cloud.points) == 0
+        return cloud
+
+    def _held(self) -> np.ndarray:
+        return self.held_of(self.backend.gripper_poses())
+
+    def _reported(self) -> tuple[np.ndarray, np.ndarray]:
+        assert self._last is not None
+        markers, visible = self._last.markers.copy(), self._last.visible.copy()
+        markers[self.layout.held] = self._held()
+        visible[self.layout.held] = True  # known from the robot's kinematics
+        return markers, visible
