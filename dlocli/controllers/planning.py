@@ -76,6 +76,17 @@ class ModelPlanner(Planner):
         """The latest optimised plan (H, A) on the model's device, None before the first act."""
         return self._plan
 
+    def planned_path(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The latest plan as gripper commands (H, 2, 6) in [-1, 1] and the model's predicted
+        positions (H, N, 3) along it from the latest observed state (one rollout; for a
+        run's recording); (None, None) before the first act."""
+        if self._plan is None or self._observed is None:
+            return None, None
+        commands = self.task.to_grippers(self._plan[None])
+        with torch.no_grad():
+            predicted = self.view.predict(self._observed, commands, self._previous)
+        return commands[0].cpu().numpy(), predicted[0].cpu().numpy()
+
     # ------------------------------------------------------------------ control loop
     def _act(self, obs: np.ndarray) -> np.ndarray:
         if self._goal is None:
