@@ -139,3 +139,43 @@ def test_an_unwritable_recording_is_refused_before_the_run(near_rest_goal: Path,
         assert len(lines) == 1 and says in lines[0] and "--record" in lines[0], result.stderr
         assert not out.exists()
     assert existing.read_bytes() == b"kept"
+
+
+def test_view_writes_a_collect_runs_recording_and_says_where_it_is(
+    small_dataset_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """`dlo view` on a run of saved episodes writes RUN/recording.rrd, one frame per saved
+    state with the datasets' own errors; with no display it says where, in one line."""
+    import shutil
+
+    import numpy as np
+    from rerun.chunk import RrdReader
+
+    from dlocli.data import load_dataset
+    from dlocli.env.metrics import shape_error_mm
+
+    run = tmp_path / "collected"
+    run.mkdir()
+    shutil.copy(small_dataset_dir / "dataset.h5", run / "dataset.h5")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    result = subprocess.run([sys.executable, "-m", "dlocli", "view", str(run)],
+                            capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1 and f"the recording is {run / 'recording.rrd'}" in lines[0]
+
+    dataset = load_dataset(run / "dataset.h5")
+    first = dataset.episode(0)
+    rows: dict[str, list] = {}
+    for chunk in RrdReader(run / "recording.rrd").stream().to_chunks():
+        batch = chunk.to_record_batch()
+        for column in batch.column_names:
+            if not chunk.is_static and column.endswith(("strips", "scalars")):
+                steps = batch.column("step").to_pylist()
+                values = batch.column(column).to_pylist()
+                rows.setdefault(chunk.entity_path, []).extend(zip(steps, values, strict=True))
+    assert len(rows["/world/rod"]) == sum(len(dataset.episode(e)) + 1 for e in range(6))
+    errors = dict(rows["/metrics/shape_error_mm"])
+    expected = shape_error_mm(first.positions[len(first)], first.goal)
+    assert np.isclose(errors[len(first)][0], expected, rtol=1e-6)

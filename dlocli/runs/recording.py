@@ -24,6 +24,9 @@ ends) and read afterwards with ``rerun RUN.rrd`` or Rerun's own API.
 
 from __future__ import annotations
 
+import importlib.util
+import os
+import threading
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -31,9 +34,10 @@ from typing import Any
 import numpy as np
 
 from dlocli.env.envelope import LIMITS
+from dlocli.env.metrics import shape_error_mm
 from dlocli.env.shapes import max_twist
 from dlocli.errors import BadInput
-from dlocli.extras import require
+from dlocli.extras import EXTRAS, require
 from dlocli.io import atomic_path, check_writable
 
 TIMELINE = "step"
@@ -49,10 +53,38 @@ def check_record_path(path: Path | None, overwrite: bool, flag: str = "--record"
     file, with the ``view`` extra installed: checked before the run starts."""
     if path is None:
         return
-    require("view", flag, "drop the flag")
+    if importlib.util.find_spec(EXTRAS["view"]) is None:
+        require("view", flag, "drop the flag")  # says which extra, in one line
     if Path(path).suffix != ".rrd":
         raise BadInput(f"{flag} {path} must end in .rrd (a Rerun recording)")
     check_writable(Path(path), flag, overwrite)
+    _warm_up()
+
+
+#: Rerun imported while the run builds its env and model (a second on a loaded CPU, much of
+#: it in the first calls), so recording adds little to the run's time
+_warming: threading.Thread | None = None
+
+
+def _warm_up() -> None:
+    global _warming
+    if _warming is None:
+        _warming = threading.Thread(target=_first_calls, name="rerun-import")
+        _warming.start()
+
+
+def _first_calls() -> None:
+    try:
+        import rerun as rr
+
+        stream = rr.RecordingStream(APPLICATION)
+        stream.save(os.devnull)
+        stream.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        columns = rr.LineStrips3D.columns(strips=[np.zeros((2, 3))]).partition([1])
+        stream.send_columns("world/rod", [rr.TimeColumn(TIMELINE, sequence=[0])], columns)
+        stream.disconnect()
+    except Exception:  # noqa: BLE001 - the recording's own import reports it
+        pass
 
 
 def open_recording(path: Path | None, name: str) -> RunRecording | NoRecording:
@@ -80,6 +112,8 @@ class RunRecording(NoRecording):
     def __init__(self, path: Path, name: str) -> None:
         import uuid
 
+        if _warming is not None:
+            _warming.join()
         import rerun as rr
 
         self.rr, self.path = rr, path
@@ -152,6 +186,23 @@ class RunRecording(NoRecording):
         state = env.state_parts()  # the last finite state, also when the step diverged
         self._add("world/rod", step, state["positions"][None])
         self._add("world/grippers", step, state["grippers"])
+
+    def add_episode(self, episode: Any, start: int) -> int:
+        """A saved episode (:class:`dlocli.data.Episode`) from ``start`` on the timeline:
+        what a run's datasets hold (no plan, no envelope); the step after its last."""
+        self._add("world/goal", start, np.asarray(episode.goal)[None])
+        for t in range(len(episode.positions)):
+            self._add("world/rod", start + t, episode.positions[t][None])
+            self._add("world/grippers", start + t, episode.grippers[t])
+            if episode.markers is not None and episode.visible is not None:
+                seen = np.asarray(episode.visible[t], dtype=bool)
+                self._add("world/markers/seen", start + t, episode.markers[t][seen])
+                self._add("world/markers/hidden", start + t, episode.markers[t][~seen])
+            if t > 0:
+                error = shape_error_mm(episode.positions[t], episode.goal)
+                self._add("metrics/shape_error_mm", start + t, [error])
+                self._add("metrics/reward", start + t, [episode.rewards[t - 1]])
+        return start + len(episode.positions)
 
     # ------------------------------------------------------------------ to the file
     def flush(self) -> None:
