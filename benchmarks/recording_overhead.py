@@ -59,6 +59,9 @@ def main() -> None:
     controller = "random" if args.checkpoint is None else f"mpc ({args.checkpoint.name})"
     print(f"dlo control, {controller}, {args.steps} steps, {args.pairs} interleaved pairs "
           f"(medians); the recording is {size / 1e3:.0f} kB")  # fmt: skip
+    for name, runs in (("without", plain), ("with --record", recorded)):
+        walls = ", ".join(f"{wall:.2f}/{loop:.2f}" for wall, loop in runs)
+        print(f"  {name:14s} command/closed-loop s, in order: {walls}")
     for name, index in (("command wall", 0), ("closed loop", 1)):
         without = statistics.median(run[index] for run in plain)
         with_ = statistics.median(run[index] for run in recorded)
