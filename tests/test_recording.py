@@ -141,11 +141,13 @@ def test_an_unwritable_recording_is_refused_before_the_run(near_rest_goal: Path,
     assert existing.read_bytes() == b"kept"
 
 
-def test_view_writes_a_collect_runs_recording_and_says_where_it_is(
-    small_dataset_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("saved", ["dataset.h5", "data/iter_01/trial_001.h5"])
+def test_view_writes_a_runs_recording_from_its_episodes_and_says_where_it_is(
+    saved: str, small_dataset_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
-    """`dlo view` on a run of saved episodes writes RUN/recording.rrd, one frame per saved
-    state with the datasets' own errors; with no display it says where, in one line."""
+    """`dlo view` on a run of saved episodes (a collect run's dataset, an online run's
+    trials) writes RUN/recording.rrd, one frame per saved state with the datasets' own
+    errors; with no display it says where, in one line."""
     import shutil
 
     import numpy as np
@@ -154,9 +156,9 @@ def test_view_writes_a_collect_runs_recording_and_says_where_it_is(
     from dlocli.data import load_dataset
     from dlocli.env.metrics import shape_error_mm
 
-    run = tmp_path / "collected"
-    run.mkdir()
-    shutil.copy(small_dataset_dir / "dataset.h5", run / "dataset.h5")
+    run = tmp_path / "run"
+    (run / saved).parent.mkdir(parents=True)
+    shutil.copy(small_dataset_dir / "dataset.h5", run / saved)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     result = subprocess.run([sys.executable, "-m", "dlocli", "view", str(run)],
@@ -165,7 +167,7 @@ def test_view_writes_a_collect_runs_recording_and_says_where_it_is(
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1 and f"the recording is {run / 'recording.rrd'}" in lines[0]
 
-    dataset = load_dataset(run / "dataset.h5")
+    dataset = load_dataset(run / saved)
     first = dataset.episode(0)
     rows: dict[str, list] = {}
     for chunk in RrdReader(run / "recording.rrd").stream().to_chunks():
@@ -179,3 +181,16 @@ def test_view_writes_a_collect_runs_recording_and_says_where_it_is(
     errors = dict(rows["/metrics/shape_error_mm"])
     expected = shape_error_mm(first.positions[len(first)], first.goal)
     assert np.isclose(errors[len(first)][0], expected, rtol=1e-6)
+
+
+def test_view_without_the_extra_is_one_line(tmp_path: Path):
+    """Rerun hidden (as if never installed): `dlo view` names the extra, exit 2, writes nothing."""
+    program = ("import sys; sys.modules['rerun'] = None\n"
+               f"sys.argv = ['dlo', 'view', {str(tmp_path)!r}]\n"
+               "from dlocli.cli import main; main()\n")  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True,
+                            timeout=120)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "pip install 'dlocli[view]'" in lines[0], result.stderr
+    assert list(tmp_path.iterdir()) == []
