@@ -245,6 +245,7 @@ CORPUS: list[tuple[str, str, int]] = [
     ("record-unwritable", "control --goal {goal} --record /proc/dlocli/r.rrd --out {out}", 2),
     ("plot-bad-suffix", "eval --checkpoint {train} --data {data} --plot {out}.jpg", 2),
     ("plot-unwritable", "eval --checkpoint {train} --data {data} --plot /proc/x/p.png", 2),
+    ("record-rod-eval", "eval --checkpoint {train} --data {data} --record {out}.rrd", 2),
     ("bench-out-is-collect-run", "bench --out {collect}", 2),
     # resume
     ("resume-missing-dir", "train --resume {root}/nope", 2),

@@ -194,3 +194,36 @@ def test_view_without_the_extra_is_one_line(tmp_path: Path):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "pip install 'dlocli[view]'" in lines[0], result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_eval_records_recorded_markers_beside_the_prediction(marker_run, tmp_path: Path):
+    """`dlo eval --record` on a marker dataset: each eval trajectory and the model's open-loop
+    prediction, frame by frame, whose free markers' error is the run's error_by_frame.json."""
+    import numpy as np
+    from rerun.chunk import RrdReader
+
+    from dlocli.data import load_dataset
+
+    data, checkpoint = marker_run
+    recording, out = tmp_path / "eval.rrd", tmp_path / "eval"
+    argv = ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--record",
+            str(recording), "--out", str(out), "--json"]  # fmt: skip
+    assert run_dlo(argv) == 0
+    episodes = load_dataset(data).episodes("eval")
+    rows: dict[str, dict[int, list]] = {}
+    for chunk in RrdReader(recording).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        for column in batch.column_names:
+            if not chunk.is_static and column.endswith(("strips", "scalars")):
+                steps, values = batch.column("step").to_pylist(), batch.column(column).to_pylist()
+                rows.setdefault(chunk.entity_path, {}).update(zip(steps, values, strict=True))
+    frames = sum(len(e) for e in episodes)
+    assert sorted(rows["/world/recorded"]) == list(range(frames))
+    assert sorted(rows["/world/predicted"]) == list(range(frames))
+    second = len(episodes[0])  # the second trajectory's first frame
+    assert np.allclose(rows["/world/recorded"][second][0], episodes[1][0], atol=1e-6)
+    errors = np.array([rows["/metrics/prediction_error_mm"][t][0] for t in range(frames)])
+    by_frame = np.mean([errors[:second], errors[second:]], axis=0)
+    curves = json.loads((out / "error_by_frame.json").read_text())["free_error_mm"]["model"]
+    assert np.allclose(by_frame, curves, atol=2e-3)  # the curve is rounded to 1e-3 mm
+    assert by_frame[0] == by_frame[1] == 0.0 and by_frame[-1] > 0.0  # frames 0-1 are given

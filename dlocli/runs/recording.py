@@ -12,6 +12,8 @@ world/markers/hidden      the markers the tracker did not see at that step (thei
 world/plan/grippers       a planner's planned gripper path (at each re-plan)
 world/plan/predicted      its model's predicted shapes along the plan (at each re-plan)
 world/workspace           the task's workspace box (static)
+world/recorded|predicted  `dlo eval` on recorded markers: them and the model's open-loop
+                          prediction (metrics/prediction_error_mm: its free markers' error)
 world/envelope/left|right the envelope's gripper boxes, when set (static)
 metrics/shape_error_mm    the shape error (mm), as in metrics.csv
 metrics/reward            the step's reward
@@ -204,6 +206,20 @@ class RunRecording(NoRecording):
                 self._add("metrics/reward", start + t, [episode.rewards[t - 1]])
         return start + len(episode.positions)
 
+    def add_prediction(
+        self, recorded: np.ndarray, predicted: np.ndarray, held: np.ndarray, start: int
+    ) -> int:
+        """A recorded marker episode (T+1, M, 3) beside a model's open-loop prediction of it
+        from ``start`` on the timeline, with the free markers' mean error (mm) per frame; the
+        step after its last."""
+        free = ~np.asarray(held, dtype=bool)
+        errors = 1000.0 * np.linalg.norm(predicted[:, free] - recorded[:, free], axis=-1)
+        for t in range(len(recorded)):
+            self._add("world/recorded", start + t, recorded[t][None])
+            self._add("world/predicted", start + t, predicted[t][None])
+            self._add("metrics/prediction_error_mm", start + t, [errors[t].mean()])
+        return start + len(recorded)
+
     # ------------------------------------------------------------------ to the file
     def flush(self) -> None:
         """Send the buffered steps to the recording as columns."""
@@ -248,7 +264,7 @@ def _style(rr: Any, entity: str) -> Any:
         return rr.Boxes3D.from_fields(half_sizes=[[GRIPPER_HALF_SIZE] * 3], colors=[GRIPPERS])
     if entity.startswith("world/markers/"):
         return rr.Points3D.from_fields(colors=[SEEN if entity.endswith("seen") else HIDDEN])
-    if entity.startswith("world/plan/"):
+    if entity.startswith("world/plan/") or entity == "world/predicted":
         return rr.LineStrips3D.from_fields(colors=[PLAN], radii=[0.001])
     return rr.LineStrips3D.from_fields(colors=[GOAL if entity == "world/goal" else ROD])
 
