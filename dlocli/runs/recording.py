@@ -20,15 +20,17 @@ metrics/reward            the step's reward
 envelope/clipped          the envelope's counts of clipped commands so far, one per limit
 ========================  ============================================================
 
-A recording is written beside the run (atomically: the file appears whole when the run
-ends) and read afterwards with ``rerun RUN.rrd`` or Rerun's own API.
+A run only keeps its steps' arrays; a writer process (:mod:`dlocli.runs.recording_writer`),
+started when the path is checked, imports Rerun meanwhile and writes the file when the run
+ends (atomically: it appears whole). Read it with ``rerun RUN.rrd`` or Rerun's own API.
 """
 
 from __future__ import annotations
 
 import importlib.util
-import os
-import threading
+import io
+import subprocess
+import sys
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -38,21 +40,18 @@ import numpy as np
 from dlocli.env.envelope import LIMITS
 from dlocli.env.metrics import shape_error_mm
 from dlocli.env.shapes import max_twist
-from dlocli.errors import BadInput
+from dlocli.errors import BadInput, DloError
 from dlocli.extras import EXTRAS, require
 from dlocli.io import atomic_path, check_writable
 
-TIMELINE = "step"
-APPLICATION = "dlocli"
-#: RGB colours: the rod, the goal, the grippers, seen and hidden markers, the plan
-ROD, GOAL, GRIPPERS = (70, 130, 230), (60, 200, 90), (240, 150, 40)
-SEEN, HIDDEN, PLAN = (250, 220, 40), (150, 150, 150), (220, 60, 220)
-GRIPPER_HALF_SIZE = 0.01  # m
+#: how long a run waits for its recording to be written once it has sent its steps
+WRITE_TIMEOUT_S = 600.0
 
 
 def check_record_path(path: Path | None, overwrite: bool, flag: str = "--record") -> None:
     """BadInput unless ``path`` is None or a writable new (or, with ``overwrite``, any) .rrd
-    file, with the ``view`` extra installed: checked before the run starts."""
+    file, with the ``view`` extra installed: checked before the run starts, which also
+    starts the process that will write it."""
     if path is None:
         return
     if importlib.util.find_spec(EXTRAS["view"]) is None:
@@ -60,33 +59,21 @@ def check_record_path(path: Path | None, overwrite: bool, flag: str = "--record"
     if Path(path).suffix != ".rrd":
         raise BadInput(f"{flag} {path} must end in .rrd (a Rerun recording)")
     check_writable(Path(path), flag, overwrite)
-    _warm_up()
+    global _started
+    if _started is None:
+        _started = _start_writer()
 
 
-#: Rerun imported while the run builds its env and model (a second on a loaded CPU, much of
-#: it in the first calls), so recording adds little to the run's time
-_warming: threading.Thread | None = None
+#: the writer started by the last check, importing Rerun while the run gets ready
+_started: subprocess.Popen[bytes] | None = None
 
 
-def _warm_up() -> None:
-    global _warming
-    if _warming is None:
-        _warming = threading.Thread(target=_first_calls, name="rerun-import")
-        _warming.start()
-
-
-def _first_calls() -> None:
-    try:
-        import rerun as rr
-
-        stream = rr.RecordingStream(APPLICATION)
-        stream.save(os.devnull)
-        stream.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        columns = rr.LineStrips3D.columns(strips=[np.zeros((2, 3))]).partition([1])
-        stream.send_columns("world/rod", [rr.TimeColumn(TIMELINE, sequence=[0])], columns)
-        stream.disconnect()
-    except Exception:  # noqa: BLE001 - the recording's own import reports it
-        pass
+def _start_writer() -> subprocess.Popen[bytes]:
+    # its own session: a Ctrl-C to the run leaves it to write what the run kept
+    return subprocess.Popen(
+        [sys.executable, "-m", "dlocli.runs.recording_writer"], stdin=subprocess.PIPE,
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
+    )  # fmt: skip
 
 
 def open_recording(path: Path | None, name: str) -> RunRecording | NoRecording:
@@ -105,32 +92,18 @@ class NoRecording:
 
 
 class RunRecording(NoRecording):
-    """Logs a run's control steps to a Rerun recording file (see the module docstring).
-
-    A step only copies its arrays into per-entity buffers; :meth:`flush` sends them to Rerun
-    as columns (one call per entity, not per step), which keeps a step's cost to microseconds
-    (``benchmarks/recording_overhead.py``)."""
+    """A run's steps, kept for its Rerun recording (see the module docstring): a step only
+    copies its arrays (microseconds, ``benchmarks/recording_overhead.py``)."""
 
     def __init__(self, path: Path, name: str) -> None:
-        import uuid
-
-        if _warming is not None:
-            _warming.join()
-        import rerun as rr
-
-        self.rr, self.path = rr, path
-        self._files = ExitStack()
-        temporary = self._files.enter_context(atomic_path(path))
-        self.stream = rr.RecordingStream(APPLICATION, recording_id=uuid.uuid4())
-        self.stream.save(temporary)
-        self.stream.send_recording_name(name)
-        self.stream.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        global _started
+        self.path, self.name = path, name
+        self._writer, _started = _started or _start_writer(), None
         #: entity -> (steps, one array of rows per step)
         self._buffers: dict[str, tuple[list[int], list[np.ndarray]]] = {}
-        self._static_logged = False
-        self._styled: set[str] = set()
+        self._boxes: dict[str, np.ndarray] = {}  # static: entity -> (2, 3) low, high
 
-    def _add(self, entity: str, step: int, rows: np.ndarray) -> None:
+    def _add(self, entity: str, step: int, rows: Any) -> None:
         steps, values = self._buffers.setdefault(entity, ([], []))
         steps.append(step)
         values.append(np.array(rows, dtype=np.float32))  # a copy: the env reuses its arrays
@@ -138,14 +111,12 @@ class RunRecording(NoRecording):
     # ------------------------------------------------------------------ per step
     def episode(self, env: Any, step: int) -> None:
         """An episode starts at ``step``: the goal, the boxes once, the rod at rest."""
-        if not self._static_logged:
-            rr, log = self.rr, self.stream.log
+        if not self._boxes:
             limits = env.backend.limits
-            log("world/workspace", _box(rr, limits.low, limits.high, (120, 120, 120)), static=True)
+            self._boxes["world/workspace"] = np.array([limits.low, limits.high], dtype=float)
             for side, box in zip(("left", "right"), env.envelope.boxes, strict=True):
                 if box is not None:
-                    log(f"world/envelope/{side}", _box(rr, *box, (230, 80, 60)), static=True)
-            self._static_logged = True
+                    self._boxes[f"world/envelope/{side}"] = np.array(box, dtype=float)
         self._add("world/goal", step, np.asarray(env.goal)[None])
         self._add_state(env, step)
 
@@ -221,54 +192,30 @@ class RunRecording(NoRecording):
         return start + len(recorded)
 
     # ------------------------------------------------------------------ to the file
-    def flush(self) -> None:
-        """Send the buffered steps to the recording as columns."""
-        rr = self.rr
+    def payload(self, temporary: Path) -> dict[str, np.ndarray]:
+        """What the writer reads: the path, name and limits' names, each box, and per entity
+        its steps, its rows concatenated and how many rows each step has."""
+        arrays = {"path": np.array(str(temporary)), "name": np.array(self.name),
+                  "limits": np.array(LIMITS)}  # fmt: skip
+        arrays |= {f"box:{entity}": box for entity, box in self._boxes.items()}
         for entity, (steps, values) in self._buffers.items():
-            if not steps:
-                continue
-            lengths = [len(v) for v in values]
-            rows = np.concatenate(values)
-            if entity.startswith(("metrics/", "envelope/")):
-                columns = rr.Scalars.columns(scalars=rows)
-            elif entity == "world/grippers":
-                # ours are w x y z, Rerun's x y z w
-                columns = rr.Boxes3D.columns(centers=rows[:, :3], quaternions=rows[:, [4, 5, 6, 3]])
-            elif entity.startswith("world/markers/"):
-                columns = rr.Points3D.columns(positions=rows)
-            else:
-                columns = rr.LineStrips3D.columns(strips=list(rows))
-            if entity not in self._styled:  # what every step shares, once
-                self.stream.log(entity, _style(rr, entity), static=True)
-                self._styled.add(entity)
-            indexes = [rr.TimeColumn(TIMELINE, sequence=steps)]
-            self.stream.send_columns(entity, indexes=indexes, columns=columns.partition(lengths))
-            steps.clear()
-            values.clear()
+            arrays[f"{entity}/steps"] = np.array(steps, dtype=np.int64)
+            arrays[f"{entity}/lengths"] = np.array([len(v) for v in values], dtype=np.int64)
+            arrays[f"{entity}/rows"] = np.concatenate(values)
+        return arrays
 
     def close(self) -> None:
-        """Send what is buffered, write the file's end and move it to its path."""
-        self.flush()
-        self.stream.flush()
-        self.stream.disconnect()
-        self._files.close()
-
-
-def _style(rr: Any, entity: str) -> Any:
-    """The colours and sizes of ``entity``'s every row."""
-    if entity == "envelope/clipped":
-        return rr.SeriesLines(names=list(LIMITS))
-    if entity.startswith("metrics/"):
-        return rr.SeriesLines(names=[entity.split("/")[-1]])
-    if entity == "world/grippers":
-        return rr.Boxes3D.from_fields(half_sizes=[[GRIPPER_HALF_SIZE] * 3], colors=[GRIPPERS])
-    if entity.startswith("world/markers/"):
-        return rr.Points3D.from_fields(colors=[SEEN if entity.endswith("seen") else HIDDEN])
-    if entity.startswith("world/plan/") or entity == "world/predicted":
-        return rr.LineStrips3D.from_fields(colors=[PLAN], radii=[0.001])
-    return rr.LineStrips3D.from_fields(colors=[GOAL if entity == "world/goal" else ROD])
-
-
-def _box(rr: Any, low: Any, high: Any, color: tuple[int, int, int]) -> Any:
-    low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
-    return rr.Boxes3D(mins=[low], sizes=[high - low], colors=[color], fill_mode="majorwireframe")
+        """Hand the steps to the writer and move its file to the recording's path."""
+        with ExitStack() as files:
+            temporary = files.enter_context(atomic_path(self.path))
+            sent = io.BytesIO()
+            np.savez(sent, **self.payload(temporary))
+            try:
+                _, said = self._writer.communicate(sent.getvalue(), timeout=WRITE_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self._writer.kill()
+                raise DloError(f"the recording {self.path} took over {WRITE_TIMEOUT_S:.0f} s "
+                               "to write; the run's other results are kept") from None  # fmt: skip
+            if self._writer.returncode != 0:
+                lines = said.decode(errors="replace").strip().splitlines() or ["no message"]
+                raise DloError(f"the recording {self.path} could not be written: {lines[-1]}")

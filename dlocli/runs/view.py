@@ -84,7 +84,6 @@ def write_from_datasets(path: Path, datasets: list[Path], name: str) -> None:
         for dataset in loaded:
             for e in range(dataset.n_episodes):
                 step = recording.add_episode(dataset.episode(e), step)
-            recording.flush()
     finally:
         recording.close()
 
