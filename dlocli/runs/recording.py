@@ -10,11 +10,11 @@ world/grippers            the grippers' poses, small boxes
 world/markers/seen        the markers as the controller saw them (markers observation)
 world/markers/hidden      the markers the tracker did not see at that step (their report)
 world/plan/grippers       a planner's planned gripper path (at each re-plan)
-world/plan/predicted      its model's predicted shapes along the plan (at each re-plan)
+world/plan/predicted      its model's predicted shapes along the plan it last evaluated
 world/workspace           the task's workspace box (static)
 world/recorded|predicted  `dlo eval` on recorded markers: them and the model's open-loop
                           prediction (metrics/prediction_error_mm: its free markers' error)
-world/envelope/left|right the envelope's gripper boxes, when set (static)
+world/envelope/SIDE       the envelope's box of the left or right gripper, if set (static)
 metrics/shape_error_mm    the shape error (mm), as in metrics.csv
 metrics/reward            the step's reward
 envelope/clipped          the envelope's counts of clipped commands so far, one per limit
