@@ -19,6 +19,7 @@ EXTRAS = {
     "calibrate": "cma",
     "bridge": "zmq",
     "ros": "rosbags",
+    "view": "rerun",
 }
 
 

@@ -241,8 +241,11 @@ CORPUS: list[tuple[str, str, int]] = [
     ("goal-out-exists", "goal --out {goal}", 2),
     ("video-bad-suffix", "control --goal {goal} --video {out}.avi --out {out}", 2),
     ("video-unwritable", "control --goal {goal} --video /proc/dlocli/v.gif --out {out}", 2),
+    ("record-bad-suffix", "control --goal {goal} --record {out}.mp4 --out {out}", 2),
+    ("record-unwritable", "control --goal {goal} --record /proc/dlocli/r.rrd --out {out}", 2),
     ("plot-bad-suffix", "eval --checkpoint {train} --data {data} --plot {out}.jpg", 2),
     ("plot-unwritable", "eval --checkpoint {train} --data {data} --plot /proc/x/p.png", 2),
+    ("record-rod-eval", "eval --checkpoint {train} --data {data} --record {out}.rrd", 2),
     ("bench-out-is-collect-run", "bench --out {collect}", 2),
     # resume
     ("resume-missing-dir", "train --resume {root}/nope", 2),

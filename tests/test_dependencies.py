@@ -120,6 +120,7 @@ NEEDS = {
     "calibrate": ["calibrate", "--source", "{tmp}"],
     "bridge": ["serve", "--address", "tcp://127.0.0.1:*"],
     "ros": ["import", "--source", "{tmp}/cable"],  # a bag folder there: see below
+    "view": ["control", "--goal", "{tmp}/goal.npy", "--record", "{tmp}/run.rrd"],
     "tensorboard": None,
 }
 

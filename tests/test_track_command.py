@@ -10,9 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dlocli.data import load_dataset
+from dlocli.data import MarkerDataset, load_dataset
 from dlocli.env.shape_env import make_env
-from dlocli.data import MarkerDataset
 from dlocli.specs import TaskSpec
 from dlocli.tracking.camera import DepthCamera
 from dlocli.tracking.frames import save_frames

@@ -51,6 +51,7 @@ COMMANDS = [
     ("online", "dlocli.cli.online:online"),
     ("bench", "dlocli.cli.bench:bench"),
     ("export", "dlocli.cli.export:export"),
+    ("view", "dlocli.cli.view:view"),
     ("serve", "dlocli.cli.serve:serve"),
     ("keys", "dlocli.cli.keys:keys"),
 ]

@@ -60,6 +60,7 @@ class ModelPlanner(Planner):
         self._observed: torch.Tensor | None = None  # (1, N, 7), the state at the latest act
         self._previous: torch.Tensor | None = None  # (1, N, 7), the state one step before it
         self._goal_pending = False  # the goal is read from the episode's first observation
+        self._evaluated: torch.Tensor | None = None  # (B, H, N, 3) the latest predictions
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -68,13 +69,26 @@ class ModelPlanner(Planner):
         self._goal_pending = True
         self._plan = None
         self._cursor = 0
-        self._observed = self._previous = None
+        self._observed = self._previous = self._evaluated = None
         self.view.reset()
 
     @property
     def plan(self) -> torch.Tensor | None:
         """The latest optimised plan (H, A) on the model's device, None before the first act."""
         return self._plan
+
+    def planned_path(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """For a run's recording, at no cost: the latest plan as gripper commands (H, 2, 6)
+        in [-1, 1], and the model's predicted positions (H, N, 3) along the plan as the
+        planner last evaluated it (one update before the plan it executes; None when it
+        evaluated several candidates); (None, None) before the first act."""
+        if self._plan is None:
+            return None, None
+        commands = self.task.to_grippers(self._plan).cpu().numpy()
+        evaluated = self._evaluated
+        if evaluated is None or evaluated.shape[0] != 1:
+            return commands, None
+        return commands, evaluated[0].detach().cpu().numpy()
 
     # ------------------------------------------------------------------ control loop
     def _act(self, obs: np.ndarray) -> np.ndarray:
@@ -132,9 +146,12 @@ class ModelPlanner(Planner):
         position errors (m) then sqrt(action_cost) x the actions. ``previous`` is the state one
         step before ``state`` (None: at rest); by default :meth:`previous_of` finds it."""
         commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
-        if previous is ...:
+        planning = previous is ...  # not a Jacobian's nudged plans (maybe on another thread)
+        if planning:
             previous = self.previous_of(state)
         predicted = self.view.predict(state, commands, previous)
+        if planning:
+            self._evaluated = predicted.detach()
         assert self._goal is not None
         errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)

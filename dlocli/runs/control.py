@@ -13,7 +13,8 @@ summary.json           ``initial_error_mm``, ``final_error_mm``, ``score`` (1 - 
 plots/error.png        shape error and controller latency over the steps
 =====================  ==========================================================
 
-plus, with ``video``, frames of the rod and the goal from the backend's renderer.
+plus, with ``video``, frames of the rod and the goal from the backend's renderer, and with
+``record``, a 3D recording of every step for the Rerun viewer (:mod:`dlocli.runs.recording`).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
 from dlocli.registry import controllers
 from dlocli.rundir import owned
+from dlocli.runs.recording import check_record_path, open_recording
 from dlocli.specs import Device, EnvSpec
 from dlocli.threads import torch_threads, warn_if_oversubscribed
 
@@ -61,8 +63,9 @@ class ControlSpec(EnvSpec, CellChoice):
     cli_flags: ClassVar[tuple[str, ...]] = (
         "task.goal_file", "checkpoint", "policy", "controller", "out", "backend.name",
         "task.name", "task.shapes", "task.episode_steps", "seed", "device", "threads", "video",
-        "video_every", "cell", "cell_timeout_s", "cell_keys", "task.envelope.max_linear_speed",
-        "task.envelope.max_angular_speed", "task.envelope.max_linear_acceleration",
+        "video_every", "record", "cell", "cell_timeout_s", "cell_keys",
+        "task.envelope.max_linear_speed", "task.envelope.max_angular_speed",
+        "task.envelope.max_linear_acceleration",
         "task.envelope.max_angular_acceleration", "task.envelope.stop_after_lost_s",
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
         "task.observation.latency_steps", "task.observation.dropout",
@@ -98,6 +101,11 @@ class ControlSpec(EnvSpec, CellChoice):
     )
     video_every: int = Field(
         2, gt=0, le=MAX_COUNT, description="Record every k-th control step in the video."
+    )
+    record: Path | None = Field(
+        None,
+        description="Write a 3D recording of every step (rod, goal, grippers, markers, plan, "
+        "envelope, error) to this .rrd file for the Rerun viewer (the 'view' extra).",
     )
     out: Path = Field(Path("runs/control"), description="Run directory.")
 
@@ -167,6 +175,7 @@ def prepare(
             "(make one with `dlo goal`)"
         )
     check_video_path(spec.video, overwrite)
+    check_record_path(spec.record, overwrite)
     if spec.video is not None and spec.cell is not None:
         raise BadInput("--video needs the simulator in this process: drop --video or --cell")
     options = controller_spec(spec.controller, spec.controller_options)
@@ -229,6 +238,8 @@ def _run_closed_loop(
     if spec.video is not None:
         write_video(spec.video, loop.frames, fps=env.metadata["render_fps"] / spec.video_every)
         summary["video"] = str(spec.video)
+    if spec.record is not None:
+        summary["recording"] = str(spec.record)
     if loop.lost is not None:
         summary["stopped"] = str(loop.lost)
     write_json_atomic(out / "summary.json", summary)
@@ -262,7 +273,7 @@ def closed_loop(
     env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Progress | None
 ) -> Loop:
     """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.env.rollout`)."""
-    timed = _Recorded(controller, env, spec)
+    timed = _Recorded(controller, env, spec, open_recording(spec.record, spec.out.name))
 
     def on_step(step: int, reward: float, info: dict[str, Any]) -> None:
         record = {
@@ -274,6 +285,7 @@ def closed_loop(
             **controller.last_stats,
         }
         timed.records.append(record)
+        timed.recording.stepped(env, step, reward, info)
         if spec.video is not None and step % spec.video_every == 0:
             timed.frames.append(env.render())
         if progress is not None:
@@ -283,16 +295,21 @@ def closed_loop(
         episode = rollout(env, timed, spec.seed, on_step)
     except CellLost as lost:
         return Loop(timed.records, timed.initial_error, timed.frames, False, lost)
+    finally:
+        timed.recording.close()
     initial_error = float(shape_error_mm(episode.positions[0], episode.goal))
     return Loop(timed.records, initial_error, timed.frames, episode.diverged)
 
 
 class _Recorded:
-    """``controller`` as a policy that also times its CPU use and keeps the run's records
-    and video frames (the first frame right after the reset)."""
+    """``controller`` as a policy that also times its CPU use and keeps the run's records,
+    video frames (the first frame right after the reset) and recording."""
 
-    def __init__(self, controller: Controller, env: DLOShapeEnv, spec: ControlSpec) -> None:
+    def __init__(
+        self, controller: Controller, env: DLOShapeEnv, spec: ControlSpec, recording: Any
+    ) -> None:
         self.controller, self.env, self.spec = controller, env, spec
+        self.recording = recording
         self.records: list[dict[str, float]] = []
         self.frames: list[np.ndarray] = []
         self.cpu_ms = 0.0
@@ -301,13 +318,17 @@ class _Recorded:
     def reset(self, goal: np.ndarray) -> None:
         self.initial_error = float(shape_error_mm(self.env.backend.segment_positions(), goal))
         self.controller.reset(goal)
+        self.recording.episode(self.env, 0)
         if self.spec.video is not None:
             self.frames.append(self.env.render())
 
     def act(self, obs: np.ndarray) -> np.ndarray:
+        step = len(self.records)  # the observation's step
+        self.recording.observed(self.env, step, obs)
         cpu = time.process_time()
         action = self.controller.act(obs)
         self.cpu_ms = 1000.0 * (time.process_time() - cpu)
+        self.recording.planned(self.env, step, self.controller)
         return action
 
 

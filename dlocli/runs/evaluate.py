@@ -14,20 +14,31 @@ from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
 from dlocli.models.base import check_control_rate
 from dlocli.models.checkpoints import load_model
 from dlocli.models.evaluation import evaluate_model, plot_rollout
+from dlocli.models.marker_training import predict_episodes
 from dlocli.models.spec import EvalSpec
 from dlocli.rundir import owned
+from dlocli.runs.recording import RunRecording, check_record_path
 
 
-def run_evaluation(spec: EvalSpec, overwrite: bool = False) -> dict[str, Any]:
+def run_evaluation(
+    spec: EvalSpec, overwrite: bool = False, record: Path | None = None
+) -> dict[str, Any]:
     """`dlo eval`: the errors of ``spec.checkpoint`` on ``spec.data``; with ``spec.out``, the
-    spec and the summary are written there."""
+    spec and the summary are written there; with ``record`` (a marker dataset), a recording of
+    the eval trajectories beside the model's open-loop predictions."""
     if spec.checkpoint is None or spec.data is None:
         raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
     if spec.plot is not None and spec.plot.suffix != ".png":
         raise BadInput(f"--plot {spec.plot} must end in .png")
     if spec.plot is not None:
         check_writable(spec.plot, "--plot", overwrite)
+    check_record_path(record, overwrite)
     dataset = load_dataset(spec.data)
+    if record is not None and not isinstance(dataset, MarkerDataset):
+        raise BadInput(
+            f"--record on dlo eval records recorded markers; {spec.data} is simulated rod data "
+            "(record a `dlo control` run instead), drop --record"
+        )
     if isinstance(dataset, MarkerDataset):
         dataset.require_split("eval")
     net = load_model(spec.checkpoint, spec.device, form=dataset.form)  # the data's form
@@ -40,17 +51,32 @@ def run_evaluation(spec: EvalSpec, overwrite: bool = False) -> dict[str, Any]:
         check_control_rate(net, dataset.control_dt, f"model {spec.checkpoint}",
                            f"{spec.data} is", "evaluate it on data at {hz} Hz")  # fmt: skip
     if spec.out is None:
-        return _evaluation_summary(spec, net, dataset)
+        return _evaluation_summary(spec, net, dataset, record)
     with owned(spec.out):  # one writer per run directory
         out = prepare_run_dir(spec.out, overwrite)
-        summary = _evaluation_summary(spec, net, dataset)
+        summary = _evaluation_summary(spec, net, dataset, record)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         write_json_atomic(out / "summary.json", summary)
     return summary
 
 
+def record_predictions(path: Path, net: Any, dataset: MarkerDataset, name: str) -> None:
+    """The eval trajectories one after the other, each beside the model's open-loop
+    prediction of it (the protocol's, from frame 1)."""
+    episodes = dataset.episodes("eval")
+    recording = RunRecording(path, name)
+    try:
+        step = 0
+        for recorded, predicted in zip(
+            episodes, predict_episodes(net, episodes, dataset.held), strict=True
+        ):
+            step = recording.add_prediction(recorded, predicted, dataset.held, step)
+    finally:
+        recording.close()
+
+
 def _evaluation_summary(
-    spec: EvalSpec, net: Any, dataset: Dataset | MarkerDataset
+    spec: EvalSpec, net: Any, dataset: Dataset | MarkerDataset, record: Path | None = None
 ) -> dict[str, Any]:
     summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
     if isinstance(dataset, MarkerDataset):
@@ -59,6 +85,9 @@ def _evaluation_summary(
         if spec.plot is not None:
             plot_error_by_horizon(scores, curves, dataset.rate_hz, spec.plot)
             summary["plot"] = str(spec.plot)
+        if record is not None:
+            record_predictions(record, net, dataset, Path(spec.data).stem)
+            summary["recording"] = str(record)
         if spec.out is not None:
             write_json_atomic(Path(spec.out) / "error_by_frame.json", curves)
         return summary

@@ -14,10 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.data import DATASET_FILE
+from dlocli.data import DATASET_FILE, MarkerDataset
 from dlocli.errors import BadInput
 from dlocli.io import prepare_run_dir, write_json_atomic
-from dlocli.data import MarkerDataset
 from dlocli.rundir import owned
 from dlocli.tracking.bags import is_bag, read_cloud_bag
 from dlocli.tracking.frames import FrameSequence, load_frames
