@@ -14,11 +14,14 @@ both run as a file is read.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from dlocli.data.format import DATASET_FILE, FORMAT, MARKERS, decode_attr
 from dlocli.data.markers import MarkerDataset, read_marker_arrays
 from dlocli.data.rod import Dataset, Episode, read_rod_arrays
 from dlocli.errors import BadInput
+from dlocli.io import prepare_run_dir, write_json_atomic
+from dlocli.rundir import owned
 
 __all__ = ["DATASET_FILE", "Dataset", "Episode", "MarkerDataset", "load_dataset"]
 
@@ -49,3 +52,17 @@ def load_dataset(path: Path) -> Dataset | MarkerDataset:
         raise BadInput(
             f"dataset {path} is not a readable HDF5 file ({exc}); re-collect it"
         ) from exc
+
+
+def save_dataset_run(
+    spec: Any, dataset: Dataset | MarkerDataset, summary: dict[str, Any], overwrite: bool
+) -> dict[str, Any]:
+    """Write a run that made a dataset (``dlo import``, ``dlo track``): its spec, the dataset
+    and ``summary`` (given the folder as ``out``) into ``spec.out``; the summary."""
+    with owned(spec.out):
+        out = prepare_run_dir(spec.out, overwrite)
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        dataset.save(out / DATASET_FILE)
+        summary["out"] = str(out)
+        write_json_atomic(out / "summary.json", summary)
+    return summary

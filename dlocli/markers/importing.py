@@ -6,12 +6,11 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.data import DATASET_FILE, MarkerDataset, protocol
+from dlocli.data import MarkerDataset, protocol, save_dataset_run
 from dlocli.errors import BadInput
-from dlocli.io import prepare_run_dir, write_json_atomic
 from dlocli.markers import deform, formats, rosbag, timing
 from dlocli.markers.spec import UNITS, ImportSpec
-from dlocli.rundir import owned, resolved
+from dlocli.rundir import resolved
 
 #: plausible length (m) of a recorded cable along its markers; outside it, a unit error
 CABLE_LENGTH_M = (0.02, 10.0)
@@ -37,13 +36,7 @@ def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
     gaps = {f"{s}/{t.name}": t.gaps for s, items in read.items() for t in items if t.gaps}
     if gaps:
         summary["gaps_filled"] = gaps
-    with owned(spec.out):
-        out = prepare_run_dir(spec.out, overwrite)
-        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-        dataset.save(out / DATASET_FILE)
-        summary["out"] = str(out)
-        write_json_atomic(out / "summary.json", summary)
-    return summary
+    return save_dataset_run(spec, dataset, summary, overwrite)
 
 
 def describe(dataset: MarkerDataset) -> dict[str, Any]:

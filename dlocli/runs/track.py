@@ -14,10 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.data import DATASET_FILE, MarkerDataset
+from dlocli.data import MarkerDataset, save_dataset_run
 from dlocli.errors import BadInput
-from dlocli.io import prepare_run_dir, write_json_atomic
-from dlocli.rundir import owned
 from dlocli.tracking.bags import is_bag, read_cloud_bag
 from dlocli.tracking.frames import FrameSequence, load_frames
 from dlocli.tracking.spec import TrackSpec
@@ -143,10 +141,4 @@ def run_track(spec: TrackSpec, overwrite: bool = False) -> dict[str, Any]:
         "visible_share": round(float(np.mean([run["visible"] for run in runs])), 4),
         "ms_per_frame": round(1e3 * sum(run["seconds"] for run in runs) / frames, 3),
     }
-    with owned(spec.out):
-        out = prepare_run_dir(spec.out, overwrite)
-        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-        dataset.save(out / DATASET_FILE)
-        summary["out"] = str(out)
-        write_json_atomic(out / "summary.json", summary)
-    return summary
+    return save_dataset_run(spec, dataset, summary, overwrite)
