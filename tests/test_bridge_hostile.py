@@ -90,6 +90,9 @@ def _assault(address: str) -> None:
         reply = client.send(*frames)
         assert reply is not None and reply["type"] == "error", (frames[0][:80], reply)
         assert reply["code"] == "bad_request", reply
+    capture = client.ask("capture", session=token, seed=1)  # neither cell has a camera
+    assert capture["code"] == "refused" and "dlo serve --camera" in capture["message"], capture
+    assert client.ask("capture", session=token, seed=-1)["code"] == "bad_request"
     # a foreign token changes nothing
     assert client.ask("reset", session="0" * 32)["code"] == "busy"
     # 50 MB of velocities: past the size limit, dropped unread, the cell's memory untouched

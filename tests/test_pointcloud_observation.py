@@ -86,3 +86,23 @@ def test_online_and_control_through_the_camera(cloud_run, near_rest_goal, tmp_pa
             "--steps", "8", "--shapes", "near-rest", "--out", str(out)]  # fmt: skip
     assert run_dlo(argv) == 0
     assert json.loads((out / "summary.json").read_text())["steps"] == 8
+
+
+def test_a_bridged_camera_run_equals_the_in_process_one(cloud_run, near_rest_goal, tmp_path):
+    """`dlo serve --camera`: the cell's camera takes the clouds (the controller sends each
+    episode's noise seed), the controller tracks them: the same run as in this process."""
+    pytest.importorskip("zmq")
+    from cells import served, step_errors
+
+    here, there, blind = tmp_path / "here", tmp_path / "there", tmp_path / "blind"
+    argv = ["control", "--goal", str(near_rest_goal), "--checkpoint",
+            str(cloud_run / "checkpoints" / "iter_02.pt"), "--observation", "pointcloud",
+            "--steps", "8", "--shapes", "near-rest"]  # fmt: skip
+    assert run_dlo([*argv, "--out", str(here)]) == 0
+    with served("--camera") as address:
+        assert run_dlo([*argv, "--out", str(there), "--cell", address]) == 0
+    with served() as address:  # a cell without a camera: one line, nothing written
+        assert run_dlo([*argv, "--out", str(blind), "--cell", address]) == 2
+    assert not blind.exists()
+    assert step_errors(there) == step_errors(here)
+    assert len(step_errors(here)) == 8

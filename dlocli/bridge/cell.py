@@ -23,8 +23,10 @@ from dlocli.bridge.keys import require_keys_off_loopback
 from dlocli.bridge.server import CellHandler, Log
 from dlocli.bridge.server import serve as serve_handler
 from dlocli.bridge.spec import ServeSpec
+from dlocli.camera_spec import CameraSpec
 from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
+from dlocli.tracking.camera import DepthCamera
 
 #: a simulated reset settles the rod in well under a second; this leaves room on a busy CPU
 RESET_TIMEOUT_S = 10.0
@@ -41,6 +43,8 @@ class Cell(CellHandler):
         self.clock_start = self.commanded_at = time.monotonic()
         self.seen: dict[str, np.ndarray] = {}  # the cable as the tracker last saw it
         self.state_size = self.backend.get_state().size
+        self.camera = served_camera(spec, backend.rod.length)
+        self._camera_seed, self._camera_rng = -1, np.random.default_rng(0)
 
     def info(self) -> dict[str, Any]:
         return {
@@ -50,6 +54,7 @@ class Cell(CellHandler):
             "realtime": self.spec.realtime,
             "n_segments": self.backend.n_segments,
             "reset_timeout_s": RESET_TIMEOUT_S,
+            "camera": None if self.camera is None else self.camera.spec.model_dump(mode="json"),
         }
 
     # ------------------------------------------------------------------ requests
@@ -92,6 +97,21 @@ class Cell(CellHandler):
             raise BadInput("set_state request: the grippers' quaternions are not unit ones")
         self.backend.set_state(state)
         return self._state()
+
+    def on_capture(self, request: messages.Capture) -> dict[str, Any]:
+        if self.camera is None:
+            return super().on_capture(request)
+        if request.seed != self._camera_seed:  # a new episode: its noise from its seed
+            self._camera_seed, self._camera_rng = request.seed, np.random.default_rng(request.seed)
+        frame = self.camera.capture(self.backend, self._camera_rng, request.time)
+        return {
+            "type": "cloud",
+            "points": frame.points,
+            "extrinsics": frame.extrinsics,
+            "intrinsics": frame.intrinsics,
+            "time": frame.time,
+            "segments": frame.segment,
+        }
 
     def on_release(self) -> None:
         self.held = np.zeros((2, 6))
@@ -155,6 +175,14 @@ class Cell(CellHandler):
             late=self.late,
             dropped=self.dropped,
         )
+
+
+def served_camera(spec: ServeSpec, rod_length: float) -> DepthCamera | None:
+    """The depth camera of ``spec.task.observation.camera`` (its defaults if unset), with
+    ``spec.camera``; else None."""
+    if not spec.camera:
+        return None
+    return DepthCamera(spec.task.observation.camera or CameraSpec(), rod_length)
 
 
 def _sleep_until(moment: float) -> None:

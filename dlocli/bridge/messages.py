@@ -26,12 +26,15 @@ Vector3 = tuple[Metres, Metres, Metres]
 Twist = tuple[Finite, Finite, Finite, Finite, Finite, Finite]
 Pose = tuple[Metres, Metres, Metres, Finite, Finite, Finite, Finite]
 Quaternion = tuple[Finite, Finite, Finite, Finite]
+Row3, Row4 = tuple[Finite, Finite, Finite], tuple[Finite, Finite, Finite, Finite]
 #: a session token: what `hello` hands out, what every later request carries
 Token = Annotated[str, Field(min_length=1, max_length=64)]
 #: how many numbers a simulator state may hold (a 200-segment rod needs a few thousand)
 MAX_STATE_NUMBERS = 200_000
 #: seeds a cell takes (numpy's and the simulators' range)
 MAX_SEED = 2**32
+#: the most points a cloud may hold (a 640 x 480 camera full of cable: 300k; ours 100s)
+MAX_CLOUD_POINTS = 200_000
 
 
 class Message(BaseModel):
@@ -97,13 +100,24 @@ class SetState(Message):
     state: Annotated[list[Finite], Field(min_length=1, max_length=MAX_STATE_NUMBERS)]
 
 
+class Capture(Message):
+    """A depth camera's frame of the cable now (a cell with a camera)."""
+
+    type: Literal["capture"]
+    session: Token
+    #: the episode's seed of a simulated camera's noise (a real camera ignores it)
+    seed: Annotated[int, Field(ge=0, lt=2**63)] = 0
+    #: the controller's time of the frame (s since the episode began)
+    time: Annotated[float, Field(allow_inf_nan=False, ge=0.0)] = 0.0
+
+
 class Bye(Message):
     type: Literal["bye"]
     session: Token
 
 
-Request = Hello | Reset | Step | Stop | GetState | SetState | Bye
-REQUEST_TYPES = ("hello", "reset", "step", "stop", "get_state", "set_state", "bye")
+Request = Hello | Reset | Step | Stop | GetState | SetState | Capture | Bye
+REQUEST_TYPES = ("hello", "reset", "step", "stop", "get_state", "set_state", "capture", "bye")
 _requests: TypeAdapter[Request] = TypeAdapter(
     Annotated[Request, Field(discriminator="type")]  # type: ignore[arg-type]
 )
@@ -132,6 +146,8 @@ class CellInfo(Reply):
     #: the longest a ``reset`` may take to answer (s): a robot brings its grippers to the
     #: start and lets the cable settle
     reset_timeout_s: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=3600.0)] = 10.0
+    #: the cell's depth camera (a camera spec), if it answers ``capture``
+    camera: dict[str, Any] | None = None
 
 
 class Welcome(Reply):
@@ -162,6 +178,19 @@ class Snapshot(Reply):
     state: Annotated[list[Finite], Field(min_length=1, max_length=MAX_STATE_NUMBERS)]
 
 
+class Cloud(Reply):
+    """A depth camera's frame: the cable's points in the world frame (m), the camera's
+    extrinsics (camera to world) and intrinsics (pixels)."""
+
+    type: Literal["cloud"]
+    points: Annotated[list[Vector3], Field(max_length=MAX_CLOUD_POINTS)]
+    extrinsics: tuple[Row4, Row4, Row4, Row4]
+    intrinsics: tuple[Row3, Row3, Row3]
+    time: Annotated[float, Field(allow_inf_nan=False, ge=0.0)] = 0.0
+    #: a simulator's segment behind each point (-1: stray), for measurements
+    segments: Annotated[list[int], Field(max_length=MAX_CLOUD_POINTS)] | None = None
+
+
 class Farewell(Reply):
     type: Literal["bye"]
 
@@ -173,8 +202,8 @@ class Error(Reply):
     message: Annotated[str, Field(max_length=2000)]
 
 
-AnyReply = Welcome | State | Snapshot | Farewell | Error
-REPLY_TYPES = ("welcome", "state", "snapshot", "bye", "error")
+AnyReply = Welcome | State | Snapshot | Cloud | Farewell | Error
+REPLY_TYPES = ("welcome", "state", "snapshot", "cloud", "bye", "error")
 _replies: TypeAdapter[AnyReply] = TypeAdapter(
     Annotated[AnyReply, Field(discriminator="type")]  # type: ignore[arg-type]
 )

@@ -12,7 +12,7 @@ Requests (``type``) and their replies:
 
 - ``hello`` {protocol, version, backend, control_dt} -> ``welcome`` {protocol, version,
   session, session_idle_s, cell: {name, backend, control_dt, realtime, n_segments,
-  reset_timeout_s}}. It opens a session: the cell belongs to this controller until ``bye``
+  reset_timeout_s, camera}}. It opens a session: the cell belongs to this controller until ``bye``
   or until no request came for ``session_idle_s`` (the cell then stops its grippers). Every
   later request carries ``session``; another controller's requests get ``error`` with code
   ``busy`` and change nothing. ``backend`` is the controller's rod spec: a simulated cell
@@ -26,6 +26,10 @@ Requests (``type``) and their replies:
 - ``stop`` {session} -> ``state``: zero velocity, grippers held where they are.
 - ``get_state`` {session} -> ``snapshot`` {state: [...]}; ``set_state`` {session, state} ->
   ``state`` (simulated cells only; a real cell replies ``error``).
+- ``capture`` {session, seed, time} -> ``cloud`` {points (P x 3, world frame), extrinsics
+  (4 x 4, camera to world), intrinsics (3 x 3), time, segments}: a depth camera's frame of the
+  cable (a cell whose welcome names a ``camera``; ``seed`` seeds a simulated camera's noise
+  for the episode, so a bridged run draws what an in-process one draws).
 - ``bye`` {session} -> ``bye``: the session ends.
 
 ``state`` = {step, time, diverged, tracked, positions (N x 3), quaternions (N x 4), grippers
@@ -37,8 +41,8 @@ because none had come in time, ``dropped`` the commands it lost. Any request may
 ``busy`` (another controller owns the cell), ``no_session`` (send ``hello`` first; a session
 that idled out is gone), ``refused`` (the cell cannot do it, e.g. ``set_state`` on a robot).
 
-Version 2 added sessions, the error codes and ``reset_timeout_s``; a version-1 peer is
-refused at ``hello``.
+Version 2 added sessions, the error codes, ``reset_timeout_s`` and ``capture``; a version-1
+peer is refused at ``hello``.
 """
 
 from __future__ import annotations

@@ -213,6 +213,29 @@ class RemoteCell(Backend):
     def segment_quaternions(self) -> np.ndarray:
         return self.state["quaternions"].copy()
 
+    def camera_spec(self) -> dict[str, Any] | None:
+        """The cell's depth camera (a camera spec), or None if it has none."""
+        return None if self.cell is None else self.cell.camera
+
+    def capture_cloud(self, seed: int, time: float) -> dict[str, np.ndarray | float]:
+        """The cell camera's frame now: points (P,3), extrinsics (4,4), intrinsics (3,3),
+        time (s), segments (P,) (-1 where unknown); ``seed`` seeds a simulated camera's noise
+        for the episode."""
+        cloud = self._request("capture", seed=seed, time=time)
+        if not isinstance(cloud, messages.Cloud):
+            raise self._fault(f"a {cloud.type} where a cloud belongs")
+        points = np.array(cloud.points, dtype=np.float64).reshape(-1, 3)
+        segments = cloud.segments if cloud.segments is not None else [-1] * len(points)
+        if len(segments) != len(points):
+            raise self._fault(f"a cloud of {len(points)} points with {len(segments)} segments")
+        return {
+            "points": points,
+            "extrinsics": np.array(cloud.extrinsics, dtype=np.float64),
+            "intrinsics": np.array(cloud.intrinsics, dtype=np.float64),
+            "time": cloud.time,
+            "segments": np.array(segments, dtype=np.int32),
+        }
+
     def get_state(self) -> np.ndarray:
         snapshot = self._request("get_state")
         if not isinstance(snapshot, messages.Snapshot):

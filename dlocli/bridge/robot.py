@@ -27,6 +27,9 @@ class Robot(CellHandler):
     name = "robot"
     #: the longest a reset may take to answer (s)
     reset_timeout_s = 30.0
+    #: your depth camera as a camera spec (a dict of dlocli.camera_spec.CameraSpec's fields),
+    #: when :meth:`capture` gives its clouds
+    camera: dict[str, Any] | None = None
 
     def __init__(
         self, n_segments: int, control_dt: float, backend: dict[str, Any] | None = None
@@ -56,6 +59,12 @@ class Robot(CellHandler):
         ``grippers`` (2, 7: x y z qw qx qy qz), ``diverged`` (bool), and ``tracked`` (bool,
         optional: False when the tracker lost the cable)."""
 
+    def capture(self) -> dict[str, Any] | None:
+        """Optional: your depth camera's latest frame of the cable: ``points`` (P, 3) in the
+        world frame, ``extrinsics`` (4, 4, camera to world), ``intrinsics`` (3, 3); None
+        (the default) for a cell without a camera."""
+        return None
+
     # ------------------------------------------------------------------ the protocol
     def info(self) -> dict[str, Any]:
         return {
@@ -65,6 +74,7 @@ class Robot(CellHandler):
             "realtime": False,
             "n_segments": self.n_segments,
             "reset_timeout_s": self.reset_timeout_s,
+            "camera": self.camera,
         }
 
     def on_reset(self, request: messages.Reset) -> dict[str, Any]:
@@ -80,6 +90,12 @@ class Robot(CellHandler):
     def on_stop(self) -> dict[str, Any]:
         self.stop()
         return self._state()
+
+    def on_capture(self, request: messages.Capture) -> dict[str, Any]:
+        frame = self.capture()
+        if frame is None:
+            return super().on_capture(request)
+        return {"type": "cloud", "time": self.steps * self.control_dt, **frame}
 
     def on_release(self) -> None:
         self.stop()

@@ -76,6 +76,9 @@ class CellHandler(ABC):
     def on_set_state(self, request: messages.SetState) -> Reply:
         raise Refused("this cell cannot restore a state (a real rod): set_state is for simulators")
 
+    def on_capture(self, request: messages.Capture) -> Reply:
+        raise Refused("this cell has no camera: serve it with `dlo serve --camera`")
+
     def on_release(self) -> None:
         """The session ended (``bye``, or idle): leave the grippers stopped."""
         self.on_stop()
@@ -182,6 +185,8 @@ class CellServer:
             return handler.on_get_state()
         if isinstance(request, messages.SetState):
             return handler.on_set_state(request)
+        if isinstance(request, messages.Capture):
+            return handler.on_capture(request)
         return {"type": "bye"}
 
 

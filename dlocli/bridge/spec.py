@@ -33,7 +33,7 @@ class ServeSpec(EnvSpec):
 
     cli_flags: ClassVar[tuple[str, ...]] = (
         "address", "backend.name", "backend.rod.n_segments", "task.control_dt", "realtime",
-        "delay_ms", "drop_probability", "frame_loss_probability", "hold_s", "keys",
+        "delay_ms", "drop_probability", "frame_loss_probability", "hold_s", "camera", "keys",
         "session_idle_s", "seed",
     )  # fmt: skip
 
@@ -67,6 +67,12 @@ class ServeSpec(EnvSpec):
         description="Real time: with no command for this long the cell stops the grippers.",
     )
 
+    camera: bool = Field(
+        False,
+        description="Serve a depth camera's point clouds (`capture` requests): the camera of "
+        "task.observation.camera in a --spec file, its defaults otherwise. Controllers with "
+        "--observation pointcloud then track the cable in the cell's clouds.",
+    )
     keys: Path | None = Field(
         None,
         description="A folder of CURVE keys (`dlo keys --out DIR`): only controllers holding its "

@@ -17,8 +17,9 @@ import numpy as np
 
 from dlocli.backends.base import Backend
 from dlocli.camera_spec import CameraSpec, TrackerSpec
+from dlocli.errors import BadInput
 from dlocli.specs import ObservationSpec
-from dlocli.tracking.camera import DepthCamera
+from dlocli.tracking.camera import CloudFrame, DepthCamera
 from dlocli.tracking.tracker import CableTracker, TrackedFrame
 
 
@@ -38,12 +39,15 @@ class CloudObserver:
         self.backend, self.layout, self.held_of = backend, layout, held_of
         camera = spec.camera or CameraSpec()
         self.camera = DepthCamera(camera, backend.rod.length)
+        #: a cell's camera, when the backend is a cell (``capture_cloud``); else None
+        self.remote = _cell_camera(backend, camera)
         self.tracker = CableTracker.for_layout(
             layout, backend.rod.radius, spec.tracker or TrackerSpec()
         )
         self.every = max(1, round(1.0 / (camera.rate_hz * control_dt)))
         self.control_dt = control_dt
         self.rng = np.random.default_rng(0)
+        self.seed = 0  # the episode's camera noise: rng is default_rng(seed)
         self._steps = 0
         self._last: TrackedFrame | None = None
         #: whether the latest frame held no cable point
@@ -53,7 +57,9 @@ class CloudObserver:
         """Start an episode: the camera must see the cable (BadInput if it cannot); the true
         ``frame`` is not read (the camera looks at the backend)."""
         del frame
-        self.rng, self._steps = rng, 0
+        # one seed per episode: a cell's camera draws the same noise from it
+        self.seed, self._steps = int(rng.integers(2**63)), 0
+        self.rng = np.random.default_rng(self.seed)
         self.camera.check_view(self.backend)
         self._last = self.tracker.start(self._capture(), self._held())
         return self._reported()
@@ -67,8 +73,14 @@ class CloudObserver:
             self._last = self.tracker.step(self._capture(), self._held())
         return self._reported()
 
-    def _capture(self):
-        cloud = self.camera.capture(self.backend, self.rng, self._steps * self.control_dt)
+    def _capture(self) -> CloudFrame:
+        time = self._steps * self.control_dt
+        if self.remote is not None:
+            taken = self.remote(self.seed, time)
+            cloud = CloudFrame(taken["points"], taken["extrinsics"], taken["intrinsics"],
+                               taken["time"], taken["segments"])  # fmt: skip
+        else:
+            cloud = self.camera.capture(self.backend, self.rng, time)
         self.lost = len(cloud.points) == 0
         return cloud
 
@@ -81,3 +93,23 @@ class CloudObserver:
         markers[self.layout.held] = self._held()
         visible[self.layout.held] = True  # known from the robot's kinematics
         return markers, visible
+
+
+def _cell_camera(backend: Backend, camera: CameraSpec) -> Callable[..., Any] | None:
+    """A cell's ``capture_cloud`` when the backend is a cell; BadInput if that cell has no
+    camera or another one than ``camera``."""
+    capture = getattr(backend, "capture_cloud", None)
+    if capture is None:
+        return None
+    theirs = backend.camera_spec()  # type: ignore[attr-defined]
+    if theirs is None:
+        raise BadInput(
+            "--observation pointcloud through a cell needs the cell's camera: serve it with "
+            "`dlo serve --camera` (or a robot cell that answers capture)"
+        )
+    if theirs != camera.model_dump(mode="json"):
+        raise BadInput(
+            "the cell's camera is not the one task.observation.camera describes: give the "
+            "controller the cell's camera spec (its welcome's cell.camera)"
+        )
+    return capture
