@@ -106,3 +106,33 @@ def test_a_bridged_camera_run_equals_the_in_process_one(cloud_run, near_rest_goa
     assert not blind.exists()
     assert step_errors(there) == step_errors(here)
     assert len(step_errors(here)) == 8
+
+
+def test_a_camera_run_records_its_clouds_and_the_tracked_markers(cloud_run, near_rest_goal,
+                                                                 tmp_path):  # fmt: skip
+    """--record with the pointcloud observation: the camera's cloud and the markers the
+    tracker found in it at every step, read back with Rerun's RRD reader."""
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader
+
+    recording, run = tmp_path / "camera.rrd", tmp_path / "run"
+    argv = ["control", "--goal", str(near_rest_goal), "--checkpoint",
+            str(cloud_run / "checkpoints" / "iter_02.pt"), "--observation", "pointcloud",
+            "--steps", "4", "--shapes", "near-rest", "--out", str(run), "--record",
+            str(recording)]  # fmt: skip
+    assert run_dlo(argv) == 0
+    steps: dict[str, list[int]] = {}
+    points: list[int] = []
+    for chunk in RrdReader(recording).stream().to_chunks():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        steps.setdefault(chunk.entity_path, []).extend(batch.column("step").to_pylist())
+        if chunk.entity_path == "/world/camera/cloud":
+            column = [c for c in batch.column_names if c.endswith("positions")][0]
+            points += [len(row) for row in batch.column(column).to_pylist()]
+    acted_on = list(range(4))  # the observations the controller acted on: the reset's and 3
+    assert sorted(steps["/world/camera/cloud"]) == acted_on
+    assert sorted(steps["/world/markers/seen"]) == acted_on
+    assert sorted(steps["/world/rod"]) == list(range(5))
+    assert min(points) > 10  # the default camera sees the cable: dozens of points a frame

@@ -9,6 +9,7 @@ world/goal                the goal shape (logged at each episode's start)
 world/grippers            the grippers' poses, small boxes
 world/markers/seen        the markers as the controller saw them (markers observation)
 world/markers/hidden      the markers the tracker did not see at that step (their report)
+world/camera/cloud        the depth camera's latest point cloud (pointcloud observation)
 world/plan/grippers       a planner's planned gripper path (at each re-plan)
 world/plan/predicted      its model's predicted shapes along the plan it last evaluated
 world/workspace           the task's workspace box (static)
@@ -128,6 +129,9 @@ class RunRecording(NoRecording):
         visible = parts["visible"][:, 0] > 0.5
         self._add("world/markers/seen", step, parts["markers"][visible])
         self._add("world/markers/hidden", step, parts["markers"][~visible])
+        cloud = getattr(env.tracker, "last_cloud", None)
+        if cloud is not None:
+            self._add("world/camera/cloud", step, cloud.points)
 
     def planned(self, env: Any, step: int, controller: Any) -> None:
         """A planner's plan from ``step``, when it re-planned there (a model planner only)."""

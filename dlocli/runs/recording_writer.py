@@ -24,6 +24,7 @@ APPLICATION = "dlocli"
 #: RGB colours: the rod, the goal, the grippers, seen and hidden markers, the plan, boxes
 ROD, GOAL, GRIPPERS = (70, 130, 230), (60, 200, 90), (240, 150, 40)
 SEEN, HIDDEN, PLAN = (250, 220, 40), (150, 150, 150), (220, 60, 220)
+CLOUD = (200, 90, 70)
 WORKSPACE, ENVELOPE = (120, 120, 120), (230, 80, 60)
 GRIPPER_HALF_SIZE = 0.01  # m
 #: the envelope's limits in the order of the clip counts (dlocli.env.envelope.LIMITS)
@@ -59,7 +60,7 @@ def _columns(rr: Any, entity: str, rows: np.ndarray) -> Any:
         return rr.Scalars.columns(scalars=rows)
     if entity == "world/grippers":  # ours are w x y z, Rerun's x y z w
         return rr.Boxes3D.columns(centers=rows[:, :3], quaternions=rows[:, [4, 5, 6, 3]])
-    if entity.startswith("world/markers/"):
+    if entity.startswith(("world/markers/", "world/camera/")):
         return rr.Points3D.columns(positions=rows)
     return rr.LineStrips3D.columns(strips=list(rows))
 
@@ -72,6 +73,8 @@ def _style(rr: Any, entity: str, limits: list[str]) -> Any:
         return rr.SeriesLines(names=[entity.split("/")[-1]])
     if entity == "world/grippers":
         return rr.Boxes3D.from_fields(half_sizes=[[GRIPPER_HALF_SIZE] * 3], colors=[GRIPPERS])
+    if entity == "world/camera/cloud":
+        return rr.Points3D.from_fields(colors=[CLOUD], radii=[0.002])
     if entity.startswith("world/markers/"):
         return rr.Points3D.from_fields(colors=[SEEN if entity.endswith("seen") else HIDDEN])
     if entity.startswith("world/plan/") or entity == "world/predicted":

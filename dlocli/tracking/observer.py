@@ -52,6 +52,8 @@ class CloudObserver:
         self._last: TrackedFrame | None = None
         #: whether the latest frame held no cable point
         self.lost = False
+        #: the latest frame the camera took (None before the first)
+        self.last_cloud: CloudFrame | None = None
 
     def reset(self, rng: np.random.Generator, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Start an episode: the camera must see the cable (BadInput if it cannot); the true
@@ -82,6 +84,7 @@ class CloudObserver:
         else:
             cloud = self.camera.capture(self.backend, self.rng, time)
         self.lost = len(cloud.points) == 0
+        self.last_cloud = cloud
         return cloud
 
     def _held(self) -> np.ndarray:
