@@ -1,5 +1,6 @@
 """Where independent tasks run: local processes, or Ray tasks on a cluster (the jobs of
-``dlo bench``, the trials and reference episodes of ``dlo online``).
+``dlo bench``, the trials and reference episodes of ``dlo online``, the replays of each
+``dlo calibrate`` generation).
 
 An executor is connected first and closed after (:func:`open_executor`). Its ``map(fn,
 calls)`` runs ``fn(*args)`` for every ``args`` in ``calls`` and yields ``(index, result)`` as

@@ -1,21 +1,20 @@
 """`dlo calibrate`: fit a simulated rod's material to a recorded cable by CMA-ES.
 
 The objective of a candidate material is its mean replay score (DEFORM protocol, cm) over a
-seeded draw of the cable's train recordings; the replays run in a process pool. After every
-generation the candidates and their scores are written (atomically) to OUT/history.json: a
-resumed run replays that history through a CMA-ES of the same seed (ask/tell are
-deterministic), so it continues exactly where the finished generations left it. The best
-material is scored on every eval recording next to the spec's own (the "default material"),
-written as a spec for any command's --spec (OUT/calibrated.yaml: the rod, with the
-recordings' control period and marker layout, :func:`recorded_task`) and reported.
+seeded draw of the cable's train recordings; the replays run on the spec's executor (local
+processes or Ray tasks on a cluster, :mod:`dlocli.executors`), and the same seed fits the same
+material on either. After every generation the candidates and their scores are written
+(atomically) to OUT/history.json: a resumed run replays that history through a CMA-ES of the
+same seed (ask/tell are deterministic), so it continues exactly where the finished generations
+left it. The best material is scored on every eval recording next to the spec's own (the
+"default material"), written as a spec for any command's --spec (OUT/calibrated.yaml: the rod,
+with the recordings' control period and marker layout, :func:`recorded_task`) and reported.
 """
 
 from __future__ import annotations
 
 import hashlib
-import multiprocessing as mp
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,7 +36,7 @@ from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.markers import deform
-from dlocli.processes import exit_with_parent, raise_if_stopped
+from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec, format_validation_error
 
@@ -107,35 +106,26 @@ def replay_settings(spec: CalibrateSpec, cable: Cable) -> ReplaySettings:
     return ReplaySettings(spec.roll, spec.approach_s, spec.settle_s, held)
 
 
-# --------------------------------------------------------------------------- worker side
-_worker: dict[str, Any] = {}
-
-
-def _init_worker(
-    parent: int,
-    recordings: dict[str, np.ndarray],
+# --------------------------------------------------------------------------- replays
+def replay_named(
+    backend_spec: dict[str, Any],
     arc: np.ndarray,
     settings: ReplaySettings,
     rate_hz: float,
-) -> None:
-    exit_with_parent(parent)
-    _worker.update(recordings=recordings, arc=arc, settings=settings, dt=1.0 / rate_hz)
-
-
-def replay_named(backend_spec: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
-    """Replay the worker's recordings ``names`` on one rod; one result dict per recording
-    (score None where the simulator cannot build the rod)."""
+    names: list[str],
+    *recordings: np.ndarray,
+) -> list[dict[str, Any]]:
+    """Replay ``recordings`` (named ``names``) on one rod, an executor's call; one result
+    dict per recording (score None where the simulator cannot build the rod)."""
     spec = BackendSpec.model_validate(backend_spec)
     try:
-        backend = backends.get(spec.name)(spec, control_dt=_worker["dt"])
+        backend = backends.get(spec.name)(spec, control_dt=1.0 / rate_hz)
     except UnworkablePhysics:
         return [{"name": n, "score_cm": None} for n in names]
     try:
         out = []
-        for name in names:
-            result = replay(
-                backend, _worker["recordings"][name], _worker["arc"], _worker["settings"]
-            )
+        for name, recording in zip(names, recordings, strict=True):
+            result = replay(backend, recording, arc, settings)
             out.append(
                 {
                     "name": name,
@@ -150,53 +140,46 @@ def replay_named(backend_spec: dict[str, Any], names: list[str]) -> list[dict[st
         backend.close()
 
 
-# --------------------------------------------------------------------------- driver side
 class Replayer:
-    """A pool of workers holding the cable's recordings, replaying rods on request."""
+    """Replays rods on the cable's recordings through an executor (:mod:`dlocli.executors`):
+    each recording travels to it once (shared), each call replays some of them on one rod."""
 
-    def __init__(self, cable: Cable, spec: CalibrateSpec) -> None:
-        import os
-
-        recordings = {
-            f"{split}/{n}": r
+    def __init__(self, cable: Cable, spec: CalibrateSpec, executor: Any) -> None:
+        self.executor = executor
+        self.recordings = {
+            f"{split}/{n}": executor.share(r)
             for split, items in (("train", cable.train), ("eval", cable.eval))
             for n, r in items
         }
-        settings = replay_settings(spec, cable)
-        args = (os.getpid(), recordings, cable.arc, settings, spec.rate_hz)
-        self.workers = spec.workers
-        self.pool = ProcessPoolExecutor(
-            spec.workers,
-            mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=args,
-        )
+        self.fixed = (cable.arc, replay_settings(spec, cable), spec.rate_hz)
+        # a cluster's CPUs are its own: there every recording is a call of its own
+        self.slots = spec.workers if spec.ray_address is None else None
 
     def scores(
         self, rods: list[BackendSpec], names: list[str], done: Callable[[int, int], None]
     ) -> list[list[dict[str, Any]]]:
         """Per rod, the replay results of every recording of ``names``; ``done(k, total)``
-        after each finished piece of work. Each rod's recordings are split into chunks so that
-        every worker has work even for a single rod."""
-        chunks = max(1, min(len(names), -(-self.workers // len(rods))))
+        after each finished call. Each rod's recordings are split into chunks so that every
+        worker has work even for a single rod (how they are split changes no number)."""
+        slots = self.slots or len(rods) * len(names)
+        chunks = max(1, min(len(names), -(-slots // len(rods))))
         parts = [names[i::chunks] for i in range(chunks)]
-        futures = [
-            (r, self.pool.submit(replay_named, rod.model_dump(mode="json"), part))
-            for r, rod in enumerate(rods)
-            for part in parts
-        ]
+        calls, owners = [], []
+        for r, rod in enumerate(rods):
+            rod_json = rod.model_dump(mode="json")
+            for part in parts:
+                frames = [self.recordings[n] for n in part]
+                calls.append((rod_json, *self.fixed, part, *frames))
+                owners.append(r)
         out: list[list[dict[str, Any]]] = [[] for _ in rods]
-        for k, (r, future) in enumerate(futures, start=1):
-            out[r].extend(future.result())
+        for k, (index, result) in enumerate(self.executor.map(replay_named, calls), start=1):
+            if isinstance(result, BaseException):
+                raise result
+            out[owners[index]].extend(result)
             raise_if_stopped()
-            done(k, len(futures))
+            done(k, len(calls))
         order = {n: i for i, n in enumerate(names)}
         return [sorted(results, key=lambda x: order[x["name"]]) for results in out]
-
-    def close(self, wait: bool = True) -> None:
-        """Shut the pool down; ``wait=False`` (a stop) leaves running replays to end with
-        this process (the workers exit when their parent does)."""
-        self.pool.shutdown(wait=wait, cancel_futures=True)
 
 
 def mean_score(results: list[dict[str, Any]]) -> float:

@@ -8,8 +8,9 @@ from typing import ClassVar, Literal
 from pydantic import Field, field_validator
 
 from dlocli.calibration.parameters import PARAMETERS
+from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_PROCESSES, MAX_SEED
-from dlocli.specs import BackendSpec, RodSpec, Spec
+from dlocli.specs import BackendSpec, RodSpec
 
 
 class CableRodSpec(RodSpec):
@@ -38,12 +39,14 @@ class CableBackendSpec(BackendSpec):
     )
 
 
-class CalibrateSpec(Spec):
-    """`dlo calibrate`: fit a simulated rod's material to a recorded cable's motion."""
+class CalibrateSpec(ExecutorChoice):
+    """`dlo calibrate`: fit a simulated rod's material to a recorded cable's motion. Its jobs
+    are the replays of each generation's candidates (local processes or Ray tasks)."""
 
     cli_flags: ClassVar[tuple[str, ...]] = (
         "source", "cable_length", "cable_mass", "rod_length", "backend.name", "parameters",
-        "roll", "train_trajectories", "generations", "population", "workers", "seed", "out",
+        "roll", "train_trajectories", "generations", "population", "workers", "executor",
+        "ray_address", "seed", "out",
     )  # fmt: skip
 
     source: Path | None = Field(
@@ -99,8 +102,10 @@ class CalibrateSpec(Spec):
         0.25, gt=0, le=1, description="CMA-ES initial step, in units of each parameter's range."
     )
     workers: int = Field(
-        2, ge=1, le=MAX_PROCESSES, description="Processes replaying trajectories in parallel."
-    )
+        2, ge=1, le=MAX_PROCESSES,
+        description="Processes replaying trajectories in parallel; with --executor ray and no "
+        "--ray-address, the CPUs of the local Ray instance (a cluster's are its own).",
+    )  # fmt: skip
     seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of the draw and of CMA-ES.")
     out: Path = Field(Path("runs/calibrate"), description="Run directory.")
 

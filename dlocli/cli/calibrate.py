@@ -22,8 +22,10 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
 
     Grippers follow the innermost held marker of each end (the end markers with rigid
     clamps); the rod is the cable between them, with the cable's mass per length.
-    `--resume OUT` continues after the last finished generation (`--generations` may change
-    there: more extends the search)."""
+    The replays of each generation run in local processes (`--workers`) or as Ray tasks
+    (`--executor ray`, on the cluster at `--ray-address`); the same seed fits the same
+    material on either. `--resume OUT` continues after the last finished generation
+    (`--generations` may change there: more extends the search; so may where replays run)."""
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json) as bars:

@@ -1,5 +1,5 @@
 """`dlo calibrate`: CMA-ES generations over the rod's material with a checkpoint each, then
-the eval report; resumable after any finished generation."""
+the eval report; resumable after any finished generation, on any executor."""
 
 from __future__ import annotations
 
@@ -28,7 +28,8 @@ from dlocli.calibration.fit import (
 from dlocli.calibration.history import read_history
 from dlocli.calibration.report import write_report
 from dlocli.calibration.spec import CalibrateSpec
-from dlocli.errors import BadInput
+from dlocli.errors import BadInput, DloError
+from dlocli.executors import ClusterLost, check_executor, open_executor
 from dlocli.extras import require
 from dlocli.io import (
     adopt_written,
@@ -82,8 +83,8 @@ def check_same_recordings(state: Event, digest: str, spec: CalibrateSpec) -> Non
         )
 
 
-#: what a resumed calibration may change
-FREE_FIELDS = frozenset({"workers", "generations"})
+#: what a resumed calibration may change: where the replays run, and how many generations
+FREE_FIELDS = frozenset({"workers", "generations", "executor", "ray_address"})
 
 
 def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> CalibrateSpec:
@@ -115,12 +116,14 @@ def run_calibration(
     """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary."""
     backends.check(spec.backend.name)
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
+    check_executor(spec.executor, spec.ray_address)
     spec = at_recorded_rate(spec)
     cable = load_cable(spec)  # every input checked before OUT is touched
     task, unobserved = recorded_task(cable, spec.rate_hz)
     names = draw_train(cable, spec)
     strategy = new_strategy(spec, cable)
-    with owned(spec.out):
+    # the executor connects first: an address that fails leaves the directory as it was
+    with open_executor(spec) as executor, owned(spec.out):
         out = Path(spec.out) if resume else prepare_run_dir(spec.out, overwrite)
         history_file = out / HISTORY_FILE
         state = read_history(history_file, spec) if resume and history_file.is_file() else {}
@@ -131,8 +134,8 @@ def run_calibration(
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         history: list[Event] = state.get("generations", [])
         elapsed = float(state.get("seconds", 0.0))
-        replayer = Replayer(cable, spec)
         try:
+            replayer = Replayer(cable, spec, executor)
             replay_history(strategy, history, out)
             started = time.perf_counter()
             for g in range(len(history), spec.generations):
@@ -152,10 +155,8 @@ def run_calibration(
                 eval_names,
                 lambda k, n: show({"eval_done": k, "total": n}),
             )
-        except BaseException:
-            replayer.close(wait=False)
-            raise
-        replayer.close()
+        except ClusterLost as lost:  # the finished generations are in history.json
+            raise DloError(lost.line(out)) from lost
         summary = _summary(spec, cable, names, history, best, before, after, fit_seconds)
         summary["recordings_sha256"] = digest
         summary["calibrated"] = calibrated.model_dump(mode="json")
