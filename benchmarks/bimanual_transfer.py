@@ -44,7 +44,7 @@ from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
 from dlocli.models.base import build_model
 from dlocli.models.checkpoints import load_model
-from dlocli.models.training import train_model
+from dlocli.models.fit import fit as fit_model
 from dlocli.resume import saved_spec
 from dlocli.runs.online import TRAIN
 
@@ -60,11 +60,12 @@ def trained(spec: BenchSpec, data: Dataset, seed: int, epochs: int, mirror: bool
     """A fresh model of the bench's spec trained ``epochs`` epochs on ``data``."""
     torch.manual_seed(stream_seed(seed, TRAIN, 0))
     model = build_model(spec.model, data.n_segments)
-    fit = spec.fit.model_copy(
-        update={"epochs": epochs, "mirror": mirror, "seed": stream_seed(seed, TRAIN, 1) % 2**31}
-    )
+    fit = spec.fit.model_copy(  # epochs, whatever schedule the bench's online updates take
+        update={"schedule": "epochs", "epochs": epochs, "mirror": mirror,
+                "seed": stream_seed(seed, TRAIN, 1) % 2**31}
+    )  # fmt: skip
     start = time.perf_counter()
-    result = train_model(model, data, fit)
+    result = fit_model(model, data, fit)
     print(f"  trained mirror={mirror}: val loss {result.val_loss:.4f}, "
           f"{time.perf_counter() - start:.0f} s", flush=True)  # fmt: skip
     return model

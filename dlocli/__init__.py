@@ -43,7 +43,6 @@ _LAZY = {
     "load_model": "dlocli.models.checkpoints:load_model",
     "save_checkpoint": "dlocli.models.checkpoints:save_checkpoint",
     "fit": "dlocli.models.fit:fit",
-    "train_model": "dlocli.models.training:train_model",
     # control, episodes and their scores
     "make_controller": "dlocli.controllers.base:make_controller",
     "rollout": "dlocli.env.rollout:rollout",

@@ -5,8 +5,9 @@ A signal handler's exception is raised wherever the main thread happens to be; w
 destructor or a weakref callback, Python prints "Exception ignored" and carries on, and the
 stop is lost (a collect then ran on for its 100,000 episodes). So the handlers also record the
 stop in the process's :class:`~dlocli.cancel.CancelToken` (:func:`signal_token`, which the
-commands hand to the library's fits), and the long loops call :func:`raise_if_stopped` at
-their safe points (each simulator step, each episode) to raise it again."""
+commands hand to the library's long computations: fits, envs, replays; the library never reads
+it itself), and the commands' own loops call :func:`raise_if_stopped` at their safe points
+(each episode, each request) to raise it again."""
 
 from __future__ import annotations
 

@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from dlocli.markers import deform
-from dlocli.models.marker_training import Cable, fit_markers, validation_score
+from dlocli.models.fit import fit as fit_model
+from dlocli.models.marker_training import Cable, Cables, validation_score
 from dlocli.models.markers import build_marker_model
 from dlocli.models.spec import FitSpec
 
@@ -47,7 +48,7 @@ def test_one_network_learns_cables_of_different_marker_counts() -> None:
     before = [validation_score(model, [c]) for c in val]
     fit = FitSpec(update_steps=60, eval_every=20, rollout_steps=8, rollout_start=2, lr=3e-3,
                   batch_size=8, device="cpu")  # fmt: skip
-    history = fit_markers(model, train, val, fit)
+    history = fit_model(model, Cables(train, val), fit).history
     after = [validation_score(model, [c]) for c in val]
     assert len(history) == 3 and all(np.isfinite(after))
     assert after[0] < before[0] and after[1] < before[1], (before, after)

@@ -22,8 +22,8 @@ from dlocli.controllers.planning import shift_plan
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
 from dlocli.models import build_model, save_checkpoint
+from dlocli.models.fit import fit as fit_model
 from dlocli.models.spec import FitSpec, model_spec
-from dlocli.models.training import train_model
 from dlocli.registry import controllers
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
@@ -52,7 +52,7 @@ def tiny_model(small_dataset_dir):
     torch.manual_seed(0)
     model = build_model(TINY, 20)
     fit = FitSpec(epochs=15, lr=1e-2, batch_size=32, device="cpu", seed=0)
-    train_model(model, load_dataset(small_dataset_dir), fit)
+    fit_model(model, load_dataset(small_dataset_dir), fit)
     return model.eval()
 
 

@@ -116,3 +116,23 @@ def test_bad_names_and_goals(tmp_path):
     np.save(far, np.stack([np.linspace(10, 11, 20), np.zeros(20), np.zeros(20)], axis=1) * 0.95)
     with pytest.raises(BadInput):
         dlocli.make_env(goal=far)
+
+
+def test_a_cancelled_token_stops_the_env_at_its_next_step():
+    """Stops reach the env as the token it is handed (the commands hand the process's stop
+    signals): a step after the cancellation raises the stop, once."""
+    from dlocli.cancel import CancelToken
+
+    token = CancelToken()
+    env = dlocli.make_env(task="single", seed=0, episode_steps=5, cancel=token)
+    try:
+        env.reset(seed=0)
+        still = np.zeros(env.action_space.shape, dtype=np.float32)
+        env.step(still)
+        token.cancel()
+        with pytest.raises(KeyboardInterrupt):
+            env.step(still)
+        assert token.reason is None, "the stop is raised once"
+        assert env.step(still)[0].shape == env.observation_space.shape
+    finally:
+        env.close()

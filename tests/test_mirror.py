@@ -16,6 +16,7 @@ from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.shape_env import make_env
 from dlocli.models.base import ModelSpec, build_model
 from dlocli.models.evaluation import evaluate_model
+from dlocli.models.fit import fit as fit_model
 from dlocli.models.fitting import BatchDone, Validated
 from dlocli.models.mirror import (
     mirror,
@@ -25,7 +26,7 @@ from dlocli.models.mirror import (
     mirror_transitions,
 )
 from dlocli.models.spec import FitSpec
-from dlocli.models.training import split_episodes, train_model, transition_tensors
+from dlocli.models.training import split_episodes, transition_tensors
 
 MOTION_STEPS = 60  # control steps of piecewise-constant random commands (1.2 s)
 SETTLE_STEPS = 60  # then the grippers stand still and the rod settles (1.2 s)
@@ -226,7 +227,7 @@ def test_training_on_twins_doubles_the_data_and_learns_the_other_end(
             if isinstance(event, BatchDone):
                 seen.append(event.batches)
 
-        result = train_model(model, data, FitSpec(**FIT, mirror=flag), progress=progress)
+        result = fit_model(model, data, FitSpec(**FIT, mirror=flag), progress=progress)
         np.testing.assert_array_equal(result.val_episodes, val_eps)
         batches[flag] = seen[0]
         errors[flag] = evaluate_model(model, mirror(data), val_eps, horizons=())["one_step_mm"]

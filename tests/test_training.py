@@ -13,11 +13,11 @@ from dlocli.data import load_dataset
 from dlocli.models.base import build_model
 from dlocli.models.checkpoints import load_model, read_checkpoint
 from dlocli.models.evaluation import evaluate_model
+from dlocli.models.fit import fit as fit_model
 from dlocli.models.fitting import Validated
 from dlocli.models.training import (
     FitSpec,
     split_episodes,
-    train_model,
     transition_tensors,
     validation_loss,
 )
@@ -62,7 +62,7 @@ def test_training_reduces_validation_loss(small_dataset_dir, name):
     model.fit_normalization(data.transitions(train_eps))
     val = transition_tensors(data, val_eps, torch.device("cpu"))
     before = validation_loss(model, val)
-    result = train_model(model, data, fit)
+    result = fit_model(model, data, fit)
     assert [(r.unit, r.count) for r in result.history] == [("epoch", n) for n in (1, 2, 3, 4)]
     assert result.val_loss < 0.85 * before, (before, result.history)
     assert result.history[-1].train_loss < result.history[0].train_loss
@@ -73,12 +73,12 @@ def test_training_is_reproducible_and_continues(small_dataset_dir):
     data = load_dataset(small_dataset_dir)
     fit = FitSpec(epochs=1, **{**FAST_FIT, "batch_size": 64})
     a, b = fresh("in-bilstm", data), fresh("in-bilstm", data)
-    first = train_model(a, data, fit)
-    train_model(b, data, fit)
+    first = fit_model(a, data, fit)
+    fit_model(b, data, fit)
     for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
         assert torch.equal(pa, pb), "same seed on CPU, same weights"
     std = a.delta_std.clone()
-    more = train_model(a, data, fit, optimizer_state=first.optimizer_state)
+    more = fit_model(a, data, fit, optimizer_state=first.optimizer_state)
     assert torch.equal(a.delta_std, std), "continued training keeps the normalisation"
     assert more.optimizer_state["state"][0]["step"] == 2 * first.optimizer_state["state"][0]["step"]
 
@@ -100,7 +100,7 @@ def test_a_trained_model_beats_persistence(small_dataset_dir):
     """On the data it learned from (300 transitions are too few to generalise reliably)."""
     data = load_dataset(small_dataset_dir)
     model = fresh("mlp", data)
-    result = train_model(model, data, FitSpec(epochs=8, **FAST_FIT))
+    result = fit_model(model, data, FitSpec(epochs=8, **FAST_FIT))
     metrics = evaluate_model(model, data, result.train_episodes)
     assert metrics["one_step_mm"] < metrics["persistence_one_step_mm"]
     assert metrics["rollout5_mm"] < metrics["persistence_rollout5_mm"]
@@ -237,8 +237,8 @@ def test_a_cancelled_token_stops_the_fit_before_its_next_step(small_dataset_dir)
             token.cancel()
 
     with pytest.raises(KeyboardInterrupt):
-        train_model(fresh("mlp", data), data, FitSpec(epochs=3, **FAST_FIT), progress=progress,
-                    cancel=token)  # fmt: skip
+        fit_model(fresh("mlp", data), data, FitSpec(epochs=3, **FAST_FIT), progress=progress,
+                  cancel=token)  # fmt: skip
     assert not any(isinstance(e, BatchDone) and e.count > 1 for e in seen)
     assert token.reason is None, "the stop is raised once"
-    train_model(fresh("mlp", data), data, FitSpec(epochs=1, **FAST_FIT), cancel=token)
+    fit_model(fresh("mlp", data), data, FitSpec(epochs=1, **FAST_FIT), cancel=token)

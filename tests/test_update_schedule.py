@@ -17,8 +17,9 @@ from dlocli.data import load_dataset
 from dlocli.migrations import LEGACY_VALUES
 from dlocli.models.base import build_model
 from dlocli.models.checkpoints import read_checkpoint
+from dlocli.models.fit import fit as fit_model
 from dlocli.models.spec import TrainSpec, UpdateSpec
-from dlocli.models.step_schedule import recent_rows, sample_batch, train_steps
+from dlocli.models.step_schedule import recent_rows, sample_batch
 from dlocli.models.training import (
     split_episodes,
     transition_tensors,
@@ -59,7 +60,7 @@ def test_defaults_leave_the_papers_schedule_and_old_fingerprints():
 
 def test_takes_exactly_update_steps_without_early_stopping(data):
     fit = UpdateSpec(**STEPS, update_steps=30, eval_every=10, patience=0)
-    result = train_steps(fresh(data), data, fit)
+    result = fit_model(fresh(data), data, fit)
     assert result.steps == 30
     assert [r.count for r in result.history] == [10, 20, 30]
     lowest = min(result.history, key=lambda record: record.val_loss)
@@ -75,7 +76,7 @@ def test_early_stopping_stops_and_restores_the_best_weights(data):
     before = weights(model)
     fit = UpdateSpec(**{**STEPS, "lr": 1e-12}, update_steps=50, eval_every=2, patience=3)
     events: list = []
-    result = train_steps(model, data, fit, progress=events.append)
+    result = fit_model(model, data, fit, progress=events.append)
     assert result.steps == 6 < fit.update_steps
     # the progress bar ends full, at the steps taken, saying why
     last = events[-1]
@@ -86,7 +87,7 @@ def test_early_stopping_stops_and_restores_the_best_weights(data):
         assert torch.equal(a, b)
     # a learning rate that moves the weights: stopped or not, the kept weights are the best
     fit = UpdateSpec(**STEPS, update_steps=40, eval_every=2, patience=2)
-    result = train_steps(model, data, fit)
+    result = fit_model(model, data, fit)
     assert result.steps <= 40 and result.history[-1].count == result.steps
     val = transition_tensors(data, result.val_episodes, torch.device("cpu"))
     assert result.best_val_loss == min(r.val_loss for r in result.history)
@@ -115,7 +116,7 @@ def test_cost_does_not_grow_with_the_data(data):
     for dataset in (data.subset(np.arange(4)), data.concat(data).concat(data).concat(data)):
         model = fresh(dataset)
         counts.append(counting(model))
-        train_steps(model, dataset, fit)
+        fit_model(model, dataset, fit)
     assert counts[0] == counts[1]
     assert counts[0]["train_calls"] == 12 and counts[0]["train_rows"] == 12 * 16
     assert counts[0]["val_rows"] == (1 + 3) * 40  # the starting weights, then 3 validations
@@ -126,7 +127,7 @@ def test_same_seed_same_weights(data):
     runs = []
     for seed in (7, 7, 8):
         model = fresh(data)
-        train_steps(model, data, fit.model_copy(update={"seed": seed}), recent_episodes=[5])
+        fit_model(model, data, fit.model_copy(update={"seed": seed}), recent_episodes=[5])
         runs.append(weights(model))
     assert all(torch.equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
     assert not all(torch.equal(a, b) for a, b in zip(runs[0], runs[2], strict=True))
@@ -160,7 +161,7 @@ def test_batches_weight_in_the_newest_episodes(data):
     shares = {}
     for fraction in (0.0, 0.5):
         fit_k = fit.model_copy(update={"recent_fraction": fraction, "update_steps": 40})
-        shares[fraction] = train_steps(fresh(data), data, fit_k, recent_episodes=recent_eps)
+        shares[fraction] = fit_model(fresh(data), data, fit_k, recent_episodes=recent_eps)
     assert shares[0.0].recent_share == pytest.approx(uniform, abs=0.06)
     assert shares[0.5].recent_share == pytest.approx(0.5 + 0.5 * uniform, abs=0.06)
 
@@ -239,16 +240,17 @@ def test_offline_model_trains_as_long_as_the_online_one(data, schedule):
 
 def test_fit_is_the_one_entry_point_of_both_rod_schedules(data):
     """dlocli.fit picks the schedule from the spec: the same weights as the schedule's own
-    function (the marker schedule runs in tests/test_real_cables.py through `dlo train`)."""
-    from dlocli.models.fit import fit
-    from dlocli.models.training import train_model
+    (private) function (the marker schedule runs in tests/test_real_cables.py through `dlo
+    train`)."""
+    from dlocli.models.step_schedule import _train_steps
+    from dlocli.models.training import _train_model
 
     steps = UpdateSpec(**{**STEPS, "update_steps": 12, "eval_every": 6})
     epochs = steps.model_copy(update={"schedule": "epochs", "epochs": 1})
     recent = {"recent_episodes": np.array([5])}  # weighed in by the steps schedule only
-    for spec, own, own_options in ((steps, train_steps, recent), (epochs, train_model, {})):
+    for spec, own, own_options in ((steps, _train_steps, recent), (epochs, _train_model, {})):
         by_fit, by_own = fresh(data), fresh(data)
-        result = fit(by_fit, data, spec, **recent)
+        result = fit_model(by_fit, data, spec, **recent)
         own(by_own, data, spec, **own_options)
         assert result.history[-1].unit == ("step" if spec.schedule == "steps" else "epoch")
         assert all(map(torch.equal, weights(by_fit), weights(by_own))), spec.schedule

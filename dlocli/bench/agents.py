@@ -39,6 +39,7 @@ from dlocli.io import atomic_path, read_json, write_json_atomic
 from dlocli.models.base import build_model, resolve_device
 from dlocli.models.checkpoints import load_planning_model
 from dlocli.models.update_steps import train_like_online
+from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
 from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
@@ -77,7 +78,7 @@ def make_bench_env(spec: BenchSpec, task: str, goals: str, seed: int) -> DLOShap
     """A DLOShapeEnv of ``task`` with the seed's fixed goal or random goals."""
     task_spec = spec.task.model_copy(update={"name": task, "goal": goals, "goal_file": None})
     goal = fixed_goal(spec, task, seed) if goals == "fixed" else None
-    return make_env(spec.backend, task_spec, goal=goal, seed=seed)
+    return make_env(spec.backend, task_spec, goal=goal, seed=seed, cancel=signal_token())
 
 
 def train_env(spec: BenchSpec, seed: int) -> DLOShapeEnv:
@@ -302,7 +303,8 @@ class OfflineMPCLearner(MPCLearner):
         device = resolve_device(self.spec.fit.device)
         model = build_model(self.spec.model, data.n_segments).to(device)
         fit = self.spec.fit.model_copy(update={"seed": stream_seed(self.seed, TRAIN, 1) % 2**31})
-        train_like_online(model, data, fit, k + 1)  # the online model's updates so far
+        # as long as the online model's updates so far
+        train_like_online(model, data, fit, k + 1, cancel=signal_token())
         self._model = model
         self.transitions = data.n_transitions
 

@@ -32,11 +32,11 @@ from dlocli.calibration.replay import (
     replay,
 )
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.cancel import CancelToken
 from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.markers import deform
-from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec, format_validation_error
 
@@ -142,10 +142,14 @@ def replay_named(
 
 class Replayer:
     """Replays rods on the cable's recordings through an executor (:mod:`dlocli.executors`):
-    each recording travels to it once (shared), each call replays some of them on one rod."""
+    each recording travels to it once (shared), each call replays some of them on one rod;
+    ``cancel`` stops :meth:`scores` after the call that finishes once it is cancelled."""
 
-    def __init__(self, cable: Cable, spec: CalibrateSpec, executor: Any) -> None:
+    def __init__(
+        self, cable: Cable, spec: CalibrateSpec, executor: Any, cancel: CancelToken | None = None
+    ) -> None:
         self.executor = executor
+        self.cancel = cancel
         self.recordings = {
             f"{split}/{n}": executor.share(r)
             for split, items in (("train", cable.train), ("eval", cable.eval))
@@ -176,7 +180,8 @@ class Replayer:
             if isinstance(result, BaseException):
                 raise result
             out[owners[index]].extend(result)
-            raise_if_stopped()
+            if self.cancel is not None:
+                self.cancel.raise_if_cancelled()
             done(k, len(calls))
         order = {n: i for i, n in enumerate(names)}
         return [sorted(results, key=lambda x: order[x["name"]]) for results in out]

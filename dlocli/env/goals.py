@@ -1,4 +1,4 @@
-"""Goal files: reading one, and refusing goals the rod cannot take."""
+"""Goal files: reading and writing one, and refusing goals the rod cannot take."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import numpy as np
 
 from dlocli.backends.base import Backend
 from dlocli.errors import BadInput
+from dlocli.io import atomic_path
 
 
 def load_goal(path: Path, n_segments: int) -> np.ndarray:
@@ -53,3 +54,9 @@ def check_goal_reachable(
             f"{name}: segments {gaps.min():.3f}-{gaps.max():.3f} m apart but the rod's segments "
             f"are {seg:.3f} m long; the rod cannot take this shape (make one with `dlo goal`)"
         )
+
+
+def save_goal(goal: np.ndarray, path: Path | str) -> None:
+    """Write the goal .npy atomically."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, goal)

@@ -30,8 +30,9 @@ from dlocli.backends.base import Backend
 from dlocli.backends.rotations import state_change
 from dlocli.bridge.remote import RemoteCell
 from dlocli.bridge.spec import CellChoice
+from dlocli.cancel import CancelToken
 from dlocli.env.envelope import Envelope
-from dlocli.env.goals import check_goal_reachable, load_goal
+from dlocli.env.goals import check_goal_reachable, load_goal, save_goal  # noqa: F401 (its API)
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
 from dlocli.env.metrics import reward as shape_reward
 from dlocli.env.observation import (
@@ -61,8 +62,6 @@ from dlocli.env.spaces import (
 from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput, BadOption, UnworkablePhysics
 from dlocli.extras import require
-from dlocli.io import atomic_path
-from dlocli.processes import raise_if_stopped
 from dlocli.registry import backends as backend_registry
 from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec
 
@@ -91,6 +90,8 @@ class DLOShapeEnv(gym.Env):
         render_mode: None (``render()`` returns None) or "rgb_array".
         cell: the address of a cell that steps the rod (``dlo serve``, or a robot speaking
             the dlocli-cell protocol) or a CellChoice; default: a simulator in this process.
+        cancel: stops the episode at its next step once cancelled (the commands hand it the
+            process's stop signals, so a Ctrl-C swallowed by a destructor still stops them).
         **task_options: TaskSpec fields (``episode_steps=50``, ``shapes="near-rest"``, ...);
             an unknown name raises UnknownOption (a TypeError) listing the valid ones, a bad
             value BadOption (a ValueError).
@@ -113,8 +114,10 @@ class DLOShapeEnv(gym.Env):
         seed: int = 0,
         render_mode: str | None = None,
         cell: str | CellChoice | None = None,
+        cancel: CancelToken | None = None,
         **task_options: Any,
     ) -> None:
+        self._cancel = cancel
         self.backend_spec, self.task_spec, goal = resolve_env_options(
             backend, task, goal, task_options
         )
@@ -276,7 +279,8 @@ class DLOShapeEnv(gym.Env):
         return self._observation(), self._info(diverged=False)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        raise_if_stopped()  # a Ctrl-C swallowed by a destructor still stops the run
+        if self._cancel is not None:
+            self._cancel.raise_if_cancelled()
         self._check_open("step")
         commands = self.task.to_grippers(np.clip(self._checked(action), -1.0, 1.0))
         self._previous = self.segment_state()
@@ -466,17 +470,20 @@ def make_env(
     seed: int = 0,
     render_mode: str | None = "rgb_array",
     cell: str | CellChoice | None = None,
+    cancel: CancelToken | None = None,
     **task_overrides: Any,
 ) -> DLOShapeEnv:
     """Build a shape-control environment; ``task_overrides`` set TaskSpec fields. ``goal`` is
     a goal shape (array or .npy path) or the goal mode, "fixed" or "random"; ``cell`` the
     address of a cell that steps the rod (default: a simulator in this process). Unlike
     DLOShapeEnv and ``gym.make``, it renders frames by default (``dlo control --video``)."""
-    return DLOShapeEnv(backend, task, goal, seed, render_mode, cell, **task_overrides)
+    return DLOShapeEnv(backend, task, goal, seed, render_mode, cell, cancel, **task_overrides)
 
 
-def make_env_from_spec(spec: EnvSpec, goal: np.ndarray | Path | str | None = None) -> DLOShapeEnv:
-    return make_env(spec.backend, spec.task, goal=goal, seed=spec.seed)
+def make_env_from_spec(
+    spec: EnvSpec, goal: np.ndarray | Path | str | None = None, cancel: CancelToken | None = None
+) -> DLOShapeEnv:
+    return make_env(spec.backend, spec.task, goal=goal, seed=spec.seed, cancel=cancel)
 
 
 # ----------------------------------------------------------------------------- goal files
@@ -491,9 +498,3 @@ def make_goal(spec: GoalSpec) -> np.ndarray:
         return np.asarray(env.goal, dtype=np.float64)
     finally:
         env.close()
-
-
-def save_goal(goal: np.ndarray, path) -> None:
-    """Write the goal .npy atomically."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.save(f, goal)

@@ -2,11 +2,13 @@
 schedule chosen by the model's form and the spec:
 
 - epochs (the paper's): passes over all the training transitions
-  (:func:`dlocli.models.training.train_model`);
+  (:func:`dlocli.models.training._train_model`);
 - steps (an ``UpdateSpec`` with schedule "steps"): a fixed number of gradient steps with the
-  newest episodes weighted in (:func:`dlocli.models.step_schedule.train_steps`);
+  newest episodes weighted in (:func:`dlocli.models.step_schedule._train_steps`);
 - rollout windows (a marker model, recorded cables): gradient steps through k-step open-loop
-  rollouts (:func:`dlocli.models.marker_training.fit_markers`).
+  rollouts (:func:`dlocli.models.marker_training._fit_markers`).
+
+It is the only way in: those three are private to their modules.
 
 Every schedule reports :class:`~dlocli.models.fitting.FitEvent` to ``progress``, stops before
 its next gradient step once ``cancel`` is cancelled, and returns a
@@ -23,12 +25,12 @@ import numpy as np
 from dlocli.cancel import CancelToken
 from dlocli.models.base import DynamicsModel
 from dlocli.models.fitting import FitRecord, Progress, TrainResult
-from dlocli.models.marker_training import Cable, fit_markers
+from dlocli.models.marker_training import Cable, Cables, _fit_markers
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec, UpdateSpec
 from dlocli.models.splits import split_episodes
-from dlocli.models.step_schedule import train_steps
-from dlocli.models.training import train_model
+from dlocli.models.step_schedule import _train_steps
+from dlocli.models.training import _train_model
 
 
 def fit(
@@ -42,17 +44,18 @@ def fit(
     **state: Any,
 ) -> TrainResult:
     """Train ``model`` in place on ``data`` (a rod :class:`~dlocli.data.Dataset`; for a marker
-    model a marker dataset) as ``schedule`` says (see the module docstring). The steps
-    schedule weighs ``recent_episodes`` (those added since the previous update) in; the others
-    train on all episodes alike. ``state`` is what the schedule continues from: epochs take
+    model a marker dataset, or :class:`~dlocli.models.marker_training.Cables` already split)
+    as ``schedule`` says (see the module docstring). The steps schedule weighs
+    ``recent_episodes`` (those added since the previous update) in; the others train on all
+    episodes alike. ``state`` is what the schedule continues from: epochs take
     ``optimizer_state``, ``on_validation``, ``start_epoch``, ``generator_state`` and ``best``;
     steps ``optimizer_state`` and ``on_validation``; rollout windows none."""
     if isinstance(model, MarkerModel):
         return _fit_windows(model, data, schedule, progress, cancel, **state)
     if isinstance(schedule, UpdateSpec) and schedule.schedule == "steps":
-        return train_steps(model, data, schedule, progress=progress, cancel=cancel,
-                           recent_episodes=recent_episodes, **state)  # fmt: skip
-    return train_model(model, data, schedule, progress=progress, cancel=cancel, **state)
+        return _train_steps(model, data, schedule, progress=progress, cancel=cancel,
+                            recent_episodes=recent_episodes, **state)  # fmt: skip
+    return _train_model(model, data, schedule, progress=progress, cancel=cancel, **state)
 
 
 def _fit_windows(
@@ -63,12 +66,18 @@ def _fit_windows(
     cancel: CancelToken | None,
 ) -> TrainResult:
     """Rollout windows on the train split of the marker dataset ``data``, ``val_fraction`` of
-    its trajectories held out for validation (its eval split is never seen)."""
-    episodes = data.episodes("train")
-    train_idx, val_idx = split_episodes(len(episodes), schedule.val_fraction)
-    train = Cable([episodes[i] for i in train_idx], data.held)
-    val = [Cable([episodes[i] for i in val_idx], data.held)] if len(val_idx) else []
-    rows = fit_markers(model, [train], val, schedule, progress, cancel)
+    its trajectories held out for validation (its eval split is never seen); on
+    :class:`Cables` as they were split (the result then names no episodes)."""
+    if isinstance(data, Cables):
+        cables = data
+        train_idx = val_idx = np.zeros(0, np.int64)
+    else:
+        episodes = data.episodes("train")
+        train_idx, val_idx = split_episodes(len(episodes), schedule.val_fraction)
+        train = Cable([episodes[i] for i in train_idx], data.held)
+        val = [Cable([episodes[i] for i in val_idx], data.held)] if len(val_idx) else []
+        cables = Cables([train], val)
+    rows = _fit_markers(model, cables.train, cables.val, schedule, progress, cancel)
     history, before = [], 0.0
     for row in rows:  # their seconds count from the start, a record's from the previous one
         history.append(FitRecord("step", row["step"], row["train_loss"], row["val_score_cm"],

@@ -1,8 +1,8 @@
 """The one fit loop of the rod models, whatever counts the training: a plan yields rounds of
 mini-batches (an epoch's, or ``eval_every`` gradient steps'), each ended by a validation;
 :class:`KeepBest` tracks the best validation, stops early and restores the best weights
-where the plan asks it to. :func:`dlocli.models.training.train_model` plans epochs (the
-paper's schedule), :func:`dlocli.models.step_schedule.train_steps` gradient steps.
+where the plan asks it to. :func:`dlocli.models.training._train_model` plans epochs (the
+paper's schedule), :func:`dlocli.models.step_schedule._train_steps` gradient steps.
 
 Every model is fitted with Adam on the mean squared error of the normalised state change,
 with Gaussian noise on the input state (paper Sec. IV-C), on a train/validation split by

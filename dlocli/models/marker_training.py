@@ -57,6 +57,15 @@ class Cable:
         return torch.as_tensor(self.held, dtype=torch.bool, device=device)
 
 
+@dataclass
+class Cables:
+    """Cables already split for a rollout fit: those it trains on and those it validates on
+    (what :func:`dlocli.models.fit.fit` takes for a marker model besides a marker dataset)."""
+
+    train: list[Cable]
+    val: list[Cable]
+
+
 class WindowSampler:
     """Random k-step windows (x_{t-1}, x_t, x_{t+1..t+k}), each batch from one cable (drawn
     in proportion to its episodes)."""
@@ -136,7 +145,7 @@ def validation_score(model: MarkerModel, cables: list[Cable]) -> float:
     return float(np.mean(scores)) if scores else math.nan
 
 
-def fit_markers(
+def _fit_markers(
     model: MarkerModel,
     train: list[Cable],
     val: list[Cable],

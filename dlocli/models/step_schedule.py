@@ -2,7 +2,7 @@
 mini-batches drawn from all the data with the newest episodes weighted in, stopped early on
 (a capped subset of) the validation split, the best weights kept. Its cost does not grow with
 the dataset, unlike the paper's E epochs over all of it
-(:func:`dlocli.models.training.train_model`). Both run :mod:`dlocli.models.fitting`'s loop;
+(:func:`dlocli.models.training._train_model`). Both run :mod:`dlocli.models.fitting`'s loop;
 :func:`dlocli.models.fit.fit` picks the schedule.
 """
 
@@ -72,7 +72,7 @@ class StepPlan:
             yield idx.to(self.device)
 
 
-def train_steps(
+def _train_steps(
     model: DynamicsModel,
     dataset: Dataset,
     fit: UpdateSpec,
@@ -96,7 +96,7 @@ def train_steps(
     and their Adam state are restored. Without a validation split every step runs and the
     last weights are kept.
 
-    Set-up as :func:`~dlocli.models.training.train_model`. Every random draw comes from one
+    Set-up as :func:`~dlocli.models.training._train_model`. Every random draw comes from one
     generator seeded with ``fit.seed``, so the result is a function of the seed, the data and
     the starting weights and optimizer state. ``progress`` gets a
     :class:`~dlocli.models.fitting.Validated` (unit "step") after each validation;

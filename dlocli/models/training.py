@@ -1,6 +1,7 @@
-"""Model training by epochs, the paper's schedule: :func:`train_model`. The loop itself is
-:mod:`dlocli.models.fitting`'s, shared with the online loop's fixed-cost update
-(:mod:`dlocli.models.update_steps`); ``dlo train``'s run is :mod:`dlocli.runs.train`.
+"""Model training by epochs, the paper's schedule: :func:`_train_model`, reached through
+:func:`dlocli.models.fit.fit`. The loop itself is :mod:`dlocli.models.fitting`'s, shared with
+the online loop's fixed-cost update (:mod:`dlocli.models.update_steps`); ``dlo train``'s run
+is :mod:`dlocli.runs.train`.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ class EpochPlan:
             yield Round(epoch, batches, len(batches))
 
 
-def train_model(
+def _train_model(
     model: DynamicsModel,
     dataset: Dataset,
     fit: FitSpec,

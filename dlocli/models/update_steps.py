@@ -15,7 +15,6 @@ from dlocli.models.base import DynamicsModel
 from dlocli.models.fit import fit as fit_model
 from dlocli.models.fitting import Progress, TrainResult
 from dlocli.models.spec import UpdateSpec
-from dlocli.processes import signal_token
 
 
 def update_model(
@@ -29,9 +28,8 @@ def update_model(
 ) -> TrainResult:
     """Train ``model`` in place as ``fit.schedule`` says (:func:`dlocli.models.fit.fit`, which
     the steps schedule weighs ``recent_episodes`` in); ``options``: ``optimizer_state``,
-    ``progress``, ``on_validation``. Without ``cancel`` the update stops on the process's
-    signals: the online loop, which calls it, hands it no token yet."""
-    cancel = signal_token() if cancel is None else cancel
+    ``progress``, ``on_validation``. ``cancel`` stops it between gradient steps (the online
+    loop hands it the process's stop signals)."""
     return fit_model(model, dataset, fit, cancel=cancel, recent_episodes=recent_episodes, **options)
 
 
@@ -46,6 +44,6 @@ def train_like_online(
     """Train a fresh ``model`` on all of ``dataset`` as long as the online loop's model had
     trained after ``updates`` updates under ``fit.schedule`` (paper Fig. 7's offline model):
     E·updates epochs ("epochs"), or update_steps·updates steps with nothing weighted ("steps",
-    so the offline comparison stays affordable where the paper's schedule is not). Without
-    ``cancel``, as :func:`update_model`, it stops on the process's signals."""
+    so the offline comparison stays affordable where the paper's schedule is not); ``cancel``
+    as :func:`update_model`'s."""
     return update_model(model, dataset, fit.times(updates), progress=progress, cancel=cancel)

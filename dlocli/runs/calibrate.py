@@ -38,6 +38,7 @@ from dlocli.io import (
     write_text_atomic,
 )
 from dlocli.markers import deform
+from dlocli.processes import signal_token
 from dlocli.registry import backends
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import owned
@@ -135,7 +136,7 @@ def run_calibration(
         history: list[Event] = state.get("generations", [])
         elapsed = float(state.get("seconds", 0.0))
         try:
-            replayer = Replayer(cable, spec, executor)
+            replayer = Replayer(cable, spec, executor, signal_token())
             replay_history(strategy, history, out)
             started = time.perf_counter()
             for g in range(len(history), spec.generations):

@@ -43,7 +43,7 @@ from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
 from dlocli.io import adopt_written, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
-from dlocli.processes import raise_if_stopped, start_worker
+from dlocli.processes import raise_if_stopped, signal_token, start_worker
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
 from dlocli.runs.checks import check_registered
@@ -70,7 +70,7 @@ def _init_worker(spec_json: str, parent: int | None = None) -> None:
     if parent is not None:  # a pool worker: one thread, and an end with the collecting process
         start_worker(parent, threads=1)
     _worker_spec = CollectSpec.model_validate_json(spec_json)
-    _worker_env = make_env_from_spec(_worker_spec)
+    _worker_env = make_env_from_spec(_worker_spec, cancel=signal_token())
 
 
 def _collect_one(episode: int) -> Episode:

@@ -45,6 +45,7 @@ from dlocli.errors import BadInput
 from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
+from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.rundir import owned
 from dlocli.runs.recording import check_record_path, open_recording
@@ -181,7 +182,8 @@ def prepare(
     options = controller_spec(spec.controller, spec.controller_options)
     load_goal(spec.task.goal_file, spec.backend.rod.n_segments)  # refused before anything
     check_inputs_used(spec)
-    env = make_env(spec.backend, spec.task, goal=spec.task.goal_file, seed=spec.seed, cell=spec)
+    env = make_env(spec.backend, spec.task, goal=spec.task.goal_file, seed=spec.seed, cell=spec,
+                   cancel=signal_token())  # fmt: skip
     try:
         model = load_control_model(spec, env.n_segments)
         controller = make_controller(

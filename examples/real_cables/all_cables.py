@@ -25,7 +25,8 @@ import torch
 import yaml
 
 from dlocli.markers import deform
-from dlocli.models.marker_training import Cable, fit_markers, validation_score
+from dlocli.models.fit import fit
+from dlocli.models.marker_training import Cable, Cables, validation_score
 from dlocli.models.markers import build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.models.splits import split_episodes
@@ -69,7 +70,7 @@ def main() -> None:
     torch.manual_seed(args.seed)
     shared = build_marker_model(spec.model, train[0].held.size, train[0].held)
     start = time.perf_counter()
-    fit_markers(shared, train, val, spec, lambda r: print(r, flush=True))
+    fit(shared, Cables(train, val), spec, progress=lambda r: print(r, flush=True))
     result = {
         "seed": args.seed,
         "model": spec.model.name,
@@ -87,7 +88,7 @@ def main() -> None:
     for name, t, v, e in zip(CABLES, train, val, evals, strict=True):
         model = copy.deepcopy(shared)
         start = time.perf_counter()
-        fit_markers(model, [t], [v], tune, lambda r, n=name: print(n, r, flush=True))
+        fit(model, Cables([t], [v]), tune, progress=lambda r, n=name: print(n, r, flush=True))
         result["finetune_seconds"][name] = round(time.perf_counter() - start, 1)
         result["finetuned_score_cm"][name] = score(model, e)
     print(result)

@@ -20,6 +20,7 @@ from dlocli.env.rollout import stream_seed
 from dlocli.env.shape_env import make_env_from_spec
 from dlocli.errors import DloError
 from dlocli.executors import ClusterLost, LocalExecutor
+from dlocli.processes import signal_token
 from dlocli.runs.collect import dataset_attrs
 from dlocli.runs.online.results import OnlineResults
 from dlocli.runs.online.spec import (
@@ -59,7 +60,7 @@ class OnlineRun:
         if path.is_file():
             return load_dataset(path)
 
-        env = make_env_from_spec(trials.env_spec(self.spec))
+        env = make_env_from_spec(trials.env_spec(self.spec), cancel=signal_token())
         episodes = []
         try:
             for e in range(self.spec.initial_episodes):
@@ -127,6 +128,7 @@ class OnlineRun:
                 optimizer_state=opt_state,
                 progress=self._validations(k),
                 on_validation=log,
+                cancel=signal_token(),  # Ctrl-C and SIGTERM stop it between gradient steps
             )
             threads = torch.get_num_threads()
         extra = {"steps": result.steps, "best_step": result.best_step} if result.steps else {}
@@ -174,9 +176,9 @@ class OnlineRun:
                 self.progress("validation", {"iteration": k, **event.as_dict()})
 
         with update_threads(self.spec):
-            history = update_marker_model(model, data, self.spec, fit, report)
+            result = update_marker_model(model, data, self.spec, fit, report, signal_token())
             threads = torch.get_num_threads()
-        best = min((r["val_score_cm"] for r in history), default=float("nan"))
+        best = result.best_val_loss  # the best validation score (cm)
         save_checkpoint(model, self.paths.checkpoint(k), {
             "iteration": k, "val_score_cm": best, "threads": threads,
             "train_seconds": time.perf_counter() - start,
@@ -269,7 +271,7 @@ class OnlineRun:
             )
             with update_threads(self.spec):
                 train_like_online(  # as long as the online model had trained by iteration k
-                    model, data, fit, k, progress=self._validations(k)
+                    model, data, fit, k, progress=self._validations(k), cancel=signal_token()
                 )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1,
                                           "control_dt": self.spec.task.control_dt})  # fmt: skip
@@ -282,7 +284,7 @@ class OnlineRun:
             return load_dataset(path)
 
         data = load_dataset(self.paths.initial())
-        env = make_env_from_spec(trials.env_spec(self.spec))
+        env = make_env_from_spec(trials.env_spec(self.spec), cancel=signal_token())
         try:
             e = self.spec.initial_episodes
             while data.n_transitions < n_transitions:

@@ -5,7 +5,7 @@ cell, never from the simulator's exact state.
 Each episode of D gives the tracker's reports with the held markers placed by the gripper
 poses of the frame's own time (the robot's kinematics; under a latency of k the report of
 step t shows the rod at t - k), cut where a frame had markers missing: the model learns
-from complete frames only. Training is :func:`~dlocli.models.marker_training.fit_markers`
+from complete frames only. Training is :func:`dlocli.models.fit.fit` on those runs
 (``fit.update_steps`` steps of k-step rollouts, ``fit.rollout_steps``), continued from the
 previous iteration's weights.
 """
@@ -16,13 +16,15 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.env.observation import MarkerLayout, held_markers, marker_layout
 from dlocli.errors import BadInput
-from dlocli.models.marker_training import Cable, fit_markers
+from dlocli.models.fit import fit as fit_model
+from dlocli.models.fitting import TrainResult
+from dlocli.models.marker_training import Cable, Cables
 from dlocli.models.markers import build_marker_model
 from dlocli.models.splits import split_episodes
-from dlocli.processes import signal_token
 from dlocli.specs import EnvSpec
 
 #: the shortest run of complete frames worth training on
@@ -63,9 +65,15 @@ def _true_spans(flags: np.ndarray) -> list[tuple[int, int]]:
 
 
 def update_marker_model(
-    model: Any, data: Dataset, spec: Any, fit: Any, progress: Any = None
-) -> list[dict[str, float]]:
-    """Train the marker ``model`` on D (``spec``: the online spec) in place; its history."""
+    model: Any,
+    data: Dataset,
+    spec: Any,
+    fit: Any,
+    progress: Any = None,
+    cancel: CancelToken | None = None,
+) -> TrainResult:
+    """Train the marker ``model`` on D (``spec``: the online spec) in place; ``cancel`` stops
+    it between gradient steps."""
     layout = run_marker_layout(spec)
     latency = spec.task.observation.latency_steps
     train_idx, val_idx = split_episodes(data.n_episodes, fit.val_fraction)
@@ -77,8 +85,8 @@ def update_marker_model(
         )
     val = complete_runs(data, val_idx, layout, latency)
     cables_val = [Cable(val, layout.held)] if val else []
-    cancel = signal_token()  # Ctrl-C and SIGTERM stop the update between gradient steps
-    return fit_markers(model, [Cable(train, layout.held)], cables_val, fit, progress, cancel)
+    cables = Cables([Cable(train, layout.held)], cables_val)
+    return fit_model(model, cables, fit, progress=progress, cancel=cancel)
 
 
 def new_marker_model(spec: Any) -> Any:

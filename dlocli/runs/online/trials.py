@@ -14,6 +14,7 @@ from dlocli.controllers.base import make_controller
 from dlocli.data import Episode
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.env.shape_env import make_env_from_spec
+from dlocli.processes import signal_token
 from dlocli.runs.online.spec import INITIAL, NOISE, REFERENCE, TRIAL, OnlineSpec, job_threads
 from dlocli.runs.references import reference_episode_scores
 from dlocli.specs import EnvSpec
@@ -54,7 +55,7 @@ def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[
     (seed, k, j)), and the seconds the planner took in it."""
     from dlocli.models.checkpoints import load_planning_model
 
-    env = make_env_from_spec(env_spec(spec))
+    env = make_env_from_spec(env_spec(spec), cancel=signal_token())
     try:
         model = load_planning_model(checkpoint, spec.fit.device)
         seed = stream_seed(spec.seed, TRIAL, k, j)
@@ -92,7 +93,7 @@ def reference_episodes(
     """The reference episodes ``runs`` ((controller, trial) pairs) of iteration k, on one
     env, from the trials' starts (an executor's job)."""
     spec = OnlineSpec.model_validate_json(spec_json)
-    env = make_env_from_spec(env_spec(spec))
+    env = make_env_from_spec(env_spec(spec), cancel=signal_token())
     try:
         return [
             (name, j, reference_episode_scores(env, name, stream_seed(spec.seed, TRIAL, k, j),
