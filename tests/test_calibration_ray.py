@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import pytest
 from test_calibration import TRUE_E, _simulate, _spec_file, _write
-from test_online_ray import _alive, _session
+from test_online_ray import killed_at_exit
 
 from dlocli.io import run_dir_entries, written_by_dlo
 
@@ -139,23 +138,12 @@ def test_a_killed_ray_driver_resumes_to_the_uninterrupted_fit(cluster, cable, tm
     with log.open("w") as sink:
         driver = subprocess.Popen(command, env=env, stdout=sink, stderr=subprocess.STDOUT,
                                   start_new_session=True)  # fmt: skip
-    started: set[int] = set()
-    try:
+    with killed_at_exit(driver) as started:
         end = time.monotonic() + 300
         while not (out / "history.json").is_file():
             assert driver.poll() is None, f"the driver ended first:\n{log.read_text()}"
             assert time.monotonic() < end, log.read_text()
             time.sleep(0.05)
-        started = _session(driver.pid)
-        os.killpg(driver.pid, signal.SIGKILL)
-        driver.wait(timeout=30)
-        end = time.monotonic() + 30  # the group's processes are reaped by init
-        while _alive(started | _session(driver.pid)) and time.monotonic() < end:
-            time.sleep(0.2)
-        assert not _alive(started | _session(driver.pid)), "processes left behind"
-    finally:
-        for pid in _alive(started | _session(driver.pid)):  # never leave a local Ray behind
-            os.kill(pid, signal.SIGKILL)
     assert len(started) > 1  # the driver and its Ray instance were killed, not the driver alone
     done = json.loads((out / "history.json").read_text())["generations"]
     assert 1 <= len(done) < generations and not (out / "report.json").exists()

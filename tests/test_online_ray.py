@@ -13,6 +13,8 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -288,6 +290,26 @@ def _alive(pids: set[int]) -> set[int]:
             and "Z" not in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1][:3]}  # fmt: skip
 
 
+@contextmanager
+def killed_at_exit(driver: subprocess.Popen) -> Iterator[set[int]]:
+    """On leaving: SIGKILL ``driver`` (started in a session of its own) and everything of its
+    session (its local Ray instance); the set yielded then holds them, and none may be left
+    behind. On an error inside, the session's processes are killed all the same."""
+    started: set[int] = set()
+    try:
+        yield started
+        started |= _session(driver.pid)
+        os.killpg(driver.pid, signal.SIGKILL)
+        driver.wait(timeout=30)
+        end = time.monotonic() + 30  # the group's processes are reaped by init
+        while _alive(started | _session(driver.pid)) and time.monotonic() < end:
+            time.sleep(0.2)
+        assert not _alive(started | _session(driver.pid)), "processes left behind"
+    finally:
+        for pid in _alive(started | _session(driver.pid)):  # never leave a local Ray behind
+            os.kill(pid, signal.SIGKILL)
+
+
 def _wait_for(paths: list[Path], driver: subprocess.Popen, log: Path, timeout: float) -> None:
     end = time.monotonic() + timeout
     while not all(p.is_file() for p in paths):
@@ -308,20 +330,9 @@ def test_a_killed_driver_resumes_to_the_uninterrupted_result(cluster, local_run,
     with log.open("w") as sink:
         driver = subprocess.Popen(command, env=env, stdout=sink, stderr=subprocess.STDOUT,
                                   start_new_session=True)  # fmt: skip
-    started: set[int] = set()
-    try:
+    with killed_at_exit(driver) as started:
         _wait_for([out / "data" / "iter_01" / f"trial_{j:03d}.h5" for j in (1, 2)], driver,
                   log, timeout=300)  # fmt: skip
-        started = _session(driver.pid)
-        os.killpg(driver.pid, signal.SIGKILL)
-        driver.wait(timeout=30)
-        end = time.monotonic() + 30  # the group's processes are reaped by init
-        while _alive(started | _session(driver.pid)) and time.monotonic() < end:
-            time.sleep(0.2)
-        assert not _alive(started | _session(driver.pid)), "processes left behind"
-    finally:
-        for pid in _alive(started | _session(driver.pid)):  # never leave a local Ray behind
-            os.kill(pid, signal.SIGKILL)
     assert len(started) > 1  # the driver and its Ray instance were killed, not the driver alone
 
     res = runner.invoke(app, ["online", "--resume", str(out), "--executor", "ray", "--json"])
