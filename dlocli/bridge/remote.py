@@ -251,8 +251,9 @@ class RemoteCell(Backend):
         raise BadInput("the rod is in a cell: it has no picture here (drop --video)")
 
     def close(self) -> None:
-        """Leave the grippers stopped, say goodbye (if the cell still answers), let go."""
-        if self._socket is not None and self._answered:
+        """Leave the grippers stopped, say goodbye (if this controller has a session and the
+        cell still answers), let go."""
+        if self._socket is not None and self._session:
             with contextlib.suppress(DloError):
                 self._request("stop")
                 self._request("bye")
