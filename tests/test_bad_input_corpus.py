@@ -404,9 +404,10 @@ def _alive(pid: int) -> bool:
 SWALLOWED_STOP = """
 import os, signal
 import dlocli
-from dlocli.processes import handle_stop_signals
+from dlocli.processes import handle_stop_signals, signal_token
 handle_stop_signals()
-env = dlocli.make_env(backend="mujoco", task="single", seed=0)
+# as the commands do: the env is handed the process's stop token
+env = dlocli.make_env(backend="mujoco", task="single", seed=0, cancel=signal_token())
 env.reset()
 class Destructor:
     def __del__(self):
