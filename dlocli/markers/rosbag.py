@@ -29,6 +29,8 @@ MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 POINT_CLOUD = "sensor_msgs/msg/PointCloud2"
 #: PointField datatypes of coordinates read, as numpy types
 CLOUD_TYPES = {7: "f4", 8: "f8"}  # FLOAT32, FLOAT64
+#: what the markers' topic may carry, as errors name it
+MARKER_MESSAGES = "tracked markers (PoseArray, MarkerArray or PointCloud2 messages)"
 
 
 def reader(topic: str | None) -> Reader:
@@ -38,49 +40,60 @@ def reader(topic: str | None) -> Reader:
 
 def read_bag(path: Path, budget: int, fill_gaps: int, topic: str | None) -> Trajectory:
     require("ros", "importing a ROS 2 bag", "convert it to CSV or .npz")
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
     size = sum(p.stat().st_size for p in path.iterdir() if p.is_file())
     if 2 * size > budget:  # the messages, decoded one at a time, and their numbers kept
         raise BadInput(
             f"{path} holds {size / 2**20:.0f} MiB, over half the budget's "
             f"{budget / 2**20:.0f} MiB left; raise --max-memory-mib or import fewer bags"
         )
+    frames, stamps = read_topic(path, topic, tuple(FRAMES), MARKER_MESSAGES)
+    return _trajectory(path, frames, stamps, fill_gaps)
+
+
+def read_topic(
+    path: Path, topic: str | None, types: tuple[str, ...], kinds: str
+) -> tuple[list[np.ndarray], list[int]]:
+    """Each message's points on ``topic`` (None: the bag's only topic of ``types``, message
+    types named ``kinds`` in errors) and its stamp in ns (the time the bag received it where
+    the stamp is zero); BadInput for a bag that cannot be read or a topic of another type."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    points, stamps = [], []
     try:
         with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as bag:
-            connections = _connections(bag.connections, topic, path)
-            frames, stamps = [], []
+            connections = _connections(bag.connections, topic, path, types, kinds)
             for connection, received, raw in bag.messages(connections=connections):
                 message = bag.deserialize(raw, connection.msgtype)
-                points, stamp = FRAMES[connection.msgtype](message, path)
-                frames.append(points)
+                frame, stamp = FRAMES[connection.msgtype](message, path)
+                points.append(frame)
                 stamps.append(stamp if stamp else received)
     except BadInput:
         raise
     except Exception as exc:  # a third-party parser of the file: any failure is the file's
         raise BadInput(f"{path} is not a readable ROS 2 bag ({str(exc)[:80]})") from exc
-    return _trajectory(path, frames, stamps, fill_gaps)
+    return points, stamps
 
 
-def _connections(connections: list[Any], topic: str | None, path: Path) -> list[Any]:
-    """The connections of the markers' topic; BadInput naming the bag's topics otherwise."""
+def _connections(
+    connections: list[Any], topic: str | None, path: Path, types: tuple[str, ...], kinds: str
+) -> list[Any]:
+    """The connections of the chosen topic; BadInput naming the bag's topics otherwise."""
     listed = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in connections}))[:200]
     if topic is None:
-        topics = {c.topic for c in connections if c.msgtype in FRAMES}
+        topics = {c.topic for c in connections if c.msgtype in types}
         if len(topics) != 1:
             raise BadInput(
-                f"{path} has {len(topics)} topics of tracked markers (PoseArray, MarkerArray, "
-                f"PointCloud2) among {listed or 'none'}; pass --topic NAME"
+                f"{path} has {len(topics)} topics of {kinds} among {listed or 'none'}; pass "
+                "--topic NAME"
             )
         topic = topics.pop()
     chosen = [c for c in connections if c.topic == topic]
     if not chosen:
         raise BadInput(f"{path} has no topic {topic!r}; its topics: {listed or 'none'}")
-    if any(c.msgtype not in FRAMES for c in chosen):
+    if any(c.msgtype not in types for c in chosen):
         raise BadInput(
-            f"{path}: topic {topic} carries {chosen[0].msgtype}; pass a topic of PoseArray, "
-            "MarkerArray or PointCloud2 messages"
+            f"{path}: topic {topic} carries {chosen[0].msgtype}; pass a topic of {kinds}"
         )
     return chosen
 

@@ -12,15 +12,17 @@ the cable's surface to its axis.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from dlocli.errors import BadInput
 from dlocli.extras import require
-from dlocli.markers.rosbag import FRAMES, POINT_CLOUD
+from dlocli.markers.rosbag import POINT_CLOUD, read_topic
 from dlocli.tracking.camera import CloudFrame
 from dlocli.tracking.frames import FrameSequence
+
+#: what the clouds' topic carries, as errors name it
+CLOUD_MESSAGES = "the cable's clouds (sensor_msgs/msg/PointCloud2 messages)"
 
 
 def is_bag(path: Path) -> bool:
@@ -33,48 +35,12 @@ def read_cloud_bag(
 ) -> FrameSequence:
     """The frames of one bag; BadInput naming the fault (a topic of another type, ...)."""
     require("ros", "reading a ROS 2 bag", "save the clouds as .npz frame sequences")
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
     size = sum(p.stat().st_size for p in path.iterdir() if p.is_file())
     if 4 * size > budget:  # the messages, decoded one at a time, and their points kept
         raise BadInput(f"{path} holds {size / 2**20:.0f} MiB, too large to track at once")
-    clouds, stamps = [], []
-    try:
-        with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as bag:
-            connections = cloud_connections(bag.connections, topic, path)
-            for connection, received, raw in bag.messages(connections=connections):
-                message = bag.deserialize(raw, connection.msgtype)
-                points, stamp = FRAMES[POINT_CLOUD](message, path)
-                clouds.append(points[np.isfinite(points).all(axis=1)])
-                stamps.append(stamp if stamp else received)
-    except BadInput:
-        raise
-    except Exception as exc:  # a third-party parser of the file: any failure is the file's
-        raise BadInput(f"{path} is not a readable ROS 2 bag ({str(exc)[:80]})") from exc
+    frames, stamps = read_topic(path, topic, (POINT_CLOUD,), CLOUD_MESSAGES)
+    clouds = [points[np.isfinite(points).all(axis=1)] for points in frames]
     return _sequence(path, clouds, stamps, camera_position)
-
-
-def cloud_connections(connections: list[Any], topic: str | None, path: Path) -> list[Any]:
-    """The connections of the clouds' topic; BadInput naming the bag's topics otherwise."""
-    listed = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in connections}))[:200]
-    if topic is None:
-        topics = {c.topic for c in connections if c.msgtype == POINT_CLOUD}
-        if len(topics) != 1:
-            raise BadInput(
-                f"{path} has {len(topics)} PointCloud2 topics among {listed or 'none'}; pass "
-                "--topic NAME"
-            )
-        topic = topics.pop()
-    chosen = [c for c in connections if c.topic == topic]
-    if not chosen:
-        raise BadInput(f"{path} has no topic {topic!r}; its topics: {listed or 'none'}")
-    if any(c.msgtype != POINT_CLOUD for c in chosen):
-        raise BadInput(
-            f"{path}: topic {topic} carries {chosen[0].msgtype}, not the cable's clouds; pass "
-            "a topic of sensor_msgs/msg/PointCloud2 messages"
-        )
-    return chosen
 
 
 def _sequence(
