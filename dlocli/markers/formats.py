@@ -126,14 +126,15 @@ def held_mask(n_markers: int, held: list[int] | None) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- arrays
-def _regular(path: Path) -> None:
-    """BadInput unless ``path`` is a regular file (a FIFO would block the read)."""
+def require_regular_file(path: Path, wanted: str = "readable files") -> None:
+    """BadInput unless ``path`` is a regular file (a FIFO would block the read); the
+    message asks for ``wanted``."""
     try:
         mode = os.stat(path).st_mode
     except OSError as exc:
-        raise BadInput(f"{path} cannot be read ({exc.strerror}); pass readable files") from exc
+        raise BadInput(f"{path} cannot be read ({exc.strerror}); pass {wanted}") from exc
     if not stat.S_ISREG(mode):
-        raise BadInput(f"{path} is not a regular file (a FIFO, device or socket); pass files")
+        raise BadInput(f"{path} is not a regular file (a FIFO, device or socket); pass {wanted}")
 
 
 def _fits(name: str, shape: tuple[int, ...], dtype: np.dtype, budget: int) -> None:
@@ -169,7 +170,7 @@ def read_pkl(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
 
 
 def read_npy(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
-    _regular(path)
+    require_regular_file(path)
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
@@ -179,7 +180,7 @@ def read_npy(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
 
 
 def read_npz(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
-    _regular(path)
+    require_regular_file(path)
     out: list[Trajectory] = []
     try:
         with zipfile.ZipFile(path) as archive:
@@ -210,7 +211,7 @@ def read_npz(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
 def read_h5(path: Path, budget: int, fill_gaps: int) -> list[Trajectory]:
     import h5py
 
-    _regular(path)
+    require_regular_file(path)
     try:
         with h5py.File(path, "r") as f:
             keys: list[str] = []

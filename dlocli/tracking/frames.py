@@ -16,8 +16,6 @@ is refused in one line.
 
 from __future__ import annotations
 
-import os
-import stat
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +25,7 @@ import numpy as np
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path
 from dlocli.limits import refuse_unless_fits
+from dlocli.markers.formats import require_regular_file
 from dlocli.tracking.camera import CloudFrame
 
 REQUIRED = ("points", "counts", "times", "extrinsics")
@@ -96,12 +95,7 @@ def load_frames(path: Path | str) -> FrameSequence:
 
 
 def _read_arrays(path: Path) -> dict[str, np.ndarray]:
-    try:
-        mode = os.stat(path).st_mode
-    except OSError as exc:
-        raise BadInput(f"{path} cannot be read ({exc.strerror}); pass a .npz frame file") from exc
-    if not stat.S_ISREG(mode):
-        raise BadInput(f"{path} is not a regular file; pass a .npz frame file")
+    require_regular_file(path, "a .npz frame file")
     arrays = {}
     try:
         with zipfile.ZipFile(path) as archive:
