@@ -124,3 +124,16 @@ def step_errors(out: Path) -> list[str]:
 
 def summary_of(out: Path) -> dict[str, Any]:
     return json.loads((out / "summary.json").read_text())
+
+
+def stepping_controller(argv: list[str], address: str) -> subprocess.Popen:
+    """`dlo` ``argv`` (a control run without --json) against the cell at ``address`` in a
+    process of its own, returned once its first progress line says the steps have begun."""
+    control = subprocess.Popen(
+        [sys.executable, "-m", "dlocli.cli", *argv, "--cell", address],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert control.stdout is not None
+    progress = control.stdout.readline()
+    assert progress.startswith("step"), progress + (control.stderr.read() if control.stderr else "")
+    return control

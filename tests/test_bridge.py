@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 from cells import control_argv as _control
-from cells import example_cell, served
+from cells import example_cell, served, stepping_controller
 from cells import step_errors as _errors
 from cells import summary_of as _summary
 
@@ -83,13 +83,7 @@ def test_a_killed_cell_ends_the_run_in_one_line_with_its_steps_kept(
     argv[argv.index("--steps") + 1] = "200"
     argv.remove("--json")  # its progress lines say when the steps have begun
     with served("--delay-ms", "20", kill=True) as address:  # ~25 ms a step: outlives the cell
-        control = subprocess.Popen(
-            [sys.executable, "-m", "dlocli.cli", *argv, "--cell", address],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        assert control.stdout is not None
-        progress = control.stdout.readline()
-        assert progress.startswith("step"), progress
+        control = stepping_controller(argv, address)
     _, stderr = control.communicate(timeout=60)
     assert control.returncode == 1, stderr
     assert "Traceback" not in stderr

@@ -24,6 +24,7 @@ from cells import (
     listening,
     served,
     step_errors,
+    stepping_controller,
     summary_of,
 )
 
@@ -147,12 +148,7 @@ def test_an_intruder_gets_busy_and_the_running_controller_its_own_result(
     argv.remove("--json")  # its progress lines say when the steps have begun
     assert run_dlo(control_argv(near_rest_goal, sac_policy, here, steps=200)) == 0
     with served("--delay-ms", "20") as address:  # lockstep: the delay changes no number
-        control = subprocess.Popen(
-            [sys.executable, "-m", "dlocli.cli", *argv, "--cell", address],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        assert control.stdout is not None
-        assert control.stdout.readline().startswith("step")
+        control = stepping_controller(argv, address)
         intruder = RawClient(address)
         replies = [_hello(intruder), intruder.ask("reset", session="x" * 32, seed=3)]
         replies += [intruder.ask("step", session="x" * 32, velocities=[[0.1] * 6] * 2)
@@ -288,12 +284,7 @@ def test_a_controller_killed_mid_run_frees_its_cell_after_the_idle_time(
     killed.remove("--json")  # its progress lines say when the steps have begun
     # long enough for the controller's imports between its hello and its first reset
     with served("--session-idle-s", "8", "--delay-ms", "10") as address:
-        control = subprocess.Popen(
-            [sys.executable, "-m", "dlocli.cli", *killed, "--cell", address],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        assert control.stdout is not None
-        assert control.stdout.readline().startswith("step")
+        control = stepping_controller(killed, address)
         control.kill()
         control.communicate(timeout=60)
         started = time.monotonic()
