@@ -47,8 +47,8 @@ def forward_flops(model: DynamicsModel) -> float:
     total = 0.0
     for name, module in model.named_modules():
         if isinstance(module, torch.nn.Linear):
-            rows = 2 * (n - 1) if name.startswith("edge_net") else n
-            rows = 1 if name.startswith("net") else rows  # the mlp baseline: one row
+            rows = 2 * (n - 1) if name.startswith("network.edge_net") else n
+            rows = 1 if name.startswith("network.net") else rows  # the mlp baseline: one row
             total += 2 * rows * module.in_features * module.out_features
         elif isinstance(module, torch.nn.LSTM):
             h, size = module.hidden_size, module.input_size

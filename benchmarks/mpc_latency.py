@@ -100,9 +100,9 @@ def model_ms(
 def floor_ms(model: Any, horizon: int, repeats: int = 30) -> float | None:
     """Median ms of the bare matrix products of one ``horizon``-step in-bilstm rollout at
     batch 1 (None for other models). See the module docstring."""
-    if not hasattr(model, "edge_net"):
+    if not hasattr(model.network, "edge_net"):
         return None
-    n = model.n_segments
+    n, model = model.n_segments, model.network
     linears = [(m, 2 * (n - 1)) for m in model.edge_net if isinstance(m, torch.nn.Linear)]
     linears += [(m, n) for m in model.node_net if isinstance(m, torch.nn.Linear)]
     layers = [

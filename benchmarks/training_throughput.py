@@ -94,7 +94,7 @@ def _sync(device: torch.device) -> None:
 def lstm_seconds(model: MarkerModel, batch: int, k: int, steps: int) -> float:
     """Seconds of the model's LSTM forward and backward, k times (one rollout's) at the
     rollout's shapes, per gradient step."""
-    lstm = model.lstm
+    lstm = model.network.lstm
     sequence = torch.randn(batch, len(model.held), lstm.input_size, device=model.device)
     start = time.perf_counter()
     for _ in range(steps):

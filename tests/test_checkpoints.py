@@ -146,3 +146,27 @@ def test_only_the_checkpoint_module_reads_or_writes_model_checkpoints():
         if re.search(r"(?<![`\w.])torch\.(load|save)\(", path.read_text())
     )
     assert calling == ["dlocli/controllers/pilco.py", "dlocli/models/checkpoints.py"], calling
+
+
+LEGACY = REPO / "tests" / "data" / "legacy_checkpoints"
+
+
+@pytest.mark.parametrize("path", sorted(LEGACY.glob("*.pt")), ids=lambda p: p.stem)
+def test_checkpoints_of_the_per_form_classes_predict_as_they_did(path):
+    """Checkpoints written when each model form was a class of its own (format version 3:
+    rod and marker models of in-bilstm, mlp and attention, hidden 8) load into one network
+    inside its view and roll out as their writer did: the rollout saved beside the weights,
+    to float32 rounding (the MLP's first layer is laid out anew, so its sums run in another
+    order)."""
+    payload = read_checkpoint(path)
+    assert payload["format_version"] == 3
+    model, ref = load_planning_model(path), payload["reference"]
+    for reference in (True, False):  # plain PyTorch, and the fast paths
+        model.reference = reference
+        with torch.no_grad():
+            if model.form == "rod":
+                out = model.rollout(ref["state"], ref["actions"], ref["previous"])
+            else:
+                out = model.rollout(ref["x"], ref["x_prev"], ref["held_future"])
+        scale = float(ref["rollout"].abs().max())
+        torch.testing.assert_close(out, ref["rollout"], rtol=0, atol=1e-5 * scale)

@@ -126,10 +126,9 @@ def test_fused_prediction_without_gradient_matches(name: str) -> None:
 
 
 def test_a_subclass_with_its_own_features_keeps_them() -> None:
-    """The fused steps compute the base class's features; a subclass's own are not skipped."""
-    from dlocli.models.markers import MarkerMLP
+    """The fused steps compute the view's features; a subclass's own are not skipped."""
 
-    class Scaled(MarkerMLP):
+    class Scaled(MarkerModel):
         def features(self, x, x_prev, held_next, held):
             return 2 * super().features(x, x_prev, held_next, held)
 

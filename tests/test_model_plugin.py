@@ -33,7 +33,7 @@ def test_a_plugin_model_brings_its_own_option(plugin_path, small_dataset_dir, tm
     shown = dlo(plugin_path, "train", "--help")
     assert shown.returncode == 0, shown.stderr
     text = " ".join(shown.stdout.split())
-    assert "--depth" in text and "chain: Hidden layers of the per-segment network." in text
+    assert "--depth" in text and "chain: Hidden layers of the per-node network." in text
     assert "One of: attention, chain, in-bilstm, mlp." in text
 
     out = tmp_path / "run"
@@ -50,3 +50,26 @@ def test_a_plugin_model_brings_its_own_option(plugin_path, small_dataset_dir, tm
     wrong = dlo(plugin_path, "train", "--data", str(small_dataset_dir), "--depth", "3",
                 "--out", str(tmp_path / "wrong"))  # fmt: skip
     assert wrong.returncode == 2 and "model.depth" in wrong.stderr + wrong.stdout
+
+
+def test_a_plugin_model_learns_a_recorded_cable_through_the_marker_view(
+    plugin_path, marker_run, tmp_path
+):
+    """The same plugin network, with no marker code of its own, trains on recorded markers
+    and is scored by `dlo eval` against freezing the cable on the same recordings."""
+    dataset, _ = marker_run
+    out = tmp_path / "markers"
+    res = dlo(plugin_path, "train", "--data", str(dataset), "--model", "chain", "--depth", "2",
+              "--hidden", "8", "--update-steps", "30", "--rollout-steps", "4", "--device", "cpu",
+              "--out", str(out), "--json")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    sizes = [10, 8, 8, 3]  # a marker's features, 2 hidden, its acceleration
+    assert summary["form"] == "markers"
+    assert summary["parameters"] == sum((a + 1) * b for a, b in pairwise(sizes))
+    scored = dlo(plugin_path, "eval", "--checkpoint", str(out), "--data", str(dataset),
+                 "--out", str(tmp_path / "eval"), "--json")  # fmt: skip
+    assert scored.returncode == 0, scored.stderr
+    result = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert result["episodes"] == 2 and len(result["model_scores_cm"]) == 2
+    assert 0 < result["model_score_cm"] < 10 * result["freeze_score_cm"]

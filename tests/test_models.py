@@ -200,14 +200,15 @@ def test_devices():
 def test_paper_architecture_defaults():
     model = build_model({}, 20)
     linear = torch.nn.Linear
-    assert [m.out_features for m in model.edge_net if isinstance(m, linear)] == [150] * 4
-    assert [m.out_features for m in model.node_net if isinstance(m, linear)] == [150] * 3 + [7]
+    net = model.network
+    assert [m.out_features for m in net.edge_net if isinstance(m, linear)] == [150] * 4
+    assert [m.out_features for m in net.node_net if isinstance(m, linear)] == [150] * 3 + [7]
     # v_i = (position, quaternion, their change over the last step): 14 numbers
-    assert model.edge_net[0].in_features == 2 * (14 + 6), "(v_i, a_i, v_j, a_j)"
-    assert model.node_net[0].in_features == 14 + 2 * 150, "(v_i, [h_left_i, h_right_i])"
+    assert model.network.edge_net[0].in_features == 2 * (14 + 6), "(v_i, a_i, v_j, a_j)"
+    assert model.network.node_net[0].in_features == 14 + 2 * 150, "(v_i, [h_left_i, h_right_i])"
     without = build_model({"velocity_input": False}, 20)
-    assert without.edge_net[0].in_features == 2 * (7 + 6)
-    lstm = model.lstm
+    assert without.network.edge_net[0].in_features == 2 * (7 + 6)
+    lstm = model.network.lstm
     assert (lstm.num_layers, lstm.hidden_size, lstm.bidirectional) == (2, 150, True)
 
 
@@ -226,11 +227,11 @@ def test_gradient_planner_path_matches_reference(real):
         out[..., :3].sum().backward()
         outs.append(out.detach())
         grads.append(acts.grad)
-    assert rnn._frozen_backward(acts, model.lstm)
+    assert rnn._frozen_backward(acts, model.network.lstm)
     torch.testing.assert_close(outs[0], outs[1], atol=1e-6, rtol=1e-5)
     torch.testing.assert_close(grads[0], grads[1], atol=1e-5, rtol=1e-4)
     model.requires_grad_(True)  # training: the stock LSTM
-    assert not rnn._frozen_backward(acts, model.lstm)
+    assert not rnn._frozen_backward(acts, model.network.lstm)
 
 
 @pytest.mark.parametrize(

@@ -101,7 +101,7 @@ def test_train_and_evaluate_by_the_protocol(imported: Path, tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize("name", models.names())
-def test_every_registered_model_has_a_marker_form(name: str) -> None:
+def test_every_registered_model_works_in_the_marker_view(name: str) -> None:
     import torch
 
     from dlocli.models.markers import build_marker_model

@@ -1,6 +1,7 @@
-"""Learned dynamics models of the rod: one module per model, all implementing
-:class:`~dlocli.models.base.DynamicsModel` and registered here in
-:data:`dlocli.registry.models`; each declares its options as a
+"""Learned dynamics models: one network per architecture, one module each, all implementing
+:class:`~dlocli.models.network.Network` and registered here in :data:`dlocli.registry.models`,
+seen through the rod view (:class:`~dlocli.models.base.DynamicsModel`) or the marker view
+(:class:`~dlocli.models.markers.MarkerModel`); each declares its options as a
 :class:`~dlocli.models.spec.ModelSpec` subclass, ``spec_cls`` (registered beside it, so
 ``--help`` lists them without importing torch).
 
@@ -16,19 +17,19 @@ from dlocli.registry import import_target, models
 models.register(
     "in-bilstm",
     "dlocli.models.in_bilstm:INBiLSTM",
-    "Interaction Network + bi-LSTM along the rod (the paper's model)",
+    "Interaction Network + bi-LSTM along the cable (the paper's model)",
     spec="dlocli.models.spec:INBiLSTMSpec",
 )
 models.register(
     "mlp",
-    "dlocli.models.mlp:MLPDynamics",
-    "flattened state + action MLP baseline",
+    "dlocli.models.mlp:MLP",
+    "flattened MLP baseline (one node count)",
     spec="dlocli.models.spec:MLPSpec",
 )
 models.register(
     "attention",
-    "dlocli.models.attention:AttentionDynamics",
-    "self-attention along the rod (graph-attention family, GA-Net)",
+    "dlocli.models.attention:Attention",
+    "self-attention along the cable, any node count (GA-Net family)",
     spec="dlocli.models.spec:AttentionSpec",
 )
 
@@ -36,6 +37,9 @@ _EXPORTS = {
     "ModelSpec": "dlocli.models.spec",
     "model_spec": "dlocli.models.spec",
     "DynamicsModel": "dlocli.models.base",
+    "MarkerModel": "dlocli.models.markers",
+    "Network": "dlocli.models.network",
+    "Nodes": "dlocli.models.network",
     "build_model": "dlocli.models.base",
     "load_model": "dlocli.models.checkpoints",
     "resolve_device": "dlocli.models.base",

@@ -8,10 +8,10 @@ graph-attention family of GA-Net, Wang et al.). Tokens know where they sit along
 from Fourier features of their arc position s = i / (N - 1) in [0, 1], so one network serves
 cables of any segment or marker count (:data:`ARC_FREQUENCIES` pairs of sin/cos).
 
-The rod form (this module's :class:`AttentionDynamics`) reads the segments' normalised
-features and the gripper commands on the end segments; the marker form
-(:class:`~dlocli.models.markers.MarkerAttention`) reads the marker features, the vectors to
-both neighbours and the cable's descriptors (neighbour distances and total length).
+In the rod view a token holds a segment's normalised features and the gripper commands on
+the end segments; in the marker view a marker's features and, since it reads the cable's
+geometry (``cable_geometry``), the vectors to both neighbours, their lengths and the cable's
+length: what tells one cable from another, so one network can learn several cables.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, node_actions
+from dlocli.models.network import Network, Nodes
 from dlocli.models.spec import AttentionSpec, ModelSpec
 
 ARC_FREQUENCIES = 4
@@ -64,16 +64,16 @@ class AlongCable(torch.nn.Module):
         return self.head(self.norm(hidden))
 
 
-class AttentionDynamics(DynamicsModel):
-    """Self-attention over the rod's segments (see the module docstring)."""
+class Attention(Network):
+    """Self-attention over the nodes along the cable (see the module docstring)."""
 
     spec_cls: ClassVar[type[ModelSpec]] = AttentionSpec
-    marker_form: ClassVar[str] = "dlocli.models.markers:MarkerAttention"
+    cable_geometry: ClassVar[bool] = True
     spec: AttentionSpec
 
-    def __init__(self, spec: AttentionSpec, n_segments: int) -> None:
-        super().__init__(spec, n_segments)
-        self.net = AlongCable(self.feature_dim + ACTION_DIM, STATE_DIM, spec)
+    def __init__(self, spec: AttentionSpec, nodes: Nodes) -> None:
+        super().__init__(spec, nodes)
+        self.net = AlongCable(nodes.inputs, nodes.outputs, spec)
 
-    def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:
-        return self.net(torch.cat([state_n, node_actions(action_n, self.n_segments)], -1))
+    def forward(self, nodes: Tensor, relations: Tensor) -> Tensor:
+        return self.net(nodes)

@@ -1,4 +1,4 @@
-"""The dynamics-model contract: s_{t+1} = f(s_t, a_t) for the rod's segments.
+"""The rod view of the dynamics models: s_{t+1} = f(s_t, a_t) for the rod's segments.
 
 Shapes and units (every model, every device):
 - state ``(B, N, 7)``: per segment position (metres, world frame) then unit quaternion (w,x,y,z).
@@ -14,16 +14,15 @@ Shapes and units (every model, every device):
 - ``rollout(state, actions (B, H, 2, 6), previous=None)`` returns ``(B, H, N, 7)``,
   differentiable with respect to ``actions``.
 
-Every model predicts the change of the state in normalised units (dataset statistics held in
-buffers, so they travel with the checkpoint), adds it to the state and renormalises the
-quaternions. Build one with :func:`build_model`, load a trained one with
-:func:`dlocli.models.checkpoints.load_model`.
+The view normalises the state (dataset statistics held in buffers, so they travel with the
+checkpoint), its network predicts the change of the state in normalised units, and the view
+adds it to the state and renormalises the quaternions. Build one with :func:`build_model`,
+load a trained one with :func:`dlocli.models.checkpoints.load_model`.
 """
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -31,8 +30,11 @@ from pydantic import ValidationError
 from torch import Tensor
 
 from dlocli.backends.rotations import state_change
+from dlocli.data.format import ROD
 from dlocli.errors import BadInput
 from dlocli.limits import refuse_unless_fits
+from dlocli.models import fast_rollout
+from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec, model_spec
 from dlocli.registry import models
 from dlocli.specs import format_validation_error
@@ -42,39 +44,25 @@ ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
 _STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
 
 
-def mlp(sizes: list[int]) -> torch.nn.Sequential:
-    """Fully connected layers ``sizes[0] -> ... -> sizes[-1]``, ReLU between, linear output.
+class DynamicsModel(torch.nn.Module):
+    """The rod view of a registered network (:mod:`dlocli.models.network`): a learned
+    one-step model of the rod's segments.
 
-    He initialisation (weights N(0, 2/fan_in), zero biases) keeps the signal's scale through
-    deep stacks such as f_e -> LSTM -> f_v; PyTorch's default shrinks it layer by layer.
-    """
-    layers: list[torch.nn.Module] = []
-    for k in range(len(sizes) - 1):
-        linear = torch.nn.Linear(sizes[k], sizes[k + 1])
-        torch.nn.init.kaiming_normal_(linear.weight, nonlinearity="relu")
-        torch.nn.init.zeros_(linear.bias)
-        layers.append(linear)
-        if k < len(sizes) - 2:
-            layers.append(torch.nn.ReLU())
-    return torch.nn.Sequential(*layers)
-
-
-class DynamicsModel(torch.nn.Module, ABC):
-    """A learned one-step model of the rod. Subclasses implement :meth:`predict_delta` and
-    declare their options as a :class:`ModelSpec` subclass, ``spec_cls``.
+    Each segment is a node whose inputs are its normalised state (7), with
+    ``spec.velocity_input`` its normalised change over the previous step (7), and the
+    normalised command of the gripper holding it (6; zeros elsewhere); the relations between
+    neighbours are their normalised poses' difference at unit scale; the network's output is
+    the segment's normalised change (7).
 
     Buffers (saved with the weights): ``state_mean``/``state_std`` (7,) normalise the input
     state per feature over all segments; ``delta_mean``/``delta_std`` (7,) the predicted change;
     ``action_scale`` (6,) divides the commands (no shift, so "no gripper" stays zero);
     ``relation_scale`` (7,) is the inverse RMS of the normalised difference between
-    neighbouring segments' states (for models that compare neighbours).
+    neighbouring segments' states.
     """
 
-    #: the options of this model: ModelSpec's fields and its own
-    spec_cls: ClassVar[type[ModelSpec]] = ModelSpec
-    #: its form for recorded cables' markers (a MarkerModel class or "module:attr" of one,
-    #: imported on use); None: it has none
-    marker_form: ClassVar[Any] = None
+    #: the form of data it learns from and planners read it in
+    form = ROD
 
     def __init__(self, spec: ModelSpec, n_segments: int) -> None:
         super().__init__()
@@ -82,8 +70,6 @@ class DynamicsModel(torch.nn.Module, ABC):
             raise BadInput(f"a rod model needs at least 2 segments, got {n_segments}")
         self.spec = spec
         self.n_segments = int(n_segments)
-        #: use the plain PyTorch implementation (the benchmarks' eager reference)
-        self.reference = False
         for name, size, value in (
             ("state_mean", STATE_DIM, 0.0),
             ("state_std", STATE_DIM, 1.0),
@@ -94,15 +80,29 @@ class DynamicsModel(torch.nn.Module, ABC):
         ):
             self.register_buffer(name, torch.full((size,), value))
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+        nodes = Nodes(n_segments, self.feature_dim + ACTION_DIM, STATE_DIM, relative=STATE_DIM,
+                      absolute=3, commands=ACTION_DIM)  # fmt: skip
+        self.network = models.get(spec.name)(spec, nodes)
 
-    # ------------------------------------------------------------------ subclass hook
-    @abstractmethod
+    @property
+    def reference(self) -> bool:
+        """Plain PyTorch throughout (the benchmarks' eager reference), no fast paths."""
+        return self.network.reference
+
+    @reference.setter
+    def reference(self, value: bool) -> None:
+        self.network.reference = bool(value)
+
     def predict_delta(self, state_n: Tensor, action_n: Tensor) -> Tensor:
         """Normalised state change (B, N, 7) from the normalised segment features (B, N, F)
         and the normalised per-gripper commands (B, 2, 6).
 
         The features are the normalised state (7), followed, with ``spec.velocity_input``, by
         the normalised change over the previous step (7): F = :attr:`feature_dim`."""
+        pose = state_n[..., :STATE_DIM]
+        relations = (pose[:, 1:] - pose[:, :-1]) * self.relation_scale
+        nodes = torch.cat([state_n, node_actions(action_n, self.n_segments)], -1)
+        return self.network(nodes, relations)
 
     @property
     def feature_dim(self) -> int:
@@ -161,6 +161,9 @@ class DynamicsModel(torch.nn.Module, ABC):
         """
         if actions.dim() != 4:
             raise BadInput(f"actions must be (B, H, 2, 6), got {tuple(actions.shape)}")
+        if fast_rollout.usable(self, state, actions, previous):  # the planners' small batches
+            self._check(state, actions[:, 0], previous)
+            return fast_rollout.rollout(self, state, actions, previous)
         states = []
         for t in range(actions.shape[1]):
             previous, state = state, self(state, actions[:, t], previous)
@@ -230,7 +233,7 @@ def build_model(spec: ModelSpec | dict[str, Any], n_segments: int) -> DynamicsMo
     as a dict); BadInput if its training would not fit in memory."""
     spec = valid_model_spec(spec)
     refuse_oversized_model(spec, n_segments)
-    return models.get(spec.name)(spec, n_segments)
+    return DynamicsModel(spec, n_segments)
 
 
 def valid_model_spec(spec: ModelSpec | dict[str, Any], source: str = "model spec") -> ModelSpec:
@@ -246,7 +249,7 @@ def refuse_oversized_model(spec: ModelSpec, n_segments: int) -> None:
     exceed the memory this run may use. The model is built on the meta device, which counts
     its parameters exactly without allocating them."""
     with torch.device("meta"):
-        parameters = sum(p.numel() for p in models.get(spec.name)(spec, n_segments).parameters())
+        parameters = sum(p.numel() for p in DynamicsModel(spec, n_segments).parameters())
     refuse_unless_fits(
         f"model {spec.name} (hidden {spec.hidden}: {parameters:,} parameters)",
         16.0 * parameters,

@@ -7,9 +7,12 @@ where it is read, :func:`dlocli.migrations.completed`), its segment or marker co
 weights and normalisation buffers (``state_dict``), the versions that wrote it, the control
 period of its training data (``control_dt``, absent in older ones) and what its writer adds
 (an optimizer's state, an epoch, ...). Its ``form`` (:mod:`dlocli.data.format`) says which
-model it holds: ``"rod"`` (a :class:`~dlocli.models.base.DynamicsModel`; checkpoints without
-the tag hold one) or ``"markers"`` (a :class:`~dlocli.models.markers.MarkerModel`); it is
-written from the model and read in :func:`checkpoint_form` only.
+view it holds its network in: ``"rod"`` (a :class:`~dlocli.models.base.DynamicsModel`;
+checkpoints without the tag hold one) or ``"markers"`` (a
+:class:`~dlocli.models.markers.MarkerModel`); it is written from the model and read in
+:func:`checkpoint_form` only. Checkpoints written before the views held one network (format
+version 3 and older) have their weights renamed and laid out for it where they are read
+(:func:`current_weights`).
 
 Loading refuses, in one line each: a file that is not a readable dlocli checkpoint, a form
 the caller cannot use, a spec that is not a model's, weights that are not finite or do not
@@ -30,12 +33,14 @@ from dlocli.data.format import MARKERS, ROD
 from dlocli.errors import BadInput
 from dlocli.io import versions, write_bytes_atomic
 from dlocli.migrations import completed
-from dlocli.models.base import build_model, resolve_device, valid_model_spec
+from dlocli.models.base import ACTION_DIM, STATE_DIM, build_model, resolve_device, valid_model_spec
 from dlocli.models.markers import SCALES, build_marker_model
 from dlocli.models.spec import ModelSpec
 
 CHECKPOINT_FORMAT = "dlocli-checkpoint"
-CHECKPOINT_VERSION = 3  # 2: model specs have velocity_input; 3: absolute_position
+#: 2: model specs have velocity_input; 3: absolute_position; 4: one network inside a view
+#: (weights under ``network.``)
+CHECKPOINT_VERSION = 4
 FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
 #: the payload key of the control period (s) of the data a model learned from: one model step
 #: is one such period (checkpoints written before it have none, and are taken as they are)
@@ -212,6 +217,7 @@ def model_from_payload(
             f"checkpoint {path} holds model {spec.model_dump()} but {expect.model_dump()} "
             "was requested; pass the matching --model or another checkpoint"
         )
+    payload = {**payload, "state_dict": current_weights(payload, spec, held_form)}
     if held_form == ROD:
         return with_weights(build_model(spec, payload["n_segments"]), payload, path, device)
     held = payload["state_dict"].get("held")
@@ -254,3 +260,45 @@ def _check_scales(model: torch.nn.Module, path: Path | str) -> None:
                 f"checkpoint {path}: {name} holds {scale.cpu().tolist()}, not positive "
                 "numbers (the training data's spread); retrain it"
             )
+
+
+# ---------------------------------------------------------------------- older layouts
+#: the views' own buffers: every other weight is the network's
+VIEW_BUFFERS = {
+    ROD: {"state_mean", "state_std", "delta_mean", "delta_std", "action_scale",
+          "relation_scale", "fitted"},
+    MARKERS: {"held", *SCALES, "fitted"},
+}  # fmt: skip
+
+
+def current_weights(payload: dict[str, Any], spec: ModelSpec, form: str) -> dict[str, Any]:
+    """The payload's weights in this dlocli's layout. Before format version 4 each model
+    class held its layers itself: they move under ``network.``, and the rod MLP's first layer,
+    which read the two grippers' commands after all segments, reads each segment's command
+    after its own features (zero for the segments no gripper holds): the same function."""
+    weights = payload["state_dict"]
+    version = payload.get("format_version")
+    if (isinstance(version, int) and version >= 4) or any(
+        str(k).startswith("network.") for k in weights
+    ):
+        return weights
+    own = VIEW_BUFFERS[form]
+    moved = {k if k in own else f"network.{k}": v for k, v in weights.items()}
+    if form == ROD and spec.name == "mlp" and torch.is_tensor(moved.get("network.net.0.weight")):
+        moved["network.net.0.weight"] = _per_segment_commands(
+            moved["network.net.0.weight"], payload["n_segments"], spec.velocity_input
+        )
+    return moved
+
+
+def _per_segment_commands(first: torch.Tensor, n: int, velocity: bool) -> torch.Tensor:
+    """The rod MLP's first-layer weights (H, N F + 12) -> (H, N (F + 6)), see
+    :func:`current_weights`; weights of another width are left for loading to refuse."""
+    width = STATE_DIM * (2 if velocity else 1)
+    if first.dim() != 2 or first.shape[1] != n * width + 2 * ACTION_DIM:
+        return first
+    features = first[:, : n * width].reshape(-1, n, width)
+    commands = first.new_zeros(first.shape[0], n, ACTION_DIM)
+    commands[:, 0] = first[:, n * width : n * width + ACTION_DIM]
+    commands[:, -1] = first[:, n * width + ACTION_DIM :]
+    return torch.cat([features, commands], -1).reshape(first.shape[0], -1)

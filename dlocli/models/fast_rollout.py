@@ -1,4 +1,4 @@
-"""The in-bilstm's forward-only rollout for the planners' small batches on CPU.
+"""The in-bilstm's forward-only rollout in the rod view, for the planners' small batches on CPU.
 
 The default MPC rolls the model out H = 5 steps at batch 1 once per control step, with no
 gradient. Through plain PyTorch most of that rollout's time goes to the stock LSTM, whose
@@ -17,8 +17,8 @@ the same mathematics runs as:
 - the LSTM's sigmoid and tanh as a rational function (max. error 3.4e-7 in float32, vs
   6e-8 for the library's tanh): vectorisable, where the library's exp is not.
 
-Results equal :meth:`DynamicsModel.rollout`'s to float32 rounding (tested against float64).
-Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and the README. Used when no
+Results equal the rod view's plain PyTorch rollout to float32 rounding (tested against
+float64). Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and the README. Used when no
 gradient is wanted, on CPU, up to :data:`MAX_BATCH`; otherwise the PyTorch path runs. The
 first call compiles the loops (cached on disk, so later processes only load them).
 """
@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from dlocli.models.in_bilstm import INBiLSTM
 from dlocli.models.rnn import layer_params
 
 #: batch sizes up to which this path is faster than oneDNN (benchmarks/model_throughput.py):
@@ -252,14 +253,14 @@ def _lstm_layer(lstm: torch.nn.LSTM, layer: int) -> tuple[Tensor, Tensor, Tensor
 
 def _build_weights(model: Any, key: tuple) -> _Weights:
     n = model.n_segments
-    edge = _linears(model.edge_net)
+    edge = _linears(model.network.edge_net)
     last = edge[-1]
-    w_ih0, bias0, w_hh0 = _lstm_layer(model.lstm, 0)
+    w_ih0, bias0, w_hh0 = _lstm_layer(model.network.lstm, 0)
     folded = (w_ih0 @ last.weight.detach()).t().contiguous()  # (in, 8H)
     degree = torch.full((n, 1), 2.0)
     degree[0] = degree[-1] = 1.0
     folded_bias = degree * (w_ih0 @ last.bias.detach()) + bias0
-    layers = [_lstm_layer(model.lstm, k) for k in range(1, model.lstm.num_layers)]
+    layers = [_lstm_layer(model.network.lstm, k) for k in range(1, model.network.lstm.num_layers)]
     norm = torch.stack([model.state_mean, model.state_std, model.delta_mean, model.delta_std,
                         model.relation_scale])  # fmt: skip
     return _Weights(
@@ -272,7 +273,8 @@ def _build_weights(model: Any, key: tuple) -> _Weights:
         lstm_in=[(b, w.t().contiguous()) for w, b, _ in layers],
         w_hh_t=[w.transpose(1, 2).contiguous().numpy() for _, _, w in [(0, 0, w_hh0), *layers]],
         node=[
-            (m.bias.detach(), m.weight.detach().t().contiguous()) for m in _linears(model.node_net)
+            (m.bias.detach(), m.weight.detach().t().contiguous())
+            for m in _linears(model.network.node_net)
         ],  # fmt: skip
     )
 
@@ -280,10 +282,11 @@ def _build_weights(model: Any, key: tuple) -> _Weights:
 def _sources(model: Any) -> list[Tensor]:
     """Every tensor :func:`_build_weights` reads (without walking the module tree, whose
     cost is a noticeable share of a rollout)."""
-    linears = _linears(model.edge_net) + _linears(model.node_net)
+    linears = _linears(model.network.edge_net) + _linears(model.network.node_net)
+    lstm = model.network.lstm
     return [
         *(t for m in linears for t in (m.weight, m.bias)),
-        *(p for k in range(model.lstm.num_layers) for p in layer_params(model.lstm, k)),
+        *(p for k in range(lstm.num_layers) for p in layer_params(lstm, k)),
         *model._buffers.values(),
     ]
 
@@ -328,7 +331,7 @@ def _workspace(model: Any, w: _Weights, batch: int) -> _Workspace:
 @torch.inference_mode(False)
 def _new_workspace(model: Any, w: _Weights, batch: int) -> _Workspace:
     """Normal tensors (see :func:`_weights`)."""
-    n, hidden, width = model.n_segments, model.lstm.hidden_size, model.feature_dim
+    n, hidden, width = model.n_segments, model.network.lstm.hidden_size, model.feature_dim
     own = width - (0 if model.spec.absolute_position else 3)
     rows, relations = batch * n, batch * 2 * (n - 1)
     with torch.no_grad():
@@ -348,6 +351,8 @@ def _new_workspace(model: Any, w: _Weights, batch: int) -> _Workspace:
 # ---------------------------------------------------------------------- the rollout
 def usable(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None) -> bool:
     """Whether :func:`rollout` applies: CPU float32, no gradient wanted, a small batch."""
+    if type(model.network) is not INBiLSTM:  # these loops compute the paper's model only
+        return False
     tensors = [state, actions] + ([] if previous is None else [previous])
     if any(t.is_cuda or t.dtype != torch.float32 for t in tensors) or model.reference:
         return False
@@ -367,7 +372,8 @@ def rollout(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None)
     """``model.rollout`` (B, N, 7), (B, H, 2, 6) -> (B, H, N, 7) on the path above."""
     w = _weights(model)
     batch, horizon, n = actions.shape[0], actions.shape[1], model.n_segments
-    spec, own = model.spec, model.node_net[0].in_features - 2 * model.lstm.hidden_size
+    net = model.network
+    spec, own = model.spec, net.node_net[0].in_features - 2 * net.lstm.hidden_size
     ws = _workspace(model, w, batch)
     edge_in, summed, node_in = ws.edge_in.numpy(), ws.summed.numpy(), ws.node_in.numpy()
     gates = ws.gates.numpy()

@@ -1,6 +1,6 @@
 """The marker MLP's whole open-loop rollout as one autograd operation, for CPU training.
 
-Training rolls :class:`~dlocli.models.markers.MarkerMLP` out k steps (64 in the recipe) at
+Training rolls the ``mlp`` network in the marker view out k steps (64 in the recipe) at
 batch 32 and back-propagates through all of them. Per step the arithmetic is three small
 matrix products forward and five backward; through autograd each step adds ~15 graph nodes
 whose fixed costs were most of the step's time even with the fixed arithmetic fused
@@ -37,7 +37,7 @@ from dlocli.models.marker_steps import (
 
 
 def linear_layers(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
-    """The Linear layers of a :func:`dlocli.models.base.mlp` (ReLU between each pair)."""
+    """The Linear layers of a :func:`dlocli.models.network.mlp` (ReLU between each pair)."""
     return [m for m in net if isinstance(m, torch.nn.Linear)]
 
 
@@ -54,7 +54,7 @@ def rollout(
     """``model.rollout`` (B, V, 3), (B, V, 3), (B, H, V, 3) -> (B, H, V, 3) as one operation;
     ``lengths`` (B, V-1): the neighbour distances the projection keeps."""
     constants = marker_steps.step_constants(model, held, model.spec.length_projection)
-    params = [t for m in linear_layers(model.net) for t in (m.weight, m.bias)]
+    params = [t for m in linear_layers(model.network.net) for t in (m.weight, m.bias)]
     return MLPRollout.apply(x, x_prev, held_future, lengths, constants, *params)
 
 

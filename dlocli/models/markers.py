@@ -1,4 +1,4 @@
-"""The marker form of the dynamics models: positions only, held markers as the input.
+"""The marker view of the dynamics models: positions only, held markers as the input.
 
 What real setups observe: V tracked markers along the cable, no orientations, no gripper
 commands. A state is the markers' positions x_t (B, V, 3) and the previous frame x_{t-1}
@@ -12,9 +12,13 @@ to the held markers' centroid, velocity, the held marker's next displacement (ze
 ones) and a held flag, each divided by a scale fitted on the training data (buffers, so
 they travel with the checkpoint).
 
-A registered model names its marker form in its class attribute ``marker_form`` (a class,
-or ``"module:attr"`` of one). Build one with :func:`build_marker_model`, load a trained one with
-:func:`dlocli.models.checkpoints.load_marker_model`.
+Any registered network (:mod:`dlocli.models.network`) works in this view: each marker is a
+node whose inputs are its features (all compared between neighbours in the relations, at
+the features' scale), and, for a network that reads the cable's geometry
+(``cable_geometry``), the vectors to both neighbours (zero past the ends), their lengths and
+the cable's length along the markers, over the mean position scale; its output is the
+normalised acceleration. Build one with :func:`build_marker_model`, load a trained one with
+:func:`dlocli.models.checkpoints.load_model` (form ``"markers"``).
 """
 
 from __future__ import annotations
@@ -29,14 +33,14 @@ from torch import Tensor
 from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
 from dlocli.models import marker_mlp_rollout, marker_steps
-from dlocli.models.attention import AlongCable
-from dlocli.models.base import mlp, valid_model_spec
-from dlocli.models.in_bilstm import init_forget_bias
+from dlocli.models.base import valid_model_spec
+from dlocli.models.mlp import MLP
+from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec
-from dlocli.registry import import_target, models
+from dlocli.registry import models
 
 FEATURES = 10  # relative position 3, velocity 3, held displacement 3, held flag 1
-DESCRIPTORS = 9  # attention's: vectors to both neighbours 6, their lengths 2, cable length 1
+DESCRIPTORS = 9  # the cable's geometry: vectors to both neighbours 6, lengths 2, cable length 1
 FORM = MARKERS
 
 #: the normalisation buffers, fitted on the training data
@@ -44,9 +48,9 @@ SCALES = ("position_scale", "velocity_scale", "acceleration_scale")
 
 
 class MarkerModel(torch.nn.Module):
-    """Base of the marker-form models; subclasses implement :meth:`predict`."""
+    """The marker view of a registered network (see the module docstring)."""
 
-    #: the form planners read it in (:mod:`dlocli.controllers.views`)
+    #: the form of data it learns from and planners read it in (:mod:`dlocli.controllers.views`)
     form = FORM
 
     def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
@@ -60,13 +64,25 @@ class MarkerModel(torch.nn.Module):
         for name in SCALES:
             self.register_buffer(name, torch.ones(3))
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
-        #: use the plain PyTorch operations throughout (the benchmarks' reference), not the
-        #: fused steps of :mod:`dlocli.models.marker_steps`
-        self.reference = False
+        network = models.get(spec.name)
+        #: whether each marker's inputs include the cable's geometry (:meth:`descriptors`)
+        self.geometry = bool(network.cable_geometry)
+        width = FEATURES + (DESCRIPTORS if self.geometry else 0)
+        self.network = network(spec, Nodes(n_markers, width, 3, relative=width))
 
-    def predict(self, features: Tensor) -> Tensor:
-        """Normalised accelerations (B, V, 3) from the features (B, V, FEATURES)."""
-        raise NotImplementedError
+    @property
+    def reference(self) -> bool:
+        """Plain PyTorch operations throughout (the benchmarks' reference), not the fused
+        steps of :mod:`dlocli.models.marker_steps`."""
+        return self.network.reference
+
+    @reference.setter
+    def reference(self, value: bool) -> None:
+        self.network.reference = bool(value)
+
+    def predict(self, inputs: Tensor) -> Tensor:
+        """Normalised accelerations (B, V, 3) from the per-marker inputs (B, V, W)."""
+        return self.network(inputs, inputs[:, 1:] - inputs[:, :-1])
 
     # ------------------------------------------------------------------ normalisation
     def fit_normalization(self, episodes: list[tuple[np.ndarray, np.ndarray]]) -> None:
@@ -94,14 +110,21 @@ class MarkerModel(torch.nn.Module):
                           (x - x_prev) / self.velocity_scale,
                           (held_next - x) * held / self.velocity_scale, flag], -1)  # fmt: skip
 
-    def descriptors(self, x: Tensor) -> Tensor | None:
-        """Per-marker inputs appended to :meth:`features` (B, V, D), for models that read
-        more of the cable's geometry; None (the default): none."""
-        return None
+    def descriptors(self, x: Tensor) -> Tensor:
+        """The cable's geometry per marker (B, V, DESCRIPTORS): the vectors to both
+        neighbours (zero past the ends), their lengths and the cable's length, over the mean
+        position scale: what tells one cable from another."""
+        scale = self.position_scale.mean()
+        edges = (x[:, 1:] - x[:, :-1]) / scale  # (B, V-1, 3)
+        pad = torch.nn.functional.pad
+        to_next, to_previous = pad(edges, (0, 0, 0, 1)), pad(-edges, (0, 0, 1, 0))
+        spans = edges.norm(dim=-1, keepdim=True)  # (B, V-1, 1)
+        length = spans.sum(1, keepdim=True).expand(-1, x.shape[1], 1)
+        return torch.cat([to_previous, to_next, pad(spans, (0, 0, 1, 0)),
+                          pad(spans, (0, 0, 0, 1)), length], -1)  # fmt: skip
 
     def _described(self, features: Tensor, x: Tensor) -> Tensor:
-        extra = self.descriptors(x)
-        return features if extra is None else torch.cat([features, extra], -1)
+        return torch.cat([features, self.descriptors(x)], -1) if self.geometry else features
 
     # ------------------------------------------------------------------ the contract
     def forward(
@@ -134,6 +157,9 @@ class MarkerModel(torch.nn.Module):
         """Open loop: (B, V, 3) x_t, x_{t-1} and (B, H, V, 3) frames t+1..t+H of which only
         the held markers are read -> predicted frames (B, H, V, 3)."""
         lengths = neighbour_distances(x)
+        if self._whole_rollout(x, x_prev, held_future):
+            held = self.held if held is None else held
+            return marker_mlp_rollout.rollout(self, x, x_prev, held_future, held, lengths)
         out = []
         if self._fusable(x, lengths):  # the step's constants prepared once
             held = self.held if held is None else held
@@ -156,6 +182,17 @@ class MarkerModel(torch.nn.Module):
         )
         return (
             own and marker_steps.usable(self, x) and (lengths is None or not lengths.requires_grad)
+        )
+
+    def _whole_rollout(self, x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
+        """Whether the MLP's whole rollout runs as one operation
+        (:mod:`~dlocli.models.marker_mlp_rollout`): on CPU, with no gradient wanted for its
+        inputs (as in training), for the ``mlp`` network without the cable's geometry."""
+        return (
+            type(self.network) is MLP
+            and not self.geometry
+            and self._fusable(x, None)
+            and marker_mlp_rollout.usable(x, x_prev, held_future)
         )
 
     def _fused_step(
@@ -226,89 +263,6 @@ def _compiled_projection() -> Any:
     return project
 
 
-class MarkerINBiLSTM(MarkerModel):
-    """The paper's Interaction Network + bi-LSTM on the marker chain: f_e on each
-    neighbour relation (receiver features, sender minus receiver), summed per receiver, a
-    bidirectional LSTM along the cable, f_v on (own features, LSTM state)."""
-
-    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
-        super().__init__(spec, n_markers, held)
-        h = spec.hidden
-        self.edge_net = mlp([2 * FEATURES] + [h] * spec.edge_layers)
-        self.lstm = torch.nn.LSTM(h, h, spec.lstm_layers, batch_first=True, bidirectional=True)
-        self.node_net = mlp([FEATURES + 2 * h] + [h] * (spec.node_layers - 1) + [3])
-        init_forget_bias(self.lstm, 1.0)
-
-    def predict(self, f: Tensor) -> Tensor:
-        diff = f[:, 1:] - f[:, :-1]
-        n = f.shape[1]
-        from_left = torch.cat([f[:, 1:], -diff], -1)  # receivers 1..V-1
-        from_right = torch.cat([f[:, :-1], diff], -1)  # receivers 0..V-2
-        out = self.edge_net(torch.cat([from_left, from_right], 1))
-        left, right = out.split(n - 1, dim=1)
-        pad = torch.nn.functional.pad
-        effects = pad(left, (0, 0, 1, 0)) + pad(right, (0, 0, 0, 1))
-        return self.node_net(torch.cat([f, self.lstm(effects)[0]], -1))
-
-
-class MarkerMLP(MarkerModel):
-    """The flattened baseline: one MLP from all markers' features to all accelerations."""
-
-    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
-        super().__init__(spec, n_markers, held)
-        self.net = mlp([n_markers * FEATURES] + [spec.hidden] * spec.layers + [n_markers * 3])
-
-    def predict(self, f: Tensor) -> Tensor:
-        return self.net(f.reshape(len(f), -1)).view(len(f), self.n_segments, 3)
-
-    def rollout(
-        self, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor | None = None
-    ) -> Tensor:
-        """:meth:`MarkerModel.rollout`; on CPU, with no gradient wanted for its inputs (as in
-        training), the whole rollout is one operation (:mod:`~dlocli.models.marker_mlp_rollout`)."""
-        own = type(self).predict is MarkerMLP.predict  # a subclass's network: step by step
-        if own and self._fusable(x, None) and marker_mlp_rollout.usable(x, x_prev, held_future):
-            held = self.held if held is None else held
-            return marker_mlp_rollout.rollout(self, x, x_prev, held_future, held,
-                                              neighbour_distances(x))  # fmt: skip
-        return super().rollout(x, x_prev, held_future, held)
-
-
-class MarkerAttention(MarkerModel):
-    """Self-attention over the markers (:mod:`dlocli.models.attention`). Besides a marker's
-    own features, its token holds the vectors to both neighbours (zero past the ends), their
-    lengths and the cable's length along the markers, all over the mean position scale: what
-    tells one cable from another, so one network can learn several cables (any count)."""
-
-    def __init__(self, spec: ModelSpec, n_markers: int, held: np.ndarray) -> None:
-        super().__init__(spec, n_markers, held)
-        self.net = AlongCable(FEATURES + DESCRIPTORS, 3, spec)
-
-    def descriptors(self, x: Tensor) -> Tensor:
-        scale = self.position_scale.mean()
-        edges = (x[:, 1:] - x[:, :-1]) / scale  # (B, V-1, 3)
-        pad = torch.nn.functional.pad
-        to_next, to_previous = pad(edges, (0, 0, 0, 1)), pad(-edges, (0, 0, 1, 0))
-        spans = edges.norm(dim=-1, keepdim=True)  # (B, V-1, 1)
-        length = spans.sum(1, keepdim=True).expand(-1, x.shape[1], 1)
-        return torch.cat([to_previous, to_next, pad(spans, (0, 0, 1, 0)),
-                          pad(spans, (0, 0, 0, 1)), length], -1)  # fmt: skip
-
-    def predict(self, features: Tensor) -> Tensor:
-        return self.net(features)
-
-
-def build_marker_model(spec: ModelSpec, n_markers: int, held: np.ndarray) -> MarkerModel:
-    """A fresh marker-form model of the registered kind ``spec.name``."""
-    spec = valid_model_spec(spec)
-    form = _marker_form(models.get(spec.name))
-    if form is None:
-        having = [name for name in models.names() if _marker_form(models.get(name)) is not None]
-        raise BadInput(f"model '{spec.name}' has no marker form; use one of: {', '.join(having)}")
-    return form(spec, n_markers, held)
-
-
-def _marker_form(rod_model: Any) -> type[MarkerModel] | None:
-    """The marker-form class a registered model names (imported if named as a string)."""
-    form = getattr(rod_model, "marker_form", None)
-    return import_target(form) if isinstance(form, str) else form
+def build_marker_model(spec: ModelSpec | dict, n_markers: int, held: np.ndarray) -> MarkerModel:
+    """A fresh (untrained) model of the registered kind ``spec.name`` in the marker view."""
+    return MarkerModel(valid_model_spec(spec), n_markers, held)

@@ -1,4 +1,7 @@
-"""A dynamics model with an option of its own: every segment through one small MLP."""
+"""A dynamics model with an option of its own: every node through one small MLP.
+
+One network, two views: dlocli shows it the rod's segments (state and gripper command per
+segment) or a recorded cable's markers (positions, velocity, held markers' motion) alike."""
 
 from __future__ import annotations
 
@@ -7,24 +10,22 @@ from typing import ClassVar
 import torch
 from pydantic import Field
 
-from dlocli.models.base import ACTION_DIM, STATE_DIM, DynamicsModel, mlp, node_actions
+from dlocli.models.network import Network, Nodes, mlp
 from dlocli.models.spec import ModelSpec
 
 
 class ChainSpec(ModelSpec):
-    depth: int = Field(1, gt=0, le=8, description="Hidden layers of the per-segment network.")
+    depth: int = Field(1, gt=0, le=8, description="Hidden layers of the per-node network.")
 
 
-class ChainModel(DynamicsModel):
-    """Each segment on its own: one MLP from its features and its gripper's command."""
+class ChainNetwork(Network):
+    """Each node on its own: one MLP from its inputs to its output."""
 
     spec_cls: ClassVar[type[ModelSpec]] = ChainSpec
 
-    def __init__(self, spec: ChainSpec, n_segments: int) -> None:
-        super().__init__(spec, n_segments)
-        sizes = [self.feature_dim + ACTION_DIM] + [spec.hidden] * spec.depth + [STATE_DIM]
-        self.net = mlp(sizes)
+    def __init__(self, spec: ChainSpec, nodes: Nodes) -> None:
+        super().__init__(spec, nodes)
+        self.net = mlp([nodes.inputs] + [spec.hidden] * spec.depth + [nodes.outputs])
 
-    def predict_delta(self, state_n: torch.Tensor, action_n: torch.Tensor) -> torch.Tensor:
-        actions = node_actions(action_n, self.n_segments)
-        return self.net(torch.cat([state_n, actions], -1))
+    def forward(self, nodes: torch.Tensor, relations: torch.Tensor) -> torch.Tensor:
+        return self.net(nodes)
