@@ -28,7 +28,7 @@ from torch import Tensor
 
 from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
-from dlocli.models import fast_layers, marker_mlp_rollout, marker_steps
+from dlocli.models import marker_mlp_rollout, marker_steps
 from dlocli.models.attention import AlongCable
 from dlocli.models.base import mlp, valid_model_spec
 from dlocli.models.in_bilstm import init_forget_bias
@@ -170,8 +170,7 @@ class MarkerModel(torch.nn.Module):
         if lengths is None:  # not read: no sweeps
             lengths = x.new_zeros(x.shape[0], x.shape[1] - 1)
         features = marker_steps.Features.apply(x, x_prev, held_next, constants)
-        with fast_layers.fused(self):  # the network's layers as one operation each
-            acc = self.predict(self._described(features, x))
+        acc = self.predict(self._described(features, x))
         return marker_steps.Advance.apply(acc, x, x_prev, held_next, lengths, constants)
 
     @property
