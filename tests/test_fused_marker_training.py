@@ -137,3 +137,36 @@ def test_a_subclass_with_its_own_features_keeps_them() -> None:
     scaled.load_state_dict(model.state_dict())
     loss = rollout_loss(scaled, windows, scaled.held)
     assert not {"MLPRolloutBackward", "AdvanceBackward"} & _graph_nodes(loss.grad_fn)
+
+
+class _PluginNetwork(MarkerModel):
+    """A plugin's network of stock layers the fused step knows nothing of: a convolution
+    along the markers, a bidirectional GRU, a layer norm and a linear head."""
+
+    def __init__(self, spec, n_markers, held) -> None:
+        super().__init__(spec, n_markers, held)
+        self.conv = torch.nn.Conv1d(10, 16, 3, padding=1)
+        self.gru = torch.nn.GRU(16, 16, batch_first=True, bidirectional=True)
+        self.norm = torch.nn.LayerNorm(32)
+        self.head = torch.nn.Linear(32, 3)
+
+    def predict(self, features: torch.Tensor) -> torch.Tensor:
+        hidden = torch.nn.functional.gelu(self.conv(features.transpose(1, 2)))
+        return self.head(self.norm(self.gru(hidden.transpose(1, 2))[0]))
+
+
+def test_any_network_gets_the_fused_step_with_the_plain_gradients() -> None:
+    """The fused features and advance wrap whatever network a model has: a plugin's of
+    stock layers trains through them (the plain path's loss and gradients)."""
+    base, windows = _model_and_windows("mlp")
+    torch.manual_seed(0)
+    model = _PluginNetwork(base.spec, MARKERS, base.held.numpy())
+    model.load_state_dict({**model.state_dict(), **dict(base.named_buffers())})
+    model.train()
+    assert "AdvanceBackward" in _graph_nodes(rollout_loss(model, windows, model.held).grad_fn)
+    truth_loss, truth = _loss_and_grads(copy.deepcopy(model).double(), windows.double(), True)
+    plain_loss, plain = _loss_and_grads(model, windows, True)
+    fused_loss, fused = _loss_and_grads(model, windows, False)
+    margin = 2 * abs(float(plain_loss - truth_loss)) + 1e-5 * float(truth_loss)
+    assert abs(float(fused_loss - truth_loss)) <= margin
+    assert _relative(fused, truth) <= 2 * _relative(plain, truth) + 1e-5

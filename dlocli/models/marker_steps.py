@@ -19,6 +19,7 @@ CPU float32 only: elsewhere (CUDA, float64) the PyTorch path runs.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -195,6 +196,27 @@ def step_constants(model: Any, held: Tensor, sweeps: int) -> StepConstants:
     return StepConstants(array(held.to(torch.float32)), array(model.position_scale),
                          array(model.velocity_scale), array(model.acceleration_scale),
                          int(sweeps))  # fmt: skip
+
+
+def step(
+    network: Callable[[Tensor], Tensor],
+    x: Tensor,
+    x_prev: Tensor,
+    held_next: Tensor,
+    lengths: Tensor | None,
+    constants: StepConstants,
+    describe: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> Tensor:
+    """One open-loop step, the features and the advance fused around ``network``: any
+    callable from per-marker inputs (B, V, F) to normalised accelerations (B, V, 3), its
+    layers as they are (plain PyTorch, autograd through them). ``describe``: (features, x)
+    -> the network's inputs, for networks that read more than the features; ``lengths``
+    (B, V-1): the distances the projection keeps, None when ``constants.sweeps`` is 0."""
+    if lengths is None:  # not read: no sweeps
+        lengths = x.new_zeros(x.shape[0], x.shape[1] - 1)
+    features = Features.apply(x, x_prev, held_next, constants)
+    acc = network(features if describe is None else describe(features, x))
+    return Advance.apply(acc, x, x_prev, held_next, lengths, constants)
 
 
 def usable(model: Any, x: Tensor) -> bool:

@@ -13,7 +13,8 @@ steps; the best weights are kept.
 
 On CPU the rollouts run through the fused operations of :mod:`dlocli.models.marker_steps`
 (and the MLP's whole rollout as one, :mod:`dlocli.models.marker_mlp_rollout`): the same
-loss and gradients, ~5x the rollout steps per second for the MLP recipe
+loss and gradients, ~5x the rollout steps per second for the MLP recipe, ~1.3x for the
+in-bilstm and attention ones, whose networks' own arithmetic bounds them
 (``benchmarks/results/training_throughput.txt``); elsewhere plain PyTorch.
 """
 

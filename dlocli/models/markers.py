@@ -203,12 +203,10 @@ class MarkerModel(torch.nn.Module):
         lengths: Tensor | None,
         constants: marker_steps.StepConstants,
     ) -> Tensor:
-        """:meth:`forward` with its fixed arithmetic as two fused operations."""
-        if lengths is None:  # not read: no sweeps
-            lengths = x.new_zeros(x.shape[0], x.shape[1] - 1)
-        features = marker_steps.Features.apply(x, x_prev, held_next, constants)
-        acc = self.predict(self._described(features, x))
-        return marker_steps.Advance.apply(acc, x, x_prev, held_next, lengths, constants)
+        """:meth:`forward` with its fixed arithmetic as two fused operations around the
+        network (:func:`~dlocli.models.marker_steps.step`)."""
+        return marker_steps.step(self.predict, x, x_prev, held_next, lengths, constants,
+                                 self._described)  # fmt: skip
 
     @property
     def device(self) -> torch.device:
