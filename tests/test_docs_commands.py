@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from test_own_cable import write_recordings
+
 from tiny import run_dlo, write_cable
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,8 +37,8 @@ CUTS = {
     "train markers": ["--update-steps", "20", "--rollout-steps", "4", "--hidden", "16",
                       "--eval-every", "10", "--device", "cpu"],
     "control": ["--steps", "5"],
-    "online": ["--iters", "1", "--trials", "1", "--steps", "10", "--epochs", "1", "--update-steps", "20",
-               "--initial-episodes", "2", "--hidden", "16"],
+    "online": ["--iters", "1", "--trials", "1", "--steps", "10", "--epochs", "1",
+               "--update-steps", "20", "--initial-episodes", "2", "--hidden", "16"],
     "bench": ["--budget", "40", "--seeds", "1", "--evals", "1", "--eval-trials", "1",
               "--steps", "10", "--epochs", "1", "--hidden", "16"],
     "calibrate": ["--generations", "1", "--population", "2", "--train-trajectories", "1"],
@@ -195,6 +195,8 @@ def test_each_readme_feature_command_is_a_docs_line_the_suite_runs() -> None:
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     quoted = re.findall(r"`(dlo [^`]+)`", readme)
     assert len(quoted) >= 6
-    lines = {shlex.join(argv) for page in [*pages(), *RUN_ELSEWHERE] for argv in page_commands(page)}
+    lines = {
+        shlex.join(argv) for page in [*pages(), *RUN_ELSEWHERE] for argv in page_commands(page)
+    }
     for command in quoted:
         assert shlex.join(shlex.split(command)) in lines, command
