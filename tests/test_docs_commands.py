@@ -163,7 +163,9 @@ def test_the_pages_dlo_lines_run(page: str, tmp_path: Path, monkeypatch, request
     assert len(ran) == len(page_commands(page))
 
 
-def test_the_cluster_pages_lines_run_on_a_local_ray_head(tmp_path: Path, monkeypatch) -> None:
+def test_the_cluster_pages_lines_run_on_a_local_ray_head(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
     ray = pytest.importorskip("ray")
     pytest.importorskip("cma")
     monkeypatch.chdir(tmp_path)
@@ -175,6 +177,8 @@ def test_the_cluster_pages_lines_run_on_a_local_ray_head(tmp_path: Path, monkeyp
     finally:
         ray.shutdown()
     assert [words[1] for words in ran] == ["online", "online", "calibrate"]
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert errors == [f"error: {why}" for why in KNOWN_REFUSED.values()], errors
 
 
 def test_the_readme_and_the_getting_started_page_hold_the_same_two_commands() -> None:
