@@ -1,12 +1,12 @@
-"""Does the README's main command give the README's numbers on this machine?
+"""Does the README's main command give the numbers of docs/getting-started.md on this machine?
 
     python benchmarks/readme_main_command.py [--out DIR]
 
 Runs the command of "Two commands on a fresh machine" (read from the README) and checks the
 mean final shape error of each iteration's MPC trials, the last score and doing nothing
-against the ranges the README states: measured on AMD EPYC VMs (identical over runs) and on
-an Intel Xeon VM; float rounding differs by CPU. Prints each number, its range, and PASS or
-FAIL; exits 1 if any is outside.
+against the ranges docs/getting-started.md states: measured on AMD EPYC VMs (identical over
+runs) and on an Intel Xeon VM; float rounding differs by CPU. Prints each number, its range,
+and PASS or FAIL; exits 1 if any is outside.
 """
 
 from __future__ import annotations
@@ -61,8 +61,8 @@ def main() -> None:
         value = found.get(name, float("nan"))
         inside = low - 0.05 <= round(value, 3) <= high + 0.05
         ok &= inside
-        print(f"{name:34s} {value:8.3f}  README range {low}–{high}  {'PASS' if inside else 'FAIL'}")
-    print(f"wall time {seconds:.0f} s (the README: 2 min 9 s with the install, on 2 free cores)")
+        print(f"{name:34s} {value:8.3f}  range {low}–{high}  {'PASS' if inside else 'FAIL'}")
+    print(f"wall time {seconds:.0f} s (getting started: 2 min 9 s with the install, 2 free cores)")
     sys.exit(0 if ok else 1)
 
 

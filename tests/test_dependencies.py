@@ -26,8 +26,8 @@ except ModuleNotFoundError:  # Python 3.10
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
-#: extras of test tooling, not features of dlocli
-TOOLING_EXTRAS = {"test", "dev"}
+#: extras of test and documentation tooling, not features of dlocli
+TOOLING_EXTRAS = {"test", "dev", "docs"}
 
 
 def _distribution(requirement: str) -> str:

@@ -1,5 +1,5 @@
-"""The public API a notebook uses: `import dlocli` stays cheap, and the README's notebook
-snippet runs as written and prints plain-float scores with their references."""
+"""The public API a notebook uses: `import dlocli` stays cheap, and the notebook snippet of
+docs/python.md runs as written and prints plain-float scores with their references."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ from pathlib import Path
 
 import dlocli
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+PAGE = Path(__file__).resolve().parents[1] / "docs" / "python.md"
 
 
 def notebook_snippet() -> str:
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), re.S)
+    blocks = re.findall(r"```python\n(.*?)```", PAGE.read_text(encoding="utf-8"), re.S)
     return next(block for block in blocks if "random_dataset" in block)
 
 
@@ -33,8 +33,8 @@ def test_every_public_name_resolves():
     assert set(dlocli.__all__) <= set(dir(dlocli))
 
 
-def test_readme_notebook_snippet_runs(capsys):
-    exec(compile(notebook_snippet(), str(README), "exec"), {})
+def test_the_pages_notebook_snippet_runs(capsys):
+    exec(compile(notebook_snippet(), str(PAGE), "exec"), {})
     lines = capsys.readouterr().out.strip().splitlines()
     scores = {line.split(" ", 1)[0]: ast.literal_eval(line.split(" ", 1)[1]) for line in lines}
     assert sorted(scores) == ["mpc", "random", "zero"]

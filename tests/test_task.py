@@ -18,8 +18,8 @@ from dlocli.specs import TaskSpec, default_backend
 DEFAULT_ID = gym_id(default_backend(), "single")
 
 #: mm the shape error may move in 5 steps of doing nothing after the reset's settling. The
-#: flex rod's sideways swing is damped less (MuJoCo's flex damping misses it; README, "Rod
-#: physics"): it halves in a second, where the composite cable's clamps stop it.
+#: flex rod's sideways swing is damped less (MuJoCo's flex damping misses it; docs/benchmarks.md,
+#: "Rod physics"): it halves in a second, where the composite cable's clamps stop it.
 STILL_DRIFT_MM = {"mujoco-flex": 5.0}
 
 

@@ -12,7 +12,7 @@ tracker's. As shipped, they drive dlocli's own MuJoCo rod in this process, so th
 as it is (and a controller cannot tell it from `dlo serve`). Every request is checked, and one
 controller at a time owns the cell, by dlocli's own server (`dlocli.bridge.server`) before
 your methods run: a bad or foreign request gets an error and never reaches the robot. The
-protocol is in the README ("A robot bridge").
+protocol is in docs/real-cell.md ("A robot bridge").
 """
 
 from __future__ import annotations
