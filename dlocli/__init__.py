@@ -1,6 +1,6 @@
 """dlocli: learn and control the 3D shape of deformable linear objects.
 
-The library behind the `dlo` command, in one namespace (the README's notebook section runs
+The library behind the `dlo` command, in one namespace (docs/python.md's notebook section runs
 these end to end)::
 
     import dlocli

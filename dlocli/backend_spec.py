@@ -81,7 +81,7 @@ class RodSpec(Spec):
         "backend's own constant (mujoco 0.05, pybullet two physics steps). MuJoCo's "
         "elasticity is explicit: with little damping it needs a smaller physics_dt; "
         "PyBullet's springs and damping are explicit: at its default step it adds rotary "
-        "inertia to the segments (see the README's rod physics).",
+        "inertia to the segments (see docs/benchmarks.md, rod physics).",
     )
     twist_damping: float | None = Field(
         DEFAULT_DAMPING_TIME,

@@ -1,6 +1,6 @@
 """The backend contract: a rod held by two 6-DoF kinematic grippers, stepped at control rate.
 
-Conventions (the README's):
+Conventions (docs/concepts.md):
 - World frame, metres, z up, gravity -9.81 z. No floor: the rod hangs in the air.
 - Rod of ``n_segments`` rigid segments. Segment i's frame has its x axis along the rod
   (from the left end towards the right end) and its origin at the segment centre.

@@ -29,7 +29,7 @@ def check_address(address: str) -> str:
 
 class ServeSpec(EnvSpec):
     """`dlo serve`: a simulator served as a cell, for controllers that speak the dlocli-cell
-    protocol (README, "A robot bridge")."""
+    protocol (docs/real-cell.md, "A robot bridge")."""
 
     cli_flags: ClassVar[tuple[str, ...]] = (
         "address", "backend.name", "backend.rod.n_segments", "task.control_dt", "realtime",

@@ -21,8 +21,8 @@ def online(
 
     With no flags this is the paper's setting (K=20, E=50, N=50, T=200, H=5, lr 1e-4), whose
     50 epochs over all the data per update cost more each iteration; `--schedule steps
-    --workers 2` keeps each update's cost fixed (examples/online_paper; timings in the
-    README). For a CPU demo in minutes, see the README's first command.
+    --workers 2` keeps each update's cost fixed (examples/online_paper; timings in
+    docs/results.md). For a CPU demo in minutes, see the README's first command.
     """
     run.refuse_with_resume(resume)
     with Bars(run.json) as bars:

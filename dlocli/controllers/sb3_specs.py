@@ -6,7 +6,7 @@ The candidates came from two documented sources: stable-baselines3's constructor
 rl-baselines3-zoo's tuned values for the PyBullet locomotion envs (``hyperparams/sac.yml`` and
 ``hyperparams/td3.yml``, ``HalfCheetahBulletEnv-v0``: continuous actions in [-1, 1] and a
 dense reward, the nearest tuned match to our task). ``benchmarks/rl_sweep.py`` compared them
-and one-knob variants on this task against doing nothing (the README has its numbers), and
+and one-knob variants on this task against doing nothing (docs/results.md has its numbers), and
 the defaults are its winners:
 
 - SAC: the zoo's values. ``gamma`` 0.98, ``net_arch`` [400, 300], ``learning_rate`` 7.3e-4,

@@ -5,7 +5,7 @@ poses (2*7), goal positions (N*3) and, with ``task.observe_velocity`` (default),
 velocities (N*7: the change of each segment's position and quaternion over the last control
 step, divided by the step; zero right after a reset, when the rod has settled). Use
 :meth:`DLOShapeEnv.split_observation` to get the parts back; ``env.observation_slices`` and
-``env.observation_shapes`` give each part's place and shape (README, "Gymnasium").
+``env.observation_shapes`` give each part's place and shape (docs/python.md, "Gymnasium").
 Action: Box(-1, 1, (6,)) for ``single`` or (12,) for ``bimanual``, scaled to the task's
 maximum gripper velocities. Reward: paper eq. 12. Starts and goals: :mod:`dlocli.env.shapes`.
 
@@ -152,7 +152,7 @@ class DLOShapeEnv(gym.Env):
         markers = observed_markers(self.task_spec)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
         self.observation_space = observation_space(n, velocity, markers)
-        #: shape of each part of the flat observation, in order (README, "Gymnasium")
+        #: shape of each part of the flat observation, in order (docs/python.md, "Gymnasium")
         self.observation_shapes = observation_layout(n, velocity, markers)
         #: where each part lies in the flat observation: ``obs[slices["goal"]]``
         self.observation_slices = observation_slices(self.observation_shapes)

@@ -1,7 +1,7 @@
 """How good is a learned model: one-step and open-loop errors next to "nothing moves".
 
 Errors are in millimetres: the mean over segments of the Euclidean distance between the
-predicted and the true segment centre (as the shape error of the README). The H-step error is
+predicted and the true segment centre (the shape error of docs/concepts.md). The H-step error is
 the error of the state predicted H steps ahead from a true start state, feeding the model its
 own predictions and the recorded actions (open loop). The persistence baseline predicts that
 nothing moves (s_{t+k} = s_t); a useful model beats it by far.

@@ -18,9 +18,9 @@ the same mathematics runs as:
   6e-8 for the library's tanh): vectorisable, where the library's exp is not.
 
 Results equal the rod view's plain PyTorch rollout to float32 rounding (tested against
-float64). Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and the README. Used when no
-gradient is wanted, on CPU, up to :data:`MAX_BATCH`; otherwise the PyTorch path runs. The
-first call compiles the loops (cached on disk, so later processes only load them).
+float64). Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and docs/benchmarks.md.
+Used when no gradient is wanted, on CPU, up to :data:`MAX_BATCH`; otherwise the PyTorch path
+runs. The first call compiles the loops (cached on disk, so later processes only load them).
 """
 
 from __future__ import annotations

@@ -269,7 +269,7 @@ class TrainSpec(FitSpec):
     )
     out: Path = Field(Path("runs/train"), description="Run directory for the results.")
     # smaller than the online loop's: at lr 1e-4 the deep f_e -> LSTM -> f_v path needs the
-    # extra steps within 50 epochs (README, model accuracy)
+    # extra steps within 50 epochs
     batch_size: int = Field(16, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
 
     @classmethod
