@@ -67,6 +67,8 @@ def resumed_run_spec(
     data = validated(cls, saved, f"--resume {run_dir}: spec.json (not {kind} spec?)").model_dump()
     refuse_resume_conflicts(data, overrides, run_dir, free)
     changed = {k: v for k, v in overrides.items() if k in free and v is not None}
+    if changed.get("executor") == "local" and "ray_address" in free:
+        changed.setdefault("ray_address", None)  # back from a cluster: its address stays behind
     # the flags a resume takes are checked as a fresh run checks them
     return validated(cls, {**data, **changed, "out": Path(run_dir)}, f"--resume {run_dir}")
 

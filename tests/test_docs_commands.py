@@ -45,10 +45,7 @@ CUTS = {
 }  # fmt: skip
 #: lines the docs promise that dlocli refuses today (exit 2): each is run and must still be
 #: refused, so the day it runs this test fails and the entry goes
-KNOWN_REFUSED = {
-    # the resumed run keeps the saved --ray-address, and local with an address is refused
-    "dlo online --resume runs/online --executor local": "--ray-address needs --executor ray",
-}
+KNOWN_REFUSED: dict[str, str] = {}
 #: what a page needs from the quickstart before its own lines (a goal, a trained model)
 NEEDS_QUICKSTART = {"commands.md", "real-cell.md"}
 
