@@ -33,7 +33,7 @@ import os
 import re
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,7 @@ from dlocli.data import DATASET_FILE, Dataset, Episode, load_dataset
 from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.io import adopt_written, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
 from dlocli.processes import raise_if_stopped, signal_token, start_worker
@@ -53,11 +54,6 @@ PARTS_DIR = "episodes"
 PROGRESS_FILE = "progress.json"
 SUMMARY_FILE = "summary.json"
 _PART = re.compile(r"episode_(\d+)\.h5")
-
-#: called after each finished episode with the number of the run's episodes finished so far
-#: (those of earlier, resumed parts included) and the episode; on resume also once before
-#: collecting, with the number kept and no episode
-OnEpisode = Callable[[int, Episode | None], None]
 
 # One env per worker process, built once (the goal is derived from the spec's seed, so every
 # worker has the same fixed goal).
@@ -125,7 +121,7 @@ def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> CollectSpec:
 def collect_random(
     spec: CollectSpec,
     overwrite: bool = False,
-    on_episode: OnEpisode | None = None,
+    progress: Callback | None = None,
     resume: bool = False,
     accept_changes: bool = False,
 ) -> dict[str, Any]:
@@ -135,14 +131,15 @@ def collect_random(
     with ``resume`` the parts already in ``spec.out`` are kept and only the missing episodes
     are collected (a changed spec.json is refused unless ``accept_changes``). On
     KeyboardInterrupt the finished episodes are assembled into ``dataset.h5`` (atomically)
-    before re-raising.
+    before re-raising. ``progress`` gets a Began (unit "episode", ``done``: the episodes kept
+    from a stopped run), then an Event after each finished episode.
     """
     check_registered(spec)
     refuse_oversized_dataset(spec.episodes, spec.task.episode_steps, spec.backend.rod.n_segments)
     with owned(spec.out):
         if resume:
             check_fingerprints(spec.out, spec, accept_changes)
-        return _collect(spec, overwrite, on_episode, resume)
+        return _collect(spec, overwrite, progress or ignore, resume)
 
 
 def random_dataset(spec: CollectSpec) -> Dataset:
@@ -155,7 +152,7 @@ def random_dataset(spec: CollectSpec) -> Dataset:
 
 
 def _collect(
-    spec: CollectSpec, overwrite: bool, on_episode: OnEpisode | None, resume: bool
+    spec: CollectSpec, overwrite: bool, progress: Callback, resume: bool
 ) -> dict[str, Any]:
     out = Path(spec.out)
     parts = out / PARTS_DIR
@@ -178,8 +175,7 @@ def _collect(
     missing = [e for e in range(spec.episodes) if e not in done]
     attrs = dataset_attrs(spec)
     n_done = len(done)
-    if n_done and on_episode is not None:
-        on_episode(n_done, None)
+    progress(Began("episode", n_done, spec.episodes))
     try:
         for e, episode in _episodes(spec, missing):
             raise_if_stopped()
@@ -187,8 +183,7 @@ def _collect(
             n_done += 1
             seconds = earlier + time.perf_counter() - start
             write_json_atomic(parts / PROGRESS_FILE, {"seconds": round(seconds, 3)})
-            if on_episode is not None:
-                on_episode(n_done, episode)
+            progress(Event("episode", n_done, spec.episodes))
     except KeyboardInterrupt:
         if _part_indices(parts):
             _assemble(out, attrs).save(out / DATASET_FILE)

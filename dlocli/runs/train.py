@@ -18,6 +18,7 @@ import torch
 from dlocli.data import Dataset, MarkerDataset, load_dataset
 from dlocli.data.protocol import deform_score_cm, freeze
 from dlocli.errors import BadInput
+from dlocli.events import Callback
 from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.base import DynamicsModel, build_model, check_control_rate, resolve_device
 from dlocli.models.checkpoints import (
@@ -29,7 +30,7 @@ from dlocli.models.checkpoints import (
 )
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.fit import fit
-from dlocli.models.fitting import FitRecord, KeepBest, Progress
+from dlocli.models.fitting import FitRecord, KeepBest
 from dlocli.models.markers import FORM, build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.plots import plot_losses
@@ -90,7 +91,7 @@ def load_training_data(spec: TrainSpec) -> Dataset:
 def run_training(
     spec: TrainSpec,
     overwrite: bool = False,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     resume: bool = False,
     accept_changes: bool = False,
 ) -> dict[str, Any]:
@@ -129,7 +130,7 @@ def _train_in(
     spec: TrainSpec,
     dataset: Dataset,
     overwrite: bool,
-    progress: Progress | None,
+    progress: Callback | None,
     resume: bool,
     accept_changes: bool,
 ) -> dict[str, Any]:
@@ -242,7 +243,7 @@ def _json_safe(summary: dict[str, Any]) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- marker datasets
 def run_marker_training(
-    spec: TrainSpec, dataset: MarkerDataset, overwrite: bool, progress: Progress | None
+    spec: TrainSpec, dataset: MarkerDataset, overwrite: bool, progress: Callback | None
 ) -> dict[str, Any]:
     """`dlo train` on a marker dataset: train on its train split (``val_fraction`` of those
     trajectories held out for validation; the eval split is never seen), then write
