@@ -14,6 +14,7 @@ from dlocli.cli.common import (
 )
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.processes import signal_token
 from dlocli.runs.collect import collect_random, resumed_spec
 from dlocli.specs import CollectSpec
 
@@ -41,6 +42,11 @@ def collect(
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json, every={"episode": max(spec.episodes // 20, 1)}) as bars:
         summary = collect_random(
-            spec, run.overwrite, bars, resume=resume is not None, accept_changes=accept_changes
+            spec,
+            run.overwrite,
+            bars,
+            resume=resume is not None,
+            accept_changes=accept_changes,
+            cancel=signal_token(),
         )
     emit_summary(summary, run.json, "dlo collect")

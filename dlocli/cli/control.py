@@ -10,6 +10,7 @@ from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.events import Began, Event
+from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.runs.control import ControlSpec, run_control
 
@@ -41,7 +42,7 @@ def control(
     run.overrides |= parse_options(option or [], "controller_options")
     spec = run.spec()
     with Bars(run.json, _describe, every={"step": max(spec.task.episode_steps // 10, 1)}) as bars:
-        summary = run_control(spec, bars, overwrite=run.overwrite)
+        summary = run_control(spec, bars, overwrite=run.overwrite, cancel=signal_token())
     summary.pop("versions", None)
     emit_summary(summary, run.json, "dlo control")
 

@@ -6,6 +6,7 @@ from dlocli.cli.common import AcceptChangesFlag, ResumeFlag, emit_summary, handl
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.events import Event
+from dlocli.processes import signal_token
 from dlocli.runs.online import OnlineSpec, resume_online, start_online
 
 
@@ -26,10 +27,10 @@ def online(
     run.refuse_with_resume(resume)
     with Bars(run.json, _describe) as bars:
         if resume is not None:
-            summary = resume_online(resume, run.overrides, bars, accept_changes)
+            summary = resume_online(resume, run.overrides, bars, accept_changes, signal_token())
         else:
             spec = run.spec()
-            summary = start_online(spec, run.overwrite, bars)
+            summary = start_online(spec, run.overwrite, bars, signal_token())
     summary = {k: v for k, v in summary.items() if k not in ("curve", "offline_curve")} | {
         "curve": [(c["transitions"], round(c["final_error_mm_mean"], 1)) for c in summary["curve"]]
     }

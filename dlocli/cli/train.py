@@ -12,6 +12,7 @@ from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.events import Event
 from dlocli.models.spec import TrainSpec
+from dlocli.processes import signal_token
 
 
 @handle_errors
@@ -32,7 +33,12 @@ def train(
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
     with Bars(run.json, _describe, every={"batch": None}) as bars:  # a log gets epochs only
         summary = run_training(
-            spec, run.overwrite, bars, resume=resume is not None, accept_changes=accept_changes
+            spec,
+            run.overwrite,
+            bars,
+            resume=resume is not None,
+            accept_changes=accept_changes,
+            cancel=signal_token(),  # Ctrl-C and SIGTERM stop the fit between gradient steps
         )
     emit_summary(summary, run.json, "dlo train")
 

@@ -27,6 +27,7 @@ from dlocli.calibration.fit import (
 from dlocli.calibration.history import read_history
 from dlocli.calibration.report import write_report
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput, DloError
 from dlocli.events import Callback, Event, ignore
 from dlocli.executors import ClusterLost, check_executor, open_executor
@@ -38,7 +39,6 @@ from dlocli.io import (
     write_text_atomic,
 )
 from dlocli.markers import deform
-from dlocli.processes import signal_token
 from dlocli.registry import backends
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import owned
@@ -117,10 +117,12 @@ def run_calibration(
     overwrite: bool,
     progress: Callback | None = None,
     resume: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary. ``progress`` gets
     an Event per finished generation (``best_cm``: the best train score so far), per replay
-    of a generation's candidates ("replay") and per eval replay ("eval")."""
+    of a generation's candidates ("replay") and per eval replay ("eval"); ``cancel`` stops it
+    between replays."""
     progress = progress or ignore
     backends.check(spec.backend.name)
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
@@ -143,7 +145,7 @@ def run_calibration(
         history: list[Record] = state.get("generations", [])
         elapsed = float(state.get("seconds", 0.0))
         try:
-            replayer = Replayer(cable, spec, executor, signal_token())
+            replayer = Replayer(cable, spec, executor, cancel)
             replay_history(strategy, history, out)
             started = time.perf_counter()
             for g in range(len(history), spec.generations):

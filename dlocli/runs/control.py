@@ -31,6 +31,7 @@ from pydantic import Field
 
 from dlocli.bridge.remote import CellLost, RemoteCell
 from dlocli.bridge.spec import CellChoice
+from dlocli.cancel import CancelToken
 from dlocli.controllers.base import (
     Controller,
     LearningAgent,
@@ -45,7 +46,6 @@ from dlocli.events import Began, Callback, Event
 from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
-from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.rundir import owned
 from dlocli.runs.recording import check_record_path, open_recording
@@ -164,10 +164,11 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
 
 
 def prepare(
-    spec: ControlSpec, overwrite: bool = False
+    spec: ControlSpec, overwrite: bool = False, cancel: CancelToken | None = None
 ) -> tuple[DLOShapeEnv, Controller, ControlSpec]:
-    """Check every input (outputs replaced only with ``overwrite``), build env and
-    controller; the spec comes back fully resolved."""
+    """Check every input (outputs replaced only with ``overwrite``), build env (stopped by
+    ``cancel`` between its physics steps) and controller; the spec comes back fully
+    resolved."""
     if spec.task.goal_file is None:
         raise BadInput(
             "no goal: pass --goal shape.npy, a (N,3) float .npy in metres "
@@ -181,7 +182,7 @@ def prepare(
     load_goal(spec.task.goal_file, spec.backend.rod.n_segments)  # refused before anything
     check_inputs_used(spec)
     env = make_env(spec.backend, spec.task, goal=spec.task.goal_file, seed=spec.seed, cell=spec,
-                   cancel=signal_token())  # fmt: skip
+                   cancel=cancel)  # fmt: skip
     try:
         model = load_control_model(spec, env.n_segments)
         controller = make_controller(
@@ -200,15 +201,20 @@ def prepare(
 
 # --------------------------------------------------------------------------- closed loop
 def run_control(
-    spec: ControlSpec, progress: Callback | None = None, *, overwrite: bool = False
+    spec: ControlSpec,
+    progress: Callback | None = None,
+    *,
+    overwrite: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Run the closed loop of ``spec``, write the run directory, return the summary.
 
     ``progress`` gets a Began of the episode's steps as its first step ends (the env reset),
     then an Event after every step, whose ``values`` are that step's record (step,
-    shape_error_mm, reward, latency_ms and the controller's stats).
+    shape_error_mm, reward, latency_ms and the controller's stats). ``cancel`` stops the env
+    between its physics steps.
     """
-    env, controller, spec = prepare(spec, overwrite)
+    env, controller, spec = prepare(spec, overwrite, cancel)
     with owned(spec.out):
         return _run_closed_loop(env, controller, spec, progress, overwrite)
 

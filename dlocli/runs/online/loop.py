@@ -14,13 +14,13 @@ from typing import Any
 import numpy as np
 
 import dlocli.runs.online.trials as trials
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
 from dlocli.env.shape_env import make_env_from_spec
 from dlocli.errors import DloError
 from dlocli.events import Began, Callback, Event, ignore
 from dlocli.executors import ClusterLost, LocalExecutor
-from dlocli.processes import signal_token
 from dlocli.runs.collect import dataset_attrs
 from dlocli.runs.online.results import OnlineResults
 from dlocli.runs.online.spec import (
@@ -39,16 +39,23 @@ class OnlineRun:
     """Algorithm 1 over a run directory; :meth:`run` can be called again to resume."""
 
     def __init__(
-        self, spec: OnlineSpec, progress: Callback | None = None, executor: Any = None
+        self,
+        spec: OnlineSpec,
+        progress: Callback | None = None,
+        executor: Any = None,
+        cancel: CancelToken | None = None,
     ) -> None:
         """``executor``: where trials run (:mod:`dlocli.executors`), connected; None: the
         local processes of ``spec.workers``, ended with :meth:`run`. ``progress`` gets the
         iterations, the random episodes ("random"), each update's fit (its start and
-        validations, in epochs or steps) and the trials, as :class:`~dlocli.events.Event`."""
+        validations, in epochs or steps) and the trials, as :class:`~dlocli.events.Event`;
+        ``cancel`` stops the updates between gradient steps and the envs of this process
+        between physics steps (a trial in another process ends with it)."""
         self.spec = spec
         self.paths = RunLayout(spec.out)
         self.results = OnlineResults(spec)
         self.progress = progress or ignore
+        self.cancel = cancel
         self._own_executor = executor is None
         self.executor = executor or LocalExecutor(spec.workers, job_threads(spec))
         self.scalars = Scalars(None)
@@ -60,7 +67,7 @@ class OnlineRun:
         if path.is_file():
             return load_dataset(path)
 
-        env = make_env_from_spec(trials.env_spec(self.spec), cancel=signal_token())
+        env = make_env_from_spec(trials.env_spec(self.spec), cancel=self.cancel)
         episodes = []
         try:
             for e in range(self.spec.initial_episodes):
@@ -127,7 +134,7 @@ class OnlineRun:
                 optimizer_state=opt_state,
                 progress=self._validations(),
                 on_validation=log,
-                cancel=signal_token(),  # Ctrl-C and SIGTERM stop it between gradient steps
+                cancel=self.cancel,
             )
             threads = torch.get_num_threads()
         extra = {"steps": result.steps, "best_step": result.best_step} if result.steps else {}
@@ -176,7 +183,7 @@ class OnlineRun:
                 self.progress(event)
 
         with update_threads(self.spec):
-            result = update_marker_model(model, data, self.spec, fit, report, signal_token())
+            result = update_marker_model(model, data, self.spec, fit, report, self.cancel)
             threads = torch.get_num_threads()
         best = result.best_val_loss  # the best validation score (cm)
         save_checkpoint(model, self.paths.checkpoint(k), {
@@ -269,7 +276,7 @@ class OnlineRun:
             )
             with update_threads(self.spec):
                 train_like_online(  # as long as the online model had trained by iteration k
-                    model, data, fit, k, progress=self._validations(), cancel=signal_token()
+                    model, data, fit, k, progress=self._validations(), cancel=self.cancel
                 )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1,
                                           "control_dt": self.spec.task.control_dt})  # fmt: skip
@@ -282,7 +289,7 @@ class OnlineRun:
             return load_dataset(path)
 
         data = load_dataset(self.paths.initial())
-        env = make_env_from_spec(trials.env_spec(self.spec), cancel=signal_token())
+        env = make_env_from_spec(trials.env_spec(self.spec), cancel=self.cancel)
         try:
             e = self.spec.initial_episodes
             while data.n_transitions < n_transitions:

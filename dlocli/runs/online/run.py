@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from dlocli.cancel import CancelToken
 from dlocli.events import Callback
 from dlocli.executors import check_executor, open_executor
 from dlocli.io import adopt_written, prepare_run_dir, write_json_atomic
@@ -45,7 +46,10 @@ def check_online(spec: OnlineSpec) -> None:
 
 
 def start_online(
-    spec: OnlineSpec, overwrite: bool = False, progress: Callback | None = None
+    spec: OnlineSpec,
+    overwrite: bool = False,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """A new run in ``spec.out``; with ``overwrite``, a previous run's state there is dropped
     first (its trials and checkpoints would otherwise be taken as this run's, as on resume)."""
@@ -59,7 +63,7 @@ def start_online(
         RunLayout(out).references().unlink(missing_ok=True)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         record_fingerprints(out, spec)
-        return OnlineRun(spec, progress, executor).run()
+        return OnlineRun(spec, progress, executor, cancel).run()
 
 
 def resume_online(
@@ -67,6 +71,7 @@ def resume_online(
     overrides: dict[str, Any],
     progress: Callback | None = None,
     accept_changes: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Continue the run in ``run_dir``; flags that contradict its spec are refused (but for
     where trials run: :data:`~dlocli.runs.online.spec.FREE_FIELDS`), and so is a changed
@@ -79,7 +84,7 @@ def resume_online(
         if _changed_free_fields(run_dir, spec):  # the saved spec says where trials run now
             write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
             record_fingerprints(run_dir, spec)
-        return OnlineRun(spec, progress, executor).run()
+        return OnlineRun(spec, progress, executor, cancel).run()
 
 
 def _changed_free_fields(run_dir: Path, spec: OnlineSpec) -> bool:
