@@ -50,6 +50,9 @@ _LAZY = {
     "episode_scores": "dlocli.env.rollout:episode_scores",
     "shape_error_mm": "dlocli.env.metrics:shape_error_mm",
     "score": "dlocli.env.metrics:score",
+    # what a long run reports to its ``progress`` callback, and how it is stopped
+    "Event": "dlocli.events:Event",
+    "CancelToken": "dlocli.cancel:CancelToken",
 }
 __all__ = sorted(_LAZY)
 

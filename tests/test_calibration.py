@@ -25,9 +25,11 @@ from dlocli.calibration.replay import ReplaySettings, replay
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
+from dlocli.events import Event
 from dlocli.io import written_by_dlo
 from dlocli.markers import deform
 from dlocli.registry import backends
+from dlocli.runs.calibrate import run_calibration
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec
 
 from tiny import file_digests, run_dlo
@@ -222,6 +224,25 @@ def test_a_killed_calibration_resumes_where_it_stopped(cable: Path, tmp_path: Pa
     assert resumed[: len(done)] == done  # finished generations kept, not re-run
     assert np.allclose([g["scores"] for g in resumed], [g["scores"] for g in expected])
     assert np.allclose([g["candidates"] for g in resumed], [g["candidates"] for g in expected])
+
+
+def test_calibration_reports_through_the_one_callback(cable: Path, tmp_path: Path) -> None:
+    """Its progress, as Events counting up: each generation's replays of its candidates, the
+    generation with the best train score so far, then the eval replays."""
+    fields = json.loads(_spec_file(tmp_path, generations=2, workers=1).read_text())
+    spec = CalibrateSpec.model_validate({**fields, "source": cable, "out": tmp_path / "run"})
+    events: list = []
+    summary = run_calibration(spec, overwrite=False, progress=events.append)
+    assert events and all(isinstance(e, Event) for e in events)
+    generations = [e for e in events if e.unit == "generation"]
+    assert [(e.done, e.total) for e in generations] == [(1, 2), (2, 2)]
+    best = [e.values["best_cm"] for e in generations]
+    assert best[1] <= best[0] and best[1] == pytest.approx(summary["train_best_cm"], abs=1e-3)
+    replays = [e for e in events if e.unit == "replay"]
+    calls = replays[0].total
+    assert [e.done for e in replays] == [*range(1, calls + 1)] * 2  # afresh each generation
+    evals = [e for e in events if e.unit == "eval"]
+    assert [e.done for e in evals] == [*range(1, evals[0].total + 1)] and events[-1] is evals[-1]
 
 
 def test_bad_inputs_get_one_line_and_exit_2(

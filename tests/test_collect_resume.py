@@ -95,12 +95,12 @@ def test_interrupt_keeps_parts_and_resume_reassembles(tmp_path, reference, monke
     out = tmp_path / "interrupted"
     spec = CollectSpec(episodes=EPISODES, steps=3, seed=3, out=out, task={"reset_settle_steps": 10})
 
-    def stop(done, episode):
-        if done == 3:
+    def stop(event):
+        if event.done == 3:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        collect_random(spec, on_episode=stop)
+        collect_random(spec, progress=stop)
     assert arrays(out)["episode_lengths"].tolist() == [3, 3, 3], "finished episodes saved"
     assert not (out / "summary.json").exists() and (out / PARTS_DIR).is_dir()
     first = json.loads((out / PARTS_DIR / "progress.json").read_text())["seconds"]
@@ -115,7 +115,7 @@ def test_interrupt_keeps_parts_and_resume_reassembles(tmp_path, reference, monke
 
     monkeypatch.setattr("dlocli.runs.collect.shutil.rmtree", crash_before_cleanup)
     with pytest.raises(OSError):
-        collect_random(spec, on_episode=lambda d, e: seen.append(d), resume=True)
+        collect_random(spec, progress=lambda e: seen.append(e.done), resume=True)
     monkeypatch.undo()
     assert seen[0] == 1 and seen[-1] == EPISODES, "progress starts at the episodes kept"
     assert (out / "summary.json").exists() and (out / PARTS_DIR).is_dir()
@@ -123,7 +123,7 @@ def test_interrupt_keeps_parts_and_resume_reassembles(tmp_path, reference, monke
 
     # dataset and summary written but the parts still there: resuming assembles again
     seen.clear()
-    summary = collect_random(spec, on_episode=lambda d, e: seen.append(d), resume=True)
+    summary = collect_random(spec, progress=lambda e: seen.append(e.done), resume=True)
     assert seen == [EPISODES], "nothing recollected"
     assert summary["episodes"] == EPISODES and summary["seconds"] >= first
     assert not (out / PARTS_DIR).exists()

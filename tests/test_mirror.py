@@ -225,7 +225,7 @@ def test_training_on_twins_doubles_the_data_and_learns_the_other_end(
 
         def progress(event: BatchDone | Validated, seen: list[int] = seen) -> None:
             if isinstance(event, BatchDone):
-                seen.append(event.batches)
+                seen.append(event.total)
 
         result = fit_model(model, data, FitSpec(**FIT, mirror=flag), progress=progress)
         np.testing.assert_array_equal(result.val_episodes, val_eps)

@@ -14,6 +14,7 @@ import yaml
 from dlocli.bridge.remote import CellLost
 from dlocli.env.shape_env import make_env
 from dlocli.errors import BadOption
+from dlocli.events import Event
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
 
@@ -74,8 +75,8 @@ def test_a_stopped_control_run_sums_the_rewards_of_the_steps_it_ran(near_rest_go
     task = TaskSpec(goal_file=near_rest_goal, shapes="near-rest", episode_steps=200)
     spec = ControlSpec(task=task, controller="random", out=out, seed=1)
 
-    def lose_the_cell(record: dict[str, float]) -> None:
-        if record["step"] == 4:  # what a cell that stops answering raises inside the loop
+    def lose_the_cell(event: Event) -> None:
+        if event.done == 4:  # what a cell that stops answering raises inside the loop
             raise CellLost("the cell stopped answering")
 
     with pytest.raises(CellLost):

@@ -180,9 +180,9 @@ def test_stopped_training_resumes_to_the_same_model(small_dataset_dir, tmp_path)
     whole = run_training(spec.model_copy(update={"out": tmp_path / "whole"}))
 
     def stop_after_epoch_2(event):
-        if event.count == 2 and isinstance(event, Validated):
+        if event.done == 2 and isinstance(event, Validated):
             raise KeyboardInterrupt  # the user's Ctrl-C, after epoch 2 is done
-        if event.count == 3:
+        if event.values.get("epoch") == 3:
             pytest.fail("epoch 3 started before the stop")
 
     stopped = tmp_path / "stopped"
@@ -239,6 +239,6 @@ def test_a_cancelled_token_stops_the_fit_before_its_next_step(small_dataset_dir)
     with pytest.raises(KeyboardInterrupt):
         fit_model(fresh("mlp", data), data, FitSpec(epochs=3, **FAST_FIT), progress=progress,
                   cancel=token)  # fmt: skip
-    assert not any(isinstance(e, BatchDone) and e.count > 1 for e in seen)
+    assert not any(isinstance(e, BatchDone) and e.values["epoch"] > 1 for e in seen)
     assert token.reason is None, "the stop is raised once"
     fit_model(fresh("mlp", data), data, FitSpec(epochs=1, **FAST_FIT), cancel=token)

@@ -80,7 +80,7 @@ def test_early_stopping_stops_and_restores_the_best_weights(data):
     assert result.steps == 6 < fit.update_steps
     # the progress bar ends full, at the steps taken, saying why
     last = events[-1]
-    assert (last.unit, last.count, last.total, last.stopped_early) == ("step", 6, 6, True)
+    assert (last.unit, last.done, last.total, last.values["stopped_early"]) == ("step", 6, 6, True)
     assert [r.count for r in result.history] == [2, 4, 6]
     assert result.best_step == 0
     for a, b in zip(before, weights(model), strict=True):

@@ -249,7 +249,7 @@ class OnlineMPCLearner(MPCLearner):
 
     def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
         super().__init__(name, spec, seed, work)
-        self.run = OnlineRun(online_spec(spec, seed, work))
+        self.run = OnlineRun(online_spec(spec, seed, work), cancel=signal_token())
         self.updates = 0  # model updates done: the model of point k is update k+1
 
     def learn_to(self, transitions: int) -> None:

@@ -42,7 +42,7 @@ CHECKPOINT_FORMAT = 2
 
 
 @dataclass
-class Progress:
+class Standing:
     """Where a job stood at a checkpoint: ``index`` of its last evaluated point, its rows,
     its learning wall time and how many training episodes the rows already account for."""
 
@@ -100,7 +100,7 @@ class JobCheckpoint:
         slots = [p for p in self.directory.glob(SLOT_PREFIX + "*") if _index(p) is not None]
         return sorted(slots, key=_index)
 
-    def latest(self) -> tuple[Path, Progress] | None:
+    def latest(self) -> tuple[Path, Standing] | None:
         """The newest checkpoint of this job's fingerprint and versions, if any."""
         for slot in reversed(self._slots()):
             try:
@@ -113,13 +113,13 @@ class JobCheckpoint:
                 or saved.get("versions") != versions()
             ):
                 continue
-            progress = Progress(saved["index"], saved["rows"], saved["wall"], saved["trained"])
+            progress = Standing(saved["index"], saved["rows"], saved["wall"], saved["trained"])
             progress.resumed_at = saved.get("resumed_at", [])  # later fields: older files lack
             progress.seconds = saved.get("seconds", 0.0)
             return slot, progress
         return None
 
-    def restore(self, learner: BenchLearner) -> Progress | None:
+    def restore(self, learner: BenchLearner) -> Standing | None:
         """Put ``learner`` and the global generators back at the newest checkpoint; None (and
         ``learner`` untouched) if there is none."""
         found = self.latest()
@@ -131,7 +131,7 @@ class JobCheckpoint:
         progress.resumed_at.append(learner.transitions)
         return progress
 
-    def save(self, learner: BenchLearner, progress: Progress) -> bool:
+    def save(self, learner: BenchLearner, progress: Standing) -> bool:
         """Checkpoint the job after point ``progress.index``; False if the learner cannot
         be saved there (nothing is written then)."""
         slot = self.directory / f"{SLOT_PREFIX}{progress.index}"

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from dlocli.bench.agents import learner_class, make_bench_env
-from dlocli.bench.checkpoint import JobCheckpoint, Progress
+from dlocli.bench.checkpoint import JobCheckpoint, Standing
 from dlocli.bench.spec import BenchSpec, fingerprint, resolved_options
 from dlocli.env.rollout import episode_scores, rollout, stream_seed
 from dlocli.io import versions
@@ -123,8 +123,8 @@ def _learn_and_evaluate(
     work: Path,
     policy: Path | None,
     checkpoint: JobCheckpoint | None = None,
-) -> tuple[Progress, bool]:
-    """The job's evaluation rows (in its final Progress), and whether its final policy was
+) -> tuple[Standing, bool]:
+    """The job's evaluation rows (in its final Standing), and whether its final policy was
     saved in ``policy``; with ``checkpoint``, continued from the last one and checkpointed
     after every point."""
     learner, progress = _start(spec, agent, seed, work, checkpoint)
@@ -149,7 +149,7 @@ def _learn_and_evaluate(
             rows += evaluated
             _log_point(scalars, evaluated, learner.transitions)
             seconds = time.perf_counter() - began
-            progress = Progress(index, rows, wall, trained, progress.resumed_at, seconds)
+            progress = Standing(index, rows, wall, trained, progress.resumed_at, seconds)
             if checkpoint is not None and index < len(points) - 1:
                 checkpoint.save(learner, progress)
             clock.report(learner.transitions, points[-1], evaluated)
@@ -166,7 +166,7 @@ def _learn_and_evaluate(
         learner.close()
         scalars.close()
     seconds = time.perf_counter() - began
-    return Progress(progress.index, rows, wall, trained, progress.resumed_at, seconds), saved
+    return Standing(progress.index, rows, wall, trained, progress.resumed_at, seconds), saved
 
 
 class JobClock:
@@ -218,7 +218,7 @@ def _point_row(
 
 def _start(
     spec: BenchSpec, agent: str, seed: int, work: Path, checkpoint: JobCheckpoint | None
-) -> tuple[Any, Progress]:
+) -> tuple[Any, Standing]:
     """The job's learner and progress: at its last checkpoint, or new (and no stale
     checkpoint files left) where there is none or it does not load."""
     learner = learner_class(agent)(agent, spec, seed, work)
@@ -236,7 +236,7 @@ def _start(
             learner = learner_class(agent)(agent, spec, seed, work)
         if progress is None:
             checkpoint.remove()  # not this job's (another fingerprint or versions), or damaged
-    return learner, progress or Progress(-1, [], 0.0, 0)
+    return learner, progress or Standing(-1, [], 0.0, 0)
 
 
 def _log_point(scalars: Scalars, rows: list[dict[str, Any]], transitions: int) -> None:

@@ -38,7 +38,6 @@ from s alone: one goal shape per seed, the same for every agent.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -66,6 +65,7 @@ from dlocli.controllers.base import controller_spec
 from dlocli.controllers.sb3_specs import SB3Spec
 from dlocli.env.shape_env import observation_space, observed_markers
 from dlocli.errors import BadInput, DloError
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.executors import ClusterLost, check_executor, open_executor
 from dlocli.io import adopt_written, prepare_run_dir, read_json, write_json_atomic
 from dlocli.models.base import refuse_oversized_model
@@ -78,8 +78,6 @@ from dlocli.threads import machine_cpus, warn_if_oversubscribed
 LAYOUT_TOPS = frozenset(
     {"spec.json", "jobs", "work", "results.csv", "summary.md", "summary.json", "plots"}
 )
-
-Progress = Callable[[str, dict[str, Any]], None]
 
 
 # ----------------------------------------------------------------------------- checks
@@ -147,10 +145,14 @@ def _refuse_oversized_agents(spec: BenchSpec) -> None:
 class BenchRun:
     """The jobs of a bench over a run directory; :meth:`run` again resumes."""
 
-    def __init__(self, spec: BenchSpec, progress: Progress | None = None) -> None:
+    def __init__(self, spec: BenchSpec, progress: Callback | None = None) -> None:
+        """``progress`` gets a Began of the jobs to run (``values``: the bench's ``total``
+        jobs, those ``continuing`` from a checkpoint, at how many transitions, and those left
+        to another process, by PID: ``elsewhere``), then an Event per finished job (its
+        ``job`` name and ``seconds``; a failed one: ``error``)."""
         self.spec = spec
         self.out = Path(spec.out)
-        self.progress = progress or (lambda event, info: None)
+        self.progress = progress or ignore
 
     def job_file(self, agent: str, seed: int) -> Path:
         return self.out / "jobs" / f"{agent}-s{seed}.json"
@@ -194,8 +196,8 @@ class BenchRun:
             elsewhere = self._lock_jobs(locks, todo)
             todo = [job for job in todo if job.name not in elsewhere]
             continuing = {job.name: at for job in todo if (at := self.checkpointed(job))}
-            self.progress("start", {"total": total, "todo": len(todo), "continuing": continuing,
-                                    "elsewhere": elsewhere})  # fmt: skip
+            self.progress(Began("job", 0, len(todo), {"total": total, "continuing": continuing,
+                                                       "elsewhere": elsewhere}))  # fmt: skip
             failed = self._run_jobs(executor, todo)
         summary = self.write_results()
         if failed:
@@ -225,14 +227,16 @@ class BenchRun:
         spec_json = self.spec.model_dump_json()
         calls = [(spec_json, job.agent, job.seed, job.scratch) for job in todo]
         try:
-            for index, result in executor.map(run_job, calls):
+            for done, (index, result) in enumerate(executor.map(run_job, calls), 1):
                 job = todo[index]
                 if isinstance(result, BaseException):
                     failed[job.name] = result
-                    self.progress("failed", {"job": job.name, "error": _cause(result)})
+                    error = {"job": job.name, "error": _cause(result)}
+                    self.progress(Event("job", done, len(todo), error))
                     continue
                 write_json_atomic(self.job_file(job.agent, job.seed), result)
-                self.progress("job", {"job": job.name, "seconds": result["seconds"]})
+                took = {"job": job.name, "seconds": result["seconds"]}
+                self.progress(Event("job", done, len(todo), took))
         except ClusterLost as lost:
             raise DloError(lost.line(self.out)) from lost
         return failed
@@ -272,7 +276,7 @@ class BenchRun:
 
 # ----------------------------------------------------------------------------- entry points
 def start_bench(
-    spec: BenchSpec, overwrite: bool = False, progress: Progress | None = None
+    spec: BenchSpec, overwrite: bool = False, progress: Callback | None = None
 ) -> dict[str, Any]:
     """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept)."""
     check_spec(spec)
@@ -297,7 +301,7 @@ def load_bench_spec(run_dir: Path, overrides: dict[str, Any] | None = None) -> B
 
 
 def resume_bench(
-    run_dir: Path, overrides: dict[str, Any], progress: Progress | None = None
+    run_dir: Path, overrides: dict[str, Any], progress: Callback | None = None
 ) -> dict[str, Any]:
     """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change."""
     spec = load_bench_spec(run_dir, overrides)

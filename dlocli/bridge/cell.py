@@ -24,6 +24,7 @@ from dlocli.bridge.server import CellHandler, Log
 from dlocli.bridge.server import serve as serve_handler
 from dlocli.bridge.spec import ServeSpec
 from dlocli.camera_spec import CameraSpec
+from dlocli.cancel import CancelToken
 from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
 from dlocli.tracking.camera import DepthCamera
@@ -192,13 +193,18 @@ def _sleep_until(moment: float) -> None:
 
 
 def serve(
-    spec: ServeSpec, ready: Callable[[str], None] | None = None, log: Log | None = None
+    spec: ServeSpec,
+    ready: Callable[[str], None] | None = None,
+    log: Log | None = None,
+    cancel: CancelToken | None = None,
 ) -> None:
-    """Serve ``spec.backend`` at ``spec.address`` until stopped (SIGINT, SIGTERM);
-    ``ready(address)`` is called once the socket listens, ``log`` with each session event."""
+    """Serve ``spec.backend`` at ``spec.address`` until stopped (KeyboardInterrupt, or
+    ``cancel``: the command hands it SIGINT and SIGTERM); ``ready(address)`` is called once
+    the socket listens, ``log`` with each session event."""
     require_keys_off_loopback(spec.address, spec.keys, "--address", "--keys")  # before the rod
     backend = make_backend(spec.backend, spec.control_dt)
     try:
-        serve_handler(Cell(backend, spec), spec.address, spec.keys, spec.session_idle_s, ready, log)
+        cell = Cell(backend, spec)
+        serve_handler(cell, spec.address, spec.keys, spec.session_idle_s, ready, log, cancel)
     finally:
         backend.close()

@@ -21,8 +21,8 @@ from typing import Any
 
 from dlocli.bridge import messages, protocol
 from dlocli.bridge.keys import require_keys_off_loopback, secure_cell
+from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput
-from dlocli.processes import raise_if_stopped
 
 #: how often the loop looks for a stop signal and an idle session while no request comes (ms)
 POLL_MS = 100
@@ -209,9 +209,11 @@ def serve(
     idle_s: float = SESSION_IDLE_S,
     ready: Callable[[str], None] | None = None,
     log: Log | None = None,
+    cancel: CancelToken | None = None,
 ) -> None:
-    """Serve ``handler`` at ``address`` until stopped (Ctrl-C, SIGTERM); ``ready(address)``
-    once the socket listens. Off loopback ``keys`` (a `dlo keys` folder) are required."""
+    """Serve ``handler`` at ``address`` until stopped (KeyboardInterrupt, or ``cancel``
+    between requests: the command hands it Ctrl-C and SIGTERM); ``ready(address)`` once the
+    socket listens. Off loopback ``keys`` (a `dlo keys` folder) are required."""
     import zmq
 
     require_keys_off_loopback(address, keys, "--address", "--keys")
@@ -229,7 +231,7 @@ def serve(
             raise BadInput(f"--address {address}: cannot listen there ({exc})") from None
         if ready is not None:
             ready(socket.getsockopt_string(zmq.LAST_ENDPOINT))
-        _loop(CellServer(handler, idle_s, log), socket)
+        _loop(CellServer(handler, idle_s, log), socket, cancel or CancelToken())
     finally:
         socket.close()
         if authenticator is not None:
@@ -237,9 +239,9 @@ def serve(
         context.term()
 
 
-def _loop(server: CellServer, socket: Any) -> None:
+def _loop(server: CellServer, socket: Any, cancel: CancelToken) -> None:
     while True:
-        raise_if_stopped()
+        cancel.raise_if_cancelled()
         if not socket.poll(POLL_MS):
             server.expire_idle()
             continue

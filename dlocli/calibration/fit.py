@@ -14,7 +14,6 @@ with the recordings' control period and marker layout, :func:`recorded_task`) an
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ from dlocli.cancel import CancelToken
 from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.errors import BadInput, UnworkablePhysics
+from dlocli.events import Callback, Event
 from dlocli.markers import deform
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec, format_validation_error
@@ -160,11 +160,12 @@ class Replayer:
         self.slots = spec.workers if spec.ray_address is None else None
 
     def scores(
-        self, rods: list[BackendSpec], names: list[str], done: Callable[[int, int], None]
+        self, rods: list[BackendSpec], names: list[str], progress: Callback, unit: str
     ) -> list[list[dict[str, Any]]]:
-        """Per rod, the replay results of every recording of ``names``; ``done(k, total)``
-        after each finished call. Each rod's recordings are split into chunks so that every
-        worker has work even for a single rod (how they are split changes no number)."""
+        """Per rod, the replay results of every recording of ``names``; ``progress`` gets an
+        Event counting ``unit`` after each finished call. Each rod's recordings are split into
+        chunks so that every worker has work even for a single rod (how they are split changes
+        no number)."""
         slots = self.slots or len(rods) * len(names)
         chunks = max(1, min(len(names), -(-slots // len(rods))))
         parts = [names[i::chunks] for i in range(chunks)]
@@ -182,7 +183,7 @@ class Replayer:
             out[owners[index]].extend(result)
             if self.cancel is not None:
                 self.cancel.raise_if_cancelled()
-            done(k, len(calls))
+            progress(Event(unit, k, len(calls)))
         order = {n: i for i, n in enumerate(names)}
         return [sorted(results, key=lambda x: order[x["name"]]) for results in out]
 

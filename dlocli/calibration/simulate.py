@@ -11,12 +11,11 @@ they made.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from dlocli.backends.base import Backend
 from dlocli.calibration.replay import ReplaySettings, replay
+from dlocli.events import Callback, Event
 
 
 def moved_rigidly(recording: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -38,10 +37,11 @@ def simulate_markers(
     count: int,
     seed: int,
     settings: ReplaySettings,
-    done: Callable[[int], None] | None = None,
+    progress: Callback | None = None,
 ) -> tuple[list[np.ndarray], int]:
     """``count`` simulated (T,V,3) trajectories (recording i mod n drives draw i) and the
-    number of draws dropped because the simulation diverged."""
+    number of draws dropped because the simulation diverged; ``progress`` gets an Event
+    after each draw."""
     rng = np.random.default_rng(seed)
     out, dropped = [], 0
     for i in range(count):
@@ -50,6 +50,6 @@ def simulate_markers(
             out.append(result.simulated)
         else:
             dropped += 1
-        if done is not None:
-            done(i + 1)
+        if progress is not None:
+            progress(Event("draw", i + 1, count))
     return out, dropped

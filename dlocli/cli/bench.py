@@ -13,6 +13,7 @@ from dlocli.bench.spec import BenchSpec
 from dlocli.cli.common import ResumeFlag, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.events import Began, Event
 
 OPTION_HELP = (
     "An option of a learning agent, AGENT.KEY=VALUE (a field of its spec), repeatable: "
@@ -52,38 +53,29 @@ def bench(
         summary = report_bench(report)
     else:
         run.overrides |= parse_options(option or [], "options")
-        with Bars(run.json) as bars:
-            progress = _BenchProgress(bars)
+        with Bars(run.json, _describe) as bars:
             if resume is not None:
-                summary = resume_bench(resume, run.overrides, progress)
+                summary = resume_bench(resume, run.overrides, bars)
             else:
-                summary = start_bench(run.spec(), run.overwrite, progress)
+                summary = start_bench(run.spec(), run.overwrite, bars)
     _emit(summary, run.json)
 
 
-class _BenchProgress:
-    """What is to run, then a bar of finished jobs (a line per job in a log)."""
-
-    def __init__(self, bars: Bars) -> None:
-        self.bars = bars
-        self.done = 0
-
-    def __call__(self, event: str, info: dict[str, Any]) -> None:
-        bars = self.bars
-        if event == "start":
-            kept = info["total"] - info["todo"]
-            bars.note(f"bench: {info['todo']} job(s) to run, {kept} finished job(s) kept")
-            for job, transitions in info.get("continuing", {}).items():
-                bars.note(f"  {job} continues from its checkpoint at {transitions:,} transitions")
-            for job, pid in info.get("elsewhere", {}).items():
-                bars.note(f"  {job} is running in another process (PID {pid}): left to it")
-            bars.begin("job", info["todo"])
-        elif event == "job":
-            self.done += 1
-            bars.update("job", self.done, info=f"{info['job']} took {info['seconds']:.0f} s")
-        elif event == "failed":  # one line as it happens; the causes again in the final error
-            self.done += 1
-            bars.update("job", self.done, info=f"{info['job']} failed: {info['error'][:120]}")
+def _describe(event: Event) -> str:
+    """What is to run (above the bar of finished jobs), then each finished job (a line per
+    job in a log); a failure as it happens, its cause again in the final error."""
+    values = event.values
+    if isinstance(event, Began):
+        kept = values["total"] - (event.total or 0)
+        lines = [f"bench: {event.total:g} job(s) to run, {kept:g} finished job(s) kept"]
+        for job, transitions in values["continuing"].items():
+            lines.append(f"  {job} continues from its checkpoint at {transitions:,} transitions")
+        for job, pid in values["elsewhere"].items():
+            lines.append(f"  {job} is running in another process (PID {pid}): left to it")
+        return "\n".join(lines)
+    if "error" in values:
+        return f"{values['job']} failed: {values['error'][:120]}"
+    return f"{values['job']} took {values['seconds']:.0f} s"
 
 
 def _emit(summary: dict[str, Any], as_json: bool) -> None:

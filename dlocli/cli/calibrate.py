@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.cli.common import ResumeFlag, emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.events import Event
+from dlocli.processes import signal_token
 from dlocli.runs.calibrate import resumed_spec, run_calibration
 
 
@@ -28,21 +28,16 @@ def calibrate(run: RunFlags, resume: ResumeFlag = None) -> None:
     (`--generations` may change there: more extends the search; so may where replays run)."""
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
-    with Bars(run.json) as bars:
-
-        def show(event: dict[str, Any]) -> None:
-            if "best_cm" in event:
-                bars.update(
-                    "generation",
-                    event["generation"],
-                    event["generations"],
-                    info=f"best train score {event['best_cm']:.3f} cm",
-                )
-            elif "done" in event:
-                bars.update("replay", event["done"], event["total"])
-            elif "eval_done" in event:
-                bars.update("eval", event["eval_done"], event["total"])
-
-        summary = run_calibration(spec, run.overwrite, show, resume=resume is not None)
+    with Bars(run.json, _describe) as bars:
+        summary = run_calibration(
+            spec, run.overwrite, bars, resume=resume is not None, cancel=signal_token()
+        )
     summary.pop("eval_per_recording", None)
     emit_summary(summary, run.json, "dlo calibrate")
+
+
+def _describe(event: Event) -> str:
+    """Beside the bar of generations, the best train score so far."""
+    if "best_cm" in event.values:
+        return f"best train score {event.values['best_cm']:.3f} cm"
+    return ""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
@@ -14,6 +14,7 @@ from dlocli.cli.common import (
 )
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.processes import signal_token
 from dlocli.runs.collect import collect_random, resumed_spec
 from dlocli.specs import CollectSpec
 
@@ -39,14 +40,13 @@ def collect(
     """
     run.refuse_with_resume(resume)
     spec = resumed_spec(resume, run.overrides) if resume is not None else run.spec()
-    with Bars(run.json) as bars:
-        bars.begin("episode", spec.episodes, every=max(spec.episodes // 20, 1))
-
-        def show(done: int, episode: Any) -> None:
-            if episode is not None:  # not before the first episode: bad input stays one line
-                bars.update("episode", done)
-
+    with Bars(run.json, every={"episode": max(spec.episodes // 20, 1)}) as bars:
         summary = collect_random(
-            spec, run.overwrite, show, resume=resume is not None, accept_changes=accept_changes
+            spec,
+            run.overwrite,
+            bars,
+            resume=resume is not None,
+            accept_changes=accept_changes,
+            cancel=signal_token(),
         )
     emit_summary(summary, run.json, "dlo collect")

@@ -9,6 +9,8 @@ import typer
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.events import Began, Event
+from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.runs.control import ControlSpec, run_control
 
@@ -39,18 +41,18 @@ def control(
     """Drive the rod from a seeded random start to the --goal shape; write OUT/summary.json."""
     run.overrides |= parse_options(option or [], "controller_options")
     spec = run.spec()
-    with Bars(run.json) as bars:
-        steps = spec.task.episode_steps
-
-        def show(record: dict[str, float]) -> None:
-            if record["step"] == 1:  # the episode starts (the env and the model are built)
-                bars.begin("step", steps, every=max(steps // 10, 1))
-            bars.update("step", record["step"], info=f"error {record['shape_error_mm']:7.1f} mm"
-                        f"  latency {record['latency_ms']:6.1f} ms")  # fmt: skip
-
-        summary = run_control(spec, show, overwrite=run.overwrite)
+    with Bars(run.json, _describe, every={"step": max(spec.task.episode_steps // 10, 1)}) as bars:
+        summary = run_control(spec, bars, overwrite=run.overwrite, cancel=signal_token())
     summary.pop("versions", None)
     emit_summary(summary, run.json, "dlo control")
+
+
+def _describe(event: Event) -> str:
+    """A step's shape error and the controller's latency."""
+    if isinstance(event, Began):
+        return ""
+    record = event.values
+    return f"error {record['shape_error_mm']:7.1f} mm  latency {record['latency_ms']:6.1f} ms"
 
 
 control.lazy_help = {"option": controller_options_help}  # type: ignore[attr-defined]

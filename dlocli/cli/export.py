@@ -10,6 +10,7 @@ import typer
 
 from dlocli.cli.common import JsonFlag, emit_summary, handle_errors
 from dlocli.errors import BadInput
+from dlocli.processes import signal_token
 from dlocli.runs.export import export_minari
 
 
@@ -86,6 +87,7 @@ def export(
         author=author,
         author_email=author_email,
         code_permalink=code_permalink,
+        cancel=signal_token(),
     )
     emit_summary(summary, json_out, f"dlo export --format {fmt.value}")
 

@@ -5,6 +5,10 @@ On an interactive terminal (stdout and stderr both): rich bars on stderr, one pe
 log file, `nohup`, a cluster job, CI): one plain line on stdout per finished unit, with the
 time since its phase began and an ETA, so a log shows a run's progress as it happens.
 
+Every command renders its run's :class:`~dlocli.events.Event` through one path: :class:`Bars`
+is the run's ``progress`` callback; the command only says how a unit's numbers read
+(``describe``) and how often a log gets a line of a unit (``every``).
+
 Nothing is shown before the first unit, so a command refused on bad input prints one line.
 With ``quiet`` (``--json``) nothing is shown at all.
 """
@@ -13,6 +17,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +33,7 @@ from rich.progress import (
 from rich.text import Text
 
 from dlocli.cli.common import console
+from dlocli.events import Began, Event
 
 
 def eta_seconds(elapsed: float, done: float, total: float | None) -> float | None:
@@ -69,15 +75,28 @@ class _Phase:
     task_id: Any = None
 
 
+def _no_text(event: Event) -> str:
+    return ""
+
+
 class Bars:
-    """The bars of one command; a context manager.
+    """The bars of one command; a context manager, and the ``progress`` callback of its run.
 
-    ``begin(unit, total)`` starts (or restarts, for a new phase) the bar counting ``unit``;
-    ``update(unit, done, ...)`` moves it. Off a terminal a bar writes a line every ``every``
-    finished units (``begin``; each one by default, None for none: batches within an epoch)."""
+    Called with an event, a :class:`~dlocli.events.Began` starts (or restarts, for a new
+    phase) the bar counting its unit, with ``describe``'s text for it as a note above; any
+    other event moves its unit's bar, ``describe``'s text beside it. Off a terminal a bar
+    writes a line every ``every[unit]`` finished units (each one by default, None for none:
+    batches within an epoch)."""
 
-    def __init__(self, quiet: bool) -> None:
+    def __init__(
+        self,
+        quiet: bool,
+        describe: Callable[[Event], str] = _no_text,
+        every: Mapping[str, int | None] | None = None,
+    ) -> None:
         self.quiet = quiet
+        self.describe = describe
+        self.every = dict(every or {})
         self.live = sys.stdout.isatty() and sys.stderr.isatty()
         self.plain = Console(file=sys.stdout, highlight=False, soft_wrap=True)
         self.bars = Progress(
@@ -99,12 +118,22 @@ class Bars:
         if self.bars.live.is_started:  # stopping a bar never shown would print a blank line
             self.bars.stop()
 
-    def begin(self, unit: str, total: float | None, done: float = 0, every: int | None = 1) -> None:
+    def __call__(self, event: Event) -> None:
+        """Render one event of the run."""
+        text = self.describe(event)
+        if isinstance(event, Began):
+            if text:
+                self.note(text)
+            self.begin(event.unit, event.total, done=event.done)
+        else:
+            self.update(event.unit, event.done, event.total, info=text)
+
+    def begin(self, unit: str, total: float | None, done: float = 0) -> None:
         """A new phase of the bar counting ``unit``: from ``done`` of ``total``, its clock and
         text reset."""
         phase = self.phases.get(unit) or _Phase()
         phase.started, phase.first, phase.done = time.monotonic(), done, done
-        phase.total, phase.every = total, every
+        phase.total, phase.every = total, self.every.get(unit, 1)
         fields = {"total": total, "completed": done, "info": "", "first": done}
         if phase.task_id is None:
             phase.task_id = self.bars.add_task(unit, **fields)
@@ -118,7 +147,7 @@ class Bars:
             self.begin(unit, total)
         phase = self.phases[unit]
         if done < phase.done:  # counting again: a new phase
-            self.begin(unit, total, every=phase.every)
+            self.begin(unit, total)
         phase.total = total if total is not None else phase.total
         if self.live and not self.quiet:
             self.bars.start()

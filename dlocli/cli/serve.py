@@ -7,7 +7,7 @@ from dlocli.bridge.spec import ServeSpec
 from dlocli.cli.common import handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.extras import require
-from dlocli.processes import stop_handled
+from dlocli.processes import signal_token, stop_handled
 
 
 @handle_errors
@@ -39,7 +39,7 @@ def serve(
         typer.echo(f"dlo serve: {line}", err=True)
 
     try:
-        serve_cell(spec, ready, log)
+        serve_cell(spec, ready, log, signal_token())
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: how a server is meant to end
         stop_handled()
         typer.echo(f"dlo serve: stopped serving at {bound[0]}", err=True)

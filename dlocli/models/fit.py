@@ -10,7 +10,7 @@ schedule chosen by the model's form and the spec:
 
 It is the only way in: those three are private to their modules.
 
-Every schedule reports :class:`~dlocli.models.fitting.FitEvent` to ``progress``, stops before
+Every schedule reports :class:`~dlocli.events.Event` to ``progress``, stops before
 its next gradient step once ``cancel`` is cancelled, and returns a
 :class:`~dlocli.models.fitting.TrainResult`.
 """
@@ -23,8 +23,9 @@ from typing import Any
 import numpy as np
 
 from dlocli.cancel import CancelToken
+from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
-from dlocli.models.fitting import FitRecord, Progress, TrainResult
+from dlocli.models.fitting import FitRecord, TrainResult
 from dlocli.models.marker_training import Cable, Cables, _fit_markers
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec, UpdateSpec
@@ -38,7 +39,7 @@ def fit(
     data: Any,
     schedule: FitSpec,
     *,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
     recent_episodes: np.ndarray | None = None,
     **state: Any,
@@ -62,7 +63,7 @@ def _fit_windows(
     model: MarkerModel,
     data: Any,
     schedule: FitSpec,
-    progress: Progress | None,
+    progress: Callback | None,
     cancel: CancelToken | None,
 ) -> TrainResult:
     """Rollout windows on the train split of the marker dataset ``data``, ``val_fraction`` of

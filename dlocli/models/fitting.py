@@ -9,8 +9,9 @@ with Gaussian noise on the input state (paper Sec. IV-C), on a train/validation 
 trajectory that stays the same as the dataset grows (so continued training in the online
 loop never validates on what it trained on).
 
-Every fit reports its progress as :class:`FitEvent` (a batch done, a validation) and is
-stopped through the :class:`~dlocli.cancel.CancelToken` it is given, checked every step.
+Every fit reports its progress as :class:`~dlocli.events.Event` (its start, a batch done, a
+validation) and is stopped through the :class:`~dlocli.cancel.CancelToken` it is given,
+checked every step.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import copy
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -28,6 +29,7 @@ import torch
 from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.errors import BadInput, DloError
+from dlocli.events import Began, Callback, Event
 from dlocli.models.base import DynamicsModel, resolve_device
 from dlocli.models.mirror import with_mirrored
 from dlocli.models.spec import FitSpec
@@ -62,48 +64,22 @@ class FitRecord:
         return cls(unit, int(row[unit]), row["train_loss"], row["val_loss"], row["seconds"])
 
 
-@dataclass
-class FitEvent:
-    """Progress of a fit (every schedule's, every model form's): ``count`` epochs or gradient
-    steps (``unit``) into it."""
-
-    unit: Unit
-    count: int
+class BatchDone(Event):
+    """Progress within a round: ``done`` of ``total`` mini-batches (unit "batch"); ``values``
+    holds the round's count of epochs or steps when it ends (key: its unit) and the ``loss``."""
 
 
-@dataclass
-class BatchDone(FitEvent):
-    """Progress within a round: ``batch`` of ``batches`` done in round ``count``."""
-
-    batch: int
-    batches: int
-    loss: float
+class Validated(Event):
+    """A round ended: ``done`` of ``total`` epochs or steps (``unit``); ``values``: its
+    ``val_loss`` and ``stopped_early`` (True: the fit stops here, ``val_loss`` is the best's)."""
 
 
-@dataclass
-class Validated(FitEvent):
-    """A round ended: ``count`` of ``total`` epochs or steps done, validated at
-    ``val_loss`` (with ``stopped_early``: the fit stops here; ``val_loss`` is the best's)."""
-
-    total: int
-    val_loss: float
-    stopped_early: bool = False
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-@dataclass
 class RolloutValidated(Validated):
     """A validation of a fit through k-step rollouts (marker models): ``val_loss`` is the
-    benchmark score of whole rollouts (cm), ``train_loss`` the mean k-step rollout loss (cm)
-    since the previous validation."""
-
-    k: int = 1
-    train_loss: float = math.nan
+    benchmark score of whole rollouts (cm); ``values`` also hold the rollout length ``k`` and
+    ``train_loss``, the mean k-step rollout loss (cm) since the previous validation."""
 
 
-Progress = Callable[[FitEvent], None]
 #: called after each validation with its record, the optimizer and the random generator
 OnValidation = Callable[[FitRecord, torch.optim.Optimizer, torch.Generator], None]
 
@@ -316,11 +292,12 @@ class Round:
 
 
 class Plan(Protocol):
-    """What a schedule tells the loop: its unit, its length, its validation data, its rounds,
-    and what stays of the model if the loss diverges."""
+    """What a schedule tells the loop: its unit, its length (and the count it starts at),
+    its validation data, its rounds, and what stays of the model if the loss diverges."""
 
     unit: Unit
     total: int
+    start: int
     val: dict[str, torch.Tensor]
     kept: str
 
@@ -334,7 +311,7 @@ def fit_loop(
     plan: Plan,
     gen: torch.Generator,
     best: KeepBest,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     on_validation: OnValidation | None = None,
     cancel: CancelToken | None = None,
 ) -> tuple[list[FitRecord], int]:
@@ -344,6 +321,8 @@ def fit_loop(
     processed."""
     history: list[FitRecord] = []
     optimizer, rows, count = setup.optimizer, 0, 0
+    if progress is not None:
+        progress(Began(plan.unit, plan.start, plan.total))
     for each in plan.rounds():
         count, t0 = each.count, time.perf_counter()
         model.train()
@@ -353,7 +332,7 @@ def fit_loop(
             total += loss * len(idx)
             seen += len(idx)
             if progress is not None and (b % 10 == 1 or b == each.size):
-                progress(BatchDone(plan.unit, count, b, each.size, loss.item()))
+                progress(BatchDone("batch", b, each.size, {plan.unit: count, "loss": loss.item()}))
         rows += seen
         train_loss = float(total) / seen
         if not math.isfinite(train_loss):  # the model is lost; never save it as a result
@@ -366,13 +345,18 @@ def fit_loop(
         history.append(record)
         best.observe(count, val_loss, model, optimizer)
         if progress is not None:
-            progress(Validated(plan.unit, count, plan.total, val_loss))
+            progress(Validated(plan.unit, count, plan.total, _validated(val_loss)))
         if on_validation is not None:
             on_validation(record, optimizer, gen)
         if best.stop:
             if progress is not None:  # the bar ends full, at the count reached
-                progress(Validated(plan.unit, count, count, best.val_loss, stopped_early=True))
+                progress(Validated(plan.unit, count, count, _validated(best.val_loss, True)))
             break
     best.restore(count, model, optimizer)
     model.eval()
     return history, rows
+
+
+def _validated(val_loss: float, stopped_early: bool = False) -> dict[str, Any]:
+    """The numbers of a :class:`Validated`."""
+    return {"val_loss": val_loss, "stopped_early": stopped_early}

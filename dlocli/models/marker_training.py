@@ -30,8 +30,9 @@ import torch
 from dlocli.cancel import CancelToken
 from dlocli.data.protocol import deform_score_cm
 from dlocli.errors import DloError
+from dlocli.events import Began, Callback
 from dlocli.models.base import resolve_device
-from dlocli.models.fitting import KeepBest, Progress, RolloutValidated
+from dlocli.models.fitting import KeepBest, RolloutValidated
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
 
@@ -151,13 +152,13 @@ def _fit_markers(
     train: list[Cable],
     val: list[Cable],
     fit: FitSpec,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
 ) -> list[dict[str, float]]:
     """Train ``model`` in place on one or more cables (see the module docstring); returns
     the validation history. The model ends in eval mode with the best validated weights.
-    ``progress`` gets a :class:`~dlocli.models.fitting.RolloutValidated` after each
-    validation; ``cancel`` stops the fit before the next gradient step once cancelled."""
+    ``progress`` gets a Began, then a :class:`~dlocli.models.fitting.RolloutValidated` after
+    each validation; ``cancel`` stops the fit before the next gradient step once cancelled."""
     device = resolve_device(fit.device)
     torch.manual_seed(fit.seed)
     if not bool(model.fitted):
@@ -172,6 +173,8 @@ def _fit_markers(
     history: list[dict[str, float]] = []
     best = KeepBest(keep=True)
     start, running = time.perf_counter(), []
+    if progress:
+        progress(Began("step", 0, total))
     for step in range(1, total + 1):
         if cancel is not None:
             cancel.raise_if_cancelled()
@@ -200,8 +203,9 @@ def _fit_markers(
             running = []
             best.observe(step, val_score, model)
             if progress:
-                progress(RolloutValidated("step", step, total, val_score, k=k,
-                                          train_loss=record["train_loss"]))  # fmt: skip
+                progress(RolloutValidated("step", step, total, {
+                    "val_loss": val_score, "stopped_early": False, "k": k,
+                    "train_loss": record["train_loss"]}))  # fmt: skip
     best.restore(total, model)
     model.eval()
     return history

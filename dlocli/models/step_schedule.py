@@ -19,11 +19,11 @@ import torch
 
 from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
+from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
 from dlocli.models.fitting import (
     KeepBest,
     OnValidation,
-    Progress,
     Round,
     TrainResult,
     fit_loop,
@@ -45,6 +45,7 @@ class StepPlan:
     val: dict[str, torch.Tensor]
     gen: torch.Generator
     device: torch.device
+    start: int = 0
     unit: str = "step"
     kept: str = "the model it started from is kept"
     hits: int = 0
@@ -79,7 +80,7 @@ def _train_steps(
     *,
     recent_episodes: np.ndarray | None = None,
     optimizer_state: dict | None = None,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     on_validation: OnValidation | None = None,
     cancel: CancelToken | None = None,
 ) -> TrainResult:
@@ -98,7 +99,7 @@ def _train_steps(
 
     Set-up as :func:`~dlocli.models.training._train_model`. Every random draw comes from one
     generator seeded with ``fit.seed``, so the result is a function of the seed, the data and
-    the starting weights and optimizer state. ``progress`` gets a
+    the starting weights and optimizer state. ``progress`` gets a Began, then a
     :class:`~dlocli.models.fitting.Validated` (unit "step") after each validation;
     ``on_validation`` each validation's :class:`~dlocli.models.fitting.FitRecord`, the optimizer
     and the generator; ``cancel`` stops it before the next gradient step once cancelled.

@@ -16,12 +16,12 @@ import torch
 
 from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
+from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
 from dlocli.models.fitting import (  # noqa: F401 (the training API, also from here)
     FitRecord,
     KeepBest,
     OnValidation,
-    Progress,
     Round,
     TrainResult,
     Validated,
@@ -67,7 +67,7 @@ def _train_model(
     fit: FitSpec,
     *,
     optimizer_state: dict[str, Any] | None = None,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     on_validation: OnValidation | None = None,
     start_epoch: int = 0,
     generator_state: torch.Tensor | None = None,
@@ -81,7 +81,7 @@ def _train_model(
     The model moves to ``fit.device`` and comes back in eval mode. Its normalisation is
     fitted on the training data if it was never fitted (a continued model keeps its own).
     ``optimizer_state`` resumes Adam's moments (from a previous :class:`TrainResult` or
-    checkpoint). ``progress`` gets a :class:`~dlocli.models.fitting.BatchDone` every few
+    checkpoint). ``progress`` gets a Began, a :class:`~dlocli.models.fitting.BatchDone` every few
     steps and a :class:`Validated` after each epoch; ``on_validation`` each epoch's
     :class:`FitRecord`, the optimizer and the random generator (for checkpoints), after
     ``best`` (the lowest validation loss so far) has seen it. ``start_epoch`` epochs are

@@ -11,9 +11,10 @@ import numpy as np
 
 from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
+from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
 from dlocli.models.fit import fit as fit_model
-from dlocli.models.fitting import Progress, TrainResult
+from dlocli.models.fitting import TrainResult
 from dlocli.models.spec import UpdateSpec
 
 
@@ -38,7 +39,7 @@ def train_like_online(
     dataset: Dataset,
     fit: UpdateSpec,
     updates: int,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
 ) -> TrainResult:
     """Train a fresh ``model`` on all of ``dataset`` as long as the online loop's model had

@@ -4,7 +4,6 @@ the eval report; resumable after any finished generation, on any executor."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +27,9 @@ from dlocli.calibration.fit import (
 from dlocli.calibration.history import read_history
 from dlocli.calibration.report import write_report
 from dlocli.calibration.spec import CalibrateSpec
+from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput, DloError
+from dlocli.events import Callback, Event, ignore
 from dlocli.executors import ClusterLost, check_executor, open_executor
 from dlocli.extras import require
 from dlocli.io import (
@@ -38,12 +39,12 @@ from dlocli.io import (
     write_text_atomic,
 )
 from dlocli.markers import deform
-from dlocli.processes import signal_token
 from dlocli.registry import backends
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import owned
 
-Event = dict[str, Any]
+#: a generation's record in history.json (its candidates and scores), a state read from it
+Record = dict[str, Any]
 
 
 def new_strategy(spec: CalibrateSpec, cable: Cable) -> Any:
@@ -62,7 +63,7 @@ def new_strategy(spec: CalibrateSpec, cable: Cable) -> Any:
     return cma.CMAEvolutionStrategy(x0.tolist(), spec.sigma0, options)
 
 
-def replay_history(strategy: Any, history: list[Event], out: Path) -> None:
+def replay_history(strategy: Any, history: list[Record], out: Path) -> None:
     """Feed the recorded generations to a fresh strategy; BadInput if it asks otherwise."""
     for generation in history:
         asked = np.array(strategy.ask())
@@ -75,7 +76,7 @@ def replay_history(strategy: Any, history: list[Event], out: Path) -> None:
         strategy.tell(list(asked), generation["scores"])
 
 
-def check_same_recordings(state: Event, digest: str, spec: CalibrateSpec) -> None:
+def check_same_recordings(state: Record, digest: str, spec: CalibrateSpec) -> None:
     """BadInput when the recordings a resumed run started on have changed since."""
     if state.get("recordings", digest) != digest:
         raise BadInput(
@@ -112,9 +113,17 @@ def at_recorded_rate(spec: CalibrateSpec) -> CalibrateSpec:
 
 
 def run_calibration(
-    spec: CalibrateSpec, overwrite: bool, show: Callable[[Event], None], resume: bool = False
+    spec: CalibrateSpec,
+    overwrite: bool,
+    progress: Callback | None = None,
+    resume: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
-    """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary."""
+    """Calibrate (see :mod:`dlocli.calibration.fit`); return the summary. ``progress`` gets
+    an Event per finished generation (``best_cm``: the best train score so far), per replay
+    of a generation's candidates ("replay") and per eval replay ("eval"); ``cancel`` stops it
+    between replays."""
+    progress = progress or ignore
     backends.check(spec.backend.name)
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
     check_executor(spec.executor, spec.ray_address)
@@ -133,20 +142,20 @@ def run_calibration(
         if resume:  # a run killed outright could not record its files as dlo's
             adopt_written(out, {HISTORY_FILE, "spec.json"})
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-        history: list[Event] = state.get("generations", [])
+        history: list[Record] = state.get("generations", [])
         elapsed = float(state.get("seconds", 0.0))
         try:
-            replayer = Replayer(cable, spec, executor, signal_token())
+            replayer = Replayer(cable, spec, executor, cancel)
             replay_history(strategy, history, out)
             started = time.perf_counter()
             for g in range(len(history), spec.generations):
-                history.append(_generation(strategy, replayer, cable, spec, names, g, show))
+                history.append(_generation(strategy, replayer, cable, spec, names, progress))
                 seconds = elapsed + time.perf_counter() - started
                 write_json_atomic(
                     history_file, {"generations": history, "seconds": seconds, "recordings": digest}
                 )
                 best_cm = min(min(h["scores"]) for h in history)
-                show({"generation": g + 1, "generations": spec.generations, "best_cm": best_cm})
+                progress(Event("generation", g + 1, spec.generations, {"best_cm": best_cm}))
             fit_seconds = elapsed + time.perf_counter() - started
             best = _best(history)
             calibrated = rod_spec(cable, spec.parameters, np.array(best["candidate"]))
@@ -154,7 +163,8 @@ def run_calibration(
             before, after = replayer.scores(
                 [cable.backend, calibrated],
                 eval_names,
-                lambda k, n: show({"eval_done": k, "total": n}),
+                progress,
+                "eval",
             )
         except ClusterLost as lost:  # the finished generations are in history.json
             raise DloError(lost.line(out)) from lost
@@ -176,21 +186,18 @@ def _generation(
     cable: Cable,
     spec: CalibrateSpec,
     names: list[str],
-    g: int,
-    show: Callable[[Event], None],
-) -> Event:
+    progress: Callback,
+) -> Record:
     """Ask for candidates, replay the train draw on each, tell the scores; the record."""
     candidates = np.array(strategy.ask())
     rods = [rod_spec(cable, spec.parameters, x) for x in candidates]
-    results = replayer.scores(
-        rods, names, lambda k, total: show({"generation": g, "done": k, "total": total})
-    )
+    results = replayer.scores(rods, names, progress, "replay")
     scores = [mean_score(r) for r in results]
     strategy.tell(list(candidates), scores)
     return {"candidates": candidates.tolist(), "scores": scores}
 
 
-def _best(history: list[Event]) -> Event:
+def _best(history: list[Record]) -> Record:
     """The best candidate ever scored (on the train draw)."""
     flat = [(s, c) for h in history for s, c in zip(h["scores"], h["candidates"], strict=True)]
     score, candidate = min(flat, key=lambda x: x[0])
@@ -201,10 +208,10 @@ def _summary(
     spec: CalibrateSpec,
     cable: Cable,
     names: list[str],
-    history: list[Event],
-    best: Event,
-    before: list[Event],
-    after: list[Event],
+    history: list[Record],
+    best: Record,
+    before: list[Record],
+    after: list[Record],
     seconds: float,
 ) -> dict[str, Any]:
     start = params.encode(spec.parameters, cable.backend.rod, cable.backend.name)

@@ -33,17 +33,19 @@ import os
 import re
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from dlocli.cancel import CancelToken
 from dlocli.data import DATASET_FILE, Dataset, Episode, load_dataset
 from dlocli.env.rollout import random_episode, stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env_from_spec
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.io import adopt_written, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
-from dlocli.processes import raise_if_stopped, signal_token, start_worker
+from dlocli.processes import start_worker
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import FINGERPRINTS_FILE, check_fingerprints, owned, record_fingerprints
 from dlocli.runs.checks import check_registered
@@ -54,23 +56,21 @@ PROGRESS_FILE = "progress.json"
 SUMMARY_FILE = "summary.json"
 _PART = re.compile(r"episode_(\d+)\.h5")
 
-#: called after each finished episode with the number of the run's episodes finished so far
-#: (those of earlier, resumed parts included) and the episode; on resume also once before
-#: collecting, with the number kept and no episode
-OnEpisode = Callable[[int, Episode | None], None]
-
 # One env per worker process, built once (the goal is derived from the spec's seed, so every
 # worker has the same fixed goal).
 _worker_env: DLOShapeEnv | None = None
 _worker_spec: CollectSpec | None = None
 
 
-def _init_worker(spec_json: str, parent: int | None = None) -> None:
+def _init_worker(
+    spec_json: str, parent: int | None = None, cancel: CancelToken | None = None
+) -> None:
+    """The env of this process; a pool worker's is not cancelled (its own signals end it)."""
     global _worker_env, _worker_spec
     if parent is not None:  # a pool worker: one thread, and an end with the collecting process
         start_worker(parent, threads=1)
     _worker_spec = CollectSpec.model_validate_json(spec_json)
-    _worker_env = make_env_from_spec(_worker_spec, cancel=signal_token())
+    _worker_env = make_env_from_spec(_worker_spec, cancel=cancel)
 
 
 def _collect_one(episode: int) -> Episode:
@@ -79,12 +79,14 @@ def _collect_one(episode: int) -> Episode:
     return random_episode(_worker_env, stream_seed(seed, episode), [seed, episode, 7])
 
 
-def _episodes(spec: CollectSpec, indices: list[int]) -> Iterator[tuple[int, Episode]]:
+def _episodes(
+    spec: CollectSpec, indices: list[int], cancel: CancelToken | None = None
+) -> Iterator[tuple[int, Episode]]:
     """Yield ``(index, episode)`` for ``indices`` in their order, from this process or a pool."""
     if not indices:
         return
     if spec.workers == 1:
-        _init_worker(spec.model_dump_json())
+        _init_worker(spec.model_dump_json(), cancel=cancel)
         for e in indices:
             yield e, _collect_one(e)
         return
@@ -125,9 +127,10 @@ def resumed_spec(run_dir: Path, overrides: dict[str, Any]) -> CollectSpec:
 def collect_random(
     spec: CollectSpec,
     overwrite: bool = False,
-    on_episode: OnEpisode | None = None,
+    progress: Callback | None = None,
     resume: bool = False,
     accept_changes: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Collect ``spec.episodes`` random episodes into ``spec.out/dataset.h5``; return a summary.
 
@@ -135,27 +138,29 @@ def collect_random(
     with ``resume`` the parts already in ``spec.out`` are kept and only the missing episodes
     are collected (a changed spec.json is refused unless ``accept_changes``). On
     KeyboardInterrupt the finished episodes are assembled into ``dataset.h5`` (atomically)
-    before re-raising.
+    before re-raising. ``progress`` gets a Began (unit "episode", ``done``: the episodes kept
+    from a stopped run), then an Event after each finished episode; ``cancel`` stops it
+    between episodes (and this process's env between its physics steps).
     """
     check_registered(spec)
     refuse_oversized_dataset(spec.episodes, spec.task.episode_steps, spec.backend.rod.n_segments)
     with owned(spec.out):
         if resume:
             check_fingerprints(spec.out, spec, accept_changes)
-        return _collect(spec, overwrite, on_episode, resume)
+        return _collect(spec, overwrite, progress or ignore, resume, cancel or CancelToken())
 
 
-def random_dataset(spec: CollectSpec) -> Dataset:
+def random_dataset(spec: CollectSpec, cancel: CancelToken | None = None) -> Dataset:
     """The dataset `dlo collect --random` would write for ``spec``, held in memory (nothing is
     written; ``spec.out`` is not read): ``spec.episodes`` random-action episodes, in
-    ``spec.workers`` processes."""
+    ``spec.workers`` processes; ``cancel`` stops this process's env between physics steps."""
     refuse_oversized_dataset(spec.episodes, spec.task.episode_steps, spec.backend.rod.n_segments)
-    episodes = [episode for _, episode in _episodes(spec, list(range(spec.episodes)))]
+    episodes = [episode for _, episode in _episodes(spec, list(range(spec.episodes)), cancel)]
     return Dataset.from_episodes(episodes, dataset_attrs(spec))
 
 
 def _collect(
-    spec: CollectSpec, overwrite: bool, on_episode: OnEpisode | None, resume: bool
+    spec: CollectSpec, overwrite: bool, progress: Callback, resume: bool, cancel: CancelToken
 ) -> dict[str, Any]:
     out = Path(spec.out)
     parts = out / PARTS_DIR
@@ -178,17 +183,15 @@ def _collect(
     missing = [e for e in range(spec.episodes) if e not in done]
     attrs = dataset_attrs(spec)
     n_done = len(done)
-    if n_done and on_episode is not None:
-        on_episode(n_done, None)
+    progress(Began("episode", n_done, spec.episodes))
     try:
-        for e, episode in _episodes(spec, missing):
-            raise_if_stopped()
+        for e, episode in _episodes(spec, missing, cancel):
+            cancel.raise_if_cancelled()
             Dataset.from_episodes([episode], attrs).save(part_path(out, e))
             n_done += 1
             seconds = earlier + time.perf_counter() - start
             write_json_atomic(parts / PROGRESS_FILE, {"seconds": round(seconds, 3)})
-            if on_episode is not None:
-                on_episode(n_done, episode)
+            progress(Event("episode", n_done, spec.episodes))
     except KeyboardInterrupt:
         if _part_indices(parts):
             _assemble(out, attrs).save(out / DATASET_FILE)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import importlib.util
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -32,6 +31,7 @@ from pydantic import Field
 
 from dlocli.bridge.remote import CellLost, RemoteCell
 from dlocli.bridge.spec import CellChoice
+from dlocli.cancel import CancelToken
 from dlocli.controllers.base import (
     Controller,
     LearningAgent,
@@ -42,10 +42,10 @@ from dlocli.env.metrics import episode_result, shape_error_mm
 from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event
 from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
-from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.rundir import owned
 from dlocli.runs.recording import check_record_path, open_recording
@@ -53,8 +53,6 @@ from dlocli.specs import Device, EnvSpec
 from dlocli.threads import torch_threads, warn_if_oversubscribed
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
-
-Progress = Callable[[dict[str, float]], None]
 
 
 class ControlSpec(EnvSpec, CellChoice):
@@ -166,10 +164,11 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
 
 
 def prepare(
-    spec: ControlSpec, overwrite: bool = False
+    spec: ControlSpec, overwrite: bool = False, cancel: CancelToken | None = None
 ) -> tuple[DLOShapeEnv, Controller, ControlSpec]:
-    """Check every input (outputs replaced only with ``overwrite``), build env and
-    controller; the spec comes back fully resolved."""
+    """Check every input (outputs replaced only with ``overwrite``), build env (stopped by
+    ``cancel`` between its physics steps) and controller; the spec comes back fully
+    resolved."""
     if spec.task.goal_file is None:
         raise BadInput(
             "no goal: pass --goal shape.npy, a (N,3) float .npy in metres "
@@ -183,7 +182,7 @@ def prepare(
     load_goal(spec.task.goal_file, spec.backend.rod.n_segments)  # refused before anything
     check_inputs_used(spec)
     env = make_env(spec.backend, spec.task, goal=spec.task.goal_file, seed=spec.seed, cell=spec,
-                   cancel=signal_token())  # fmt: skip
+                   cancel=cancel)  # fmt: skip
     try:
         model = load_control_model(spec, env.n_segments)
         controller = make_controller(
@@ -202,14 +201,20 @@ def prepare(
 
 # --------------------------------------------------------------------------- closed loop
 def run_control(
-    spec: ControlSpec, progress: Progress | None = None, *, overwrite: bool = False
+    spec: ControlSpec,
+    progress: Callback | None = None,
+    *,
+    overwrite: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Run the closed loop of ``spec``, write the run directory, return the summary.
 
-    ``progress`` is called after every step with that step's record (step, shape_error_mm,
-    reward, latency_ms and the controller's stats).
+    ``progress`` gets a Began of the episode's steps as its first step ends (the env reset),
+    then an Event after every step, whose ``values`` are that step's record (step,
+    shape_error_mm, reward, latency_ms and the controller's stats). ``cancel`` stops the env
+    between its physics steps.
     """
-    env, controller, spec = prepare(spec, overwrite)
+    env, controller, spec = prepare(spec, overwrite, cancel)
     with owned(spec.out):
         return _run_closed_loop(env, controller, spec, progress, overwrite)
 
@@ -218,7 +223,7 @@ def _run_closed_loop(
     env: DLOShapeEnv,
     controller: Controller,
     spec: ControlSpec,
-    progress: Progress | None,
+    progress: Callback | None,
     overwrite: bool,
 ) -> dict[str, Any]:
     try:
@@ -272,7 +277,7 @@ class Loop:
 
 
 def closed_loop(
-    env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Progress | None
+    env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Callback | None
 ) -> Loop:
     """Step ``env`` with ``controller`` from a seeded random start (:func:`dlocli.env.rollout`)."""
     timed = _Recorded(controller, env, spec, open_recording(spec.record, spec.out.name))
@@ -291,7 +296,9 @@ def closed_loop(
         if spec.video is not None and step % spec.video_every == 0:
             timed.frames.append(env.render())
         if progress is not None:
-            progress(record)
+            if step == 1:  # the rod is reset: the steps' clock starts
+                progress(Began("step", 0, spec.task.episode_steps))
+            progress(Event("step", step, spec.task.episode_steps, record))
 
     try:
         episode = rollout(env, timed, spec.seed, on_step)

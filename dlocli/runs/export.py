@@ -45,13 +45,13 @@ from pydantic import ValidationError
 
 from dlocli import __version__
 from dlocli.backends.rotations import state_change
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.shape_env import DLOShapeEnv, observation_space
 from dlocli.env.tasks import make_task
 from dlocli.errors import BadInput
 from dlocli.extras import require
 from dlocli.migrations import completed
-from dlocli.processes import raise_if_stopped
 from dlocli.specs import BackendSpec, EnvSpec, TaskSpec, format_validation_error
 
 #: the Minari data format written (h5py is a dlocli dependency already)
@@ -279,14 +279,19 @@ def _move_into_place(staged: Path, target: Path, trash: Path) -> None:
 
 # ----------------------------------------------------------------------------- export
 def _buffers(
-    data: Dataset, task: TaskSpec, env: DLOShapeEnv, skip_diverged: bool
+    data: Dataset,
+    task: TaskSpec,
+    env: DLOShapeEnv,
+    skip_diverged: bool,
+    cancel: CancelToken | None,
 ) -> tuple[list[Any], list[int]]:
     """Minari episode buffers of the episodes exported, and their indices in ``data``."""
     from minari.data_collector import EpisodeBuffer
 
     buffers, kept = [], []
     for e in range(data.n_episodes):
-        raise_if_stopped()
+        if cancel is not None:
+            cancel.raise_if_cancelled()
         episode = data.episode(e)
         if len(episode) == 0 or (skip_diverged and episode.diverged):
             continue
@@ -317,12 +322,13 @@ def export_minari(
     author: str | None = None,
     author_email: str | None = None,
     code_permalink: str | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Write the dataset at ``source`` (a run directory or dataset file) as the Minari dataset
     ``dataset_id`` (default :func:`default_dataset_id`) in ``root``; return a summary.
 
-    An existing dataset of that id is refused unless ``overwrite``. See the module docstring
-    for the mapping.
+    An existing dataset of that id is refused unless ``overwrite``; ``cancel`` stops it
+    between episodes. See the module docstring for the mapping.
     """
     require("minari", "--format minari")
     import gymnasium as gym
@@ -340,7 +346,7 @@ def export_minari(
     env = gym.make(env_spec)
     staging = Path(tempfile.mkdtemp(prefix=".dlo-export-", dir=root))
     try:
-        buffers, kept = _buffers(data, spec.task, env.unwrapped, skip_diverged)
+        buffers, kept = _buffers(data, spec.task, env.unwrapped, skip_diverged, cancel)
         if not buffers:
             raise BadInput(
                 f"dataset {source} has no episode to export (all diverged or empty); "

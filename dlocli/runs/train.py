@@ -15,9 +15,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset, MarkerDataset, load_dataset
 from dlocli.data.protocol import deform_score_cm, freeze
 from dlocli.errors import BadInput
+from dlocli.events import Callback
 from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.base import DynamicsModel, build_model, check_control_rate, resolve_device
 from dlocli.models.checkpoints import (
@@ -29,11 +31,10 @@ from dlocli.models.checkpoints import (
 )
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.fit import fit
-from dlocli.models.fitting import FitRecord, KeepBest, Progress
+from dlocli.models.fitting import FitRecord, KeepBest
 from dlocli.models.markers import FORM, build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.plots import plot_losses
-from dlocli.processes import signal_token
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.tensorboard import Scalars
@@ -90,12 +91,14 @@ def load_training_data(spec: TrainSpec) -> Dataset:
 def run_training(
     spec: TrainSpec,
     overwrite: bool = False,
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     resume: bool = False,
     accept_changes: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """`dlo train`: train, then write OUT/{spec.json, metrics.csv, summary.json,
     checkpoints/{final,best,last}.pt, plots/{loss,rollout}.png}; return the summary.
+    ``progress`` gets the fit's events; ``cancel`` stops it before its next gradient step.
 
     ``resume``: continue the run in ``spec.out`` (its saved spec) from ``checkpoints/last.pt``;
     a changed spec.json or dataset is refused unless ``accept_changes``.
@@ -105,14 +108,14 @@ def run_training(
         if resume:
             raise BadInput("--resume is not supported for marker datasets yet; train again")
         with owned(spec.out):
-            return run_marker_training(spec, dataset, overwrite, progress)
+            return run_marker_training(spec, dataset, overwrite, progress, cancel)
     if spec.rollout_steps > 1:
         raise BadInput(
             "--rollout-steps > 1 trains marker datasets (`dlo import`); rod datasets train "
             "one step: drop it"
         )
     with owned(spec.out):
-        return _train_in(spec, dataset, overwrite, progress, resume, accept_changes)
+        return _train_in(spec, dataset, overwrite, progress, resume, accept_changes, cancel)
 
 
 @dataclass
@@ -129,9 +132,10 @@ def _train_in(
     spec: TrainSpec,
     dataset: Dataset,
     overwrite: bool,
-    progress: Progress | None,
+    progress: Callback | None,
     resume: bool,
     accept_changes: bool,
+    cancel: CancelToken | None,
 ) -> dict[str, Any]:
     if resume:
         out = Path(spec.out)
@@ -166,7 +170,7 @@ def _train_in(
         result = fit(model, dataset, spec, optimizer_state=opt_state, progress=progress,
                      on_validation=on_epoch, start_epoch=done.epoch,
                      generator_state=done.generator, best=best,
-                     cancel=signal_token())  # fmt: skip
+                     cancel=cancel)  # fmt: skip
     finally:
         scalars.close()
     final = {"epoch": spec.epochs, "optimizer": result.optimizer_state, **rate}
@@ -242,7 +246,11 @@ def _json_safe(summary: dict[str, Any]) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- marker datasets
 def run_marker_training(
-    spec: TrainSpec, dataset: MarkerDataset, overwrite: bool, progress: Progress | None
+    spec: TrainSpec,
+    dataset: MarkerDataset,
+    overwrite: bool,
+    progress: Callback | None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """`dlo train` on a marker dataset: train on its train split (``val_fraction`` of those
     trajectories held out for validation; the eval split is never seen), then write
@@ -261,7 +269,7 @@ def run_marker_training(
     out = prepare_run_dir(spec.out, overwrite)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
 
-    result = fit(model, dataset, spec, progress=progress, cancel=signal_token())
+    result = fit(model, dataset, spec, progress=progress, cancel=cancel)
     history = result.history
     seconds = list(accumulate(r.seconds for r in history))  # since the fit started
     save_checkpoint(model, out / "checkpoints" / "final.pt", recorded_rate(dataset))

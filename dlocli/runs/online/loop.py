@@ -8,19 +8,19 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 import dlocli.runs.online.trials as trials
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
 from dlocli.env.shape_env import make_env_from_spec
 from dlocli.errors import DloError
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.executors import ClusterLost, LocalExecutor
-from dlocli.processes import signal_token
 from dlocli.runs.collect import dataset_attrs
 from dlocli.runs.online.results import OnlineResults
 from dlocli.runs.online.spec import (
@@ -34,21 +34,28 @@ from dlocli.runs.online.spec import (
 from dlocli.runs.references import ReferenceTable
 from dlocli.tensorboard import Scalars
 
-Progress = Callable[[str, dict[str, Any]], None]
-
 
 class OnlineRun:
     """Algorithm 1 over a run directory; :meth:`run` can be called again to resume."""
 
     def __init__(
-        self, spec: OnlineSpec, progress: Progress | None = None, executor: Any = None
+        self,
+        spec: OnlineSpec,
+        progress: Callback | None = None,
+        executor: Any = None,
+        cancel: CancelToken | None = None,
     ) -> None:
         """``executor``: where trials run (:mod:`dlocli.executors`), connected; None: the
-        local processes of ``spec.workers``, ended with :meth:`run`."""
+        local processes of ``spec.workers``, ended with :meth:`run`. ``progress`` gets the
+        iterations, the random episodes ("random"), each update's fit (its start and
+        validations, in epochs or steps) and the trials, as :class:`~dlocli.events.Event`;
+        ``cancel`` stops the updates between gradient steps and the envs of this process
+        between physics steps (a trial in another process ends with it)."""
         self.spec = spec
         self.paths = RunLayout(spec.out)
         self.results = OnlineResults(spec)
-        self.progress = progress or (lambda event, info: None)
+        self.progress = progress or ignore
+        self.cancel = cancel
         self._own_executor = executor is None
         self.executor = executor or LocalExecutor(spec.workers, job_threads(spec))
         self.scalars = Scalars(None)
@@ -60,12 +67,12 @@ class OnlineRun:
         if path.is_file():
             return load_dataset(path)
 
-        env = make_env_from_spec(trials.env_spec(self.spec), cancel=signal_token())
+        env = make_env_from_spec(trials.env_spec(self.spec), cancel=self.cancel)
         episodes = []
         try:
             for e in range(self.spec.initial_episodes):
                 episodes.append(trials.random_data_episode(env, self.spec.seed, e))
-                self.progress("initial", {"episode": e + 1, "total": self.spec.initial_episodes})
+                self.progress(Event("random", e + 1, self.spec.initial_episodes))
         finally:
             env.close()
         data = Dataset.from_episodes(episodes, dataset_attrs(trials.env_spec(self.spec)))
@@ -112,7 +119,6 @@ class OnlineRun:
             update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
         )
         start = time.perf_counter()
-        self.progress("update", {"iteration": k, "unit": fit.unit, "total": fit.length})
 
         def log(record: FitRecord, *_: Any) -> None:
             at = (k - 1) * fit.length + record.count  # over the run
@@ -126,9 +132,9 @@ class OnlineRun:
                 fit,
                 recent_episodes=np.arange(first_new, data.n_episodes),
                 optimizer_state=opt_state,
-                progress=self._validations(k),
+                progress=self._validations(),
                 on_validation=log,
-                cancel=signal_token(),  # Ctrl-C and SIGTERM stop it between gradient steps
+                cancel=self.cancel,
             )
             threads = torch.get_num_threads()
         extra = {"steps": result.steps, "best_step": result.best_step} if result.steps else {}
@@ -167,16 +173,17 @@ class OnlineRun:
             update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
         )
         start = time.perf_counter()
-        self.progress("update", {"iteration": k, "unit": "step", "total": fit.update_steps})
 
-        def report(event: Any) -> None:
+        def report(event: Event) -> None:
             if isinstance(event, RolloutValidated):
-                self.scalars.add((k - 1) * fit.update_steps + event.count, "loss",
-                                 train=event.train_loss, val=event.val_loss)  # fmt: skip
-                self.progress("validation", {"iteration": k, **event.as_dict()})
+                self.scalars.add((k - 1) * fit.update_steps + int(event.done), "loss",
+                                 train=event.values["train_loss"],
+                                 val=event.values["val_loss"])  # fmt: skip
+            if isinstance(event, Began | RolloutValidated):
+                self.progress(event)
 
         with update_threads(self.spec):
-            result = update_marker_model(model, data, self.spec, fit, report, signal_token())
+            result = update_marker_model(model, data, self.spec, fit, report, self.cancel)
             threads = torch.get_num_threads()
         best = result.best_val_loss  # the best validation score (cm)
         save_checkpoint(model, self.paths.checkpoint(k), {
@@ -186,13 +193,14 @@ class OnlineRun:
             "control_dt": self.spec.task.control_dt,
         })  # fmt: skip
 
-    def _validations(self, k: int) -> Callable[[Any], None]:
-        """A fit's progress callback that reports its validations as iteration k's."""
+    def _validations(self) -> Callback:
+        """A fit's progress callback that passes on its start and validations (not its
+        batches)."""
         from dlocli.models.fitting import Validated
 
-        def report(event: Any) -> None:
-            if isinstance(event, Validated):
-                self.progress("validation", {"iteration": k, **event.as_dict()})
+        def report(event: Event) -> None:
+            if isinstance(event, Began | Validated):
+                self.progress(event)
 
         return report
 
@@ -207,7 +215,7 @@ class OnlineRun:
                 self.results.add_trial(k, j, found[j], offline)
         todo = [j for j in range(1, self.spec.trials + 1) if j not in found]
         done = len(found)
-        self.progress("trials", {"iteration": k, "done": done, "total": self.spec.trials})
+        self.progress(Began("trial", done, self.spec.trials))
         if todo:
             spec_json = self.trial_spec().model_dump_json()
             model = self.executor.share(Path(checkpoint).read_bytes())
@@ -219,9 +227,7 @@ class OnlineRun:
                 found[j].save(self.paths.trial(k, j, offline))
                 self.results.add_trial(k, j, found[j], offline)
                 done += 1
-                self.progress(
-                    "trial", {"iteration": k, "trial": done, "total": self.spec.trials, **attrs}
-                )
+                self.progress(Event("trial", done, self.spec.trials, {"iteration": k, **attrs}))
         return [found[j] for j in range(1, self.spec.trials + 1)]
 
     def trial_spec(self) -> OnlineSpec:
@@ -242,7 +248,6 @@ class OnlineRun:
         missing = table.missing(k, self.spec.trials)
         if not missing:
             return
-        self.progress("references", {"iteration": k, "total": len(missing)})
         spec_json = self.spec.model_dump_json()
         shares = [missing[w :: self.spec.workers] for w in range(self.spec.workers)]
         calls = [(spec_json, k, share) for share in shares if share]
@@ -271,7 +276,7 @@ class OnlineRun:
             )
             with update_threads(self.spec):
                 train_like_online(  # as long as the online model had trained by iteration k
-                    model, data, fit, k, progress=self._validations(k), cancel=signal_token()
+                    model, data, fit, k, progress=self._validations(), cancel=self.cancel
                 )
             save_checkpoint(model, ckpt, {"iteration": k, "offline": 1,
                                           "control_dt": self.spec.task.control_dt})  # fmt: skip
@@ -284,7 +289,7 @@ class OnlineRun:
             return load_dataset(path)
 
         data = load_dataset(self.paths.initial())
-        env = make_env_from_spec(trials.env_spec(self.spec), cancel=signal_token())
+        env = make_env_from_spec(trials.env_spec(self.spec), cancel=self.cancel)
         try:
             e = self.spec.initial_episodes
             while data.n_transitions < n_transitions:
@@ -307,7 +312,7 @@ class OnlineRun:
         data = self.initial_dataset()
         try:
             for k in range(1, self.spec.iters + 1):
-                self.progress("iteration", {"iteration": k, "total": self.spec.iters})
+                self.progress(Event("iteration", k - 1, self.spec.iters, {"running": k}))
                 self.update_model(k, data)
                 new = self.run_trials(k, self.paths.checkpoint(k))
                 self.run_references(k)
@@ -317,7 +322,7 @@ class OnlineRun:
                 summary = self.results.write(time.perf_counter() - start)
                 if k > logged:  # TensorBoard gets each iteration once across resumes
                     self.log_iteration(summary["curve"][k - 1])
-                self.progress("iteration done", {"iteration": k, "total": self.spec.iters})
+                self.progress(Event("iteration", k, self.spec.iters))
             return self.results.write(time.perf_counter() - start, final=True)
         except ClusterLost as lost:
             raise DloError(lost.line(self.spec.out)) from lost

@@ -20,6 +20,7 @@ from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.env.observation import MarkerLayout, held_markers, marker_layout
 from dlocli.errors import BadInput
+from dlocli.events import Callback
 from dlocli.models.fit import fit as fit_model
 from dlocli.models.fitting import TrainResult
 from dlocli.models.marker_training import Cable, Cables
@@ -69,7 +70,7 @@ def update_marker_model(
     data: Dataset,
     spec: Any,
     fit: Any,
-    progress: Any = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
 ) -> TrainResult:
     """Train the marker ``model`` on D (``spec``: the online spec) in place; ``cancel`` stops

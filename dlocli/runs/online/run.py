@@ -7,13 +7,15 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from dlocli.cancel import CancelToken
+from dlocli.events import Callback
 from dlocli.executors import check_executor, open_executor
 from dlocli.io import adopt_written, prepare_run_dir, write_json_atomic
 from dlocli.limits import refuse_oversized_dataset
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.runs.checks import check_registered
-from dlocli.runs.online.loop import OnlineRun, Progress
+from dlocli.runs.online.loop import OnlineRun
 from dlocli.runs.online.spec import (
     FREE_FIELDS,
     OnlineSpec,
@@ -44,7 +46,10 @@ def check_online(spec: OnlineSpec) -> None:
 
 
 def start_online(
-    spec: OnlineSpec, overwrite: bool = False, progress: Progress | None = None
+    spec: OnlineSpec,
+    overwrite: bool = False,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """A new run in ``spec.out``; with ``overwrite``, a previous run's state there is dropped
     first (its trials and checkpoints would otherwise be taken as this run's, as on resume)."""
@@ -58,14 +63,15 @@ def start_online(
         RunLayout(out).references().unlink(missing_ok=True)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         record_fingerprints(out, spec)
-        return OnlineRun(spec, progress, executor).run()
+        return OnlineRun(spec, progress, executor, cancel).run()
 
 
 def resume_online(
     run_dir: Path,
     overrides: dict[str, Any],
-    progress: Progress | None = None,
+    progress: Callback | None = None,
     accept_changes: bool = False,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Continue the run in ``run_dir``; flags that contradict its spec are refused (but for
     where trials run: :data:`~dlocli.runs.online.spec.FREE_FIELDS`), and so is a changed
@@ -78,7 +84,7 @@ def resume_online(
         if _changed_free_fields(run_dir, spec):  # the saved spec says where trials run now
             write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
             record_fingerprints(run_dir, spec)
-        return OnlineRun(spec, progress, executor).run()
+        return OnlineRun(spec, progress, executor, cancel).run()
 
 
 def _changed_free_fields(run_dir: Path, spec: OnlineSpec) -> bool:
