@@ -270,6 +270,11 @@ def _path_fields(spec: Any, outputs: bool = False) -> Iterator[tuple[str, Path]]
                 yield from walk(value, f"{prefix}{name}.")
             elif isinstance(value, Path) and (name in OUTPUT_FIELDS) == outputs:
                 yield prefix + name, value
+            elif isinstance(value, list) and (name in OUTPUT_FIELDS) == outputs:
+                # several paths: the first keeps the field's own name (as when it held one)
+                paths = [v for v in value if isinstance(v, Path)]
+                for k, path in enumerate(paths):
+                    yield prefix + name + (f".{k}" if k else ""), path
 
     return walk(spec, "")
 

@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 from collections import defaultdict
+from typing import get_origin
 
 from typer.testing import CliRunner
 
@@ -38,11 +39,14 @@ def test_every_run_command_offers_its_spec_and_flags_that_reach_its_fields():
 
 
 def test_one_flag_name_one_meaning():
+    """A flag means one field of one type everywhere (a repeatable list of a type, as
+    `dlo train --data A --data B`, means what the type does)."""
     meanings = defaultdict(set)
     for _, command in spec_commands():
         for flag, dotted in command.spec_fields.items():
-            info = field_info(command.spec_cls, dotted)
-            meanings[flag].add((dotted.split(".")[-1], str(strip_none(info.annotation))))
+            kind = strip_none(field_info(command.spec_cls, dotted).annotation)
+            kind = kind.__args__[0] if get_origin(kind) is list else kind
+            meanings[flag].add((dotted.split(".")[-1], str(kind)))
     mixed = {flag: sorted(m) for flag, m in meanings.items() if len(m) > 1}
     assert not mixed, mixed
     assert meanings["model"] == {("name", "<class 'str'>")}  # a trained model is --checkpoint

@@ -26,10 +26,11 @@ DOCS = ROOT / "docs"
 #: pages whose commands another test runs end to end, with checks of its own
 RUN_ELSEWHERE = {"own_cable.md": "test_own_cable.py"}
 #: a page's count flags and the value they run at here
-COUNTS = {"--episodes": "2", "--iters": "1", "--workers": "1", "--num-cpus": "2"}
+COUNTS = {"--episodes": "2", "--iters": "1", "--workers": "1", "--num-cpus": "2",
+          "--update-steps": "20"}  # fmt: skip
 #: numeric flags of the pages that are not counts: kept as written
 NOT_COUNTS = {"--seed", "--delay-ms", "--control-hz", "--fill-gaps", "--noise-mm",
-              "--latency-steps", "--markers"}  # fmt: skip
+              "--latency-steps", "--markers", "--lr"}  # fmt: skip
 #: flags each command gets on top of the page's, by command (and by the form of its data)
 CUTS = {
     "collect": ["--steps", "10"],
@@ -85,7 +86,9 @@ def prepared(argv: list[str], places: dict[str, str]) -> list[str]:
             assert flag in NOT_COUNTS, f"the docs' {flag} {value}: cut it in COUNTS or list it"
     if "--resume" in words:  # a resumed run keeps the counts it started with
         return words
-    form = " markers" if words[1] == "train" and "real_cables" in " ".join(words) else ""
+    # a marker dataset's training: a recipe of examples/real_cables, or gradient steps
+    markers = "real_cables" in " ".join(words) or "--update-steps" in words
+    form = " markers" if words[1] == "train" and markers else ""
     return words + CUTS.get(words[1] + form, [])
 
 

@@ -106,6 +106,8 @@ def _flag_type(annotation: Any) -> tuple[Any, str, str]:
     annotation = strip_none(annotation)
     if get_origin(annotation) is Literal:
         return str, "|".join(str(a) for a in get_args(annotation)), ""
+    if annotation == list[Path]:
+        return list[Path], "PATH", ""  # a repeatable flag (its description says so)
     if get_origin(annotation) in (list, tuple):
         return str, "A,B,...", " Comma-separated."
     if annotation in METAVARS:
@@ -149,6 +151,8 @@ def _option(spec_cls: type[Spec], dotted: str, required: bool = False) -> tuple[
 def _value(spec_cls: type[Spec], dotted: str, value: Any) -> Any:
     """A flag's value as the field takes it (a comma-separated list split)."""
     annotation = strip_none(field_info(spec_cls, dotted).annotation)
+    if isinstance(value, list):  # a repeated flag
+        return value or None
     if value is not None and get_origin(annotation) in (list, tuple):
         return [part.strip() for part in str(value).split(",") if part.strip()]
     return value

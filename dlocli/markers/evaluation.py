@@ -48,20 +48,22 @@ def evaluate_markers(
         curves["free_error_mm"][name] = np.mean(free, 0).round(3).tolist()
         per_coordinate = [np.abs(p - e).mean((1, 2)) * 100 for p, e in pairs]
         curves["abs_error_cm"][name] = np.mean(per_coordinate, 0).round(4).tolist()
-    summary["ms_per_step_1_thread"] = round(time_per_step_ms(model, episodes[0]), 3)
+    summary["ms_per_step_1_thread"] = round(time_per_step_ms(model, episodes[0], held), 3)
     return summary, curves
 
 
 @torch.no_grad()
-def time_per_step_ms(model: MarkerModel, episode: np.ndarray) -> float:
-    """Median over 3 runs of a batch-1 open-loop rollout's time per step, one CPU thread."""
+def time_per_step_ms(model: MarkerModel, episode: np.ndarray, held: np.ndarray) -> float:
+    """Median over 3 runs of a batch-1 open-loop rollout's time per step, one CPU thread, of
+    the cable whose markers ``held`` marks."""
     cpu = model if model.device.type == "cpu" else copy.deepcopy(model).to("cpu")
     rec = torch.as_tensor(episode[None, : TIMING_STEPS + 2], dtype=torch.float32)
+    mask = torch.as_tensor(held, dtype=torch.bool)
     times = []
     with torch_threads(1):
         for _ in range(3):
             start = time.perf_counter()
-            cpu.rollout(rec[:, 1], rec[:, 0], rec[:, 2:])
+            cpu.rollout(rec[:, 1], rec[:, 0], rec[:, 2:], mask)
             times.append((time.perf_counter() - start) / (len(rec[0]) - 2))
     return float(np.median(times) * 1000.0)
 

@@ -67,6 +67,7 @@ class AlongCable(torch.nn.Module):
 class Attention(Network):
     """Self-attention over the nodes along the cable (see the module docstring)."""
 
+    any_count: ClassVar[bool] = True
     spec_cls: ClassVar[type[ModelSpec]] = AttentionSpec
     cable_geometry: ClassVar[bool] = True
     spec: AttentionSpec

@@ -44,6 +44,7 @@ from dlocli.models.spec import INBiLSTMSpec, ModelSpec
 class INBiLSTM(Network):
     """Interaction Network + bi-LSTM along the cable (the paper's model)."""
 
+    any_count: ClassVar[bool] = True
     spec_cls: ClassVar[type[ModelSpec]] = INBiLSTMSpec
     spec: INBiLSTMSpec
 

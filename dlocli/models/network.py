@@ -54,6 +54,9 @@ class Network(torch.nn.Module):
     #: the marker view appends each marker's neighbour vectors, their lengths and the
     #: cable's length to its inputs: for networks that serve cables of any marker count
     cable_geometry: ClassVar[bool] = False
+    #: its weights do not depend on the node count: one trained network serves cables of
+    #: any marker count (`dlo train` on several cables, `dlo eval` on a new one)
+    any_count: ClassVar[bool] = False
 
     def __init__(self, spec: ModelSpec, nodes: Nodes) -> None:
         super().__init__()

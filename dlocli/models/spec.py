@@ -6,7 +6,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo, model_validator
+from pydantic import (
+    BeforeValidator,
+    Field,
+    SerializeAsAny,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import RETIRED_TRAIN_FIELDS, model_data, without_retired_train_fields
@@ -262,7 +269,11 @@ class TrainSpec(FitSpec):
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("data",)
 
-    data: Path | None = Field(None, description="Dataset file or collect run directory.")
+    data: list[Path] | None = Field(
+        None,
+        description="Dataset file or collect run directory; repeat --data to train one model "
+        "on several recorded cables (marker datasets from `dlo import`).",
+    )
     model: ModelField = model_field("Model and sizes.")
     init_from: Path | None = Field(
         None, description="Checkpoint or run directory to continue training from."
@@ -271,6 +282,12 @@ class TrainSpec(FitSpec):
     # smaller than the online loop's: at lr 1e-4 the deep f_e -> LSTM -> f_v path needs the
     # extra steps within 50 epochs
     batch_size: int = Field(16, gt=0, le=MAX_COUNT, description="Transitions per gradient step.")
+
+    @field_validator("data", mode="before")
+    @classmethod
+    def _one_or_more(cls, value: Any) -> Any:
+        # one dataset, as runs saved before several could be given
+        return [value] if isinstance(value, str | Path) else value
 
     @classmethod
     def saved_layout(cls, data: Any) -> Any:

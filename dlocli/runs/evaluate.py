@@ -42,7 +42,8 @@ def run_evaluation(
     if isinstance(dataset, MarkerDataset):
         dataset.require_split("eval")
     net = load_model(spec.checkpoint, spec.device, form=dataset.form)  # the data's form
-    if dataset.n_segments != net.n_segments:
+    serves_any = isinstance(dataset, MarkerDataset) and net.network.any_count
+    if dataset.n_segments != net.n_segments and not serves_any:
         raise BadInput(
             f"model {spec.checkpoint} is for {net.n_segments} segments but {spec.data} has "
             f"{dataset.n_segments}; evaluate on matching data"

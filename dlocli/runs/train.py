@@ -8,23 +8,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from itertools import accumulate
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from dlocli.cancel import CancelToken
 from dlocli.data import Dataset, MarkerDataset, load_dataset
-from dlocli.data.protocol import deform_score_cm, freeze
 from dlocli.errors import BadInput
 from dlocli.events import Callback
-from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
-from dlocli.models.base import DynamicsModel, build_model, check_control_rate, resolve_device
+from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.models.base import DynamicsModel, build_model, resolve_device
 from dlocli.models.checkpoints import (
-    CONTROL_DT,
-    load_marker_model,
     load_model,
     read_checkpoint,
     save_checkpoint,
@@ -32,11 +27,11 @@ from dlocli.models.checkpoints import (
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.fit import fit
 from dlocli.models.fitting import FitRecord, KeepBest
-from dlocli.models.markers import FORM, build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.plots import plot_losses
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
+from dlocli.runs.train_markers import check_init_rate, recorded_rate, run_marker_training
 from dlocli.tensorboard import Scalars
 
 LAST_CHECKPOINT = Path("checkpoints") / "last.pt"  # after every epoch, for --resume
@@ -52,7 +47,7 @@ def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dic
     if spec.init_from is not None:
         expect = spec.model if "model" in spec.model_fields_set else None
         model = load_model(spec.init_from, device, expect=expect)
-        check_init_rate(model, spec, dataset)
+        check_init_rate(model, spec, dataset, spec.data[0])
         opt_state = read_checkpoint(spec.init_from).get("optimizer")
         if model.n_segments != dataset.n_segments:
             raise BadInput(
@@ -64,28 +59,23 @@ def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dic
     return build_model(spec.model, dataset.n_segments).to(device), None
 
 
-def check_init_rate(model: Any, spec: TrainSpec, dataset: Dataset | MarkerDataset) -> None:
-    """BadInput if the --init-from model learned from data at another control period."""
-    if dataset.control_dt is not None:
-        check_control_rate(model, dataset.control_dt, f"--init-from {spec.init_from}",
-                           f"--data {spec.data} is", "fine-tune it on data at {hz} Hz")  # fmt: skip
-
-
-def recorded_rate(dataset: Dataset | MarkerDataset) -> dict[str, float]:
-    """What a checkpoint records of the data's control period (nothing where it is unknown)."""
-    return {} if dataset.control_dt is None else {CONTROL_DT: dataset.control_dt}
-
-
-def load_training_data(spec: TrainSpec) -> Dataset:
-    if spec.data is None:
+def load_training_data(spec: TrainSpec) -> Dataset | list[MarkerDataset]:
+    """The rod dataset of ``--data``, or its marker datasets (one or several cables)."""
+    if not spec.data:
         raise BadInput("no dataset given; pass --data DATASET (make one: `dlo collect --random`)")
-    dataset = load_dataset(spec.data)
-    if dataset.n_episodes < 2 and spec.val_fraction > 0:
-        raise BadInput(
-            f"dataset {spec.data} has {dataset.n_episodes} episode; validation is split by "
-            "trajectory, so collect at least 2 (or pass --val-fraction 0)"
-        )
-    return dataset
+    datasets = [load_dataset(path) for path in spec.data]
+    for path, dataset in zip(spec.data, datasets, strict=True):
+        if len(datasets) > 1 and not isinstance(dataset, MarkerDataset):
+            raise BadInput(
+                f"--data {path} is simulated rod data; several --data train one model on "
+                "recorded cables (marker datasets from `dlo import`): pass one rod dataset"
+            )
+        if dataset.n_episodes < 2 and spec.val_fraction > 0:
+            raise BadInput(
+                f"dataset {path} has {dataset.n_episodes} episode; validation is split by "
+                "trajectory, so collect at least 2 (or pass --val-fraction 0)"
+            )
+    return datasets if isinstance(datasets[0], MarkerDataset) else datasets[0]
 
 
 def run_training(
@@ -104,7 +94,7 @@ def run_training(
     a changed spec.json or dataset is refused unless ``accept_changes``.
     """
     dataset = load_training_data(spec)
-    if isinstance(dataset, MarkerDataset):
+    if isinstance(dataset, list):  # recorded cables
         if resume:
             raise BadInput("--resume is not supported for marker datasets yet; train again")
         with owned(spec.out):
@@ -242,82 +232,3 @@ def _json_safe(summary: dict[str, Any]) -> dict[str, Any]:
     return {
         k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in summary.items()
     }
-
-
-# ---------------------------------------------------------------------- marker datasets
-def run_marker_training(
-    spec: TrainSpec,
-    dataset: MarkerDataset,
-    overwrite: bool,
-    progress: Callback | None,
-    cancel: CancelToken | None = None,
-) -> dict[str, Any]:
-    """`dlo train` on a marker dataset: train on its train split (``val_fraction`` of those
-    trajectories held out for validation; the eval split is never seen), then write
-    OUT/{spec.json, metrics.csv, summary.json, checkpoints/final.pt, plots/loss.png}."""
-    torch.manual_seed(spec.seed)
-    if spec.init_from is not None:  # fine-tuning: the checkpoint's model and normalization
-        model = load_marker_model(spec.init_from)
-        check_init_rate(model, spec, dataset)
-        if not np.array_equal(model.held.cpu().numpy(), dataset.held):
-            raise BadInput(
-                f"--init-from {spec.init_from} was trained on another marker layout than "
-                "--data (held markers differ); pass a checkpoint of the same cable"
-            )
-    else:
-        model = build_marker_model(spec.model, dataset.n_markers, dataset.held)
-    out = prepare_run_dir(spec.out, overwrite)
-    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-
-    result = fit(model, dataset, spec, progress=progress, cancel=cancel)
-    history = result.history
-    seconds = list(accumulate(r.seconds for r in history))  # since the fit started
-    save_checkpoint(model, out / "checkpoints" / "final.pt", recorded_rate(dataset))
-    lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
-    lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
-              for r, s in zip(history, seconds, strict=True)]  # fmt: skip
-    write_text_atomic(out / "metrics.csv", "\n".join(lines) + "\n")
-    best = min((r.val_loss for r in history), default=math.nan)
-    val = [dataset.episodes("train")[i] for i in result.val_episodes]
-    summary = {
-        "model": spec.model.name,
-        "form": FORM,
-        "parameters": sum(p.numel() for p in model.parameters()),
-        "device": str(model.device),
-        "update_steps": spec.update_steps,
-        "rollout_steps": spec.rollout_steps,
-        "train_episodes": len(result.train_episodes),
-        "val_episodes": len(val),
-        "val_score_cm": None if math.isnan(best) else round(best, 4),
-        "val_freeze_cm": round(
-            float(np.mean([deform_score_cm(freeze(e, dataset.held), e) for e in val])), 4
-        )
-        if val
-        else None,  # fmt: skip
-        "seconds": round(seconds[-1], 1) if history else 0.0,
-        "out": str(out),
-    }
-    _plot_history(history, out / "plots" / "loss.png")
-    write_json_atomic(out / "summary.json", summary)
-    return summary
-
-
-def _plot_history(history: list[FitRecord], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    steps = [r.count for r in history]
-    ax.plot(steps, [r.train_loss for r in history], label="train: k-step rollout L1 (cm)")
-    ax.plot(steps, [r.val_loss for r in history], label="validation: whole rollout (cm)")
-    ax.set_xlabel("gradient step")
-    ax.set_ylabel("cm")
-    ax.set_yscale("log")
-    ax.legend()
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)

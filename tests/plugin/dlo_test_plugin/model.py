@@ -22,6 +22,7 @@ class ChainNetwork(Network):
     """Each node on its own: one MLP from its inputs to its output."""
 
     spec_cls: ClassVar[type[ModelSpec]] = ChainSpec
+    any_count: ClassVar[bool] = True  # one MLP per node, whatever their number
 
     def __init__(self, spec: ChainSpec, nodes: Nodes) -> None:
         super().__init__(spec, nodes)
