@@ -7,6 +7,7 @@ and random actions from the same starts to the same goals.
     python examples/robustness/study.py train     # the learners (resumable; hours on 2 CPUs)
     python examples/robustness/study.py evaluate  # every learner under every setting
     python examples/robustness/study.py report    # table.md, results.csv, robustness.png
+    python examples/robustness/study.py camera-report  # camera_table.md, camera.csv, camera.png
 
 Everything lands in --out (default runs/robustness); ``report`` writes the table and figure
 into this folder. Sizes are options (--budget, --seeds, ...); the committed results say
@@ -29,6 +30,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 EVAL_STREAM = 77  # the evaluation episodes' seed stream, apart from every training stream
+#: the depth camera without its faults (depth noise, invalid pixels, stray points)
+CLEAN_CAMERA = {"noise_mm": 0.0, "noise_growth_mm": 0.0, "invalid_fraction": 0.0,
+                "stray_fraction": 0.0}  # fmt: skip
 
 #: the evaluation settings: one fault at a time, then the acceptance setting and all at once
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -54,10 +58,16 @@ SETTINGS: dict[str, dict[str, Any]] = {
     # observation): the camera's defaults (depth noise, stray points, grippers in view), and
     # without its faults
     "camera": {"kind": "pointcloud"},
-    "camera clean": {"kind": "pointcloud", "camera": {"noise_mm": 0.0, "noise_growth_mm": 0.0,
-                                                      "invalid_fraction": 0.0,
-                                                      "stray_fraction": 0.0}},
+    "camera clean": {"kind": "pointcloud", "camera": CLEAN_CAMERA},
+    # why the camera costs what it costs: a frame every control step (the default camera
+    # takes one every second step, 25 Hz), and grippers that hide no cable
+    "camera clean 50 Hz": {"kind": "pointcloud", "camera": CLEAN_CAMERA | {"rate_hz": 50.0}},
+    "camera clean grippers unseen": {"kind": "pointcloud",
+                                      "camera": CLEAN_CAMERA | {"see_grippers": False}},
 }  # fmt: skip
+#: the settings of the camera's own table (camera.md), beside the clean markers
+CAMERA_SETTINGS = ["clean", "camera", "camera clean", "camera clean 50 Hz",
+                   "camera clean grippers unseen"]  # fmt: skip
 
 
 def task(options: argparse.Namespace, observation: dict[str, Any]) -> dict[str, Any]:
@@ -83,6 +93,8 @@ def learners(options: argparse.Namespace) -> list[tuple[str, int]]:
 LONGER = {"-20k": 20000}
 #: a learner named NAME-raw is NAME's model planned from the tracker's raw report
 RAW = "-raw"
+#: a learner named NAME-prior is NAME's, its model also the camera tracker's prior
+PRIOR = "-prior"
 
 
 def online_spec(options: argparse.Namespace, name: str, seed: int) -> Any:
@@ -169,6 +181,11 @@ def evaluate(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str, An
     rows = []
     try:
         controller = make_agent(options, env, name, seed)
+        if name.endswith(PRIOR) and getattr(env.tracker, "tracker", None) is not None:
+            from dlocli.tracking.marker_prior import MarkerModelPrior
+
+            held = env.marker_layout.held
+            env.tracker.tracker.prior = MarkerModelPrior(controller.model, held)
         for i in range(options.eval_episodes):
             start = time.perf_counter()
             if name in ("zero", "random"):
@@ -176,10 +193,31 @@ def evaluate(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str, An
             episode = rollout(env, controller, stream_seed(seed, EVAL_STREAM, i))
             scores = episode_scores(episode, env.task_spec.episode_steps)
             rows.append({"learner": name, "seed": seed, "setting": setting, "episode": i,
-                         **scores, "seconds": round(time.perf_counter() - start, 2)})  # fmt: skip
+                         **scores, "seconds": round(time.perf_counter() - start, 2),
+                         **tracking_errors(env, episode)})  # fmt: skip
     finally:
         env.close()
     return rows
+
+
+def tracking_errors(env: Any, episode: Any) -> dict[str, float]:
+    """What the controller was told of the free markers against where they were, over the
+    episode: the mean distance (mm), at the free markers beside the held ones (the grippers
+    hide them from a camera), and the share of free marker reports flagged seen."""
+    layout = getattr(env, "marker_layout", None)
+    if layout is None or episode.markers is None:
+        return {}
+    from dlocli.env.observation import markers_of_state
+
+    true = markers_of_state(layout, episode.positions, episode.quaternions, episode.grippers)
+    steps = min(len(true), len(episode.markers))
+    error = np.linalg.norm(episode.markers[:steps] - true[:steps], axis=-1) * 1e3  # (T, M)
+    free = np.flatnonzero(~layout.held)
+    ends = free[[0, -1]]
+    return {"tracking_mm": float(error[:, free].mean()),
+            "tracking_ends_mm": float(error[:, ends].mean()),
+            "tracking_final_mm": float(error[-1, free].mean()),
+            "seen_share": float(episode.visible[:steps][:, free].mean())}  # fmt: skip
 
 
 def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> Any:
@@ -188,6 +226,7 @@ def make_agent(options: argparse.Namespace, env: Any, name: str, seed: int) -> A
 
     if name in ("zero", "random"):
         return None
+    name = name.removesuffix(PRIOR)
     raw = name.endswith(RAW)  # the same model, planned from the raw report
     learned = options.out / "learners" / f"{name.removesuffix(RAW)}-s{seed}"
     if name.startswith("sac"):
@@ -209,7 +248,7 @@ def evaluation_jobs(options: argparse.Namespace) -> list[tuple[Any, ...]]:
     jobs += [(options, "mpc-markers-noise5", s, setting)
              for s in range(options.noise_trained_seeds) for setting in SETTINGS]  # fmt: skip
     if options.learners is not None:  # these learners only, the longer runs among them
-        longer = [n for n in options.learners if n.endswith((*LONGER, RAW))]
+        longer = [n for n in options.learners if n.endswith((*LONGER, RAW, PRIOR))]
         jobs += [(options, n, s, setting) for s in range(options.seeds) for n in longer
                  for setting in SETTINGS]  # fmt: skip
         jobs = [job for job in jobs if job[1] in options.learners]
@@ -229,16 +268,99 @@ def merge_rows(path: Path, rows: list[dict[str, Any]]) -> None:
 # ----------------------------------------------------------------------------- report
 def report(options: argparse.Namespace) -> None:
     rows = json.loads((options.out / "evaluation.json").read_text())
-    import csv
-
-    with open(HERE / "results.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(HERE / "results.csv", rows)
     table = summarise(rows)
     (HERE / "table.md").write_text(markdown(table))
     plot(table, HERE / "robustness.png")
     print(markdown(table))
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    import csv
+
+    fields = list(dict.fromkeys(k for r in rows for k in r))  # camera rows have more columns
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def camera_report(options: argparse.Namespace) -> None:
+    """camera.csv, camera_table.md and camera.png: the marker learners through the depth
+    camera beside the clean markers, the exact state, doing nothing and random actions."""
+    rows = json.loads((options.out / "evaluation.json").read_text())
+    rows = [r for r in rows if r["setting"] in CAMERA_SETTINGS]
+    write_csv(HERE / "camera.csv", rows)
+    table = summarise(rows)
+    extra = {}
+    for (name, setting), _ in table.items():
+        cell = [r for r in rows if (r["learner"], r["setting"]) == (name, setting)]
+        extra[(name, setting)] = {k: float(np.mean([r.get(k, np.nan) for r in cell]))
+                                  for k in ("tracking_mm", "tracking_ends_mm", "seen_share",
+                                            "seconds")}  # fmt: skip
+    lines = ["| learner | observation | seeds | initial error (mm) | final error (mm) | score | "
+             "tracking error (mm) | at the held ends (mm) | seen | s / episode |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    names = sorted({n for n, _ in table}, key=lambda n: (n not in LEARNERS, n))
+    order = [n for n in LEARNERS if n in names] + [n for n in names if n not in LEARNERS]
+    for name in order:
+        for setting in CAMERA_SETTINGS:
+            cell, more = table.get((name, setting)), extra.get((name, setting))
+            if cell is None:
+                continue
+            seen, track = _shown(more["seen_share"], 2), _shown(more["tracking_mm"], 1)
+            ends = _shown(more["tracking_ends_mm"], 1)
+            observed = "full state" if name == "mpc-full" else setting
+            if name in ("zero", "random"):  # they read no observation: nothing tracked
+                observed, seen, track, ends = "(none)", "", "", ""
+            lines.append(
+                f"| {name} | {observed} | {cell['seeds']} | {cell['initial']:.1f} | "
+                f"{cell['final']:.1f} ± {cell['final_std']:.1f} | "
+                f"{cell['score']:.2f} ± {cell['score_std']:.2f} | {track} | {ends} | {seen} | "
+                f"{more['seconds']:.1f} |"
+            )
+    text = "\n".join(lines) + "\n"
+    (HERE / "camera_table.md").write_text(text)
+    plot_camera(table, order, HERE / "camera.png")
+    print(text)
+
+
+def _shown(value: float, digits: int) -> str:
+    """A table cell: blank where no episode measured it (NaN)."""
+    return "" if np.isnan(value) else f"{value:.{digits}f}"
+
+
+def plot_camera(table: dict[tuple[str, str], dict[str, float]], order: list[str],
+                path: Path) -> None:  # fmt: skip
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    learners_ = [n for n in order if n not in ("zero", "random", "mpc-full")]
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    width = 0.8 / max(len(learners_), 1)
+    for i, name in enumerate(learners_):
+        cells = [(j, table[(name, s)]) for j, s in enumerate(CAMERA_SETTINGS)
+                 if (name, s) in table]  # fmt: skip
+        x = [j + (i - (len(learners_) - 1) / 2) * width for j, _ in cells]
+        ax.bar(x, [c["score"] for _, c in cells], width, yerr=[c["score_std"] for _, c in cells],
+               capsize=2, label=f"{name} ({max(c['seeds'] for _, c in cells)} seeds)")  # fmt: skip
+    lines = {"mpc-full": ("mpc-full (exact state)", ":"), "zero": ("doing nothing", "--"),
+             "random": ("random actions", "-.")}  # fmt: skip
+    for name, (label, style) in lines.items():
+        if (name, "clean") in table:
+            ax.axhline(table[(name, "clean")]["score"], color="k", lw=0.9, ls=style, label=label)
+    ax.axhline(0.9, color="tab:red", lw=0.8, label="issue 54's bar (0.9)")
+    ticks = ["markers (clean)" if s == "clean" else s.replace("clean ", "clean\n")
+             for s in CAMERA_SETTINGS]  # fmt: skip
+    ax.set_xticks(range(len(CAMERA_SETTINGS)), ticks)
+    ax.set_ylabel("score, mean of seeds")
+    ax.set_ylim(min(-0.1, *(c["score"] - 0.05 for c in table.values())), 1.05)
+    ax.set_title("Marker-model MPC through the depth camera (same starts and goals)")
+    ax.legend(fontsize=8, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.3))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[tuple[str, str], dict[str, float]]:
@@ -330,7 +452,7 @@ def run_jobs(function: Any, jobs: list[Any], workers: int) -> list[Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("stage", choices=["train", "evaluate", "report"])
+    parser.add_argument("stage", choices=["train", "evaluate", "report", "camera-report"])
     parser.add_argument("--out", type=Path, default=Path("runs/robustness"))
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--noise-trained-seeds", type=int, default=1)
@@ -356,8 +478,10 @@ def main() -> None:
     elif options.stage == "evaluate":
         rows = run_jobs(evaluate, evaluation_jobs(options), options.workers)
         merge_rows(options.out / "evaluation.json", [r for rs in rows for r in rs])
-    else:
+    elif options.stage == "report":
         report(options)
+    else:
+        camera_report(options)
 
 
 if __name__ == "__main__":
