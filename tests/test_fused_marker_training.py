@@ -14,6 +14,7 @@ import torch
 from dlocli.markers import deform
 from dlocli.models.marker_training import Cable, WindowSampler, rollout_loss
 from dlocli.models.markers import MarkerModel, build_marker_model
+from dlocli.models.network import Network, Nodes
 from dlocli.models.spec import FitSpec
 
 from tiny import swinging_cable
@@ -139,19 +140,19 @@ def test_a_subclass_with_its_own_features_keeps_them() -> None:
     assert not {"MLPRolloutBackward", "AdvanceBackward"} & _graph_nodes(loss.grad_fn)
 
 
-class _PluginNetwork(MarkerModel):
+class _PluginNetwork(Network):
     """A plugin's network of stock layers the fused step knows nothing of: a convolution
     along the markers, a bidirectional GRU, a layer norm and a linear head."""
 
-    def __init__(self, spec, n_markers, held) -> None:
-        super().__init__(spec, n_markers, held)
-        self.conv = torch.nn.Conv1d(10, 16, 3, padding=1)
+    def __init__(self, spec, nodes: Nodes) -> None:
+        super().__init__(spec, nodes)
+        self.conv = torch.nn.Conv1d(nodes.inputs, 16, 3, padding=1)
         self.gru = torch.nn.GRU(16, 16, batch_first=True, bidirectional=True)
         self.norm = torch.nn.LayerNorm(32)
-        self.head = torch.nn.Linear(32, 3)
+        self.head = torch.nn.Linear(32, nodes.outputs)
 
-    def predict(self, features: torch.Tensor) -> torch.Tensor:
-        hidden = torch.nn.functional.gelu(self.conv(features.transpose(1, 2)))
+    def forward(self, nodes: torch.Tensor, relations: torch.Tensor) -> torch.Tensor:
+        hidden = torch.nn.functional.gelu(self.conv(nodes.transpose(1, 2)))
         return self.head(self.norm(self.gru(hidden.transpose(1, 2))[0]))
 
 
@@ -160,8 +161,8 @@ def test_any_network_gets_the_fused_step_with_the_plain_gradients() -> None:
     stock layers trains through them (the plain path's loss and gradients)."""
     base, windows = _model_and_windows("mlp")
     torch.manual_seed(0)
-    model = _PluginNetwork(base.spec, MARKERS, base.held.numpy())
-    model.load_state_dict({**model.state_dict(), **dict(base.named_buffers())})
+    model = copy.deepcopy(base)  # the view with its fitted scales, holding the plugin's net
+    model.network = _PluginNetwork(base.spec, base.network.nodes)
     model.train()
     assert "AdvanceBackward" in _graph_nodes(rollout_loss(model, windows, model.held).grad_fn)
     truth_loss, truth = _loss_and_grads(copy.deepcopy(model).double(), windows.double(), True)

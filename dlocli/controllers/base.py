@@ -63,6 +63,12 @@ class Controller(ABC):
         self.last_latency_ms = 0.0
         self.last_stats: dict[str, float] = {}
 
+    @classmethod
+    def warm_up(cls) -> None:
+        """Import what building and acting need where that is slow, before a robot cell is
+        claimed: a session idle while a library loads may end under the controller."""
+        return None  # most controllers import nothing slow
+
     def reset(self, goal: np.ndarray) -> None:
         """Start a new episode towards ``goal`` (N,3) metres."""
         self.goal = np.asarray(goal, dtype=np.float64)

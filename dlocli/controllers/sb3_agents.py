@@ -50,6 +50,10 @@ class SB3Agent(LearningAgent):
         self._logging: Any = None  # the model whose logger writes there
 
     # ------------------------------------------------------------------ construction
+    @classmethod
+    def warm_up(cls) -> None:
+        import stable_baselines3.common.monitor  # noqa: F401  (seconds to import)
+
     def _algorithm_class(self) -> Any:
         import stable_baselines3
 

@@ -143,8 +143,9 @@ def check_inputs_used(spec: ControlSpec) -> None:
         )
 
 
-def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
-    """The spec's model on its device, or None if there is none; BadInput if it does not fit."""
+def load_control_model(spec: ControlSpec) -> Any:
+    """The spec's model on its device, or None if there is none; BadInput if it learned at
+    another control rate."""
     if spec.checkpoint is None:
         return None
     from dlocli.models.base import check_control_rate, resolve_device
@@ -154,13 +155,18 @@ def load_control_model(spec: ControlSpec, n_segments: int) -> Any:
     check_control_rate(model, spec.task.control_dt, f"model {spec.checkpoint}", "the task runs",
                        "re-train it on data at {used_hz} Hz, or pass --control-dt {dt} (task."
                        "control_dt) to control at the model's rate")  # fmt: skip
-    found = model.n_segments
-    if getattr(model, "form", "rod") == "rod" and found != n_segments:  # markers: the view
+    return model
+
+
+def check_model_segments(model: Any, spec: ControlSpec, n_segments: int) -> None:
+    """BadInput if a rod model is for another segment count than the rod's (a marker model
+    is checked by its view)."""
+    found = None if model is None else model.n_segments
+    if getattr(model, "form", "rod") == "rod" and found not in (None, n_segments):
         raise BadInput(
             f"model {spec.checkpoint} is for {found} segments but the rod has {n_segments}; "
             f"train one on {n_segments}-segment data or set backend.rod.n_segments={found}"
         )
-    return model
 
 
 def prepare(
@@ -181,10 +187,12 @@ def prepare(
     options = controller_spec(spec.controller, spec.controller_options)
     load_goal(spec.task.goal_file, spec.backend.rod.n_segments)  # refused before anything
     check_inputs_used(spec)
+    controllers.get(spec.controller).warm_up()  # its slow imports before a cell is claimed
+    model = load_control_model(spec)
     env = make_env(spec.backend, spec.task, goal=spec.task.goal_file, seed=spec.seed, cell=spec,
                    cancel=cancel)  # fmt: skip
     try:
-        model = load_control_model(spec, env.n_segments)
+        check_model_segments(model, spec, env.n_segments)
         controller = make_controller(
             spec.controller, env, options=options, seed=spec.seed, model=model
         )
