@@ -9,7 +9,7 @@
 #     examples/calibration/results/replay_choices_DLO3.json
 #   python examples/calibration/table.py > examples/calibration/results/summary.md
 # The flex rod (MuJoCo 4's rod, results/CABLE-mujoco-flex), in a MuJoCo 4.0.1 venv (as
-# .ci/mujoco4 builds it), one worker each (two on DLO4), and both fits' swing decays, each
+# .ci/mujoco4 builds it), one worker each, and both fits' swing decays, each
 # backend in its own venv:
 #   BACKENDS=mujoco-flex WORKERS=1 examples/calibration/run.sh runs/calibration
 #   R=examples/calibration/results
@@ -17,6 +17,8 @@
 #     $R/DLO{1,2,3,4}-mujoco-flex        # MuJoCo 4
 #   python examples/calibration/swing_decay.py $R/swing_decay_mujoco.json \
 #     $R/DLO{1,2,3,4}-mujoco             # MuJoCo 3.17
+#   python examples/calibration/swing_decay.py $R/swing_sweep_mujoco-flex.json \
+#     bending_damping=0.02,0.05,0.1,0.5 $R/DLO3-mujoco-flex   # and the same for DLO3-mujoco
 # The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
 #   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \

@@ -7,6 +7,9 @@ the 1/e time of its amplitude is 1 / (zeta omega). Run it in the environment of 
 (MuJoCo 3 for "mujoco", MuJoCo 4 for "mujoco-flex"):
 
 python examples/calibration/swing_decay.py OUT.json RESULTS/DLO1-mujoco ... RESULTS/DLO4-mujoco
+
+With ``bending_damping=A,B,...`` after OUT.json, each fit is measured at those bending
+damping times instead of its own (entries "FIT bending_damping=A").
 """
 
 from __future__ import annotations
@@ -59,13 +62,21 @@ def swing(spec: BackendSpec) -> dict[str, float]:
 
 
 def main() -> None:
-    out, runs = Path(sys.argv[1]), [Path(p) for p in sys.argv[2:]]
+    out, args = Path(sys.argv[1]), sys.argv[2:]
+    sweep: list[float | None] = [None]
+    if args and args[0].startswith("bending_damping="):
+        sweep = [float(v) for v in args.pop(0).split("=")[1].split(",")]
     found = {}
-    for run in runs:
+    for run in [Path(a) for a in args]:
         fields = yaml.safe_load((run / "calibrated.yaml").read_text())
         spec = BackendSpec.model_validate(fields["backend"])
-        found[run.name] = swing(spec)
-        print(run.name, {k: round(v, 4) for k, v in found[run.name].items()}, flush=True)
+        for time in sweep:
+            name = run.name if time is None else f"{run.name} bending_damping={time:g}"
+            rod = (
+                spec.rod if time is None else spec.rod.model_copy(update={"bending_damping": time})
+            )
+            found[name] = swing(spec.model_copy(update={"rod": rod}))
+            print(name, {k: round(v, 4) for k, v in found[name].items()}, flush=True)
     write_json_atomic(out, found)
 
 
