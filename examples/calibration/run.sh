@@ -19,6 +19,8 @@
 #     $R/DLO{1,2,3,4}-mujoco             # MuJoCo 3.17
 #   python examples/calibration/swing_decay.py $R/swing_sweep_mujoco-flex.json \
 #     bending_damping=0.02,0.05,0.1,0.5 $R/DLO3-mujoco-flex   # and the same for DLO3-mujoco
+# DLO3's flex variants (results/flex_variants/): a copy of its run resumed with --generations 10
+# --workers 2, and a fit with --parameters young_bending,bending_damping,air_damping,twist_damping
 # The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
 #   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
