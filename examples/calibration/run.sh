@@ -8,6 +8,19 @@
 #   python examples/calibration/replay_choices.py $DEFORM/DLO3 0.998 0.0968 \
 #     examples/calibration/results/replay_choices_DLO3.json
 #   python examples/calibration/table.py > examples/calibration/results/summary.md
+# The flex rod (MuJoCo 4's rod, results/CABLE-mujoco-flex), in a MuJoCo 4.0.1 venv (as
+# .ci/mujoco4 builds it), one worker each, and both fits' swing decays, each
+# backend in its own venv:
+#   BACKENDS=mujoco-flex WORKERS=1 examples/calibration/run.sh runs/calibration
+#   R=examples/calibration/results
+#   python examples/calibration/swing_decay.py $R/swing_decay_mujoco-flex.json \
+#     $R/DLO{1,2,3,4}-mujoco-flex        # MuJoCo 4
+#   python examples/calibration/swing_decay.py $R/swing_decay_mujoco.json \
+#     $R/DLO{1,2,3,4}-mujoco             # MuJoCo 3.17
+#   python examples/calibration/swing_decay.py $R/swing_sweep_mujoco-flex.json \
+#     bending_damping=0.02,0.05,0.1,0.5 $R/DLO3-mujoco-flex   # and the same for DLO3-mujoco
+# DLO3's flex variants (results/flex_variants/): a copy of its run resumed with --generations 10
+# --workers 2, and a fit with --parameters young_bending,bending_damping,air_damping,twist_damping
 # The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
 #   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
@@ -24,8 +37,8 @@ for b in $BACKENDS; do
   for c in $CABLES; do
     run="$RUNS/$c-$b"
     [ -f "$run/report.json" ] || dlo calibrate --spec "$HERE/$c.yaml" --source "$DEFORM/$c" \
-      --backend "$b" --workers 2 ${GENERATIONS:+--generations "$GENERATIONS"} --out "$run" \
-      --overwrite --json > /dev/null
+      --backend "$b" --workers "${WORKERS:-2}" ${GENERATIONS:+--generations "$GENERATIONS"} \
+      --out "$run" --overwrite --json > /dev/null
     mkdir -p "$HERE/results/$c-$b"
     cp "$run/report.json" "$run/report.md" "$run/calibrated.yaml" "$HERE/results/$c-$b/"
     python -c "import json;r=json.load(open('$run/report.json'));print('$c $b', r['eval_default_cm'], '->', r['eval_calibrated_cm'], 'cm in', r['fit_seconds'], 's')"

@@ -1,6 +1,8 @@
-"""The calibration results (RESULTS/*/report.json) and the sim-to-real results
-(RESULTS/sim_to_real_*.json) as markdown tables; RESULTS defaults to results/ (today's rod),
-results/rigid/ holds the earlier rod's (rigid clamps).
+"""The calibration results (RESULTS/*/report.json), the MuJoCo 4 flex rod's fits beside the
+composite cable's (RESULTS/CABLE-mujoco-flex, with the swing decays of
+RESULTS/swing_decay_*.json) and the sim-to-real results (RESULTS/sim_to_real_*.json) as
+markdown tables; RESULTS defaults to results/ (today's rod), results/rigid/ holds the earlier
+rod's (rigid clamps).
 
 python examples/calibration/table.py [RESULTS] > RESULTS/summary.md
 """
@@ -32,7 +34,53 @@ def main() -> None:
             f"{p['air_damping']:.3g} | {r['fit_seconds'] / 60:.0f} min ({r['generations']} gen.) |"
         )
     print()
+    flex_table(reports)
     sim_to_real_table()
+
+
+def _swing_decays() -> dict[str, dict[str, float]]:
+    """Per fit (folder name), its swing's frequency, damping ratio and decay time."""
+    found: dict[str, dict[str, float]] = {}
+    for path in sorted(RESULTS.glob("swing_decay_*.json")):
+        found.update(json.loads(path.read_text()))
+    return found
+
+
+def _swing(swings: dict[str, dict[str, float]], name: str) -> str:
+    if name not in swings:
+        return "–"
+    s = swings[name]
+    return f"{s['damping_ratio']:.3f} ({s['decay_s']:.2f} s)"
+
+
+def flex_table(reports: dict[str, dict]) -> None:
+    """The flex rod (MuJoCo 4) against the composite cable (MuJoCo 3.17), per cable: eval
+    scores (cm), the flex rod's over the cable's, its fitted material and both swing decays
+    (damping ratio of the sideways swing, and its 1/e time)."""
+    cables = [n.removesuffix("-mujoco-flex") for n in reports if n.endswith("-mujoco-flex")]
+    if not cables:
+        return
+    swings = _swing_decays()
+    print(
+        "| cable | composite cable, calibrated | flex rod, calibrated | flex / composite "
+        "| DER (published) | freeze | flex young_bending (Pa) | flex bending_damping (s) "
+        "| flex air_damping (1/s) | swing decay, composite | swing decay, flex | flex fit time |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for cable in cables:
+        flex, cable_fit = reports[f"{cable}-mujoco-flex"], reports.get(f"{cable}-mujoco")
+        p = flex["parameters"]
+        composite = cable_fit["eval_calibrated_cm"] if cable_fit else float("nan")
+        print(
+            f"| {cable} | {composite:.2f} | **{flex['eval_calibrated_cm']:.2f}** | "
+            f"{flex['eval_calibrated_cm'] / composite:.1%} | "
+            f"{flex['published_cm'].get('DER', float('nan')):.2f} | "
+            f"{flex['eval_freeze_cm']:.2f} | {p['young_bending']:.3g} | "
+            f"{p['bending_damping']:.3g} | {p['air_damping']:.3g} | "
+            f"{_swing(swings, f'{cable}-mujoco')} | {_swing(swings, f'{cable}-mujoco-flex')} | "
+            f"{flex['fit_seconds'] / 60:.0f} min ({flex['generations']} gen.) |"
+        )
+    print()
 
 
 def _seeds(values: list[float]) -> str:
