@@ -114,3 +114,15 @@ def deform_reference(tmp_path_factory: pytest.TempPathFactory):
     write_cable(root / "CABLE", n_train=3, n_eval=2)
     assert dlo_import(root / "CABLE", root / "out") == 0
     return load_dataset(root / "out")
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """One local Ray instance of 2 CPUs for the module (starting one takes seconds); the runs
+    in this process join it at its address, which the fixture gives."""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()

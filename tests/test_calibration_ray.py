@@ -30,17 +30,6 @@ LOSE_AFTER: list[str] = []
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    """One local Ray instance for the module (starting one takes seconds); the runs in this
-    process join it."""
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        yield ray.get_runtime_context().gcs_address
-    finally:
-        ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def cable(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Two train recordings of a rod of stiffness TRUE_E, one eval recording."""
     folder = tmp_path_factory.mktemp("synthetic") / "CABLE"

@@ -35,16 +35,6 @@ TRIALS = [(k, j) for k in (1, 2) for j in (1, 2)]
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    """One local Ray instance for the module (starting one takes seconds)."""
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        yield ray.get_runtime_context().gcs_address
-    finally:
-        ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def local_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("local") / "run"
     online("--executor", "local", "--out", str(out))
