@@ -22,7 +22,7 @@ FAST = ["--update-steps", "30", "--rollout-steps", "4", "--eval-every", "15",
         "--device", "cpu", "--json"]  # fmt: skip
 
 
-def cable(root: Path, markers: int, seed: int) -> Path:
+def cable(root: Path, markers: int, seed: int, rate_hz: float = 100.0) -> Path:
     """A marker dataset of a swinging cable with ``markers`` markers (4 train, 2 eval)."""
 
     def recording(i: int) -> np.ndarray:
@@ -31,9 +31,9 @@ def cable(root: Path, markers: int, seed: int) -> Path:
     data = MarkerDataset.from_trajectories(
         {"train": [(str(i), recording(i)) for i in range(4)],
          "eval": [(str(i), recording(100 + i)) for i in range(2)]},
-        held_markers(markers), {"rate_hz": 100.0},
+        held_markers(markers), {"rate_hz": rate_hz},
     )  # fmt: skip
-    return data.save(root / f"cable{markers}.h5")
+    return data.save(root / f"cable{markers}-{rate_hz:g}hz.h5")
 
 
 @pytest.fixture(scope="module")
@@ -110,3 +110,20 @@ def test_rod_data_among_cables_and_a_rod_checkpoint_are_refused(
                     "--out", str(tmp_path / "wrong")]) == 2  # fmt: skip
     line = capsys.readouterr().err.strip()
     assert "is a rod model" in line and len(line.splitlines()) == 1
+
+
+def test_cables_at_other_rates_or_missing_are_refused_and_nothing_is_written(
+    cables, tmp_path, capsys
+):
+    """A model step is one control period: cables recorded at different rates are refused,
+    as is a --data that does not exist; either way no run directory is left."""
+    slow = cable(tmp_path, 10, seed=3, rate_hz=50.0)
+    for second, why in ((slow, "different rates"), (tmp_path / "absent.h5", "absent.h5")):
+        capsys.readouterr()
+        out = tmp_path / "refused"
+        argv = ["train", "--data", str(cables[8]), "--data", str(second), *TINY_ATTENTION,
+                *FAST, "--out", str(out)]  # fmt: skip
+        assert run_dlo(argv) == 2
+        line = capsys.readouterr().err.strip()
+        assert why in line and len(line.splitlines()) == 1, line
+        assert not out.exists()
