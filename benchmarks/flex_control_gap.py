@@ -1,0 +1,221 @@
+"""Why the README's main job closes less of the shape error on the flex rod: one factor at a time,
+on the run directories of `dlo online` (flex rod on MuJoCo 4, composite cable on MuJoCo 3; run
+each command in the environment of the run's backend).
+
+    python benchmarks/flex_control_gap.py model RUN           # what the models see and predict
+    python benchmarks/flex_control_gap.py trials RUN [--horizon H] [--noise-probability P]
+                                                 [--max-step S] [--trials N] [--iteration K]
+    python benchmarks/flex_control_gap.py swing BACKEND [--rod JSON]
+
+``model``: per iteration k, the one-step loss of iteration k's model (normalised change of each
+state feature, the training objective) on the validation split it was fitted with (one
+episode at these sizes) and on the trials it then drove (unseen); the jitter of the observed
+positions and orientations (energy of the second difference over the first's); the middle's
+speed per episode. ``trials``: the MPC trials of iteration K's saved model from iteration K's
+starts (the run's seeds: trials 1..5 repeat the run's), with one planner option changed; per
+trial the final error, the mean and least error of the last 40 steps, and the error after
+the grippers then stand still for 50 steps. ``swing``: the sideways swing decay of the task's
+rod (examples/calibration/swing_decay.py's measurement). Each prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import runpy
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+FEATURES = ("x", "y", "z", "qw", "qx", "qy", "qz")
+LAST = 40  # steps: the end of an episode the final error is judged on
+HOLD = 50  # steps the grippers stand still after a trial
+
+
+def _datasets(run: Path) -> dict[int, Any]:
+    """The run's data per iteration: 0 the initial random episodes, k iteration k's trials."""
+    from dlocli.data import load_dataset
+
+    found = {0: load_dataset(run / "data" / "initial.h5")}
+    for folder in sorted((run / "data").glob("iter_*")):
+        files = [load_dataset(f) for f in sorted(folder.glob("trial_*.h5"))]
+        found[int(folder.name.split("_")[1])] = files[0].concat(*files[1:])
+    return found
+
+
+def _episodes(data: Any) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(positions, quaternions) of each episode, float64."""
+    ends = np.concatenate([[0], np.cumsum(data.episode_lengths + 1)])
+    return [
+        (data.positions[a:b].astype(float), data.quaternions[a:b].astype(float))
+        for a, b in zip(ends[:-1], ends[1:], strict=True)
+    ]
+
+
+def _jitter(series: np.ndarray) -> tuple[float, float]:
+    """(energy of the second difference, of the first) over time of a (T, ...) series."""
+    second, first = np.diff(series, 2, axis=0), np.diff(series, axis=0)
+    return float(np.sum(second**2)), float(np.sum(first**2))
+
+
+def motion(data: Any, control_dt: float) -> dict[str, Any]:
+    """The middle segment's speed (m/s) per episode, the largest segment turning rate (rad/s)
+    and the jitter of positions and orientations."""
+    speeds, turning, jitter = [], [], np.zeros((2, 2))
+    for positions, quats in _episodes(data):
+        middle = positions[:, positions.shape[1] // 2]
+        speeds.append(float(np.linalg.norm(np.diff(middle, axis=0), axis=1).max() / control_dt))
+        aligned = quats.copy()
+        for t in range(1, len(aligned)):  # q and -q are one rotation: keep the series continuous
+            aligned[t] *= np.where(np.sum(aligned[t] * aligned[t - 1], -1) < 0, -1.0, 1.0)[:, None]
+        change = np.linalg.norm(np.diff(aligned, axis=0), axis=-1)
+        turning.append(float(2.0 * change.max() / control_dt))
+        jitter += [_jitter(positions), _jitter(aligned)]
+    return {
+        "middle_speed_max_per_episode": [round(s, 3) for s in speeds],
+        "turning_max_rad_s": round(max(turning), 3),
+        "position_jitter": round(jitter[0, 0] / jitter[0, 1], 4),
+        "orientation_jitter": round(jitter[1, 0] / jitter[1, 1], 4),
+    }
+
+
+def one_step_loss(model: Any, data: Any, episodes: np.ndarray | None = None) -> dict[str, Any]:
+    """The training objective per state feature on ``data``'s ``episodes`` (None: all)."""
+    import torch
+
+    from dlocli.models.base import target_delta
+
+    arrays = data.transitions(episodes)
+    t = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in arrays.items()}
+    with torch.no_grad():
+        target = (target_delta(t["state"], t["next_state"]) - model.delta_mean) / model.delta_std
+        features = model.normalize(t["state"], t["action"], t["previous_state"])
+        error = ((model.predict_delta(*features) - target) ** 2).mean(dim=(0, 1)).numpy()
+    return {
+        "all": round(float(error.mean()), 4),
+        "positions": round(float(error[:3].mean()), 4),
+        "orientations": round(float(error[3:].mean()), 4),
+        "per_feature": {f: round(float(e), 4) for f, e in zip(FEATURES, error, strict=True)},
+    }
+
+
+def model_report(run: Path) -> dict[str, Any]:
+    from dlocli.models.checkpoints import load_model
+    from dlocli.models.splits import split_episodes
+
+    spec = json.loads((run / "spec.json").read_text())
+    data = _datasets(run)
+    report: dict[str, Any] = {"run": str(run), "backend": spec["backend"]["name"]}
+    report["motion"] = {k: motion(d, spec["task"]["control_dt"]) for k, d in data.items()}
+    losses = {}
+    for k in sorted(d for d in data if d > 0):
+        model = load_model(run / "checkpoints" / f"iter_{k:02d}.pt").eval()
+        seen = data[0].concat(*[data[j] for j in range(1, k)])
+        _, held_out = split_episodes(seen.n_episodes, spec["fit"]["val_fraction"])
+        losses[k] = {
+            "validation_episodes": held_out.tolist(),
+            "validation": one_step_loss(model, seen, held_out),
+            "its_trials": one_step_loss(model, data[k]),
+        }
+    report["one_step_loss"] = losses
+    return report
+
+
+def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[str, Any]:
+    """Iteration k's model driving n trials from iteration k's starts, ``changes`` applied to
+    the run's spec (nested dicts)."""
+    import torch
+
+    from dlocli.controllers.base import make_controller
+    from dlocli.env.metrics import shape_error_mm
+    from dlocli.env.rollout import NoisyPolicy, rollout, stream_seed
+    from dlocli.env.shape_env import make_env_from_spec
+    from dlocli.models.checkpoints import load_planning_model
+    from dlocli.runs.online.spec import NOISE, TRIAL, OnlineSpec
+    from dlocli.runs.online.trials import env_spec
+
+    fields = json.loads((run / "spec.json").read_text())
+    for path, value in changes.items():
+        *parents, name = path.split(".")
+        node = fields
+        for parent in parents:
+            node = node[parent]
+        node[name] = value
+    spec = OnlineSpec.model_validate(fields)
+    checkpoint = (run / "checkpoints" / f"iter_{k:02d}.pt").read_bytes()
+    torch.set_num_threads(1)  # as the run's trials
+    env = make_env_from_spec(env_spec(spec))
+    rows = []
+    try:
+        for j in range(1, n + 1):
+            seed = stream_seed(spec.seed, TRIAL, k, j)
+            model = load_planning_model(checkpoint, "cpu")
+            planner = make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=model)
+            noise = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
+            policy = NoisyPolicy(planner, noise, spec.noise_probability, spec.noise_std)
+            episode = rollout(env, policy, seed)
+            error = shape_error_mm(episode.positions, episode.goal)
+            for _ in range(HOLD):
+                env.step(np.zeros(env.action_space.shape))
+            held = float(shape_error_mm(env.state_parts()["positions"], episode.goal))
+            rows.append({
+                "initial_mm": float(error[0]), "final_mm": float(error[-1]),
+                "last40_mean_mm": float(error[-LAST:].mean()),
+                "last40_least_mm": float(error[-LAST:].min()), "held_mm": held,
+                "score": 1.0 - float(error[-1]) / float(error[0]),
+            })  # fmt: skip
+    finally:
+        env.close()
+    mean = {key: round(float(np.mean([r[key] for r in rows])), 3) for key in rows[0]}
+    return {"run": str(run), "iteration": k, "trials": n, "changes": changes, "mean": mean,
+            "per_trial": rows}  # fmt: skip
+
+
+def swing_report(backend: str, rod: dict[str, Any]) -> dict[str, Any]:
+    from dlocli.specs import BackendSpec
+
+    script = HERE.parent / "examples" / "calibration" / "swing_decay.py"
+    swing = runpy.run_path(str(script))["swing"]
+    found = swing(BackendSpec.model_validate({"name": backend, "rod": rod}))
+    return {"backend": backend, "rod": rod, **{k: round(v, 4) for k, v in found.items()}}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="what", required=True)
+    sub.add_parser("model").add_argument("run", type=Path)
+    trials = sub.add_parser("trials")
+    trials.add_argument("run", type=Path)
+    trials.add_argument("--iteration", type=int, default=3)
+    trials.add_argument("--trials", type=int, default=10)
+    trials.add_argument("--horizon", type=int)
+    trials.add_argument("--noise-probability", type=float)
+    trials.add_argument("--max-step", type=float)
+    swing = sub.add_parser("swing")
+    swing.add_argument("backend")
+    swing.add_argument("--rod", type=json.loads, default={}, help="rod fields, JSON")
+    args = parser.parse_args(argv)
+    if args.what == "model":
+        report = model_report(args.run)
+    elif args.what == "trials":
+        changes = {
+            path: value
+            for path, value in (
+                ("mpc.horizon", args.horizon),
+                ("noise_probability", args.noise_probability),
+                ("mpc.max_step", args.max_step),
+            )
+            if value is not None
+        }
+        report = trials_report(args.run, args.iteration, args.trials, changes)
+    else:
+        report = swing_report(args.backend, args.rod)
+    json.dump(report, sys.stdout)
+    print()
+
+
+if __name__ == "__main__":
+    main()
