@@ -27,6 +27,10 @@
 #   python examples/calibration/real_swing.py analyse $DEFORM runs/real_swing $R/real_swing.json
 # DLO3's flex variants (results/flex_variants/): a copy of its run resumed with --generations 10
 # --workers 2, and a fit with --parameters young_bending,bending_damping,air_damping,twist_damping
+# DLO2's and DLO3's (flex_variants/notes.md), BACKENDS=mujoco-flex WORKERS=1 CABLES="DLO2 DLO3":
+# CABLE-mujoco-flex-poisson with --parameters young_bending,bending_damping,air_damping,poisson;
+# CABLE-mujoco-flex-nu049 with `backend: {rod: {poisson: 0.49}}` added to the cable's YAML; and
+#   python examples/calibration/relative_damping_probe.py $DEFORM/DLO2 0,0.5,2,8
 # The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
 #   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
