@@ -29,7 +29,8 @@
 # --workers 2, and a fit with --parameters young_bending,bending_damping,air_damping,twist_damping
 # DLO2's and DLO3's (flex_variants/notes.md), BACKENDS=mujoco-flex WORKERS=1 CABLES="DLO2 DLO3":
 # CABLE-mujoco-flex-poisson with --parameters young_bending,bending_damping,air_damping,poisson;
-# CABLE-mujoco-flex-nu049 with `backend: {rod: {poisson: 0.49}}` added to the cable's YAML; and
+# CABLE-mujoco-flex-nu049 with `backend: {rod: {poisson: 0.49}}` added to the cable's YAML (and
+# CABLE-mujoco-nu049 the same with BACKENDS=mujoco WORKERS=1); and
 #   python examples/calibration/relative_damping_probe.py $DEFORM/DLO2 0,0.5,2,8
 # The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
