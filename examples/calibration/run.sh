@@ -19,8 +19,19 @@
 #     $R/DLO{1,2,3,4}-mujoco             # MuJoCo 3.17
 #   python examples/calibration/swing_decay.py $R/swing_sweep_mujoco-flex.json \
 #     bending_damping=0.02,0.05,0.1,0.5 $R/DLO3-mujoco-flex   # and the same for DLO3-mujoco
+# The real cables' swing against both fits' (results/real_swing.{json,md}): each fit replays
+# every recording (CABLE-mujoco in MuJoCo 3, CABLE-mujoco-flex in MuJoCo 4), DLO3-mujoco also
+# at bending_damping=0.02 and 0.5, then
+#   python examples/calibration/real_swing.py replay $DEFORM/DLO3 $HERE/DLO3.yaml \
+#     $R/DLO3-mujoco runs/real_swing [bending_damping=0.02]          # and so on
+#   python examples/calibration/real_swing.py analyse $DEFORM runs/real_swing $R/real_swing.json
 # DLO3's flex variants (results/flex_variants/): a copy of its run resumed with --generations 10
 # --workers 2, and a fit with --parameters young_bending,bending_damping,air_damping,twist_damping
+# DLO2's and DLO3's (flex_variants/notes.md), BACKENDS=mujoco-flex WORKERS=1 CABLES="DLO2 DLO3":
+# CABLE-mujoco-flex-poisson with --parameters young_bending,bending_damping,air_damping,poisson;
+# CABLE-mujoco-flex-nu049 with `backend: {rod: {poisson: 0.49}}` added to the cable's YAML (and
+# CABLE-mujoco-nu049 the same with BACKENDS=mujoco WORKERS=1); and
+#   python examples/calibration/relative_damping_probe.py $DEFORM/DLO2 0,0.5,2,8
 # The earlier rod's (results/rigid/: each YAML with `backend: {rod: {clamp_compliance: rigid}}`,
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
 #   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
