@@ -42,8 +42,8 @@ import numpy as np
 import yaml
 from scipy.signal import savgol_filter, welch
 
-from dlocli.calibration.fit import load_cable
-from dlocli.calibration.replay import ReplaySettings, replay
+from dlocli.calibration.fit import load_cable, replay_settings
+from dlocli.calibration.replay import replay
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.io import write_json_atomic
 from dlocli.registry import backends
@@ -74,7 +74,7 @@ def replay_run(
     cable = load_cable(spec)
     if abs(cable.backend.rod.length - backend_spec.rod.length) > 1e-9:
         raise SystemExit(f"{run}: its rod is not {cable_yaml}'s ({backend_spec.rod.length})")
-    settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s, tuple(cable.held))
+    settings = replay_settings(spec, cable)
     backend = backends.get(backend_spec.name)(backend_spec, control_dt=1.0 / RATE_HZ)
     simulated, started = {}, time.time()
     try:

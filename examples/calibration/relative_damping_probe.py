@@ -18,8 +18,8 @@ import numpy as np
 import yaml
 
 from dlocli.backends.mujoco_flex import MujocoFlex
-from dlocli.calibration.fit import load_cable
-from dlocli.calibration.replay import ReplaySettings, replay
+from dlocli.calibration.fit import load_cable, replay_settings
+from dlocli.calibration.replay import replay
 from dlocli.calibration.spec import CalibrateSpec
 from dlocli.specs import BackendSpec
 
@@ -59,7 +59,7 @@ def main(source: str, rates: str, *changes: str) -> None:
     backend_spec = BackendSpec.model_validate(rod)
     spec.backend.name = backend_spec.name
     cable = load_cable(spec)
-    settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s, tuple(cable.held))
+    settings = replay_settings(spec, cable)
     for rate in (float(r) for r in rates.split(",")):
         RelativelyDampedFlex.rate = rate
         backend = RelativelyDampedFlex(backend_spec, control_dt=1.0 / spec.rate_hz)
