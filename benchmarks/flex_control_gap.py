@@ -4,7 +4,8 @@ each command in the environment of the run's backend).
 
     python benchmarks/flex_control_gap.py model RUN           # what the models see and predict
     python benchmarks/flex_control_gap.py trials RUN [--horizon H] [--noise-probability P]
-                                                 [--max-step S] [--trials N] [--iteration K]
+                                                 [--max-step S] [--settle-steps S] [--trials N]
+                                                 [--iteration K]
     python benchmarks/flex_control_gap.py swing BACKEND [--rod JSON]
 
 ``model``: per iteration k, the one-step loss of iteration k's model (normalised change of each
@@ -194,6 +195,7 @@ def main(argv: list[str] | None = None) -> None:
     trials.add_argument("--horizon", type=int)
     trials.add_argument("--noise-probability", type=float)
     trials.add_argument("--max-step", type=float)
+    trials.add_argument("--settle-steps", type=int)
     swing = sub.add_parser("swing")
     swing.add_argument("backend")
     swing.add_argument("--rod", type=json.loads, default={}, help="rod fields, JSON")
@@ -207,6 +209,7 @@ def main(argv: list[str] | None = None) -> None:
                 ("mpc.horizon", args.horizon),
                 ("noise_probability", args.noise_probability),
                 ("mpc.max_step", args.max_step),
+                ("mpc.settle_steps", args.settle_steps),
             )
             if value is not None
         }

@@ -108,8 +108,9 @@ def predicted_cost(controller, obs, plan):
      (GradientMPC, MPCSpec(iterations=3, exact_gradient=True, warm_start=False)),
      (GradientMPC, MPCSpec(optimizer="adam", iterations=10, warm_start=False)),
      (GradientMPC, MPCSpec(iterations=5, restarts=4, warm_start=False)),
+     (GradientMPC, MPCSpec(iterations=10, settle_steps=5, warm_start=False)),
      (MPPI, MPPISpec(samples=64, iterations=3, warm_start=False))],
-    ids=["mpc", "mpc-exact-gradient", "mpc-adam", "mpc-restarts", "mppi"],
+    ids=["mpc", "mpc-exact-gradient", "mpc-adam", "mpc-restarts", "mpc-settle", "mppi"],
 )  # fmt: skip
 def test_planner_lowers_predicted_cost(envs, tiny_model, planner, spec):
     """The executed plan's model-predicted shape cost is below the initial guess's (zeros).
@@ -148,6 +149,35 @@ def test_gauss_newton_gradient_matches_backprop(envs, tiny_model):
     with torch.no_grad():
         stepped = plan[None] - mpc.rule.step(lagged, 1)
         assert mpc.predict_cost(state, stepped)[0] < cost[0]
+
+
+def test_settle_steps_cost_the_swing_after_the_plan(envs, tiny_model):
+    """settle_steps S: the cost of an H-step plan is that of the plan followed by S steps
+    standing still (zero actions), less nothing but the still steps' zero effort; the
+    recorded prediction stays the plan's H steps, and the executed plan its H actions."""
+    env = envs["single"]
+    obs, _ = env.reset(seed=2)
+    settling = GradientMPC(env, tiny_model, MPCSpec(horizon=5, settle_steps=3))
+    longer = GradientMPC(env, tiny_model, MPCSpec(horizon=8))
+    for mpc in (settling, longer):
+        mpc.reset(env.goal)
+    state = settling.state_tensor(obs)
+    plan = torch.linspace(-0.6, 0.6, 30).view(1, 5, 6)
+    extended = torch.cat([plan, torch.zeros(1, 3, 6)], dim=1)
+    with torch.no_grad():
+        ours = settling.residuals(state, plan)
+        theirs = longer.residuals(state, extended)
+    positions = 8 * 20 * 3
+    assert ours.shape == (1, positions + 5 * 6)
+    torch.testing.assert_close(ours[:, :positions], theirs[:, :positions])
+    torch.testing.assert_close(ours[:, positions:], theirs[:, positions : positions + 30])
+    plain = GradientMPC(env, tiny_model, MPCSpec(horizon=5))
+    plain.reset(env.goal)
+    with torch.no_grad():
+        assert settling.predict_cost(state, plan) > plain.predict_cost(state, plan)
+    settling.act(obs)
+    commands, predicted = settling.planned_path()
+    assert commands.shape == (5, 2, 6) and predicted.shape == (5, 20, 3)
 
 
 def jacobian_updates(env, model, refresh: str, steps: int = 11) -> tuple[dict, list]:

@@ -142,20 +142,30 @@ class ModelPlanner(Planner):
         plans: torch.Tensor,
         previous: torch.Tensor | None | EllipsisType = ...,
     ) -> torch.Tensor:
-        """(B, H*N*3 + H*A): the terms whose squares sum to :meth:`predict_cost`, the predicted
-        position errors (m) then sqrt(action_cost) x the actions. ``previous`` is the state one
+        """(B, (H+S)*N*3 + H*A): the terms whose squares sum to :meth:`predict_cost`, the
+        predicted position errors (m) over the horizon and the S settle steps, then
+        sqrt(action_cost) x the actions. ``previous`` is the state one
         step before ``state`` (None: at rest); by default :meth:`previous_of` finds it."""
-        commands = self.task.to_grippers(plans)  # (B, H, 2, 6)
+        commands = self.task.to_grippers(self._with_settling(plans))  # (B, H+S, 2, 6)
         planning = previous is ...  # not a Jacobian's nudged plans (maybe on another thread)
         if planning:
             previous = self.previous_of(state)
         predicted = self.view.predict(state, commands, previous)
         if planning:
-            self._evaluated = predicted.detach()
+            self._evaluated = predicted[:, : plans.shape[1]].detach()
         assert self._goal is not None
         errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
         return torch.cat([errors, effort], dim=1)
+
+    def _with_settling(self, plans: torch.Tensor) -> torch.Tensor:
+        """(B, H+S, A): the plans then ``settle_steps`` standing still (zero actions), so the
+        cost sees where the cable swings once the plan has run out."""
+        settle = self.spec.settle_steps
+        if settle == 0:
+            return plans
+        still = plans.new_zeros(plans.shape[0], settle, plans.shape[2])
+        return torch.cat([plans, still], dim=1)
 
     def previous_of(self, state: torch.Tensor) -> torch.Tensor | None:
         """The observed state one step before ``state`` if ``state`` is the latest observation

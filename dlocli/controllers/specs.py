@@ -45,6 +45,14 @@ class PlannerSpec(Spec):
         description="Start each re-plan from the previous plan shifted by the executed steps "
         "(else from zeros).",
     )
+    settle_steps: int = Field(
+        0,
+        ge=0,
+        le=100,
+        description="Control steps the cost also looks past the horizon with the grippers "
+        "standing still: a plan that leaves the cable swinging away from the goal costs what "
+        "the swing will cost (0 = the paper's objective).",
+    )
     tracking: Literal["estimate", "raw"] = Field(
         "estimate",
         description="With the markers observation: 'estimate' blends each report with the "

@@ -31,7 +31,8 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
     cli_flags: ClassVar[tuple[str, ...]] = (
         "iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
-        "initial_episodes", "planner", "mpc.horizon", "fit.lr", MODEL_OPTIONS, "task.goal",
+        "initial_episodes", "planner", "mpc.horizon", "mpc.settle_steps", "fit.lr", MODEL_OPTIONS,
+        "task.goal",
         "task.name", "task.shapes", "backend.name", "fit.device", "noise_probability",
         "noise_std", "workers", "threads", "executor", "ray_address", "fit.mirror", "offline",
         "seed", "out", "task.observation.kind", "task.observation.markers",
