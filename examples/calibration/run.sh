@@ -27,7 +27,8 @@
 #   python examples/calibration/real_swing.py analyse $DEFORM runs/real_swing $R/real_swing.json
 # DLO3's flex variants (results/flex_variants/): a copy of its run resumed with --generations 10
 # --workers 2, and a fit with --parameters young_bending,bending_damping,air_damping,twist_damping
-# DLO2's and DLO3's (flex_variants/notes.md), BACKENDS=mujoco-flex WORKERS=1 CABLES="DLO2 DLO3":
+# DLO2's and DLO3's (flex_variants/notes.md; DLO1's and DLO4's nu049 the same, CABLES="DLO1 DLO4"),
+# BACKENDS=mujoco-flex WORKERS=1 CABLES="DLO2 DLO3":
 # CABLE-mujoco-flex-poisson with --parameters young_bending,bending_damping,air_damping,poisson;
 # CABLE-mujoco-flex-nu049 with `backend: {rod: {poisson: 0.49}}` added to the cable's YAML (and
 # CABLE-mujoco-nu049 the same with BACKENDS=mujoco WORKERS=1); and
