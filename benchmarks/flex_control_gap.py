@@ -6,6 +6,8 @@ each command in the environment of the run's backend).
     python benchmarks/flex_control_gap.py trials RUN [--horizon H] [--noise-probability P]
                                                  [--max-step S] [--settle-steps S] [--trials N]
                                                  [--iteration K]
+    python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
+    python benchmarks/flex_control_gap.py retrain RUN K OUT
     python benchmarks/flex_control_gap.py swing BACKEND [--rod JSON]
 
 ``model``: per iteration k, the one-step loss of iteration k's model (normalised change of each
@@ -15,7 +17,10 @@ positions and orientations (energy of the second difference over the first's); t
 speed per episode. ``trials``: the MPC trials of iteration K's saved model from iteration K's
 starts (the run's seeds: trials 1..5 repeat the run's), with one planner option changed; per
 trial the final error, the mean and least error of the last 40 steps, and the error after
-the grippers then stand still for 50 steps. ``swing``: the sideways swing decay of the task's
+the grippers then stand still for 50 steps. ``horizon``: iteration K's model open loop on
+the trials it drove, its position error after 1, 5, 10, 20 steps beside the recorded motion
+over as many steps. ``retrain``: iteration 3's model retrained through K-step rollouts
+(:func:`retrain`), into a copy of the run at OUT. ``swing``: the sideways swing decay of the task's
 rod (examples/calibration/swing_decay.py's measurement). Each prints one JSON object.
 """
 
@@ -101,6 +106,94 @@ def one_step_loss(model: Any, data: Any, episodes: np.ndarray | None = None) -> 
         "orientations": round(float(error[3:].mean()), 4),
         "per_feature": {f: round(float(e), 4) for f, e in zip(FEATURES, error, strict=True)},
     }
+
+
+def open_loop_error(model: Any, data: Any, steps: tuple[int, ...]) -> dict[str, Any]:
+    """The model's open-loop position error (mm, mean over segments and starts) after each
+    of ``steps`` steps of the recorded actions, from every 5th step of every episode, beside
+    the recorded motion over as many steps (what predicting no change would miss)."""
+    import torch
+
+    found: dict[str, Any] = {}
+    for h in steps:
+        errors, moved = [], []
+        for e in range(data.n_episodes):
+            episode = data.episode(e)
+            states = np.concatenate([episode.positions, episode.quaternions], -1)
+            starts = np.arange(1, len(episode.actions) - h + 1, 5)
+            if len(starts) == 0:
+                continue
+            t = torch.as_tensor(states, dtype=torch.float32)
+            actions = torch.as_tensor(episode.actions, dtype=torch.float32)
+            windows = torch.stack([actions[s : s + h] for s in starts])
+            with torch.no_grad():
+                predicted = model.rollout(t[starts], windows, t[starts - 1])[:, -1, :, :3]
+            truth = t[starts + h, :, :3]
+            errors.append((predicted - truth).norm(dim=-1).mean(-1))
+            moved.append((truth - t[starts, :, :3]).norm(dim=-1).mean(-1))
+        found[str(h)] = {
+            "error_mm": round(1000.0 * float(torch.cat(errors).mean()), 2),
+            "motion_mm": round(1000.0 * float(torch.cat(moved).mean()), 2),
+        }
+    return found
+
+
+def horizon_report(run: Path, k: int, steps: tuple[int, ...]) -> dict[str, Any]:
+    """Iteration k's model, open loop on the trials it drove (:func:`open_loop_error`)."""
+    from dlocli.models.checkpoints import load_model
+
+    model = load_model(run / "checkpoints" / f"iter_{k:02d}.pt").eval()
+    return {"run": str(run), "iteration": k,
+            "its_trials": open_loop_error(model, _datasets(run)[k], steps)}  # fmt: skip
+
+
+def retrain(run: Path, k: int, out: Path, epochs: int = 10) -> dict[str, Any]:
+    """Iteration 3's model retrained from iteration 2's weights on the same data (initial and
+    iterations 1-2; lr 1e-3, batch 64, input noise 0.1, no mirror) through k-step open-loop
+    rollouts of the recorded actions (k = 1: the one-step loss), as many gradient steps for
+    every k; written into ``out``, a copy of the run, for ``trials`` and ``horizon``."""
+    import shutil
+    import time
+
+    import torch
+
+    from dlocli.models.base import apply_delta, target_delta
+    from dlocli.models.checkpoints import load_model, save_checkpoint
+
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    data = _datasets(run)
+    seen = data[0].concat(data[1], data[2])
+    rows_of, _ = seen.transition_index(None, False)
+    t = {key: torch.as_tensor(v, dtype=torch.float32) for key, v in seen.transitions().items()}
+    n = len(rows_of)
+    last = np.minimum(np.arange(n) + k - 1, n - 1)
+    starts = np.flatnonzero((np.arange(n) + k - 1 < n) & (rows_of[last] == rows_of + k - 1))
+    model = load_model(run / "checkpoints" / "iter_02.pt").train().requires_grad_(True)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    began = time.perf_counter()
+    for _ in range(epochs * (n // 64)):
+        idx = torch.as_tensor(starts)[torch.randint(len(starts), (64,), generator=gen)]
+        state, previous = t["state"][idx], t["previous_state"][idx]
+        state = state + 0.1 * model.delta_std * torch.randn(state.shape, generator=gen)
+        loss = torch.zeros(())
+        for j in range(k):
+            target = (target_delta(state, t["next_state"][idx + j]) - model.delta_mean) / (
+                model.delta_std
+            )
+            change = model.predict_delta(*model.normalize(state, t["action"][idx + j], previous))
+            loss = loss + torch.mean((change - target) ** 2) / k
+            previous, state = state, apply_delta(state, change * model.delta_std + model.delta_mean)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    seconds = time.perf_counter() - began
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.copytree(run, out, ignore=shutil.ignore_patterns("tensorboard", "plots"))
+    save_checkpoint(model.eval(), out / "checkpoints" / "iter_03.pt")
+    return {"run": str(run), "k": k, "out": str(out), "train_seconds": round(seconds),
+            "its_trials": open_loop_error(model, data[3], (1, 5, 10, 20))}  # fmt: skip
 
 
 def model_report(run: Path) -> dict[str, Any]:
@@ -196,6 +289,14 @@ def main(argv: list[str] | None = None) -> None:
     trials.add_argument("--noise-probability", type=float)
     trials.add_argument("--max-step", type=float)
     trials.add_argument("--settle-steps", type=int)
+    horizon = sub.add_parser("horizon")
+    horizon.add_argument("run", type=Path)
+    horizon.add_argument("--iteration", type=int, default=3)
+    horizon.add_argument("--steps", default="1,5,10,20")
+    again = sub.add_parser("retrain")
+    again.add_argument("run", type=Path)
+    again.add_argument("k", type=int)
+    again.add_argument("out", type=Path)
     swing = sub.add_parser("swing")
     swing.add_argument("backend")
     swing.add_argument("--rod", type=json.loads, default={}, help="rod fields, JSON")
@@ -214,6 +315,11 @@ def main(argv: list[str] | None = None) -> None:
             if value is not None
         }
         report = trials_report(args.run, args.iteration, args.trials, changes)
+    elif args.what == "horizon":
+        steps = tuple(int(h) for h in args.steps.split(","))
+        report = horizon_report(args.run, args.iteration, steps)
+    elif args.what == "retrain":
+        report = retrain(args.run, args.k, args.out)
     else:
         report = swing_report(args.backend, args.rod)
     json.dump(report, sys.stdout)
