@@ -72,7 +72,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "air_damping": None,
     },
     "backend": {"gravity": 9.81},
-    "mpc": {"refresh": "inline", "tracking": "estimate"},
+    "mpc": {"refresh": "inline", "tracking": "estimate", "settle_steps": 0},
     "pilco": {"policy_scale_floor": 0.01},
 }
 
