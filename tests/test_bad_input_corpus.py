@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from tiny import built_once, file_digests, lock_held_elsewhere, run_dlo
+from tiny import MUJOCO_ROD, built_once, file_digests, lock_held_elsewhere, run_dlo
 
 # ----------------------------------------------------------------------------- fixtures
 
@@ -401,13 +401,13 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-SWALLOWED_STOP = """
+SWALLOWED_STOP = f"""
 import os, signal
 import dlocli
 from dlocli.processes import handle_stop_signals, signal_token
 handle_stop_signals()
 # as the commands do: the env is handed the process's stop token
-env = dlocli.make_env(backend="mujoco", task="single", seed=0, cancel=signal_token())
+env = dlocli.make_env(backend={MUJOCO_ROD!r}, task="single", seed=0, cancel=signal_token())
 env.reset()
 class Destructor:
     def __del__(self):

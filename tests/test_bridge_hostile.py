@@ -28,7 +28,7 @@ from cells import (
     summary_of,
 )
 
-from tiny import run_dlo
+from tiny import MUJOCO_ROD, run_dlo
 
 zmq = pytest.importorskip("zmq")
 
@@ -169,7 +169,7 @@ def test_a_session_that_idled_out_ends_its_controllers_run_in_one_line():
     from dlocli.bridge.remote import CellLost
 
     with served("--session-idle-s", "0.5") as address:
-        env = make_env("mujoco", "single", seed=0, render_mode=None, episode_steps=5,
+        env = make_env(MUJOCO_ROD, "single", seed=0, render_mode=None, episode_steps=5,
                        reset_motion_steps=2, reset_settle_steps=2, cell=address)  # fmt: skip
         try:
             env.reset(seed=0)
@@ -271,7 +271,7 @@ def test_a_controller_believes_no_reply_that_breaks_the_protocol(changes, proble
     from dlocli.bridge.remote import CellLost
 
     with lying_cell(changes) as address, pytest.raises(CellLost, match=problem):
-        make_env("mujoco", "single", seed=0, render_mode=None, episode_steps=5,
+        make_env(MUJOCO_ROD, "single", seed=0, render_mode=None, episode_steps=5,
                  reset_motion_steps=2, reset_settle_steps=2, cell=address)  # fmt: skip
 
 

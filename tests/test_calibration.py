@@ -32,7 +32,7 @@ from dlocli.registry import backends
 from dlocli.runs.calibrate import run_calibration
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec
 
-from tiny import file_digests, run_dlo
+from tiny import MUJOCO_ROD, file_digests, run_dlo
 
 pytest.importorskip("cma")
 
@@ -74,7 +74,7 @@ def _held_motion(seed: int) -> np.ndarray:
 
 
 def _simulate(young: float, seed: int) -> np.ndarray:
-    backend = backends.get("mujoco")(_rod(young), control_dt=1 / RATE)
+    backend = backends.get(MUJOCO_ROD)(_rod(young), control_dt=1 / RATE)
     return replay(backend, _held_motion(seed), ROD_ARC, SETTINGS).simulated
 
 
@@ -98,7 +98,7 @@ def cable(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _spec_file(tmp_path: Path, **fields: object) -> Path:
     spec = {
         "cable_length": LENGTH, "cable_mass": MASS, "rod_length": ROD, "rate_hz": RATE,
-        "backend": {"name": "mujoco", "rod": {"n_segments": 12, "radius": RADIUS}},
+        "backend": {"name": MUJOCO_ROD, "rod": {"n_segments": 12, "radius": RADIUS}},
         "parameters": ["young_bending"], "approach_s": SETTINGS.approach_s,
         "settle_s": SETTINGS.settle_s, "train_trajectories": 1, "population": 4,
         "generations": 3, "sigma0": 0.1, "workers": 2, **fields,
@@ -118,7 +118,7 @@ def test_replay_of_the_simulators_own_recording_is_exact(cable: Path) -> None:
     again = _simulate(TRUE_E, 0)
     assert np.abs(again - recorded).max() < 1e-6  # deterministic
     held = deform.held_markers(len(ARC))
-    softer = replay(backends.get("mujoco")(_rod(TRUE_E / 3), control_dt=1 / RATE),
+    softer = replay(backends.get(MUJOCO_ROD)(_rod(TRUE_E / 3), control_dt=1 / RATE),
                     recorded, ROD_ARC, SETTINGS)  # fmt: skip
     freeze = protocol.deform_score_cm(protocol.freeze(recorded, held), recorded)
     assert 0 < softer.score_cm < freeze
@@ -136,7 +136,7 @@ def test_calibration_recovers_the_stiffness(cable: Path, tmp_path: Path) -> None
     # (markers placed as the calibration places them)
     arc = load_cable(CalibrateSpec.model_validate_json((out / "spec.json").read_text())).arc
     neighbours = [
-        replay(backends.get("mujoco")(_rod(e), control_dt=1 / RATE), train, arc, SETTINGS)
+        replay(backends.get(MUJOCO_ROD)(_rod(e), control_dt=1 / RATE), train, arc, SETTINGS)
         for e in (TRUE_E / 2, TRUE_E * 2)
     ]
     assert report["train_best_cm"] < min(r.score_cm for r in neighbours)
@@ -282,7 +282,7 @@ def test_a_real_cable_replays_better_than_freezing() -> None:
     spec = CalibrateSpec(source=DEFORM_DATA / "DLO3", cable_length=0.998, cable_mass=0.0968)
     cable = load_cable(spec)
     recording = cable.eval[0][1][:150]
-    backend = backends.get("mujoco")(cable.backend, control_dt=0.01)
+    backend = backends.get(MUJOCO_ROD)(cable.backend, control_dt=0.01)
     result = replay(backend, recording, cable.arc, ReplaySettings())
     held = deform.held_markers(recording.shape[1])
     freeze = protocol.deform_score_cm(protocol.freeze(recording, held), recording)
@@ -297,7 +297,7 @@ def test_simulated_markers_train_a_model_that_fine_tunes(cable: Path, tmp_path: 
     from dlocli.models.checkpoints import load_marker_model
 
     recordings = [deform.read_trajectory(cable / f"train/{i}.pkl") for i in range(2)]
-    backend = backends.get("mujoco")(_rod(TRUE_E), control_dt=1 / RATE)
+    backend = backends.get(MUJOCO_ROD)(_rod(TRUE_E), control_dt=1 / RATE)
     sims, dropped = simulate_markers(backend, recordings, ROD_ARC, 3, 0, SETTINGS)
     assert dropped == 0 and len(sims) == 3
     for sim, rec in zip(sims, [recordings[0], recordings[1], recordings[0]], strict=True):

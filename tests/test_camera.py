@@ -14,7 +14,9 @@ from dlocli.registry import backends
 from dlocli.tracking.camera import DepthCamera, depth_sigma
 from dlocli.tracking.spec import CameraSpec
 
-BACKENDS = ["mujoco", "pybullet"]
+from tiny import MUJOCO_ROD
+
+BACKENDS = [MUJOCO_ROD, "pybullet"]
 CLEAN = CameraSpec().clean().model_dump()
 
 

@@ -11,6 +11,8 @@ from typer.testing import CliRunner
 from dlocli.cli import app
 from dlocli.data import load_dataset
 
+from tiny import MUJOCO_ROD
+
 runner = CliRunner()
 
 
@@ -18,7 +20,7 @@ def run(*args: str):
     return runner.invoke(app, list(args))
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+@pytest.mark.parametrize("backend", [MUJOCO_ROD, "pybullet"])
 def test_collect_json_and_reader(tmp_path, backend):
     out = tmp_path / backend
     res = run(

@@ -29,6 +29,8 @@ from dlocli.registry import controllers
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
 
+from tiny import MUJOCO_ROD
+
 TINY = model_spec({"hidden": 32, "edge_layers": 2, "node_layers": 2, "lstm_layers": 1})
 SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "score", "best_error_mm",
                 "cumulative_reward", "latency_ms_median", "latency_ms_p95", "steps"}  # fmt: skip
@@ -64,7 +66,7 @@ def checkpoint(tiny_model, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def envs():
-    cache = {task: dlocli.make_env("mujoco", task, seed=0, episode_steps=50)
+    cache = {task: dlocli.make_env(MUJOCO_ROD, task, seed=0, episode_steps=50)
              for task in ("single", "bimanual")}  # fmt: skip
     yield cache
     for env in cache.values():
@@ -265,7 +267,7 @@ def test_warm_start_and_replan_every(envs, tiny_model):
 # ------------------------------------------------------------------------------ closed loop
 def easy_goal(tmp_path, seed: int) -> str:
     """The shape 20 steps of one constant right-gripper motion away from the seeded start."""
-    env = dlocli.make_env("mujoco", "single", seed=seed)
+    env = dlocli.make_env(MUJOCO_ROD, "single", seed=seed)
     env.reset(seed=seed)
     for _ in range(20):
         env.step(np.array([0.8, 0.0, 0.6, 0.0, 0.0, 0.0], np.float32))
@@ -337,7 +339,7 @@ def test_cli_bimanual_with_single_model(tmp_path, checkpoint):
 
 
 def bad_goal(tmp_path, kind: str) -> str:
-    good = dlocli.make_env("mujoco", "single", seed=0)
+    good = dlocli.make_env(MUJOCO_ROD, "single", seed=0)
     shape = good.goal
     good.close()
     arrays = {
@@ -373,7 +375,7 @@ def test_cli_bad_goal_exit_2(tmp_path, checkpoint, kind, needle):
 
 def test_cli_bad_model_exit_2(tmp_path):
     goal = tmp_path / "goal.npy"
-    env = dlocli.make_env("mujoco", "single", seed=0)
+    env = dlocli.make_env(MUJOCO_ROD, "single", seed=0)
     np.save(goal, env.goal)
     env.close()
     other = save_checkpoint(build_model(TINY, 10), tmp_path / "ten.pt")

@@ -11,7 +11,9 @@ from dlocli.env.envelope import Envelope
 from dlocli.errors import BadInput
 from dlocli.specs import EnvelopeSpec
 
-BACKENDS = ["mujoco", "pybullet"]
+from tiny import MUJOCO_ROD
+
+BACKENDS = [MUJOCO_ROD, "pybullet"]
 DT = 0.02
 
 
@@ -89,7 +91,7 @@ def test_the_tasks_workspace_clips_are_counted(backend):
 
 
 def test_no_envelope_changes_nothing_and_counts_nothing_within_the_limits():
-    plain, enveloped = _env("mujoco"), _env("mujoco", max_linear_speed=2.0)
+    plain, enveloped = _env(MUJOCO_ROD), _env(MUJOCO_ROD, max_linear_speed=2.0)
     rng = np.random.default_rng(0)
     for _ in range(10):
         action = rng.uniform(-0.5, 0.5, 6)
@@ -102,7 +104,7 @@ def test_no_envelope_changes_nothing_and_counts_nothing_within_the_limits():
 
 def test_an_envelope_that_excludes_the_start_is_refused():
     with pytest.raises(BadInput, match="outside its envelope box"):
-        _env("mujoco", right_low=(2.0, 2.0, 2.0), right_high=(3.0, 3.0, 3.0))
+        _env(MUJOCO_ROD, right_low=(2.0, 2.0, 2.0), right_high=(3.0, 3.0, 3.0))
 
 
 @pytest.mark.parametrize(

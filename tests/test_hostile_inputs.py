@@ -18,6 +18,7 @@ from dlocli.bench.report import COLUMNS
 from dlocli.errors import BadInput
 
 from tiny import (
+    MUJOCO_ROD,
     TINY_BENCH,
     control_with_policy,
     crafted_policy,
@@ -292,7 +293,7 @@ def test_the_env_refuses_an_action_that_is_not_one(action, words):
     import dlocli
     from dlocli.errors import BadOption
 
-    env = dlocli.make_env("mujoco", "single", seed=0, render_mode=None, episode_steps=5,
+    env = dlocli.make_env(MUJOCO_ROD, "single", seed=0, render_mode=None, episode_steps=5,
                           shapes="near-rest")  # fmt: skip
     env.reset()
     with pytest.raises(BadOption, match=words):
@@ -588,9 +589,11 @@ def test_a_render_mode_the_env_cannot_provide_is_refused_at_construction(make):
     import gymnasium as gym
 
     import dlocli
+    from dlocli.env.registration import gym_id
     from dlocli.errors import BadOption
 
-    build = {"dlocli": lambda **kw: dlocli.make_env("mujoco", "single", **kw),
-             "gymnasium": lambda **kw: gym.make("dlocli/MujocoSingle-v0", **kw)}[make]  # fmt: skip
+    single = gym_id(MUJOCO_ROD, "single")
+    build = {"dlocli": lambda **kw: dlocli.make_env(MUJOCO_ROD, "single", **kw),
+             "gymnasium": lambda **kw: gym.make(single, **kw)}[make]  # fmt: skip
     with pytest.raises(BadOption, match="render_mode .* got 'human'"):
         build(render_mode="human", shapes="near-rest")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tiny import file_digests, run_dlo, write_cable
+from tiny import MUJOCO_ROD, file_digests, run_dlo, write_cable
 
 HUGE = str(10**12)
 LIMIT = "less than or equal to"
@@ -54,7 +54,7 @@ PHYSICS: list[tuple[str, str, str]] = [
      "workspace_low"),
     ("separation-inverted", "task: {min_separation: 0.9, max_separation: 0.1}",
      "min_separation"),
-    ("rest-state-mujoco", "backend: {name: mujoco, rod: {radius: 1.0e-4, density: 10}}",
+    ("rest-state-mujoco", f"backend: {{name: {MUJOCO_ROD}, rod: {{radius: 1.0e-4, density: 10}}}}",
      "cannot build this rod"),
 ]  # fmt: skip
 

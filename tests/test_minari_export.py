@@ -13,13 +13,14 @@ from typer.testing import CliRunner
 import dlocli  # noqa: F401  (registers the dlocli/... Gymnasium ids recover_environment needs)
 from dlocli.cli import app
 from dlocli.data import Dataset, Episode, load_dataset
+from dlocli.env.registration import gym_id
 
-from tiny import file_digests
+from tiny import MUJOCO_ROD, file_digests
 
 minari = pytest.importorskip("minari")
 
 runner = CliRunner()
-DEFAULT_ID = "dlocli/mujoco-single-random-v0"
+DEFAULT_ID = f"dlocli/{MUJOCO_ROD}-single-random-v0"  # collected on the default rod
 
 
 def run(*args: str):
@@ -60,7 +61,7 @@ def test_export_loads_iterates_and_matches_the_env(collected, minari_root):
     assert res.exit_code == 0, res.output
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["dataset_id"] == DEFAULT_ID and summary["episodes"] == 3
-    assert summary["steps"] == 15 and summary["env_id"] == "dlocli/MujocoSingle-v0"
+    assert summary["steps"] == 15 and summary["env_id"] == gym_id(MUJOCO_ROD, "single")
 
     data = load_dataset(collected)
     dataset = minari.load_dataset(DEFAULT_ID)
@@ -211,9 +212,9 @@ def test_bimanual_with_a_non_default_rod_is_recovered(tmp_path, minari_root):
     assert not minari_root.exists(), "--out, not $MINARI_DATASETS_PATH"
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["observation_dim"] == 6 * 10 + 14 and summary["action_dim"] == 12
-    assert summary["env_id"] == "dlocli/MujocoBimanual-v0"
+    assert summary["env_id"] == gym_id(MUJOCO_ROD, "bimanual")
 
-    path = tmp_path / "elsewhere" / "dlocli/mujoco-bimanual-random-v0" / "data"
+    path = tmp_path / "elsewhere" / f"dlocli/{MUJOCO_ROD}-bimanual-random-v0" / "data"
     dataset = MinariDataset(path)
     stored = load_dataset(tmp_path / "c")
     (episode,) = dataset.iterate_episodes()

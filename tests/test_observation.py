@@ -19,6 +19,8 @@ from dlocli.models.base import valid_model_spec
 from dlocli.models.markers import build_marker_model
 from dlocli.specs import ObservationSpec
 
+from tiny import MUJOCO_ROD
+
 QUICK = {"shapes": "near-rest", "episode_steps": 30, "reset_motion_steps": 10,
          "reset_settle_steps": 10}  # fmt: skip
 MARKERS = {"kind": "markers", "markers": 8}
@@ -29,7 +31,7 @@ def env_of(backend: str, **observation):
                     observation={**MARKERS, **observation})  # fmt: skip
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+@pytest.mark.parametrize("backend", [MUJOCO_ROD, "pybullet"])
 def test_markers_env_passes_gymnasium_checker_and_keeps_the_true_state(backend):
     """Faults change what is reported, never the starts, goals or motion: the same seed and
     actions give the same true state as the full observation."""
@@ -48,7 +50,7 @@ def test_markers_env_passes_gymnasium_checker_and_keeps_the_true_state(backend):
 
 
 def test_full_observation_is_the_true_state():
-    env = make_env("mujoco", "single", seed=1, render_mode=None, **QUICK)
+    env = make_env(MUJOCO_ROD, "single", seed=1, render_mode=None, **QUICK)
     try:
         obs, _ = env.reset(seed=3)
         obs, *_ = env.step(np.full(6, 0.5))
@@ -58,7 +60,7 @@ def test_full_observation_is_the_true_state():
         env.close()
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+@pytest.mark.parametrize("backend", [MUJOCO_ROD, "pybullet"])
 def test_held_markers_follow_the_gripper_points(backend):
     """At the grippers' points (the default end markers) the robot's kinematics place the
     held markers where the simulated rod has them."""
@@ -138,7 +140,7 @@ def test_arc_lengths_past_the_rods_ends_sit_on_the_grippers():
 
 
 def test_dataset_keeps_the_reports(tmp_path):
-    env = env_of("mujoco", dropout=0.3)
+    env = env_of(MUJOCO_ROD, dropout=0.3)
     try:
         episodes = [random_episode(env, s, s + 1) for s in range(2)]
     finally:
@@ -161,7 +163,7 @@ def marker_model(env):
     return build_marker_model(spec, len(layout), layout.held).eval().requires_grad_(False)
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+@pytest.mark.parametrize("backend", [MUJOCO_ROD, "pybullet"])
 def test_plan_moves_held_markers_as_the_grippers_move(backend):
     """A plan's held markers (the robot's kinematics) land where the rod's held markers go
     when the env executes it."""
@@ -186,7 +188,7 @@ def test_plan_moves_held_markers_as_the_grippers_move(backend):
 
 
 def test_view_reads_a_clean_report_as_it_is_and_bridges_latency():
-    clean, late = env_of("mujoco"), env_of("mujoco", latency_steps=2)
+    clean, late = env_of(MUJOCO_ROD), env_of(MUJOCO_ROD, latency_steps=2)
     try:
         for env in (clean, late):
             view = MarkerView(env, marker_model(env), torch.device("cpu"))
@@ -209,7 +211,7 @@ def test_rod_model_refused_with_markers_and_marker_model_without():
     from dlocli.controllers.base import make_controller
     from dlocli.models.base import build_model
 
-    env, full = env_of("mujoco"), make_env("mujoco", "single", render_mode=None, **QUICK)
+    env, full = env_of(MUJOCO_ROD), make_env(MUJOCO_ROD, "single", render_mode=None, **QUICK)
     try:
         rod = build_model(valid_model_spec({"name": "mlp"}), 20)
         with pytest.raises(BadInput, match="observes markers"):
@@ -224,7 +226,7 @@ def test_rod_model_refused_with_markers_and_marker_model_without():
 def test_planner_acts_through_a_marker_model_under_every_fault():
     from dlocli.controllers.base import make_controller
 
-    env = env_of("mujoco", noise_mm=3, latency_steps=1, dropout=0.1, occlusion_probability=0.1)
+    env = env_of(MUJOCO_ROD, noise_mm=3, latency_steps=1, dropout=0.1, occlusion_probability=0.1)
     try:
         planner = make_controller("mpc", env, model=marker_model(env),
                                   options={"horizon": 3})  # fmt: skip
@@ -242,7 +244,7 @@ def test_learning_agents_take_the_markers_observation():
 
     from tiny import TINY_AGENTS
 
-    env = env_of("mujoco", noise_mm=2)
+    env = env_of(MUJOCO_ROD, noise_mm=2)
     try:
         for name in ("sac", "pilco"):
             agent = make_controller(name, env, options=TINY_AGENTS[name], seed=0)
@@ -257,7 +259,7 @@ def test_raw_tracking_plans_from_the_report_as_it_is():
     """tracking="raw": no blending and no latency bridging, the report is the state."""
     from dlocli.controllers.base import make_controller
 
-    env = env_of("mujoco", noise_mm=5, latency_steps=2)
+    env = env_of(MUJOCO_ROD, noise_mm=5, latency_steps=2)
     try:
         planner = make_controller("mpc", env, model=marker_model(env),
                                   options={"horizon": 2, "tracking": "raw"})  # fmt: skip

@@ -17,7 +17,7 @@ from dlocli.env.rollout import random_episode
 from dlocli.env.shape_env import make_env
 from dlocli.errors import BadInput
 
-from tiny import run_dlo
+from tiny import MUJOCO_ROD, run_dlo
 
 CLOUD = {"kind": "pointcloud"}
 TINY_ONLINE = ["online", "--observation", "pointcloud", "--iters", "2", "--trials", "2",
@@ -31,7 +31,7 @@ def true_markers(env) -> np.ndarray:
                             b.gripper_poses())  # fmt: skip
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+@pytest.mark.parametrize("backend", [MUJOCO_ROD, "pybullet"])
 def test_the_env_reports_the_tracked_markers_and_keeps_the_true_state(backend):
     full = make_env(backend, "single", seed=2, render_mode=None, goal="random",
                     episode_steps=60)  # fmt: skip
@@ -59,14 +59,14 @@ def test_the_env_reports_the_tracked_markers_and_keeps_the_true_state(backend):
 
 def test_a_camera_that_misses_the_cable_and_marker_faults_are_refused():
     away = {**CLOUD, "camera": {"look_at": (0.0, -3.0, 1.1)}}
-    env = make_env("mujoco", "single", seed=0, render_mode=None, observation=away)
+    env = make_env(MUJOCO_ROD, "single", seed=0, render_mode=None, observation=away)
     try:
         with pytest.raises(BadInput, match="does not see the cable"):
             env.reset(seed=0)
     finally:
         env.close()
     with pytest.raises(BadInput) as caught:
-        make_env("mujoco", "single", render_mode=None, observation={**CLOUD, "noise_mm": 2.0})
+        make_env(MUJOCO_ROD, "single", render_mode=None, observation={**CLOUD, "noise_mm": 2.0})
     assert "camera.noise_mm" in str(caught.value) and "\n" not in str(caught.value)
 
 

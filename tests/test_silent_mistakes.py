@@ -18,7 +18,7 @@ from dlocli.events import Event
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
 
-from tiny import file_digests, run_dlo
+from tiny import MUJOCO_ROD, file_digests, run_dlo
 
 
 def _one_line(argv: list[str], capsys, root: Path) -> str:
@@ -57,7 +57,7 @@ def test_goal_refuses_separation_limits_that_exclude_the_rest_separation(
 
 
 def test_separation_limits_around_the_rest_separation_give_goals_inside_them():
-    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, min_separation=0.5,
+    env = make_env(MUJOCO_ROD, "bimanual", seed=0, render_mode=None, min_separation=0.5,
                    max_separation=0.92)  # fmt: skip
     try:
         poses = env.goal_gripper_poses
@@ -104,7 +104,7 @@ BAD_QUATERNIONS = [
 
 @pytest.fixture(scope="module")
 def bimanual_env():
-    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, **QUICK)
+    env = make_env(MUJOCO_ROD, "bimanual", seed=0, render_mode=None, **QUICK)
     yield env
     env.close()
 
@@ -156,7 +156,7 @@ def test_recorded_poses_without_unit_quaternions_are_refused_naming_file_and_row
 
 def make_env_rest_poses() -> np.ndarray:
     """(2, 7) the grippers' rest poses of the default rod."""
-    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, **QUICK)
+    env = make_env(MUJOCO_ROD, "bimanual", seed=0, render_mode=None, **QUICK)
     try:
         return env.backend.rest_gripper_poses()
     finally:

@@ -15,7 +15,7 @@ from dlocli.tracking.camera import DepthCamera
 from dlocli.tracking.measure import policy_action, true_markers
 from dlocli.tracking.spec import CameraSpec
 
-from tiny import run_dlo
+from tiny import MUJOCO_ROD, run_dlo
 
 pytest.importorskip("rosbags")
 from test_import_bags import write_bag  # noqa: E402
@@ -27,7 +27,7 @@ STEPS = 30  # control steps per episode: 16 clouds at 25 per second
 def bags(tmp_path_factory):
     """train/ bags of seeds 0 and 1, each one's true markers, and the camera's position."""
     root = tmp_path_factory.mktemp("bags")
-    env = make_env("mujoco", TaskSpec(name="single", goal="random"), seed=0, render_mode=None)
+    env = make_env(MUJOCO_ROD, TaskSpec(name="single", goal="random"), seed=0, render_mode=None)
     layout = marker_layout(ObservationSpec(gripper_markers=0), 1.0, 20, (True, True))
     camera = DepthCamera(CameraSpec(), env.backend.rod.length)
     truth = {}

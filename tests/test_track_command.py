@@ -18,7 +18,7 @@ from dlocli.tracking.frames import save_frames
 from dlocli.tracking.measure import env_layout, policy_action, robot_held, true_markers
 from dlocli.tracking.spec import CameraSpec
 
-from tiny import run_dlo
+from tiny import MUJOCO_ROD, run_dlo
 
 STEPS = 30  # control steps per episode: 16 frames at 25 per second
 
@@ -27,7 +27,7 @@ STEPS = 30  # control steps per episode: 16 frames at 25 per second
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, np.ndarray]]:
     """train/ (seeds 0, 1) and eval/ (seed 2) recordings, and each one's true markers."""
     root = tmp_path_factory.mktemp("clouds")
-    env = make_env("mujoco", TaskSpec(name="single", goal="random"), seed=0, render_mode=None)
+    env = make_env(MUJOCO_ROD, TaskSpec(name="single", goal="random"), seed=0, render_mode=None)
     layout = env_layout(env)
     camera = DepthCamera(CameraSpec(), env.backend.rod.length)
     truth = {}

@@ -28,6 +28,8 @@ from dlocli.tracking.priors import ContinuityPrior, NodePrior
 from dlocli.tracking.spec import CameraSpec, TrackerSpec
 from dlocli.tracking.tracker import CableTracker
 
+from tiny import MUJOCO_ROD
+
 STEPS = 80  # control steps: 40 frames at 25 per second, the gripper on its way to the goal
 CLEAN_VIEW = CameraSpec().clean().model_copy(update={"see_grippers": False})
 
@@ -39,7 +41,7 @@ class StandStill:
         return history[-1]
 
 
-@pytest.fixture(scope="module", params=["mujoco", "pybullet"])
+@pytest.fixture(scope="module", params=[MUJOCO_ROD, "pybullet"])
 def env(request):
     env = make_env(request.param, TaskSpec(name="single", goal="random"), seed=0,
                    render_mode=None)  # fmt: skip

@@ -20,6 +20,8 @@ from dlocli.models.base import valid_model_spec
 from dlocli.models.markers import build_marker_model
 from dlocli.specs import BackendSpec, EnvSpec, RodSpec, TaskSpec
 
+from tiny import MUJOCO_ROD
+
 QUICK = {"shapes": "near-rest", "episode_steps": 5, "reset_motion_steps": 15,
          "reset_settle_steps": 20}  # fmt: skip
 FRAMES, RATE = 60, 100.0
@@ -31,7 +33,7 @@ def _poses_of_a_random_shape(env, seed: int) -> np.ndarray:
     return env.backend.gripper_poses().copy()
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+@pytest.mark.parametrize("backend", [MUJOCO_ROD, "pybullet"])
 def test_an_episode_starts_and_ends_at_the_given_gripper_poses(backend: str) -> None:
     env = make_env(backend, "bimanual", seed=0, render_mode=None, **QUICK)
     try:
@@ -50,7 +52,7 @@ def test_an_episode_starts_and_ends_at_the_given_gripper_poses(backend: str) -> 
 
 
 def test_bad_reset_options_are_refused_in_one_line() -> None:
-    env = make_env("mujoco", "bimanual", seed=0, render_mode=None, **QUICK)
+    env = make_env(MUJOCO_ROD, "bimanual", seed=0, render_mode=None, **QUICK)
     try:
         poses = _poses_of_a_random_shape(env, 1)
         far = poses.copy()

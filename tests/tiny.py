@@ -18,6 +18,12 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.backend_spec import default_backend
+
+#: the MuJoCo rod that the installed MuJoCo runs, for the tests that need a MuJoCo rod but not
+#: a particular one: the composite cable ("mujoco") on MuJoCo 3, the flex rod on MuJoCo 4
+MUJOCO_ROD = default_backend()
+
 #: options of the learning agents: small networks and GP, short horizons
 TINY_AGENTS: dict[str, dict[str, Any]] = {
     "sac": {"net_arch": [16, 16], "batch_size": 8, "learning_starts": 20},
