@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ import pytest
 import torch
 import yaml
 
+import dlocli
 from dlocli.calibration.fit import load_cable
 from dlocli.calibration.replay import ReplaySettings, replay
 from dlocli.calibration.spec import CalibrateSpec
@@ -344,3 +346,35 @@ def test_an_import_run_is_calibrated_with_its_held_markers(cable: Path, tmp_path
     assert held.tolist() == [True] + [False] * (len(ARC) - 2) + [True]
     arc = load_cable(spec).arc
     assert arc[0] == 0.0 and arc[-1] == pytest.approx(load_cable(spec).backend.rod.length)
+
+
+def test_a_fitted_flex_rod_says_the_twist_damping_it_has() -> None:
+    """MuJoCo's flex damping damps twist with the bending time, so a calibration that fits
+    the bending time above the default twist time writes the twist time the rod has (the
+    same physics, no warning on every use); the composite cable keeps what it was given."""
+    flex, cable = backends.facts("mujoco-flex"), backends.facts("mujoco")
+    rod = RodSpec(bending_damping=0.3, twist_damping=0.05)
+    assert flex.effective_rod(rod).twist_damping == 0.3
+    assert flex.effective_rod(RodSpec(twist_damping=0.01)).twist_damping == 0.05  # default
+    for kept in (RodSpec(bending_damping=0.3, twist_damping=0.5), RodSpec(twist_damping=None)):
+        assert flex.effective_rod(kept) == kept
+    assert cable.effective_rod(rod) == rod
+
+
+@pytest.mark.skipif(MUJOCO_ROD != "mujoco-flex", reason="the flex rod needs MuJoCo 4")
+def test_the_flex_rods_effective_twist_damping_is_the_same_physics() -> None:
+    asked = RodSpec(bending_damping=0.3, twist_damping=0.05)
+    said = backends.facts("mujoco-flex").effective_rod(asked)
+    paths = []
+    for rod, warns in ((asked, True), (said, False)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            env = dlocli.make_env(BackendSpec(name="mujoco-flex", rod=rod), seed=0)
+        assert any("twist_damping" in str(w.message) for w in caught) == warns
+        try:
+            env.reset(seed=0)
+            actions = np.random.default_rng(0).uniform(-1, 1, (20, *env.action_space.shape))
+            paths.append([env.step(a)[0] for a in actions])
+        finally:
+            env.close()
+    np.testing.assert_array_equal(np.array(paths[0]), np.array(paths[1]))

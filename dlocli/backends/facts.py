@@ -7,7 +7,10 @@ A plugin backend sets these on its own :class:`~dlocli.backends.base.Backend` su
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
+
+if TYPE_CHECKING:
+    from dlocli.backend_spec import RodSpec
 
 
 class BackendFacts:
@@ -17,6 +20,12 @@ class BackendFacts:
     max_segments: ClassVar[int | None] = None
     #: the value a rod field left at None stands for in this backend (its own constant)
     unset_rod_values: ClassVar[Mapping[str, float]] = {}
+
+    @classmethod
+    def effective_rod(cls, rod: RodSpec) -> RodSpec:
+        """The rod with each field as this backend simulates it, where it cannot have the
+        value asked for (the same physics, said truly)."""
+        return rod
 
 
 class MujocoFacts(BackendFacts):
@@ -55,3 +64,15 @@ class FlexFacts(BackendFacts):
         "twist_damping": 0.05,
         "air_damping": 0.0,
     }
+
+    @classmethod
+    def effective_rod(cls, rod: RodSpec) -> RodSpec:
+        """MuJoCo's flex damping damps twist with the bending time: a shorter twist time is
+        the bending time (a calibration that fits only the bending time writes what the rod
+        does, and its twin does not warn on every use)."""
+        bending = cls.unset_rod_values["bending_damping"]
+        if rod.bending_damping is not None:
+            bending = rod.bending_damping
+        if rod.twist_damping is None or rod.twist_damping >= bending:
+            return rod
+        return rod.model_copy(update={"twist_damping": bending})

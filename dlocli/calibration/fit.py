@@ -223,8 +223,11 @@ def freeze_reference_cm(cable: Cable) -> float:
 
 
 def rod_spec(cable: Cable, names: list[str], unit: np.ndarray) -> BackendSpec:
-    """The cable's backend spec with the fitted fields from a point in [0, 1]^n."""
-    return cable.backend.model_copy(update={"rod": params.decode(names, unit, cable.backend.rod)})
+    """The cable's backend spec with the fitted fields from a point in [0, 1]^n, each field
+    as the backend simulates it (:meth:`~dlocli.backends.facts.BackendFacts.effective_rod`)."""
+    rod = params.decode(names, unit, cable.backend.rod)
+    facts = backends.facts(cable.backend.name)
+    return cable.backend.model_copy(update={"rod": facts.effective_rod(rod)})
 
 
 def calibrated_yaml(backend: BackendSpec, task: dict[str, Any] | None = None) -> str:
