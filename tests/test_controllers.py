@@ -29,7 +29,7 @@ from dlocli.registry import controllers
 from dlocli.runs.control import ControlSpec, run_control
 from dlocli.specs import TaskSpec
 
-from tiny import MUJOCO_ROD
+from tiny import MUJOCO_ROD, run_dlo
 
 TINY = model_spec({"hidden": 32, "edge_layers": 2, "node_layers": 2, "lstm_layers": 1})
 SUMMARY_KEYS = {"initial_error_mm", "final_error_mm", "score", "best_error_mm",
@@ -393,3 +393,18 @@ def test_cli_bad_model_exit_2(tmp_path):
         res = control("--goal", str(goal), *args, "--out", str(tmp_path / "r"))
         assert res.exit_code == 2 and needle in res.output, (args, res.output)
         assert "Traceback" not in res.output
+
+
+@pytest.mark.parametrize(
+    "value,needle",
+    [("-1", "greater than or equal to 0"), ("1000", "less than or equal to 100"),
+     ("nan", "valid integer"), ("2.5", "valid integer")],
+)  # fmt: skip
+def test_cli_bad_settle_steps_exit_2_and_write_nothing(tmp_path, capsys, value, needle):
+    """`dlo online --settle-steps` takes 0..100 whole steps: anything else is one line from
+    the `dlo` entry point, exit 2, before any run directory exists."""
+    out = tmp_path / "run"
+    assert run_dlo(["online", "--settle-steps", value, "--out", str(out)]) == 2
+    said = capsys.readouterr().err.strip()
+    assert needle in said and len(said.splitlines()) == 1
+    assert not out.exists()
