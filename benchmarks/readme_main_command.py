@@ -4,9 +4,9 @@
 
 Runs the command of "Two commands on a fresh machine" (read from the README) and checks the
 mean final shape error of each iteration's MPC trials, the last score and doing nothing
-against the ranges docs/getting-started.md states: measured on AMD EPYC VMs (identical over
-runs) and on an Intel Xeon VM; float rounding differs by CPU. Prints each number, its range,
-and PASS or FAIL; exits 1 if any is outside.
+against the ranges measured for the rod it ran (the installed MuJoCo's: RANGES below, as
+docs/getting-started.md states them); float rounding differs by CPU. Prints each number, its
+range, and PASS or FAIL; exits 1 if any is outside.
 """
 
 from __future__ import annotations
@@ -30,14 +30,28 @@ def readme_command() -> list[str]:
     return words[:at] + words[at + 2 :]
 
 
-#: (low, high) over the machines measured with today's rod: AMD EPYC 80.4 / 37.3 / 3.7 mm,
-#: score 0.968; Intel Xeon 91.5 / 13.6 / 3.8 mm, score 0.966; doing nothing 126.1 mm on both
+#: (low, high) around the runs measured on the default rod (MuJoCo 4.0.1's flex rod), AMD
+#: EPYC: 102.1 / 39.9 / 22.4 mm, score 0.800; with OMP_NUM_THREADS=1 (another float rounding,
+#: as another CPU's) 60.8 / 36.4 / 13.9 mm, score 0.885; doing nothing 128.0 mm in both. On this
+#: rod the rounding draws a different model, so the errors' ranges are wide; not yet measured
+#: on Intel Xeon. The composite cable (MuJoCo 3.17) gave 80.4 / 37.3 / 3.7 mm (0.968) on AMD
+#: EPYC, 91.5 / 13.6 / 3.8 mm (0.966) on Intel Xeon, doing nothing 126.1 mm. Keyed by the
+#: backend the run used (the installed MuJoCo's rod).
 RANGES = {
-    "iteration 1 final error (mm)": (76.0, 95.0),
-    "iteration 2 final error (mm)": (12.0, 41.0),
-    "iteration 3 final error (mm)": (2.5, 5.0),
-    "iteration 3 score": (0.95, 0.98),
-    "doing nothing, iteration 3 (mm)": (125.5, 126.7),
+    "mujoco-flex": {
+        "iteration 1 final error (mm)": (55.0, 110.0),
+        "iteration 2 final error (mm)": (25.0, 50.0),
+        "iteration 3 final error (mm)": (10.0, 30.0),
+        "iteration 3 score": (0.75, 0.92),
+        "doing nothing, iteration 3 (mm)": (127.5, 128.5),
+    },
+    "mujoco": {
+        "iteration 1 final error (mm)": (76.0, 95.0),
+        "iteration 2 final error (mm)": (12.0, 41.0),
+        "iteration 3 final error (mm)": (2.5, 5.0),
+        "iteration 3 score": (0.95, 0.98),
+        "doing nothing, iteration 3 (mm)": (125.5, 126.7),
+    },
 }
 
 
@@ -56,13 +70,15 @@ def main() -> None:
     }
     found["iteration 3 score"] = curve[-1]["score_mean"]
     found["doing nothing, iteration 3 (mm)"] = curve[-1]["zero_final_error_mm_mean"]
+    backend = json.loads((out / "spec.json").read_text())["backend"]["name"]
+    print(f"backend {backend}")
     ok = True
-    for name, (low, high) in RANGES.items():
+    for name, (low, high) in RANGES[backend].items():
         value = found.get(name, float("nan"))
         inside = low - 0.05 <= round(value, 3) <= high + 0.05
         ok &= inside
         print(f"{name:34s} {value:8.3f}  range {low}–{high}  {'PASS' if inside else 'FAIL'}")
-    print(f"wall time {seconds:.0f} s (getting started: 2 min 9 s with the install, 2 free cores)")
+    print(f"wall time {seconds:.0f} s (getting started: 218 s on 2 shared cores, flex rod)")
     sys.exit(0 if ok else 1)
 
 

@@ -1,5 +1,5 @@
-"""Every number a results table of the documentation quotes comes from the committed result
-file the table names, so a number cannot drift from its file.
+"""Every number a results table of the documentation (and the README) quotes comes from the
+committed result file the table names, so a number cannot drift from its file.
 
 A table with a decimal number outside its first column names its sources in an HTML comment
 on the line before it (invisible on the site and on GitHub):
@@ -22,6 +22,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
+#: the pages whose tables are checked: the README's and the site's
+PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
 ANNOTATION = re.compile(r"^<!-- numbers: (.+?) -->$")
 NUMBER = re.compile(r"(?<![\w.])\d+(?:,\d{3})*(?:\.\d+)?(?:e[+-]?\d+)?", re.IGNORECASE)
 DECIMAL = re.compile(r"(?<![\w.])\d+\.\d+")
@@ -79,7 +81,7 @@ def _matches(quoted: str, values: list[float]) -> bool:
 
 def annotated_tables() -> list[tuple[str, int, list[str], list[list[str]]]]:
     found = []
-    for page in sorted(DOCS.glob("*.md")):
+    for page in PAGES:
         for line, annotation, rows in tables(page):
             sources = ANNOTATION.match(annotation).group(1) if annotation else ""
             if sources and not sources.startswith("none"):
@@ -92,7 +94,7 @@ def annotated_tables() -> list[tuple[str, int, list[str], list[list[str]]]]:
 
 def test_every_table_with_decimals_names_its_source_or_why_it_has_none() -> None:
     missing = []
-    for page in sorted(DOCS.glob("*.md")):
+    for page in PAGES:
         for line, annotation, rows in tables(page):
             quoted = any(DECIMAL.search(" ".join(row[1:])) for row in rows)
             if quoted and not annotation:

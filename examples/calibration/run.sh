@@ -3,14 +3,14 @@
 # small reports here. Usage:
 #   DEFORM=/path/to/DEFORM/data_set examples/calibration/run.sh [runs/calibration]
 # One cable at a time, two replay workers each. What was run for the committed results of
-# today's rod (results/CABLE-mujoco; a 2-core machine shared with other jobs):
+# the composite cable (results/CABLE-mujoco; a 2-core machine shared with other jobs), in a
+# MuJoCo 3.17.0 venv (as .ci/mujoco3 builds it):
 #   examples/calibration/run.sh runs/calibration
 #   python examples/calibration/replay_choices.py $DEFORM/DLO3 0.998 0.0968 \
 #     examples/calibration/results/replay_choices_DLO3.json
 #   python examples/calibration/table.py > examples/calibration/results/summary.md
-# The flex rod (MuJoCo 4's rod, results/CABLE-mujoco-flex), in a MuJoCo 4.0.1 venv (as
-# .ci/mujoco4 builds it), one worker each, and both fits' swing decays, each
-# backend in its own venv:
+# The flex rod (MuJoCo 4's rod, results/CABLE-mujoco-flex), in a MuJoCo 4.0.1 venv (the
+# constraints' pin), one worker each, and both fits' swing decays, each backend in its own venv:
 #   BACKENDS=mujoco-flex WORKERS=1 examples/calibration/run.sh runs/calibration
 #   R=examples/calibration/results
 #   python examples/calibration/swing_decay.py $R/swing_decay_mujoco-flex.json \
