@@ -145,3 +145,21 @@ def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod() -> None:
         job = json.loads(path.read_text())
         assert job["fingerprint"] == fingerprint(spec, job["agent"]), path.name
         assert job["fingerprint"] != fingerprint(today, job["agent"]), path.name
+
+
+def test_committed_bench_jobs_keep_the_composite_cable_in_their_fingerprints() -> None:
+    """MuJoCo 4's flex rod is today's default: a bench on it reruns its jobs rather than taking
+    the ones the composite cable made (MuJoCo 3.17) as its own."""
+    from dlocli.bench.spec import BenchSpec, fingerprint
+    from dlocli.resume import load_saved_spec
+
+    run = Path(__file__).parents[1] / "examples" / "bench_paper"
+    spec = load_saved_spec(BenchSpec, run / "spec.json")
+    assert spec.backend.name == "mujoco"
+    flex = spec.model_copy(
+        update={"backend": spec.backend.model_copy(update={"name": "mujoco-flex"})}
+    )
+    for path in sorted((run / "jobs").glob("*.json")):
+        job = json.loads(path.read_text())
+        assert job["fingerprint"] == fingerprint(spec, job["agent"]), path.name
+        assert job["fingerprint"] != fingerprint(flex, job["agent"]), path.name
