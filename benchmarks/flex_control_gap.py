@@ -6,6 +6,8 @@ each command in the environment of the run's backend).
     python benchmarks/flex_control_gap.py trials RUN [--horizon H] [--noise-probability P]
                                                  [--max-step S] [--settle-steps S] [--trials N]
                                                  [--iteration K]
+    python benchmarks/flex_control_gap.py pose RUN [--iteration K] [--trials N]
+                                               [--offset-mm D] [--turn-deg A]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
     python benchmarks/flex_control_gap.py retrain RUN K OUT
     python benchmarks/flex_control_gap.py swing BACKEND [--rod JSON]
@@ -17,11 +19,14 @@ positions and orientations (energy of the second difference over the first's); t
 speed per episode. ``trials``: the MPC trials of iteration K's saved model from iteration K's
 starts (the run's seeds: trials 1..5 repeat the run's), with one planner option changed; per
 trial the final error, the mean and least error of the last 40 steps, and the error after
-the grippers then stand still for 50 steps. ``horizon``: iteration K's model open loop on
-the trials it drove, its position error after 1, 5, 10, 20 steps beside the recorded motion
-over as many steps. ``retrain``: iteration 3's model retrained through K-step rollouts
-(:func:`retrain`), into a copy of the run at OUT. ``swing``: the sideways swing decay of the task's
-rod (examples/calibration/swing_decay.py's measurement). Each prints one JSON object.
+the grippers then stand still for 50 steps, and how far the grippers end from the goal's own
+gripper poses. ``pose``: no model, the grippers driven straight
+to the goal's own gripper poses from the same starts (:func:`pose_report`). ``horizon``:
+iteration K's model open loop on the trials it drove, its position error after 1, 5, 10, 20
+steps beside the recorded motion over as many steps. ``retrain``: iteration 3's model
+retrained through K-step rollouts (:func:`retrain`), into a copy of the run at OUT.
+``swing``: the sideways swing decay of the task's rod (examples/calibration/swing_decay.py's
+measurement). Each prints one JSON object.
 """
 
 from __future__ import annotations
@@ -252,6 +257,7 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
             policy = NoisyPolicy(planner, noise, spec.noise_probability, spec.noise_std)
             episode = rollout(env, policy, seed)
             error = shape_error_mm(episode.positions, episode.goal)
+            off_mm, off_deg = gripper_offset(env)
             for _ in range(HOLD):
                 env.step(np.zeros(env.action_space.shape))
             held = float(shape_error_mm(env.state_parts()["positions"], episode.goal))
@@ -260,12 +266,84 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
                 "last40_mean_mm": float(error[-LAST:].mean()),
                 "last40_least_mm": float(error[-LAST:].min()), "held_mm": held,
                 "score": 1.0 - float(error[-1]) / float(error[0]),
+                "gripper_off_mm": off_mm, "gripper_off_deg": off_deg,
             })  # fmt: skip
     finally:
         env.close()
     mean = {key: round(float(np.mean([r[key] for r in rows])), 3) for key in rows[0]}
     return {"run": str(run), "iteration": k, "trials": n, "changes": changes, "mean": mean,
             "per_trial": rows}  # fmt: skip
+
+
+def gripper_offset(env: Any) -> tuple[float, float]:
+    """How far the moving grippers stand from the goal's own gripper poses at the episode's end:
+    the largest position offset (mm) and turn (degrees)."""
+    from dlocli.env.shapes import rotation_between
+
+    moving = env.backend.moving
+    poses, goal = env.backend.gripper_poses()[moving], env.goal_gripper_poses[moving]
+    offset = np.linalg.norm(poses[:, :3] - goal[:, :3], axis=1).max() * 1000.0
+    turn = np.linalg.norm(rotation_between(poses[:, 3:], goal[:, 3:]), axis=1).max()
+    return float(offset), float(np.degrees(turn))
+
+
+def pose_report(
+    run: Path, k: int, n: int, offset_mm: float = 0.0, turn_deg: float = 0.0
+) -> dict[str, Any]:
+    """No model: from iteration k's first n starts, the grippers driven straight to the goal's
+    own gripper poses at the task's velocity limits and held there to the episode's end (and
+    HOLD steps more): how close the rod comes when the grippers are exactly right; or, with
+    ``offset_mm`` / ``turn_deg``, when the moving grippers stand that far off (a random
+    direction and axis per trial): how much a gripper placed wrong costs the shape."""
+    from dlocli.env.metrics import shape_error_mm
+    from dlocli.env.rollout import stream_seed
+    from dlocli.env.shape_env import make_env_from_spec
+    from dlocli.env.shapes import gripper_twists_towards, max_twist
+    from dlocli.resume import load_saved_spec
+    from dlocli.runs.online.spec import TRIAL, OnlineSpec
+    from dlocli.runs.online.trials import env_spec
+
+    spec = load_saved_spec(OnlineSpec, run / "spec.json")
+    env = make_env_from_spec(env_spec(spec))
+    rows = []
+    try:
+        for j in range(1, n + 1):
+            env.reset(seed=stream_seed(spec.seed, TRIAL, k, j))
+            goal, moving, task = np.asarray(env.goal), env.backend.moving, env.task_spec
+            rng = np.random.default_rng(j)
+            targets = misplaced(env.goal_gripper_poses, moving, offset_mm, turn_deg, rng)
+            errors = [float(shape_error_mm(env.state_parts()["positions"], goal))]
+            for _ in range(task.episode_steps + HOLD):
+                twists = gripper_twists_towards(env.backend.gripper_poses(), targets, task, moving)
+                env.step(env.task.from_grippers(twists / max_twist(task)))
+                errors.append(float(shape_error_mm(env.state_parts()["positions"], goal)))
+            final = errors[task.episode_steps]
+            rows.append({
+                "initial_mm": errors[0], "final_mm": final, "held_mm": errors[-1],
+                "score": 1.0 - final / errors[0],
+            })  # fmt: skip
+    finally:
+        env.close()
+    mean = {key: round(float(np.mean([r[key] for r in rows])), 3) for key in rows[0]}
+    median = {key: round(float(np.median([r[key] for r in rows])), 3) for key in rows[0]}
+    return {"run": str(run), "iteration": k, "trials": n, "offset_mm": offset_mm,
+            "turn_deg": turn_deg, "mean": mean, "median": median, "per_trial": rows}  # fmt: skip
+
+
+def misplaced(
+    poses: np.ndarray, moving: np.ndarray, offset_mm: float, turn_deg: float, rng: Any
+) -> np.ndarray:
+    """``poses`` with each moving gripper shifted by ``offset_mm`` and turned by ``turn_deg``
+    (world frame), each in a random direction."""
+    from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize
+
+    out = poses.copy()
+    for gripper in np.flatnonzero(moving):
+        direction, axis = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+        out[gripper, :3] += direction * offset_mm / 1000.0
+        turn = quat_from_rotvec(axis * np.radians(turn_deg))
+        out[gripper, 3:] = quat_normalize(quat_multiply(turn, out[gripper, 3:]))
+    return out
 
 
 def swing_report(backend: str, rod: dict[str, Any]) -> dict[str, Any]:
@@ -289,6 +367,12 @@ def main(argv: list[str] | None = None) -> None:
     trials.add_argument("--noise-probability", type=float)
     trials.add_argument("--max-step", type=float)
     trials.add_argument("--settle-steps", type=int)
+    pose = sub.add_parser("pose")
+    pose.add_argument("run", type=Path)
+    pose.add_argument("--iteration", type=int, default=3)
+    pose.add_argument("--trials", type=int, default=10)
+    pose.add_argument("--offset-mm", type=float, default=0.0)
+    pose.add_argument("--turn-deg", type=float, default=0.0)
     horizon = sub.add_parser("horizon")
     horizon.add_argument("run", type=Path)
     horizon.add_argument("--iteration", type=int, default=3)
@@ -315,6 +399,8 @@ def main(argv: list[str] | None = None) -> None:
             if value is not None
         }
         report = trials_report(args.run, args.iteration, args.trials, changes)
+    elif args.what == "pose":
+        report = pose_report(args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg)
     elif args.what == "horizon":
         steps = tuple(int(h) for h in args.steps.split(","))
         report = horizon_report(args.run, args.iteration, steps)
