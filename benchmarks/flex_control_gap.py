@@ -35,6 +35,7 @@ import argparse
 import json
 import runpy
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -247,7 +248,7 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
     checkpoint = (run / "checkpoints" / f"iter_{k:02d}.pt").read_bytes()
     torch.set_num_threads(1)  # as the run's trials
     env = make_env_from_spec(env_spec(spec))
-    rows = []
+    rows, start = [], time.perf_counter()
     try:
         for j in range(1, n + 1):
             seed = stream_seed(spec.seed, TRIAL, k, j)
@@ -272,7 +273,7 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
         env.close()
     mean = {key: round(float(np.mean([r[key] for r in rows])), 3) for key in rows[0]}
     return {"run": str(run), "iteration": k, "trials": n, "changes": changes, "mean": mean,
-            "per_trial": rows}  # fmt: skip
+            "seconds": round(time.perf_counter() - start, 1), "per_trial": rows}  # fmt: skip
 
 
 def gripper_offset(env: Any) -> tuple[float, float]:

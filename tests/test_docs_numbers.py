@@ -144,3 +144,15 @@ def test_the_papers_table_is_its_bench_summary_cell_by_cell() -> None:
         assert row[7] == summary[(agent, "single, random goals")][5], agent
         bimanual = summary.get((agent, "bimanual, fixed goal"))
         assert row[8] == (bimanual[5] if bimanual else "– (6-D policy)"), agent
+
+
+@pytest.mark.parametrize("run", ["online_paper", "online_paper_flex"])
+def test_a_paper_scale_runs_table_is_its_metrics(run: str) -> None:
+    """The table of examples/RUN/README.md is what report.py prints from the run's files."""
+    import runpy
+
+    report = runpy.run_path(str(ROOT / "examples" / "online_paper" / "report.py"))
+    rows = report["table"](ROOT / "examples" / run).splitlines()[2:]
+    readme = (ROOT / "examples" / run / "README.md").read_text(encoding="utf-8").splitlines()
+    quoted = [line for line in readme if re.match(r"^\| \d+ \| [\d,]+ \|", line)]
+    assert quoted == rows
