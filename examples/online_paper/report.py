@@ -64,7 +64,7 @@ def table(run: Path) -> str:
 
 
 def plot(out: Path, runs: dict[str, Path]) -> None:
-    figure, axes = plt.subplots(figsize=(7, 4))
+    figure, axes = plt.subplots(figsize=(7, 5))
     for index, (label, run) in enumerate(runs.items()):
         rows = list(csv.DictReader((run / "metrics.csv").open()))
         final = by_iteration(rows, "final_error_mm")
@@ -82,7 +82,7 @@ def plot(out: Path, runs: dict[str, Path]) -> None:
     axes.set_ylabel("final shape error (mm)")
     axes.set_xticks(range(1, 21))
     axes.grid(True, which="both", alpha=0.3)
-    axes.legend(fontsize=7)
+    axes.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.18))
     figure.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=120)
