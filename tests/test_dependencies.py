@@ -154,6 +154,33 @@ def test_a_missing_extra_is_named_in_one_line(extra: str, tmp_path: Path) -> Non
     assert not out.exists()
 
 
+def test_a_mujoco4_install_broken_by_mujoco3_is_named_in_one_line(tmp_path: Path) -> None:
+    """pip upgrading an environment that had MuJoCo 3 to the pinned MuJoCo 4 removes files of
+    mujoco-core, and `import mujoco` fails naming it (MuJoCo 4.0.1's message, stood in for here
+    by a package that fails the same way): one line with the repair, exit 2, nothing written."""
+    broken = tmp_path / "site" / "mujoco"
+    broken.mkdir(parents=True)
+    (broken / "__init__.py").write_text(
+        "raise ImportError(\"The 'mujoco' package is installed, but its core bindings "
+        "('mujoco-core') are missing or corrupted\")\n"
+    )
+    out = tmp_path / "goal.npy"
+    program = (
+        f"import sys; sys.path.insert(0, {str(broken.parent)!r})\n"
+        f"sys.argv = ['dlo', 'goal', '--out', {str(out)!r}]\n"
+        "from dlocli.cli import main; main()\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "pip install --force-reinstall --no-deps mujoco==" in lines[0]
+    assert "mujoco-core==" in lines[0]
+    assert not out.exists()
+
+
 def test_ci_tries_every_extra_installed_alone() -> None:
     """.ci/extras names the feature tests of each extra (an extra added later must be too)."""
     script = (ROOT / ".ci" / "extras").read_text(encoding="utf-8")

@@ -14,6 +14,7 @@ import weakref
 import numpy as np
 
 from dlocli.backends.render import finite_points, render_rod
+from dlocli.errors import BadInput
 
 
 def _choose_headless_gl() -> str | None:
@@ -40,11 +41,31 @@ def _forget_gl_imports(had_pyopengl_platform: bool) -> None:
     os.environ["MUJOCO_GL"] = "disable"
 
 
+def _refuse_a_split_install_over_mujoco3(error: Exception) -> None:
+    """MuJoCo 4 comes as `mujoco` plus `mujoco-core`; pip upgrading an environment that had
+    MuJoCo 3 in place writes mujoco-core's files, then removes the old package's files at the
+    same paths, and `import mujoco` then fails naming mujoco-core: say so in one line."""
+    if isinstance(error, ImportError) and "mujoco-core" in str(error):
+        from importlib.metadata import version
+
+        pins = " ".join(f"{name}=={version('mujoco')}" for name in _SPLIT_PACKAGES)
+        raise BadInput(
+            "MuJoCo's core bindings (mujoco-core) are missing or broken, as pip leaves them "
+            "when MuJoCo 4 is installed over MuJoCo 3 in the same environment; repair with: "
+            f"pip install --force-reinstall --no-deps {pins}"
+        ) from None
+
+
+#: the packages MuJoCo 4 comes in, reinstalled together to repair a broken install
+_SPLIT_PACKAGES = ("mujoco", "mujoco-core", "mujoco-studio")
+
+
 _had_pyopengl_platform = "PYOPENGL_PLATFORM" in os.environ
 _gl_choice = _choose_headless_gl()
 try:
     import mujoco
-except Exception:  # a broken GL stack must not take the physics down: render() falls back
+except Exception as error:  # a broken GL stack must not take the physics down: render() falls back
+    _refuse_a_split_install_over_mujoco3(error)
     if _gl_choice is None:
         raise
     _forget_gl_imports(_had_pyopengl_platform)
