@@ -144,13 +144,7 @@ def test_a_missing_extra_is_named_in_one_line(extra: str, tmp_path: Path) -> Non
         f"sys.argv = ['dlo', *{argv!r}]\n"
         "from dlocli.cli import main; main()\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", program], capture_output=True, text=True, timeout=120
-    )
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert f"pip install 'dlocli[{extra}]'" in lines[0]
+    assert f"pip install 'dlocli[{extra}]'" in one_line_refusal(program)
     assert not out.exists()
 
 
@@ -170,15 +164,22 @@ def test_a_mujoco4_install_broken_by_mujoco3_is_named_in_one_line(tmp_path: Path
         f"sys.argv = ['dlo', 'goal', '--out', {str(out)!r}]\n"
         "from dlocli.cli import main; main()\n"
     )
+    line = one_line_refusal(program)
+    assert "pip install --force-reinstall --no-deps mujoco==" in line
+    assert "mujoco-core==" in line
+    assert not out.exists()
+
+
+def one_line_refusal(program: str) -> str:
+    """Run the Python ``program`` (the `dlo` entry point with an install fault): it must end
+    with exit 2 and one line on stderr, which is returned."""
     result = subprocess.run(
         [sys.executable, "-c", program], capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
-    assert "pip install --force-reinstall --no-deps mujoco==" in lines[0]
-    assert "mujoco-core==" in lines[0]
-    assert not out.exists()
+    return lines[0]
 
 
 def test_ci_tries_every_extra_installed_alone() -> None:
