@@ -20,8 +20,8 @@ speed per episode. ``trials``: the MPC trials of iteration K's saved model from 
 starts (the run's seeds: trials 1..5 repeat the run's), with one planner option changed; per
 trial the final error, the mean and least error of the last 40 steps, and the error after
 the grippers then stand still for 50 steps, and how far the grippers end from the goal's own
-gripper poses. ``pose``: no model, the grippers driven straight
-to the goal's own gripper poses from the same starts (:func:`pose_report`). ``horizon``:
+gripper poses. ``pose``: no model, the grippers driven straight to the goal's own gripper
+poses from the same starts (:func:`pose_report`). ``horizon``:
 iteration K's model open loop on the trials it drove, its position error after 1, 5, 10, 20
 steps beside the recorded motion over as many steps. ``retrain``: iteration 3's model
 retrained through K-step rollouts (:func:`retrain`), into a copy of the run at OUT.
@@ -271,8 +271,8 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
             })  # fmt: skip
     finally:
         env.close()
-    mean = {key: round(float(np.mean([r[key] for r in rows])), 3) for key in rows[0]}
-    return {"run": str(run), "iteration": k, "trials": n, "changes": changes, "mean": mean,
+    return {"run": str(run), "iteration": k, "trials": n, "changes": changes,
+            "mean": per_key(np.mean, rows),
             "seconds": round(time.perf_counter() - start, 1), "per_trial": rows}  # fmt: skip
 
 
@@ -325,10 +325,14 @@ def pose_report(
             })  # fmt: skip
     finally:
         env.close()
-    mean = {key: round(float(np.mean([r[key] for r in rows])), 3) for key in rows[0]}
-    median = {key: round(float(np.median([r[key] for r in rows])), 3) for key in rows[0]}
     return {"run": str(run), "iteration": k, "trials": n, "offset_mm": offset_mm,
-            "turn_deg": turn_deg, "mean": mean, "median": median, "per_trial": rows}  # fmt: skip
+            "turn_deg": turn_deg, "mean": per_key(np.mean, rows),
+            "median": per_key(np.median, rows), "per_trial": rows}  # fmt: skip
+
+
+def per_key(statistic: Any, rows: list[dict[str, float]]) -> dict[str, float]:
+    """``statistic`` (np.mean, np.median) of each field over the trials' rows, rounded."""
+    return {key: round(float(statistic([r[key] for r in rows])), 3) for key in rows[0]}
 
 
 def misplaced(
