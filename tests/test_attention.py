@@ -1,9 +1,11 @@
-"""The attention model's marker form: one network for cables of different marker counts,
-told apart by their geometry, trained on two at once."""
+"""The networks that serve any marker count in the marker view (attention, told cables
+apart by their geometry; arc-mlp, by their whole shape): one network trained on two
+cables of different marker counts at once."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from dlocli.markers import deform
@@ -37,13 +39,17 @@ def test_descriptors_hold_the_neighbour_vectors_and_the_cable_length() -> None:
     torch.testing.assert_close(longer[..., 6:], 2 * d[..., 6:])
 
 
-def test_one_network_learns_cables_of_different_marker_counts() -> None:
+ARC_MLP = {"name": "arc-mlp", "hidden": 32, "layers": 2, "points": 16, "length_projection": 3}
+
+
+@pytest.mark.parametrize("spec", [SPEC, ARC_MLP], ids=["attention", "arc-mlp"])
+def test_one_network_learns_cables_of_different_marker_counts(spec: dict) -> None:
     """Trained on a 13-marker and a 12-marker cable at once, it predicts both better than
     before training, through each cable's own held mask."""
     train = [_cable(13, range(0, 4)), _cable(12, range(4, 8), stretch=0.8)]
     val = [_cable(13, range(20, 22)), _cable(12, range(22, 24), stretch=0.8)]
     torch.manual_seed(0)
-    model = build_marker_model(SPEC, 13, train[0].held)
+    model = build_marker_model(spec, 13, train[0].held)
     model.fit_normalization([(e, c.held) for c in train for e in c.episodes])
     before = [validation_score(model, [c]) for c in val]
     fit = FitSpec(update_steps=60, eval_every=20, rollout_steps=8, rollout_start=2, lr=3e-3,

@@ -22,6 +22,7 @@ from tiny import swinging_cable
 MARKERS = 12
 RECIPES = {  # examples/real_cables' models
     "mlp": {"name": "mlp", "hidden": 256, "layers": 2, "length_projection": 3},
+    "arc-mlp": {"name": "arc-mlp", "hidden": 64, "layers": 2, "points": 16, "length_projection": 3},
     "in-bilstm": {"name": "in-bilstm", "hidden": 64, "length_projection": 3},
     "attention": {
         "name": "attention",
@@ -72,7 +73,8 @@ def test_fused_training_rollout_matches_the_plain_one(name: str) -> None:
 
 def test_training_takes_the_fused_path_by_default() -> None:
     """The MLP's rollout is one autograd node; the others' steps hold the fused ones."""
-    nodes = {"mlp": "MLPRolloutBackward", "in-bilstm": "AdvanceBackward",
+    nodes = {"mlp": "MLPRolloutBackward", "arc-mlp": "MLPRolloutBackward",
+             "in-bilstm": "AdvanceBackward",
              "attention": "AdvanceBackward"}  # fmt: skip
     for name, node in nodes.items():
         model, windows = _model_and_windows(name, k=3)

@@ -27,6 +27,12 @@ models.register(
     spec="dlocli.models.spec:MLPSpec",
 )
 models.register(
+    "arc-mlp",
+    "dlocli.models.arc_mlp:ArcMLP",
+    "MLP over a fixed grid along the cable, any node count at the MLP's speed",
+    spec="dlocli.models.spec:ArcMLPSpec",
+)
+models.register(
     "attention",
     "dlocli.models.attention:Attention",
     "self-attention along the cable, any node count (GA-Net family)",

@@ -36,11 +36,6 @@ from dlocli.models.marker_steps import (
 )
 
 
-def linear_layers(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
-    """The Linear layers of a :func:`dlocli.models.network.mlp` (ReLU between each pair)."""
-    return [m for m in net if isinstance(m, torch.nn.Linear)]
-
-
 def usable(x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
     """Whether :func:`rollout` applies where the fused steps do: no gradient is wanted for
     the rollout's inputs."""
@@ -54,7 +49,8 @@ def rollout(
     """``model.rollout`` (B, V, 3), (B, V, 3), (B, H, V, 3) -> (B, H, V, 3) as one operation;
     ``lengths`` (B, V-1): the neighbour distances the projection keeps."""
     constants = marker_steps.step_constants(model, held, model.spec.length_projection)
-    params = [t for m in linear_layers(model.network.net) for t in (m.weight, m.bias)]
+    layers = model.network.flat_layers(x.shape[1])
+    params = [t for layer in layers for t in layer]
     return MLPRollout.apply(x, x_prev, held_future, lengths, constants, *params)
 
 

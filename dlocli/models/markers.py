@@ -34,8 +34,7 @@ from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
 from dlocli.models import marker_mlp_rollout, marker_steps
 from dlocli.models.base import valid_model_spec
-from dlocli.models.mlp import MLP
-from dlocli.models.network import Nodes
+from dlocli.models.network import Network, Nodes
 from dlocli.models.spec import ModelSpec
 from dlocli.registry import models
 
@@ -187,10 +186,12 @@ class MarkerModel(torch.nn.Module):
     def _whole_rollout(self, x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
         """Whether the MLP's whole rollout runs as one operation
         (:mod:`~dlocli.models.marker_mlp_rollout`): on CPU, with no gradient wanted for its
-        inputs (as in training), for the ``mlp`` network without the cable's geometry."""
+        inputs (as in training), for a network that is fully connected layers over the
+        flattened features (``flat_layers``: ``mlp``, ``arc-mlp``) without the cable's
+        geometry."""
         return (
-            type(self.network) is MLP
-            and not self.geometry
+            not self.geometry
+            and type(self.network).flat_layers is not Network.flat_layers
             and self._fusable(x, None)
             and marker_mlp_rollout.usable(x, x_prev, held_future)
         )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import torch
 from torch import Tensor
 
 from dlocli.models.network import Network, Nodes, mlp
@@ -30,3 +31,6 @@ class MLP(Network):
     def forward(self, nodes: Tensor, relations: Tensor) -> Tensor:
         batch = nodes.shape[0]
         return self.net(nodes.reshape(batch, -1)).view(batch, self.nodes.count, -1)
+
+    def flat_layers(self, count: int) -> list[tuple[Tensor, Tensor]]:
+        return [(m.weight, m.bias) for m in self.net if isinstance(m, torch.nn.Linear)]

@@ -68,6 +68,13 @@ class Network(torch.nn.Module):
     def forward(self, nodes: Tensor, relations: Tensor) -> Tensor:  # pragma: no cover
         raise NotImplementedError
 
+    def flat_layers(self, count: int) -> list[tuple[Tensor, Tensor]] | None:
+        """This network for ``count`` nodes as fully connected layers (weight, bias), ReLU
+        between, over the nodes' flattened inputs, when it is one: the marker view then
+        trains it through one fused rollout (:mod:`dlocli.models.marker_mlp_rollout`).
+        None (the default): it runs as written."""
+        return None
+
     def own(self, nodes: Tensor) -> Tensor:
         """A node's own inputs: all of them, or without its absolute position when the spec
         says ``absolute_position=False``."""

@@ -95,6 +95,17 @@ class MLPSpec(ModelSpec):
     layers: int = Field(4, gt=0, le=64, description="Hidden layers of the MLP.")
 
 
+class ArcMLPSpec(MLPSpec):
+    """The MLP's sizes and the grid along the cable it reads and writes."""
+
+    points: int = Field(
+        16, ge=2, le=1024,
+        description="Positions along the cable the MLP reads and writes; the nodes are "
+        "interpolated onto them by arc position, so one network serves any node count "
+        "(at least the largest count loses nothing).",
+    )  # fmt: skip
+
+
 class AttentionSpec(ModelSpec):
     """The attention model's sizes: ``encoder_layers`` layers of width ``hidden`` with
     ``heads`` heads."""
