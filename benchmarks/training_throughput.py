@@ -4,14 +4,16 @@ the plain PyTorch path (before issue 43) next to the fused one (the default), in
     python benchmarks/training_throughput.py [--data DATASET] [--ks 64 256] [--batch 32]
         [--repeats 5] [--steps 2] [--threads 1] [--device cpu]
 
-For each recipe of examples/real_cables (mlp, in-bilstm, attention) and each rollout length
-k: one model, copied twice with the same weights (``model.reference = True``: every step
-through PyTorch operations and autograd; ``False``: the fused step around the network,
-dlocli.models.marker_steps, and for the MLP the whole rollout as one operation,
-dlocli.models.marker_mlp_rollout), each with its own Adam. A gradient step is what `dlo
-train` does: draw windows, roll out, the loss, backward, clip, Adam. The variants' timings
-are interleaved (the machine may be shared) and, on CPU, in this process's CPU time (what
-sharing the cores changes least); medians of the repeats, and new / old as the ratio.
+For each recipe of examples/real_cables (mlp, in-bilstm, attention; ``--recipes`` takes any
+of its yaml files, e.g. arc-mlp-long) and each rollout length k: one model, copied twice
+with the same weights (``model.reference = True``: every step through PyTorch operations
+and autograd; ``False``: the fused step around the network, dlocli.models.marker_steps,
+and for the networks that are fully connected layers (mlp, arc-mlp) the whole rollout as
+one operation, dlocli.models.marker_mlp_rollout), each with its own Adam. A gradient step
+is what `dlo train` does: draw windows, roll out, the loss, backward, clip, Adam. The
+variants' timings are interleaved (the machine may be shared) and, on CPU, in this
+process's CPU time (what sharing the cores changes least); medians of the repeats, and
+new / old as the ratio.
 
 For a model with an ``nn.LSTM`` (the in-bilstm), the share of the new gradient step its k
 LSTM passes forward and backward take alone (oneDNN's, the same in both variants). The
@@ -231,7 +233,7 @@ def main() -> None:
           f"{args.steps} gradient steps (windows, rollout, loss, backward, clip, Adam), "
           f"{'CPU' if args.device == 'cpu' else 'wall'} time"
           )  # fmt: skip
-    print(f"  {'recipe':10s} {'k':>4s} {'old steps/s':>12s} {'new steps/s':>12s} {'new/old':>8s}"
+    print(f"  {'recipe':12s} {'k':>4s} {'old steps/s':>12s} {'new steps/s':>12s} {'new/old':>8s}"
           f"  {'LSTM share of new':>17s} {'bound steps/s':>13s} {'bound/old':>9s}")  # fmt: skip
     for recipe in args.recipes:
         raw = yaml.safe_load((RECIPES / f"{recipe}.yaml").read_text())
@@ -244,11 +246,11 @@ def main() -> None:
             old, new = k / per_step["old"], k / per_step["new"]
             share = per_step["lstm"] / per_step["new"] if "lstm" in per_step else math.nan
             shown = f"{share:17.0%}" if math.isfinite(share) else f"{'-':>17s}"
-            print(f"  {recipe:10s} {k:4d} {old:12.0f} {new:12.0f} {new / old:7.2f}x  {shown} "
+            print(f"  {recipe:12s} {k:4d} {old:12.0f} {new:12.0f} {new / old:7.2f}x  {shown} "
                   f"{bound:13.0f} {bound / old:8.2f}x", flush=True)  # fmt: skip
             if "compiled" in per_step:
                 compiled = k / per_step["compiled"]
-                print(f"  {'':10s} {'':4s} torch.compile'd network: {compiled:.0f} steps/s "
+                print(f"  {'':12s} {'':4s} torch.compile'd network: {compiled:.0f} steps/s "
                       f"({compiled / old:.2f}x), first step {per_step['compiled warm-up']:.0f} s "
                       f"(the new's {per_step['new warm-up']:.1f} s)", flush=True)  # fmt: skip
 
