@@ -3,9 +3,9 @@ quantity DEFORM's Table 1 reports next to its scores.
 
     python benchmarks/real_cables_latency.py [--markers 12] [--steps 300] [--repeats 5]
 
-Each recipe's model (examples/real_cables/*.yaml; once per distinct model) is timed with
-and without its length projection, interleaved in one process (the machine may be shared):
-medians of the repeats and the projection's cost as a ratio. Timing does not depend on
+Each recipe's model (examples/real_cables/*.yaml that name one; once per distinct model) is
+timed with and without its length projection, interleaved in one process (the machine may
+be shared): medians of the repeats and the projection's cost as a ratio. Timing does not depend on
 the weights, so fresh models are timed; no data is needed.
 """
 
@@ -44,7 +44,10 @@ def main() -> None:
     held = held_markers(args.markers)
     models, timed = {}, []
     for recipe in sorted(RECIPES.glob("*.yaml")):
-        spec = TrainSpec.model_validate(yaml.safe_load(recipe.read_text())).model
+        raw = yaml.safe_load(recipe.read_text())
+        if "model" not in raw:  # a fine-tuning recipe: the model is the checkpoint's
+            continue
+        spec = TrainSpec.model_validate(raw).model
         if spec in timed:  # recipes that differ only in training predict alike
             continue
         timed.append(spec)
