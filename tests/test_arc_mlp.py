@@ -60,4 +60,4 @@ def test_its_flattened_layers_compute_what_it_computes(count: int) -> None:
 def test_its_marker_view_trains_through_the_fused_rollout() -> None:
     model = build_marker_model(SPEC, 13, deform.held_markers(13))
     x = torch.zeros(1, 12, 3)  # another cable's count
-    assert model._whole_rollout(x, x, torch.zeros(1, 2, 12, 3))
+    assert model._whole_rollout_layers(x, x, torch.zeros(1, 2, 12, 3)) is not None

@@ -44,12 +44,18 @@ def usable(x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
 
 
 def rollout(
-    model: Any, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor, lengths: Tensor
+    model: Any,
+    layers: list[tuple[Tensor, Tensor]],
+    x: Tensor,
+    x_prev: Tensor,
+    held_future: Tensor,
+    held: Tensor,
+    lengths: Tensor,
 ) -> Tensor:
     """``model.rollout`` (B, V, 3), (B, V, 3), (B, H, V, 3) -> (B, H, V, 3) as one operation;
+    ``layers``: the network's (weight, bias) for V markers (``flat_layers``), ReLU between;
     ``lengths`` (B, V-1): the neighbour distances the projection keeps."""
     constants = marker_steps.step_constants(model, held, model.spec.length_projection)
-    layers = model.network.flat_layers(x.shape[1])
     params = [t for layer in layers for t in layer]
     return MLPRollout.apply(x, x_prev, held_future, lengths, constants, *params)
 

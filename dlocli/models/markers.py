@@ -34,7 +34,7 @@ from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
 from dlocli.models import marker_mlp_rollout, marker_steps
 from dlocli.models.base import valid_model_spec
-from dlocli.models.network import Network, Nodes
+from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec
 from dlocli.registry import models
 
@@ -156,9 +156,10 @@ class MarkerModel(torch.nn.Module):
         """Open loop: (B, V, 3) x_t, x_{t-1} and (B, H, V, 3) frames t+1..t+H of which only
         the held markers are read -> predicted frames (B, H, V, 3)."""
         lengths = neighbour_distances(x)
-        if self._whole_rollout(x, x_prev, held_future):
+        layers = self._whole_rollout_layers(x, x_prev, held_future)
+        if layers is not None:
             held = self.held if held is None else held
-            return marker_mlp_rollout.rollout(self, x, x_prev, held_future, held, lengths)
+            return marker_mlp_rollout.rollout(self, layers, x, x_prev, held_future, held, lengths)
         out = []
         if self._fusable(x, lengths):  # the step's constants prepared once
             held = self.held if held is None else held
@@ -183,18 +184,19 @@ class MarkerModel(torch.nn.Module):
             own and marker_steps.usable(self, x) and (lengths is None or not lengths.requires_grad)
         )
 
-    def _whole_rollout(self, x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
-        """Whether the MLP's whole rollout runs as one operation
+    def _whole_rollout_layers(
+        self, x: Tensor, x_prev: Tensor, held_future: Tensor
+    ) -> list[tuple[Tensor, Tensor]] | None:
+        """The network's fully connected layers when its whole rollout runs as one operation
         (:mod:`~dlocli.models.marker_mlp_rollout`): on CPU, with no gradient wanted for its
-        inputs (as in training), for a network that is fully connected layers over the
-        flattened features (``flat_layers``: ``mlp``, ``arc-mlp``) without the cable's
-        geometry."""
-        return (
-            not self.geometry
-            and type(self.network).flat_layers is not Network.flat_layers
-            and self._fusable(x, None)
-            and marker_mlp_rollout.usable(x, x_prev, held_future)
-        )
+        inputs (as in training), for a network that is such layers over the flattened
+        features (``flat_layers``: ``mlp``, ``arc-mlp``) without the cable's geometry; else
+        None."""
+        if self.geometry or not self._fusable(x, None):
+            return None
+        if not marker_mlp_rollout.usable(x, x_prev, held_future):
+            return None
+        return self.network.flat_layers(x.shape[1])
 
     def _fused_step(
         self,
