@@ -23,7 +23,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from dlocli.models.network import Network, Nodes, mlp
+from dlocli.models.network import Network, Nodes, linear_layers, mlp
 from dlocli.models.spec import ArcMLPSpec, ModelSpec
 
 
@@ -66,7 +66,7 @@ class ArcMLP(Network):
         """The network for ``count`` nodes as an MLP over their flattened inputs: the first
         layer's weight composed with the interpolation onto the grid, the last layer's
         weight and bias with the one back (autograd reaches the grid's weights)."""
-        layers = [(m.weight, m.bias) for m in self.net if isinstance(m, torch.nn.Linear)]
+        layers = linear_layers(self.net)
         points, width_in, width_out = self.spec.points, self.nodes.inputs, self.nodes.outputs
         first, last = layers[0][0], layers[-1]  # spec.layers >= 1: two Linear layers at least
         onto_grid = interpolation(points, count, first)

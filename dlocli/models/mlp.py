@@ -10,10 +10,9 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import torch
 from torch import Tensor
 
-from dlocli.models.network import Network, Nodes, mlp
+from dlocli.models.network import Network, Nodes, linear_layers, mlp
 from dlocli.models.spec import MLPSpec, ModelSpec
 
 
@@ -33,4 +32,4 @@ class MLP(Network):
         return self.net(nodes.reshape(batch, -1)).view(batch, self.nodes.count, -1)
 
     def flat_layers(self, count: int) -> list[tuple[Tensor, Tensor]]:
-        return [(m.weight, m.bias) for m in self.net if isinstance(m, torch.nn.Linear)]
+        return linear_layers(self.net)

@@ -98,3 +98,8 @@ def mlp(sizes: list[int]) -> torch.nn.Sequential:
         if k < len(sizes) - 2:
             layers.append(torch.nn.ReLU())
     return torch.nn.Sequential(*layers)
+
+
+def linear_layers(net: torch.nn.Sequential) -> list[tuple[Tensor, Tensor]]:
+    """(weight, bias) of each Linear layer of a :func:`mlp`, in order (ReLU between)."""
+    return [(m.weight, m.bias) for m in net if isinstance(m, torch.nn.Linear)]
