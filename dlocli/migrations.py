@@ -22,7 +22,12 @@ from typing import Any
 #: added after runs were first saved, with the value that rebuilds what a saved run did before
 LEGACY_VALUES: dict[str, dict[str, Any]] = {
     "bench": {"planner": "mpc"},
-    "model": {"velocity_input": False, "absolute_position": True, "length_projection": 0},
+    "model": {
+        "velocity_input": False,
+        "absolute_position": True,
+        "length_projection": 0,
+        "members": 1,
+    },
     "fit": {
         "mirror": False,
         "schedule": "epochs",

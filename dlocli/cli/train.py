@@ -55,4 +55,6 @@ def _describe(event: Event) -> str:
         return f"val loss {values['val_loss']:.4g}"
     if isinstance(event, BatchDone):
         return f"loss {values['loss']:.4g}"
+    if event.unit == "member" and "val_loss" in values:  # an ensemble's member trained
+        return f"its validation {values['val_loss']:.3g} cm"
     return ""

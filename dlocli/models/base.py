@@ -34,9 +34,9 @@ from dlocli.data.format import ROD
 from dlocli.errors import BadInput
 from dlocli.limits import refuse_unless_fits
 from dlocli.models import fast_rollout
+from dlocli.models.ensemble import build_network
 from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec, model_spec
-from dlocli.registry import models
 from dlocli.specs import format_validation_error
 
 STATE_DIM = 7  # position (3) + quaternion (4)
@@ -68,6 +68,11 @@ class DynamicsModel(torch.nn.Module):
         super().__init__()
         if n_segments < 2:
             raise BadInput(f"a rod model needs at least 2 segments, got {n_segments}")
+        if spec.members > 1:  # its one-step epochs train one network; members train apart
+            raise BadInput(
+                f"an ensemble ({spec.members} members) trains on recorded cables (marker "
+                "datasets from `dlo import`); a rod model is one network: drop --members"
+            )
         self.spec = spec
         self.n_segments = int(n_segments)
         for name, size, value in (
@@ -82,7 +87,7 @@ class DynamicsModel(torch.nn.Module):
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
         nodes = Nodes(n_segments, self.feature_dim + ACTION_DIM, STATE_DIM, relative=STATE_DIM,
                       absolute=3, commands=ACTION_DIM)  # fmt: skip
-        self.network = models.get(spec.name)(spec, nodes)
+        self.network = build_network(spec, nodes)
 
     @property
     def reference(self) -> bool:

@@ -6,7 +6,8 @@ schedule chosen by the model's form and the spec:
 - steps (an ``UpdateSpec`` with schedule "steps"): a fixed number of gradient steps with the
   newest episodes weighted in (:func:`dlocli.models.step_schedule._train_steps`);
 - rollout windows (a marker model, recorded cables): gradient steps through k-step open-loop
-  rollouts (:func:`dlocli.models.marker_training._fit_markers`).
+  rollouts (:func:`dlocli.models.marker_training._fit_markers`); an ensemble's members each
+  so, in parallel (:func:`dlocli.models.member_fits.fit_members`).
 
 It is the only way in: those three are private to their modules.
 
@@ -25,9 +26,11 @@ import numpy as np
 from dlocli.cancel import CancelToken
 from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
+from dlocli.models.ensemble import Ensemble
 from dlocli.models.fitting import FitRecord, TrainResult
 from dlocli.models.marker_training import Cable, Cables, _fit_markers
 from dlocli.models.markers import MarkerModel
+from dlocli.models.member_fits import fit_members
 from dlocli.models.spec import FitSpec, UpdateSpec
 from dlocli.models.splits import split_episodes
 from dlocli.models.step_schedule import _train_steps
@@ -78,7 +81,8 @@ def _fit_windows(
         train = Cable([episodes[i] for i in train_idx], data.held)
         val = [Cable([episodes[i] for i in val_idx], data.held)] if len(val_idx) else []
         cables = Cables([train], val)
-    rows = _fit_markers(model, cables.train, cables.val, schedule, progress, cancel)
+    fit_all = fit_members if isinstance(model.network, Ensemble) else _fit_markers
+    rows = fit_all(model, cables.train, cables.val, schedule, progress, cancel)
     history, before = [], 0.0
     for row in rows:  # their seconds count from the start, a record's from the previous one
         history.append(FitRecord("step", row["step"], row["train_loss"], row["val_score_cm"],

@@ -34,6 +34,7 @@ from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
 from dlocli.models import marker_mlp_rollout, marker_steps
 from dlocli.models.base import valid_model_spec
+from dlocli.models.ensemble import build_network
 from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec
 from dlocli.registry import models
@@ -67,7 +68,7 @@ class MarkerModel(torch.nn.Module):
         #: whether each marker's inputs include the cable's geometry (:meth:`descriptors`)
         self.geometry = bool(network.cable_geometry)
         width = FEATURES + (DESCRIPTORS if self.geometry else 0)
-        self.network = network(spec, Nodes(n_markers, width, 3, relative=width))
+        self.network = build_network(spec, Nodes(n_markers, width, 3, relative=width))
 
     @property
     def reference(self) -> bool:

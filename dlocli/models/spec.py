@@ -33,6 +33,12 @@ class ModelSpec(Spec):
         "alone do not determine its next state.",
     )
     hidden: int = Field(150, gt=0, le=8192, description="Width of every hidden layer of the model.")
+    members: int = Field(
+        1, ge=1, le=64,
+        description="Independently trained copies of the network (seeds seed, seed+1, ...), "
+        "their predictions averaged: an ensemble holds long rollouts closer than one network. "
+        "Marker datasets (recorded cables); the copies train in parallel, one per core.",
+    )  # fmt: skip
     length_projection: int = Field(
         0, ge=0, le=50,
         description="Marker form (recorded cables): sweeps projecting every predicted frame "

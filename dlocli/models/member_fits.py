@@ -1,0 +1,121 @@
+"""Training an ensemble's members (:mod:`dlocli.models.ensemble`) on recorded cables.
+
+Each member is trained exactly as a single network would be
+(:func:`~dlocli.models.marker_training._fit_markers`), seen through its own marker view with
+the ensemble's normalisation, from its own seed: a fresh ensemble's member i is exactly the
+network `dlo train --seed SEED+i` trains alone (its initial weights, windows and
+augmentations are that seed's). The members are independent, so on CPU they train in
+parallel, one process per core (:class:`~dlocli.executors.LocalExecutor`); on a GPU one after
+another. The history is the members' mean at each validation, its last row the ensemble's.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from dlocli.cancel import CancelToken
+from dlocli.events import Began, Callback, Event
+from dlocli.executors import LocalExecutor
+from dlocli.models.base import resolve_device
+from dlocli.models.ensemble import Ensemble
+from dlocli.models.marker_training import Cable, _fit_markers, validation_score
+from dlocli.models.markers import MarkerModel
+from dlocli.models.spec import FitSpec
+from dlocli.threads import machine_cpus
+
+
+def fit_members(
+    model: MarkerModel,
+    train: list[Cable],
+    val: list[Cable],
+    fit: FitSpec,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
+) -> list[dict[str, float]]:
+    """Train every member of ``model``'s ensemble in place (see the module docstring);
+    returns the validation history. ``progress`` gets a Began and an Event per member done."""
+    assert isinstance(model.network, Ensemble)
+    device = resolve_device(fit.device)
+    fresh = not bool(model.fitted)  # else fine-tuning: the members start from their weights
+    if fresh:  # one normalisation for all, as the view applies one
+        model.fit_normalization([(e, c.held) for c in train for e in c.episodes])
+    count = len(model.network.members)
+    jobs = min(count, machine_cpus()) if device.type == "cpu" else 1
+    inline = jobs == 1  # this process: the member's own events and the cancel token reach it
+    calls = [(member_state(model, i, weights=not fresh), model.spec, model.n_segments,
+              model.held.cpu().numpy(), train, val,
+              fit.model_copy(update={"seed": fit.seed + i}),
+              progress if inline else None, cancel if inline else None)
+             for i in range(count)]  # fmt: skip
+    if progress:
+        progress(Began("member", 0, count))
+    histories: list[list[dict[str, float]]] = [[] for _ in range(count)]
+    executor = LocalExecutor(jobs, threads=max(1, machine_cpus() // jobs))
+    try:
+        for done, (index, result) in enumerate(executor.map(_fit_member, calls), 1):
+            if isinstance(result, BaseException):
+                raise result
+            state, histories[index] = result
+            model.network.members[index].load_state_dict(state)
+            if cancel is not None:
+                cancel.raise_if_cancelled()
+            if progress:
+                last = histories[index][-1] if histories[index] else {}
+                progress(Event("member", done, count, {
+                    "val_loss": last.get("val_score_cm", float("nan")),
+                    "seconds": last.get("seconds", 0.0)}))  # fmt: skip
+    finally:
+        executor.close()
+    model.to(device).eval()
+    return _merged(histories, validation_score(model, val))
+
+
+def member_state(model: MarkerModel, index: int, weights: bool = True) -> dict[str, torch.Tensor]:
+    """The state of member ``index`` seen through its own marker view: the ensemble view's
+    buffers (mask, normalisation) and, with ``weights``, the member's weights."""
+    state = {k: v.cpu() for k, v in model.state_dict().items() if not k.startswith("network.")}
+    if not weights:
+        return state
+    member = model.network.members[index]  # type: ignore[union-attr]
+    state.update({f"network.{k}": v.cpu() for k, v in member.state_dict().items()})
+    return state
+
+
+def _fit_member(
+    state: dict[str, torch.Tensor],
+    spec: Any,
+    n_markers: int,
+    held: np.ndarray,
+    train: list[Cable],
+    val: list[Cable],
+    fit: FitSpec,
+    progress: Callback | None,
+    cancel: CancelToken | None,
+) -> tuple[dict[str, torch.Tensor], list[dict[str, float]]]:
+    """One member trained through its own view: (its network's weights, its history). Given
+    no weights, it starts as the network alone would from ``fit.seed``."""
+    torch.manual_seed(fit.seed)
+    view = MarkerModel(spec.model_copy(update={"members": 1}), n_markers, held)
+    view.load_state_dict(state, strict=any(k.startswith("network.") for k in state))
+    rows = _fit_markers(view, train, val, fit, progress, cancel)
+    return {k: v.cpu() for k, v in view.network.state_dict().items()}, rows
+
+
+def _merged(histories: list[list[dict[str, float]]], ensemble_score: float) -> list[dict]:
+    """The members' mean at each validation (seconds: the slowest member's); the last row's
+    validation score is the ensemble's."""
+    rows = []
+    for records in zip(*histories, strict=True):
+        rows.append({
+            "step": records[0]["step"],
+            "k": records[0]["k"],
+            "train_loss": float(np.mean([r["train_loss"] for r in records])),
+            "val_score_cm": float(np.mean([r["val_score_cm"] for r in records])),
+            "seconds": max(r["seconds"] for r in records),
+        })  # fmt: skip
+    if rows:
+        rows[-1]["val_score_cm"] = ensemble_score
+    return rows

@@ -1,0 +1,104 @@
+"""Ensembles (`--members N`): the mean of independently trained networks. Its flattened
+layers (what the fused rollout runs) compute its forward; each member trains exactly as the
+network alone would from its own seed, in parallel processes; `dlo eval` scores it; a rod
+model refuses it in one line."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dlocli.data import load_dataset
+from dlocli.markers import deform
+from dlocli.models.checkpoints import load_marker_model
+from dlocli.models.ensemble import Ensemble
+from dlocli.models.marker_training import Cable, scores_cm
+from dlocli.models.markers import build_marker_model
+from dlocli.models.network import Nodes
+from dlocli.models.spec import model_spec
+
+runner = CliRunner()
+
+
+def cli(*args: str):
+    from dlocli.cli import app
+
+    return runner.invoke(app, list(args))
+
+
+@pytest.mark.parametrize("name", ["mlp", "arc-mlp"])
+def test_its_flattened_layers_compute_its_mean(name: str) -> None:
+    spec = model_spec({"name": name, "hidden": 16, "layers": 2, "members": 3})
+    torch.manual_seed(0)
+    ensemble = Ensemble(spec, Nodes(9, 10, 3, relative=10)).double()
+    inputs = torch.randn(4, 9, 10, dtype=torch.float64)
+    mean = torch.stack([m(inputs, inputs[:, 1:]) for m in ensemble.members]).mean(0)
+    torch.testing.assert_close(ensemble(inputs, inputs[:, 1:]), mean)
+    flat, layers = inputs.reshape(4, -1), ensemble.flat_layers(9)
+    assert layers is not None
+    for i, (weight, bias) in enumerate(layers):
+        flat = torch.nn.functional.linear(flat, weight, bias)
+        flat = flat.relu() if i < len(layers) - 1 else flat
+    torch.testing.assert_close(flat.view(4, 9, 3), mean)
+    flat.square().sum().backward()
+    assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in ensemble.parameters())
+
+
+def test_members_of_networks_that_are_not_flat_run_as_written() -> None:
+    model = build_marker_model({"name": "in-bilstm", "hidden": 8, "members": 2}, 6,
+                               deform.held_markers(6))  # fmt: skip
+    x = torch.zeros(1, 6, 3)
+    assert model.network.flat_layers(6) is None
+    assert model._whole_rollout_layers(x, x, torch.zeros(1, 2, 6, 3)) is None
+    assert model.rollout(x, x, torch.zeros(1, 3, 6, 3)).shape == (1, 3, 6, 3)
+
+
+def test_one_member_is_the_network_itself() -> None:
+    model = build_marker_model({"name": "mlp", "hidden": 8}, 6, deform.held_markers(6))
+    assert not isinstance(model.network, Ensemble)  # checkpoints saved before keep their keys
+
+
+def test_each_member_trains_as_the_network_alone_from_its_own_seed(
+    marker_run, tmp_path, one_thread
+) -> None:
+    dataset, _ = marker_run
+    common = ["train", "--data", str(dataset), "--model", "mlp", "--hidden", "16",
+              "--layers", "2", "--update-steps", "30", "--rollout-steps", "4",
+              "--eval-every", "10", "--device", "cpu", "--json"]  # fmt: skip
+    for seed in (3, 4):
+        alone = cli(*common, "--seed", str(seed), "--out", str(tmp_path / f"alone{seed}"))
+        assert alone.exit_code == 0, alone.output
+    pair = cli(*common, "--seed", "3", "--members", "2", "--out", str(tmp_path / "pair"))
+    assert pair.exit_code == 0, pair.output
+
+    ensemble = load_marker_model(tmp_path / "pair")
+    assert isinstance(ensemble.network, Ensemble) and ensemble.spec.members == 2
+    for seed, member in zip((3, 4), ensemble.network.members, strict=True):
+        single = load_marker_model(tmp_path / f"alone{seed}").network.state_dict()
+        for key, value in member.state_dict().items():
+            torch.testing.assert_close(value, single[key])  # member i: seed 3 + i, as alone
+
+    summary = json.loads((tmp_path / "pair" / "summary.json").read_text())
+    rows = (tmp_path / "pair" / "metrics.csv").read_text().splitlines()
+    last_val = float(rows[-1].split(",")[3])
+    assert summary["cables"][0]["val_score_cm"] == pytest.approx(last_val, rel=1e-3)
+
+    scored = cli("eval", "--checkpoint", str(tmp_path / "pair"), "--data", str(dataset),
+                 "--out", str(tmp_path / "eval"), "--json")  # fmt: skip
+    assert scored.exit_code == 0, scored.output
+    result = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    ensemble.reference = True  # plain PyTorch: each member run as written, outputs averaged
+    data = load_dataset(dataset)
+    expected = scores_cm(ensemble, Cable(data.episodes("eval"), data.held))
+    assert result["model_scores_cm"] == pytest.approx(expected, rel=1e-3)
+
+
+def test_a_rod_model_refuses_members_in_one_line(small_dataset_dir, tmp_path) -> None:
+    out = tmp_path / "run"
+    res = cli("train", "--data", str(small_dataset_dir), "--members", "2", "--out", str(out))
+    assert res.exit_code == 2
+    assert "drop --members" in res.output and len(res.output.strip().splitlines()) == 1
+    assert not out.exists()
