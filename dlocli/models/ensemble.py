@@ -1,7 +1,7 @@
 """Several independently trained copies of one network, their predictions averaged.
 
 A model whose spec says ``members`` > 1 holds that many networks of its architecture, each
-initialised and trained on its own (its own seed: :mod:`dlocli.models.marker_training`
+initialised and trained on its own from its own seed (:mod:`dlocli.models.member_fits`
 trains them in parallel, one per core); the view reads their mean output. Errors that one
 network makes and another does not partly cancel, most where a long open-loop rollout
 drifts, so the mean holds a rollout closer than its members do (`results.md`).
