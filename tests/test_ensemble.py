@@ -20,6 +20,8 @@ from dlocli.models.markers import build_marker_model
 from dlocli.models.network import Nodes
 from dlocli.models.spec import model_spec
 
+from tiny import run_dlo
+
 runner = CliRunner()
 
 
@@ -101,4 +103,19 @@ def test_a_rod_model_refuses_members_in_one_line(small_dataset_dir, tmp_path) ->
     res = cli("train", "--data", str(small_dataset_dir), "--members", "2", "--out", str(out))
     assert res.exit_code == 2
     assert "drop --members" in res.output and len(res.output.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "members,needle",
+    [("0", "greater than or equal to 1"), ("-1", "greater than or equal to 1"),
+     ("65", "less than or equal to 64"), ("nan", "valid integer"), ("2.5", "valid integer")],
+)  # fmt: skip
+def test_a_bad_member_count_is_refused_in_one_line(marker_run, tmp_path, capsys, members, needle):
+    """From the `dlo` entry point: one line, exit 2, before any run directory exists."""
+    dataset, _ = marker_run
+    out = tmp_path / "run"
+    assert run_dlo(["train", "--data", str(dataset), "--members", members, "--out", str(out)]) == 2
+    said = capsys.readouterr().err.strip()
+    assert needle in said and "--members" in said and len(said.splitlines()) == 1
     assert not out.exists()
