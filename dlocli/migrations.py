@@ -27,6 +27,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "absolute_position": True,
         "length_projection": 0,
         "members": 1,
+        "cable_code": 0,
     },
     "fit": {
         "mirror": False,

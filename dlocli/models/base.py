@@ -73,6 +73,11 @@ class DynamicsModel(torch.nn.Module):
                 f"an ensemble ({spec.members} members) trains on recorded cables (marker "
                 "datasets from `dlo import`); a rod model is one network: drop --members"
             )
+        if spec.cable_code:  # one simulated rod: there is no cable to tell apart
+            raise BadInput(
+                "cable codes tell recorded cables apart (marker datasets from `dlo import`); "
+                "a rod model learns one rod: drop --cable-code"
+            )
         self.spec = spec
         self.n_segments = int(n_segments)
         for name, size, value in (

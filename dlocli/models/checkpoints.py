@@ -45,6 +45,8 @@ FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
 #: the payload key of the control period (s) of the data a model learned from: one model step
 #: is one such period (checkpoints written before it have none, and are taken as they are)
 CONTROL_DT = "control_dt"
+#: the payload key of a marker model's cable keys, one per row of its codes (in order)
+CABLE_KEYS = "cable_keys"
 #: the payload key of the model's form, and the forms a checkpoint may hold
 FORM_KEY = "form"
 FORMS = (ROD, MARKERS)
@@ -223,9 +225,27 @@ def model_from_payload(
     held = payload["state_dict"].get("held")
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:
         raise BadInput(f"checkpoint {path} lacks its held-marker mask; retrain it")
-    model = with_weights(build_marker_model(spec, len(held), held.numpy()), payload, path, device)
+    if spec.cable_code and "codes" not in payload["state_dict"]:  # none learned yet
+        weights = {**payload["state_dict"], "codes": torch.zeros(0, spec.cable_code)}
+        payload = {**payload, "state_dict": weights}
+    model = build_marker_model(spec, len(held), held.numpy())
+    model.add_cables(_cable_keys(payload, path))
+    model = with_weights(model, payload, path, device)
     _check_scales(model, path)
     return model
+
+
+def _cable_keys(payload: dict[str, Any], path: Path | str) -> list[str]:
+    """The keys of the cables whose codes the checkpoint holds; BadInput where they and the
+    codes disagree."""
+    keys = payload.get(CABLE_KEYS, [])
+    codes = payload["state_dict"].get("codes")
+    rows = codes.shape[0] if torch.is_tensor(codes) and codes.dim() == 2 else 0
+    if not rows:
+        return []
+    if not isinstance(keys, list) or len(keys) != rows or len(set(keys)) != rows:
+        raise BadInput(f"checkpoint {path} holds {rows} cable codes but not their keys; retrain it")
+    return [str(k) for k in keys]
 
 
 def with_weights(

@@ -26,6 +26,7 @@ import numpy as np
 from dlocli.cancel import CancelToken
 from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
+from dlocli.models.cable_codes import cable_key
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.fitting import FitRecord, TrainResult
 from dlocli.models.marker_training import Cable, Cables, _fit_markers
@@ -78,8 +79,9 @@ def _fit_windows(
     else:
         episodes = data.episodes("train")
         train_idx, val_idx = split_episodes(len(episodes), schedule.val_fraction)
-        train = Cable([episodes[i] for i in train_idx], data.held)
-        val = [Cable([episodes[i] for i in val_idx], data.held)] if len(val_idx) else []
+        key = cable_key(data.held, episodes)  # train and validation: one cable, one code
+        train = Cable([episodes[i] for i in train_idx], data.held, key)
+        val = [Cable([episodes[i] for i in val_idx], data.held, key)] if len(val_idx) else []
         cables = Cables([train], val)
     fit_all = fit_members if isinstance(model.network, Ensemble) else _fit_markers
     rows = fit_all(model, cables.train, cables.val, schedule, progress, cancel)

@@ -32,6 +32,7 @@ from dlocli.data.protocol import deform_score_cm
 from dlocli.errors import DloError
 from dlocli.events import Began, Callback
 from dlocli.models.base import resolve_device
+from dlocli.models.cable_codes import cable_key
 from dlocli.models.fitting import KeepBest, RolloutValidated
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
@@ -50,10 +51,15 @@ def rollout_length(fit: FitSpec, step: int) -> int:
 
 @dataclass
 class Cable:
-    """Episodes (each (T+1, V, 3)) of one cable and its held-marker mask (V,)."""
+    """Episodes (each (T+1, V, 3)) of one cable and its held-marker mask (V,); ``key``: what
+    picks its code in a model with cable codes (default: the key of these episodes)."""
 
     episodes: list[np.ndarray]
     held: np.ndarray
+    key: str | None = None
+
+    def code_key(self) -> str:
+        return self.key or cable_key(self.held, self.episodes)
 
     def mask(self, device: torch.device) -> torch.Tensor:
         return torch.as_tensor(self.held, dtype=torch.bool, device=device)
@@ -82,10 +88,11 @@ class WindowSampler:
         self.mirror = [fit.mirror and bool((c.held == c.held[::-1]).all()) for c in cables]
         self.rng = np.random.default_rng(fit.seed)
         self.device = device
+        self.last = 0  # the cable of the last batch
 
     def sample(self, batch: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, k + 2, V, 3) frames t-1 .. t+k, augmented, and the cable's held mask."""
-        c = int(self.rng.choice(len(self.cables), p=self.weights))
+        c = self.last = int(self.rng.choice(len(self.cables), p=self.weights))
         episodes = self.episodes[c]
         lengths = np.array([len(e) for e in episodes])
         eps = self.rng.integers(len(episodes), size=batch)
@@ -137,6 +144,8 @@ def predict_episodes(
 
 def scores_cm(model: MarkerModel, cable: Cable) -> list[float]:
     """The benchmark score (cm) of every episode of ``cable``."""
+    if model.spec.cable_code:
+        model.use_cable(cable.code_key())
     preds = predict_episodes(model, cable.episodes, cable.held)
     return [deform_score_cm(p, e) for p, e in zip(preds, cable.episodes, strict=True)]
 
@@ -165,7 +174,11 @@ def _fit_markers(
         model.fit_normalization([(e, c.held) for c in train for e in c.episodes])
     model.to(device).train().requires_grad_(True)
     sampler = WindowSampler(train, fit, device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
+    rows = model.add_cables([c.code_key() for c in train]) if model.spec.cable_code else []
+    if getattr(fit, "fine_tune", "all") == "code":  # the codes alone learn
+        model.requires_grad_(False)
+        model.codes.requires_grad_(True)
+    optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=fit.lr)
     total = fit.update_steps
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
@@ -173,13 +186,17 @@ def _fit_markers(
     history: list[dict[str, float]] = []
     best = KeepBest(keep=True)
     start, running = time.perf_counter(), []
+    if getattr(fit, "init_from", None) is not None and val:  # `dlo train --init-from`
+        history.append(_starting_point(model, val, best))  # fine-tuning keeps it if no better
     if progress:
         progress(Began("step", 0, total))
     for step in range(1, total + 1):
         if cancel is not None:
             cancel.raise_if_cancelled()
         k = rollout_length(fit, step)
-        loss = rollout_loss(model, *sampler.sample(fit.batch_size, k))
+        windows, held = sampler.sample(fit.batch_size, k)
+        model.cable = rows[sampler.last] if rows else None
+        loss = rollout_loss(model, windows, held)
         if not math.isfinite(loss.item()):
             raise DloError(f"training diverged (loss {loss.item()}) at step {step}; lower --lr")
         optimizer.zero_grad(set_to_none=True)
@@ -201,7 +218,7 @@ def _fit_markers(
             }
             history.append(record)
             running = []
-            best.observe(step, val_score, model)
+            best.observe(step, _as_kept(val_score, val), model)
             if progress:
                 progress(RolloutValidated("step", step, total, {
                     "val_loss": val_score, "stopped_early": False, "k": k,
@@ -209,3 +226,19 @@ def _fit_markers(
     best.restore(total, model)
     model.eval()
     return history
+
+
+def _starting_point(model: MarkerModel, val: list[Cable], best: KeepBest) -> dict[str, float]:
+    """The validation of the weights a fine-tune starts from, as step 0 of its history and a
+    candidate of ``best``: fine-tuning never leaves the model worse on validation."""
+    model.eval()
+    score = validation_score(model, val)
+    model.train()
+    best.observe(0, _as_kept(score, val), model)
+    return {"step": 0, "k": 0, "train_loss": math.nan, "val_score_cm": score, "seconds": 0.0}
+
+
+def _as_kept(score: float, val: list[Cable]) -> float:
+    """What :class:`KeepBest` compares: a NaN score where there is validation is a rollout
+    that blew up (worst, not best); without validation the NaN keeps the latest weights."""
+    return math.inf if val and math.isnan(score) else score

@@ -32,7 +32,7 @@ from torch import Tensor
 
 from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
-from dlocli.models import marker_mlp_rollout, marker_steps
+from dlocli.models import cable_codes, marker_mlp_rollout, marker_steps
 from dlocli.models.base import valid_model_spec
 from dlocli.models.ensemble import build_network
 from dlocli.models.network import Nodes
@@ -67,7 +67,14 @@ class MarkerModel(torch.nn.Module):
         network = models.get(spec.name)
         #: whether each marker's inputs include the cable's geometry (:meth:`descriptors`)
         self.geometry = bool(network.cable_geometry)
-        width = FEATURES + (DESCRIPTORS if self.geometry else 0)
+        if spec.cable_code and spec.members > 1:  # members train apart, each its own codes
+            raise BadInput("cable codes and --members > 1 do not combine yet: drop one")
+        #: one learned code per training cable (:mod:`~dlocli.models.cable_codes`), their keys
+        codes = torch.nn.Parameter(torch.zeros(0, spec.cable_code)) if spec.cable_code else None
+        self.register_parameter("codes", codes)
+        self.cable_keys: list[str] = []
+        self.cable: int | None = None  # the code in use: a row of ``codes``, None the mean
+        width = FEATURES + spec.cable_code + (DESCRIPTORS if self.geometry else 0)
         self.network = build_network(spec, Nodes(n_markers, width, 3, relative=width))
 
     @property
@@ -124,7 +131,32 @@ class MarkerModel(torch.nn.Module):
                           pad(spans, (0, 0, 0, 1)), length], -1)  # fmt: skip
 
     def _described(self, features: Tensor, x: Tensor) -> Tensor:
+        if self.spec.cable_code:
+            features = cable_codes.with_code(features, self.code())
         return torch.cat([features, self.descriptors(x)], -1) if self.geometry else features
+
+    # ------------------------------------------------------------------ cable codes
+    def code(self) -> Tensor:
+        """The code in use (``cable_code``,): the cable's row, or the mean code."""
+        return cable_codes.chosen_code(self.codes, self.cable)
+
+    def use_cable(self, key: str | None) -> int | None:
+        """Use the code of the cable whose recordings have ``key`` (:func:`cable_key`), the
+        mean code where it trained on no such cable; returns its row (None: the mean)."""
+        self.cable = self.cable_keys.index(key) if key in self.cable_keys else None
+        return self.cable
+
+    def add_cables(self, keys: list[str]) -> list[int]:
+        """The code rows of the cables with ``keys``, new rows (the mean code) for the new."""
+        for key in keys:
+            if key not in self.cable_keys:
+                self.cable_keys.append(key)
+        if self.codes is None:  # no codes: the keys alone
+            return [self.cable_keys.index(k) for k in keys]
+        rows = cable_codes.grown(self.codes.data, len(self.cable_keys))
+        if rows.shape[0] != self.codes.shape[0]:
+            self.codes = torch.nn.Parameter(rows.to(self.codes.device))
+        return [self.cable_keys.index(k) for k in keys]
 
     # ------------------------------------------------------------------ the contract
     def forward(
@@ -177,13 +209,15 @@ class MarkerModel(torch.nn.Module):
     def _fusable(self, x: Tensor, lengths: Tensor | None) -> bool:
         """Whether :meth:`_fused_step` applies: the distances it aims at take no gradient,
         and a subclass changed neither the features nor the step (it fuses this class's)."""
-        own = (
-            type(self).features is MarkerModel.features
-            and type(self).forward is MarkerModel.forward
-        )
+        own = self._plain_view() and not self.spec.cable_code  # the fused features: no code
         return (
             own and marker_steps.usable(self, x) and (lengths is None or not lengths.requires_grad)
         )
+
+    def _plain_view(self) -> bool:
+        """Whether a subclass changed neither the features nor the step."""
+        own_features = type(self).features is MarkerModel.features
+        return own_features and type(self).forward is MarkerModel.forward
 
     def _whole_rollout_layers(
         self, x: Tensor, x_prev: Tensor, held_future: Tensor
@@ -193,11 +227,14 @@ class MarkerModel(torch.nn.Module):
         inputs (as in training), for a network that is such layers over the flattened
         features (``flat_layers``: ``mlp``, ``arc-mlp``) without the cable's geometry; else
         None."""
-        if self.geometry or not self._fusable(x, None):
+        if self.geometry or not (self._plain_view() and marker_steps.usable(self, x)):
             return None
         if not marker_mlp_rollout.usable(x, x_prev, held_future):
             return None
-        return self.network.flat_layers(x.shape[1])
+        layers = self.network.flat_layers(x.shape[1])
+        if not self.spec.cable_code:
+            return layers
+        return cable_codes.fold_code(layers, x.shape[1], FEATURES, self.code())
 
     def _fused_step(
         self,

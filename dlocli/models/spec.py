@@ -39,6 +39,13 @@ class ModelSpec(Spec):
         "their predictions averaged: an ensemble holds long rollouts closer than one network. "
         "Marker datasets (recorded cables); the copies train in parallel, one per core.",
     )  # fmt: skip
+    cable_code: int = Field(
+        0, ge=0, le=64,
+        description="Marker form: width of a code learned per training cable (0: none). Trained "
+        "on several cables, the model learns each one's code beside its weights (a cable's "
+        "shape does not tell its stiffness and mass); `--init-from` on a new cable learns its "
+        "code; a cable it never saw gets the mean code.",
+    )  # fmt: skip
     length_projection: int = Field(
         0, ge=0, le=50,
         description="Marker form (recorded cables): sweeps projecting every predicted frame "
@@ -282,7 +289,7 @@ class TrainSpec(FitSpec):
     cli_flags: ClassVar[tuple[str, ...]] = (
         "data", MODEL_OPTIONS, "epochs", "lr", "batch_size", "input_noise", "val_fraction",
         "mirror", "device", "seed", "init_from", "out", "update_steps", "rollout_steps",
-        "rollout_start", "eval_every",
+        "rollout_start", "eval_every", "fine_tune",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("data",)
 
@@ -294,6 +301,12 @@ class TrainSpec(FitSpec):
     model: ModelField = model_field("Model and sizes.")
     init_from: Path | None = Field(
         None, description="Checkpoint or run directory to continue training from."
+    )
+    fine_tune: Literal["all", "code"] = Field(
+        "all",
+        description='With --init-from on a model with cable codes: "all" trains its weights and '
+        'the cable\'s code, "code" the code alone (a few numbers: a recording or two of a new '
+        "cable suffice, and nothing else the model learned moves).",
     )
     out: Path = Field(Path("runs/train"), description="Run directory for the results.")
     # smaller than the online loop's: at lr 1e-4 the deep f_e -> LSTM -> f_v path needs the

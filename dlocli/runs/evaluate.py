@@ -12,6 +12,7 @@ from dlocli.errors import BadInput
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
 from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
 from dlocli.models.base import check_control_rate
+from dlocli.models.cable_codes import cable_key
 from dlocli.models.checkpoints import load_model
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.marker_training import predict_episodes
@@ -81,6 +82,8 @@ def _evaluation_summary(
 ) -> dict[str, Any]:
     summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
     if isinstance(dataset, MarkerDataset):
+        if net.spec.cable_code:
+            summary["cable_code"] = _choose_code(net, dataset)
         scores, curves = evaluate_markers(net, dataset)
         summary.update(scores)
         if spec.plot is not None:
@@ -97,3 +100,11 @@ def _evaluation_summary(
         plot_rollout(net, dataset, 0, spec.plot)
         summary["plot"] = str(spec.plot)
     return summary
+
+
+def _choose_code(net: Any, dataset: MarkerDataset) -> str:
+    """Use the code the model learned for this cable's recordings, the mean code where it
+    learned none; say which."""
+    if net.use_cable(cable_key(dataset.held, dataset.episodes("train"))) is not None:
+        return "its own: the model trained on this cable's train recordings"
+    return f"the mean of {len(net.cable_keys)}: the model did not train on this cable"

@@ -94,6 +94,11 @@ def run_training(
     a changed spec.json or dataset is refused unless ``accept_changes``.
     """
     dataset = load_training_data(spec)
+    if spec.fine_tune == "code" and (spec.init_from is None or not isinstance(dataset, list)):
+        raise BadInput(
+            "--fine-tune code learns a recorded cable's code from a model with cable codes: "
+            "pass --init-from that model and a marker dataset, or drop --fine-tune"
+        )
     if isinstance(dataset, list):  # recorded cables
         if resume:
             raise BadInput("--resume is not supported for marker datasets yet; train again")

@@ -26,7 +26,8 @@ from dlocli.errors import BadInput
 from dlocli.events import Callback
 from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.base import check_control_rate
-from dlocli.models.checkpoints import CONTROL_DT, load_marker_model, save_checkpoint
+from dlocli.models.cable_codes import cable_key
+from dlocli.models.checkpoints import CABLE_KEYS, CONTROL_DT, load_marker_model, save_checkpoint
 from dlocli.models.fit import fit
 from dlocli.models.fitting import FitRecord
 from dlocli.models.marker_training import Cable, Cables, validation_score
@@ -70,7 +71,8 @@ def run_marker_training(
                  progress=progress, cancel=cancel)  # fmt: skip
     history = result.history
     seconds = list(accumulate(r.seconds for r in history))  # since the fit started
-    save_checkpoint(model, out / "checkpoints" / "final.pt", recorded_rate(datasets[0]))
+    save_checkpoint(model, out / "checkpoints" / "final.pt",
+                    {**recorded_rate(datasets[0]), CABLE_KEYS: model.cable_keys})  # fmt: skip
     lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
     lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
               for r, s in zip(history, seconds, strict=True)]  # fmt: skip
@@ -122,6 +124,11 @@ def starting_model(
         for path, dataset in zip(paths, datasets, strict=True):
             check_init_rate(model, spec, dataset, path)
         source = f"--init-from {spec.init_from}"
+        if spec.fine_tune == "code" and not model.spec.cable_code:
+            raise BadInput(
+                f"{source} learned no cable codes, so --fine-tune code has nothing to learn: "
+                "drop it (or train a model with --cable-code)"
+            )
     else:
         model = build_marker_model(spec.model, datasets[0].n_markers, datasets[0].held)
         source = f"model {spec.model.name}"
@@ -147,8 +154,9 @@ def split_cables(
     for dataset in datasets:
         episodes = dataset.episodes("train")
         train_idx, val_idx = split_episodes(len(episodes), val_fraction)
-        train.append(Cable([episodes[i] for i in train_idx], dataset.held))
-        val.append(Cable([episodes[i] for i in val_idx], dataset.held))
+        key = cable_key(dataset.held, episodes)  # its code's, whatever the split
+        train.append(Cable([episodes[i] for i in train_idx], dataset.held, key))
+        val.append(Cable([episodes[i] for i in val_idx], dataset.held, key))
     return train, val
 
 

@@ -1,13 +1,14 @@
 """Gather the leave-one-out and fine-tuning runs into a table and a figure.
 
-    python examples/real_cables/fine_tune_report.py [runs/leave_one_out]
+    python examples/real_cables/fine_tune_report.py [runs/leave_one_out] [NAME]
 
 Reads OUT/<cable>/eval (zero-shot) and OUT/<cable>/fine-<n>/{train,eval} (fine_tune_curve.sh)
-and writes, beside this script, fine_tune_curve.json, fine_tune_curve.md and
-fine_tune_curve.png: per cable, the eval score against the number of the new cable's train
-recordings fine-tuned on (0: zero-shot), beside freezing the cable, the per-cable `mlp-long`
-model trained from scratch on all of them (results.json, mean of its seeds) and DEFORM's
-published per-cable score.
+and writes, beside this script, NAME.json, NAME.md and NAME.png (NAME: fine_tune_curve; a
+NAME with "code" in it titles the figure for learning the new cable's code alone): per
+cable, the eval score against the number of the new cable's train recordings fine-tuned on
+(0: zero-shot), beside freezing the cable, the per-cable `mlp-long` model trained from
+scratch on all of them (results.json, mean of its seeds) and DEFORM's published per-cable
+score.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def table(rows: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def figure(rows: dict, path: Path) -> None:
+def figure(rows: dict, path: Path, how: str = "fine-tuned") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -84,7 +85,7 @@ def figure(rows: dict, path: Path) -> None:
     ax.set_xticks(ticks, ["0\n(zero-shot)" if t == 0.5 else str(int(t)) for t in ticks])
     ax.set_xlabel("the new cable's train recordings fine-tuned on")
     ax.set_ylabel("eval score (cm, 5 s open loop)")
-    ax.set_title("A model trained on the other three cables, fine-tuned\n"
+    ax.set_title(f"A model trained on the other three cables, {how}\n"
                  "(dashed: per-cable mlp-long trained from scratch on all recordings)",
                  fontsize=9)  # fmt: skip
     ax.legend()
@@ -93,13 +94,14 @@ def figure(rows: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main(out: Path) -> None:
+def main(out: Path, name: str = "fine_tune_curve") -> None:
     rows = collect(out)
-    (HERE / "fine_tune_curve.json").write_text(json.dumps(rows, indent=1) + "\n")
-    (HERE / "fine_tune_curve.md").write_text(table(rows))
-    figure(rows, HERE / "fine_tune_curve.png")
+    (HERE / f"{name}.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (HERE / f"{name}.md").write_text(table(rows))
+    how = "its code learned" if "code" in name else "fine-tuned"
+    figure(rows, HERE / f"{name}.png", how)
     print(table(rows))
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1] if len(sys.argv) > 1 else "runs/leave_one_out"))
+    main(Path(sys.argv[1] if len(sys.argv) > 1 else "runs/leave_one_out"), *sys.argv[2:3])

@@ -31,6 +31,8 @@ from dlocli.specs import EnvSpec
 #: the shortest run of complete frames worth training on
 MIN_FRAMES = 8
 
+ONLINE_CABLE = "online"  # the key of the online cable's code
+
 
 def run_marker_layout(spec: EnvSpec) -> MarkerLayout:
     """The markers the run's task observes."""
@@ -85,8 +87,9 @@ def update_marker_model(
             "--occlusion-probability for training"
         )
     val = complete_runs(data, val_idx, layout, latency)
-    cables_val = [Cable(val, layout.held)] if val else []
-    cables = Cables([Cable(train, layout.held)], cables_val)
+    # one cable, whose recordings grow with every update: one code (a model with cable codes)
+    cables_val = [Cable(val, layout.held, ONLINE_CABLE)] if val else []
+    cables = Cables([Cable(train, layout.held, ONLINE_CABLE)], cables_val)
     return fit_model(model, cables, fit, progress=progress, cancel=cancel)
 
 

@@ -1,0 +1,202 @@
+"""Cable codes (`--cable-code D`): one learned code per training cable. The fused rollout
+(the code folded into the first bias) computes what the plain one does; training learns a
+code per cable and saves it with its key; `dlo eval` gives a trained cable its own code and
+another the mean; `--init-from` on a new cable adds its code; where codes cannot go, one
+line and exit 2."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dlocli.data import MarkerDataset, load_dataset
+from dlocli.markers.deform import held_markers
+from dlocli.models.cable_codes import cable_key
+from dlocli.models.checkpoints import load_marker_model
+from dlocli.models.marker_training import Cable, scores_cm
+from dlocli.models.markers import build_marker_model
+
+runner = CliRunner()
+
+
+def cli(*args: str):
+    from dlocli.cli import app
+
+    return runner.invoke(app, list(args))
+
+
+@pytest.mark.parametrize("name", ["mlp", "arc-mlp"])
+def test_the_fused_rollout_with_a_folded_code_is_the_plain_one(name: str) -> None:
+    torch.manual_seed(0)
+    held = held_markers(7)
+    model = build_marker_model({"name": name, "hidden": 16, "cable_code": 3,
+                                "length_projection": 2}, 7, held)  # fmt: skip
+    model.add_cables(["a", "b"])
+    torch.nn.init.normal_(model.codes)
+    x = torch.randn(4, 7, 3) * 0.1
+    future = x[:, None] + torch.randn(4, 5, 7, 3) * 0.01
+    model.cable = 1
+    fused = model.rollout(x, x, future)
+    assert model._whole_rollout_layers(x, x, future) is not None
+    model.reference = True  # plain PyTorch, the code appended to every marker's features
+    plain = model.rollout(x, x, future)
+    torch.testing.assert_close(fused, plain, rtol=1e-4, atol=1e-6)
+    model.cable = 0
+    assert not torch.allclose(model.rollout(x, x, future), plain)  # the code matters
+
+
+def test_the_fused_rollout_trains_the_code_of_the_cable_in_use() -> None:
+    torch.manual_seed(0)
+    model = build_marker_model({"name": "arc-mlp", "hidden": 16, "cable_code": 2}, 6,
+                               held_markers(6))  # fmt: skip
+    model.add_cables(["a", "b", "c"])
+    x = torch.randn(3, 6, 3) * 0.1
+    model.cable = 2
+    model.rollout(x, x, x[:, None].expand(-1, 4, -1, -1)).square().sum().backward()
+    assert model.codes.grad is not None
+    moved = model.codes.grad.abs().sum(1)
+    assert moved[2] > 0 and moved[0] == 0 and moved[1] == 0
+
+
+def test_a_new_cable_starts_at_the_mean_code() -> None:
+    model = build_marker_model({"name": "mlp", "hidden": 8, "cable_code": 2}, 6, held_markers(6))
+    assert model.add_cables(["a", "b"]) == [0, 1]
+    model.codes.data = torch.tensor([[1.0, 2.0], [3.0, 6.0]])
+    assert model.add_cables(["c", "a"]) == [2, 0]
+    torch.testing.assert_close(model.codes[2], torch.tensor([2.0, 4.0]))
+    assert model.use_cable("unseen") is None
+    torch.testing.assert_close(model.code(), model.codes.mean(0))
+
+
+def _second_cable(root) -> str:
+    """A second tiny cable: 7 markers, another stiffness (its recordings move more)."""
+    rng = np.random.default_rng(1)
+    line = np.stack([np.linspace(0, 0.9, 7), np.zeros(7), np.full(7, 0.5)], -1)
+    split = {s: [(str(i), line + np.cumsum(rng.normal(0, 3e-3, (12, 7, 3)), 0))
+                 for i in range(n)] for s, n in (("train", 4), ("eval", 2))}  # fmt: skip
+    data = MarkerDataset.from_trajectories(split, held_markers(7), {"rate_hz": 100.0})
+    return str(data.save(root / "second.h5"))
+
+
+def test_training_on_two_cables_learns_a_code_each_and_eval_picks_it(
+    marker_run, tmp_path, one_thread
+) -> None:
+    first = str(marker_run[0])
+    second = _second_cable(tmp_path)
+    res = cli("train", "--data", first, "--data", second, "--model", "arc-mlp", "--hidden",
+              "16", "--cable-code", "3", "--update-steps", "20", "--rollout-steps", "4",
+              "--eval-every", "10", "--length-projection", "2", "--out",
+              str(tmp_path / "run"), "--json")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    model = load_marker_model(tmp_path / "run")
+    keys = [cable_key(d.held, d.episodes("train")) for d in map(load_dataset, (first, second))]
+    assert model.cable_keys == keys and model.codes.shape == (2, 3)
+    assert bool((model.codes[0] != model.codes[1]).any())  # each trained on its own batches
+
+    scored = cli("eval", "--checkpoint", str(tmp_path / "run"), "--data", second, "--json")
+    assert scored.exit_code == 0, scored.output
+    result = json.loads(scored.output)
+    assert result["cable_code"].startswith("its own")
+    data = load_dataset(second)
+    model.reference = True
+    model.cable = 1
+    expected = scores_cm(model, Cable(data.episodes("eval"), data.held, keys[1]))
+    assert result["model_scores_cm"] == pytest.approx(expected, rel=1e-3)
+
+    # a cable it did not train on: the mean code, then --init-from learns it a code of its own
+    third = _second_cable(tmp_path / "..")
+    data3 = load_dataset(third)
+    moved = MarkerDataset.from_trajectories(
+        {s: [(str(i), e * 1.01) for i, e in enumerate(data3.episodes(s))]
+         for s in ("train", "eval")},
+        data3.held, {"rate_hz": 100.0},
+    ).save(tmp_path / "third.h5")  # fmt: skip
+    unseen = json.loads(cli("eval", "--checkpoint", str(tmp_path / "run"), "--data",
+                            str(moved), "--json").output)  # fmt: skip
+    assert unseen["cable_code"].startswith("the mean of 2")
+    tuned = cli("train", "--init-from", str(tmp_path / "run"), "--data", str(moved),
+                "--update-steps", "10", "--rollout-steps", "4", "--eval-every", "5",
+                "--out", str(tmp_path / "tuned"), "--json")  # fmt: skip
+    assert tuned.exit_code == 0, tuned.output
+    grown = load_marker_model(tmp_path / "tuned")
+    assert grown.codes.shape == (3, 3) and grown.cable_keys[:2] == keys
+    own = json.loads(cli("eval", "--checkpoint", str(tmp_path / "tuned"), "--data",
+                         str(moved), "--json").output)  # fmt: skip
+    assert own["cable_code"].startswith("its own")
+
+
+def test_codes_refuse_an_ensemble_and_a_rod_model_in_one_line(
+    marker_run, small_dataset_dir, tmp_path
+) -> None:
+    out = tmp_path / "run"
+    both = cli("train", "--data", str(marker_run[0]), "--model", "mlp", "--members", "2",
+               "--cable-code", "4", "--out", str(out))  # fmt: skip
+    assert both.exit_code == 2 and "do not combine" in both.output
+    rod = cli("train", "--data", str(small_dataset_dir), "--cable-code", "4", "--out", str(out))
+    assert rod.exit_code == 2 and "drop --cable-code" in rod.output
+    assert len(rod.output.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_fine_tuning_the_code_alone_moves_nothing_else(marker_run, tmp_path, one_thread) -> None:
+    first = str(marker_run[0])
+    res = cli("train", "--data", first, "--model", "mlp", "--hidden", "16", "--cable-code", "2",
+              "--update-steps", "10", "--rollout-steps", "4", "--eval-every", "5",
+              "--out", str(tmp_path / "run"), "--json")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    new = tmp_path / "new.h5"
+    data = load_dataset(first)
+    MarkerDataset.from_trajectories(
+        {s: [(str(i), e + 0.01) for i, e in enumerate(data.episodes(s))]
+         for s in ("train", "eval")},
+        data.held, {"rate_hz": 100.0},
+    ).save(new)  # fmt: skip
+    tuned = cli("train", "--init-from", str(tmp_path / "run"), "--data", str(new),
+                "--fine-tune", "code", "--update-steps", "10", "--rollout-steps", "4",
+                "--eval-every", "5", "--lr", "0.05", "--val-fraction", "0",
+                "--out", str(tmp_path / "tuned"), "--json")  # fmt: skip
+    assert tuned.exit_code == 0, tuned.output
+    before, after = load_marker_model(tmp_path / "run"), load_marker_model(tmp_path / "tuned")
+    for key, value in before.network.state_dict().items():
+        torch.testing.assert_close(after.network.state_dict()[key], value, rtol=0, atol=0)
+    torch.testing.assert_close(after.codes[0], before.codes[0], rtol=0, atol=0)
+    assert after.codes.shape == (2, 2)  # the new cable's code learned (the last one stands)
+    assert bool((after.codes[1] != before.codes.mean(0)).any())
+
+
+@pytest.mark.parametrize("extra", [[], ["--init-from", "RUN_WITHOUT_CODES"]])
+def test_fine_tuning_a_code_that_cannot_be_is_refused_in_one_line(
+    marker_run, tmp_path, extra
+) -> None:
+    dataset, checkpoint = marker_run
+    extra = [str(checkpoint) if a == "RUN_WITHOUT_CODES" else a for a in extra]
+    out = tmp_path / "run"
+    res = cli("train", "--data", str(dataset), *extra, "--fine-tune", "code", "--out", str(out))
+    assert res.exit_code == 2 and "--fine-tune" in res.output, res.output
+    assert len(res.output.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_a_fine_tune_keeps_its_start_when_no_step_validates_better(
+    marker_run, tmp_path, one_thread
+) -> None:
+    """`--init-from` with validation: the starting weights are step 0 of the history and a
+    candidate, so a fine-tune that only worsens validation returns the model it began from."""
+    dataset = str(marker_run[0])
+    base = cli("train", "--data", dataset, "--model", "mlp", "--hidden", "16", "--update-steps",
+               "10", "--rollout-steps", "4", "--eval-every", "5", "--out", str(tmp_path / "run"),
+               "--json")  # fmt: skip
+    assert base.exit_code == 0, base.output
+    wild = cli("train", "--init-from", str(tmp_path / "run"), "--data", dataset, "--lr", "5",
+               "--update-steps", "4", "--rollout-steps", "4", "--eval-every", "2",
+               "--out", str(tmp_path / "tuned"), "--json")  # fmt: skip
+    assert wild.exit_code == 0, wild.output
+    rows = (tmp_path / "tuned" / "metrics.csv").read_text().splitlines()[1:]
+    start = float(rows[0].split(",")[3])
+    assert rows[0].startswith("0,0,nan,") and len(rows) == 3
+    assert not any(float(r.split(",")[3]) <= start for r in rows[1:])  # lr 5: worse (or NaN)
+    before, after = load_marker_model(tmp_path / "run"), load_marker_model(tmp_path / "tuned")
+    for key, value in before.state_dict().items():
+        torch.testing.assert_close(after.state_dict()[key], value, rtol=0, atol=0)
