@@ -20,6 +20,8 @@ from dlocli.models.checkpoints import load_marker_model
 from dlocli.models.marker_training import Cable, scores_cm
 from dlocli.models.markers import build_marker_model
 
+from tiny import run_dlo
+
 runner = CliRunner()
 
 
@@ -200,3 +202,39 @@ def test_a_fine_tune_keeps_its_start_when_no_step_validates_better(
     before, after = load_marker_model(tmp_path / "run"), load_marker_model(tmp_path / "tuned")
     for key, value in before.state_dict().items():
         torch.testing.assert_close(after.state_dict()[key], value, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(
+    "width,needle",
+    [("-1", "greater than or equal to 0"), ("65", "less than or equal to 64"),
+     ("nan", "valid integer"), ("2.5", "valid integer")],
+)  # fmt: skip
+def test_a_bad_code_width_is_refused_in_one_line(marker_run, tmp_path, capsys, width, needle):
+    """From the `dlo` entry point: one line, exit 2, before any run directory exists."""
+    out = tmp_path / "run"
+    args = ["train", "--data", str(marker_run[0]), "--cable-code", width, "--out", str(out)]
+    assert run_dlo(args) == 2
+    said = capsys.readouterr().err.strip()
+    assert needle in said and "--cable-code" in said and len(said.splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("keys", [None, ["a"], ["a", "a"], "ab"])
+def test_a_checkpoint_whose_codes_and_keys_disagree_is_refused(marker_run, tmp_path, keys):
+    from dlocli.models.checkpoints import CABLE_KEYS, read_checkpoint, save_checkpoint
+
+    model = build_marker_model({"name": "mlp", "hidden": 8, "cable_code": 2}, 6, held_markers(6))
+    model.fit_normalization([(e, model.held.numpy()) for e in
+                             load_dataset(marker_run[0]).episodes("train")])  # fmt: skip
+    model.add_cables(["a", "b"])
+    good = save_checkpoint(model, tmp_path / "good.pt", {CABLE_KEYS: model.cable_keys})
+    assert load_marker_model(good).cable_keys == ["a", "b"]
+    payload = read_checkpoint(good)
+    if keys is None:
+        payload.pop(CABLE_KEYS)
+    else:
+        payload[CABLE_KEYS] = keys
+    torch.save(payload, tmp_path / "bad.pt")
+    res = cli("eval", "--checkpoint", str(tmp_path / "bad.pt"), "--data", str(marker_run[0]))
+    assert res.exit_code == 2 and "cable codes but not their keys" in res.output, res.output
+    assert len(res.output.strip().splitlines()) == 1
