@@ -117,19 +117,32 @@ def predicted_cost(controller, obs, plan):
 def test_planner_lowers_predicted_cost(envs, tiny_model, planner, spec):
     """The executed plan's model-predicted shape cost is below the initial guess's (zeros).
 
-    Exact-gradient Gauss-Newton lowers the predicted cost by only 0-4% in its 3 iterations
-    (24 tiny models x starts on an Intel Xeon: executed plan / zeros 0.955-1.002), and it
-    executes the plan of its last update, which it never evaluated: the sign of that margin
-    is float rounding, so for it the test holds the costs it evaluated (below)."""
+    Exact-gradient Gauss-Newton lowers the predicted cost by only 0-5% in its 3 iterations,
+    and not on every start: its last evaluated cost over its first was 0.947-1.004 (12 tiny
+    models x starts, AMD EPYC, MuJoCo 3.17), where stepping uphill instead gives 1.006-1.029.
+    It executes the plan of its last update, which it never evaluated. So for it the test
+    holds the mean of that ratio over three starts of the same run: 0.97-0.99 per model,
+    1.01-1.02 uphill."""
     env = envs["single"]
+    if getattr(spec, "exact_gradient", False):
+        ratios = []
+        for start in (2, 3, 4):
+            obs, _ = env.reset(seed=start)
+            controller = planner(env, tiny_model, spec)
+            controller.reset(env.goal)
+            controller.act(obs)
+            stats = controller.last_stats
+            assert stats["replanned"] == 1
+            ratios.append(stats["cost_final"] / stats["cost_initial"])
+        assert np.mean(ratios) < 1.0, ratios
+        return
     obs, _ = env.reset(seed=2)
     controller = planner(env, tiny_model, spec)
     controller.reset(env.goal)
     controller.act(obs)
     zeros = torch.zeros_like(controller.plan)
-    if not getattr(spec, "exact_gradient", False):
-        executed = predicted_cost(controller, obs, controller.plan)
-        assert executed < predicted_cost(controller, obs, zeros)
+    executed = predicted_cost(controller, obs, controller.plan)
+    assert executed < predicted_cost(controller, obs, zeros)
     stats = controller.last_stats
     assert stats["replanned"] == 1 and stats["cost_final"] < stats["cost_initial"]
 
