@@ -181,6 +181,20 @@ def test_fine_tuning_a_code_that_cannot_be_is_refused_in_one_line(
     assert len(res.output.strip().splitlines()) == 1 and not out.exists()
 
 
+def test_the_library_refuses_to_fine_tune_the_code_of_a_model_without_codes() -> None:
+    """``fit`` itself, not only ``dlo train``, names the problem (no AttributeError)."""
+    from dlocli.errors import BadInput
+    from dlocli.models.fit import fit
+    from dlocli.models.marker_training import Cables
+    from dlocli.models.spec import TrainSpec
+
+    episodes = [np.random.default_rng(i).normal(size=(12, 6, 3)) * 0.01 for i in range(2)]
+    model = build_marker_model({"name": "mlp", "hidden": 8}, 6, held_markers(6))
+    cables = Cables([Cable(episodes, held_markers(6))], [])
+    with pytest.raises(BadInput, match="cable codes"):
+        fit(model, cables, TrainSpec(fine_tune="code", update_steps=2))
+
+
 def test_a_fine_tune_keeps_its_start_when_no_step_validates_better(
     marker_run, tmp_path, one_thread
 ) -> None:

@@ -43,7 +43,7 @@ def _model_and_windows(name: str, k: int = 12, batch: int = 4) -> tuple[MarkerMo
     model.fit_normalization([(e, held) for e in episodes])
     model.train()
     sampler = WindowSampler([Cable(episodes, held)], FitSpec(seed=1), torch.device("cpu"))
-    windows, _ = sampler.sample(batch, k)
+    windows, *_ = sampler.sample(batch, k)
     return model, windows
 
 

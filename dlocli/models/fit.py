@@ -79,7 +79,8 @@ def _fit_windows(
     else:
         episodes = data.episodes("train")
         train_idx, val_idx = split_episodes(len(episodes), schedule.val_fraction)
-        key = cable_key(data.held, episodes)  # train and validation: one cable, one code
+        # train and validation: one cable, one code
+        key = cable_key(data.held, episodes) if model.spec.cable_code else None
         train = Cable([episodes[i] for i in train_idx], data.held, key)
         val = [Cable([episodes[i] for i in val_idx], data.held, key)] if len(val_idx) else []
         cables = Cables([train], val)

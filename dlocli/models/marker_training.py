@@ -29,7 +29,7 @@ import torch
 
 from dlocli.cancel import CancelToken
 from dlocli.data.protocol import deform_score_cm
-from dlocli.errors import DloError
+from dlocli.errors import BadInput, DloError
 from dlocli.events import Began, Callback
 from dlocli.models.base import resolve_device
 from dlocli.models.cable_codes import cable_key
@@ -88,11 +88,11 @@ class WindowSampler:
         self.mirror = [fit.mirror and bool((c.held == c.held[::-1]).all()) for c in cables]
         self.rng = np.random.default_rng(fit.seed)
         self.device = device
-        self.last = 0  # the cable of the last batch
 
-    def sample(self, batch: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, k + 2, V, 3) frames t-1 .. t+k, augmented, and the cable's held mask."""
-        c = self.last = int(self.rng.choice(len(self.cables), p=self.weights))
+    def sample(self, batch: int, k: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """(B, k + 2, V, 3) frames t-1 .. t+k, augmented, the cable's held mask and the
+        cable's index in ``cables``."""
+        c = int(self.rng.choice(len(self.cables), p=self.weights))
         episodes = self.episodes[c]
         lengths = np.array([len(e) for e in episodes])
         eps = self.rng.integers(len(episodes), size=batch)
@@ -103,7 +103,7 @@ class WindowSampler:
         if self.mirror[c]:
             flip = torch.as_tensor(self.rng.random(batch) < 0.5, device=self.device)
             win = torch.where(flip[:, None, None, None], win.flip(2), win)
-        return rotate_about_vertical(win, self.rng), self.cables[c].mask(self.device)
+        return rotate_about_vertical(win, self.rng), self.cables[c].mask(self.device), c
 
 
 def rotate_about_vertical(win: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
@@ -176,6 +176,8 @@ def _fit_markers(
     sampler = WindowSampler(train, fit, device)
     rows = model.add_cables([c.code_key() for c in train]) if model.spec.cable_code else []
     if getattr(fit, "fine_tune", "all") == "code":  # the codes alone learn
+        if model.codes is None:
+            raise BadInput("fine_tune='code' needs a model with cable codes (cable_code > 0)")
         model.requires_grad_(False)
         model.codes.requires_grad_(True)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=fit.lr)
@@ -194,8 +196,8 @@ def _fit_markers(
         if cancel is not None:
             cancel.raise_if_cancelled()
         k = rollout_length(fit, step)
-        windows, held = sampler.sample(fit.batch_size, k)
-        model.cable = rows[sampler.last] if rows else None
+        windows, held, cable = sampler.sample(fit.batch_size, k)
+        model.cable = rows[cable] if rows else None
         loss = rollout_loss(model, windows, held)
         if not math.isfinite(loss.item()):
             raise DloError(f"training diverged (loss {loss.item()}) at step {step}; lower --lr")
