@@ -252,3 +252,53 @@ def test_a_checkpoint_whose_codes_and_keys_disagree_is_refused(marker_run, tmp_p
     res = cli("eval", "--checkpoint", str(tmp_path / "bad.pt"), "--data", str(marker_run[0]))
     assert res.exit_code == 2 and "cable codes but not their keys" in res.output, res.output
     assert len(res.output.strip().splitlines()) == 1
+
+
+def test_control_plans_with_the_code_of_the_cable_it_is_given(
+    marker_run, near_rest_goal, small_dataset_dir, tmp_path, capsys, one_thread
+) -> None:
+    """`dlo control --cable DATA` plans with that cable's code; a cable the model never
+    trained on, a rod dataset or a model without codes is refused in one line, exit 2."""
+    from dlocli.runs.control import ControlSpec, load_control_model
+
+    first = str(marker_run[0])
+    data = load_dataset(first)
+    second = MarkerDataset.from_trajectories(
+        {s: [(str(i), e * 1.01) for i, e in enumerate(data.episodes(s))]
+         for s in ("train", "eval")},
+        data.held, {"rate_hz": 100.0},
+    ).save(tmp_path / "second.h5")  # fmt: skip
+    run = tmp_path / "run"
+    train = ["train", "--data", first, "--data", str(second), "--model", "mlp", "--hidden", "16",
+             "--cable-code", "2", "--update-steps", "4", "--rollout-steps", "4",
+             "--eval-every", "2", "--out", str(run)]  # fmt: skip
+    assert run_dlo(train) == 0
+    task = {"control_dt": 0.01}
+    assert load_control_model(ControlSpec(checkpoint=run, task=task)).cable is None  # the mean
+    assert load_control_model(ControlSpec(checkpoint=run, cable=second, task=task)).cable == 1
+    capsys.readouterr()
+
+    control = ["control", "--goal", str(near_rest_goal), "--checkpoint", str(run),
+               "--observation", "markers", "--markers", "4", "--steps", "2",
+               "--control-dt", "0.01", "--out"]  # fmt: skip
+    out = tmp_path / "control"
+    assert run_dlo([*control, str(out), "--cable", str(second)]) == 0
+    assert json.loads((out / "summary.json").read_text())["cable"] == str(second)
+    third = MarkerDataset.from_trajectories(
+        {s: [(str(i), e * 1.02) for i, e in enumerate(data.episodes(s))]
+         for s in ("train", "eval")},
+        data.held, {"rate_hz": 100.0},
+    ).save(tmp_path / "third.h5")  # fmt: skip
+    refused = [
+        ([str(run), "--cable", str(third)], "never trained on --cable"),
+        ([str(run), "--cable", str(small_dataset_dir)], "not a marker dataset"),
+        ([str(marker_run[1]), "--cable", first], "learned no cable codes"),
+    ]
+    for (checkpoint, *rest), needle in refused:
+        argv = [*control, str(tmp_path / "refused"), *rest]
+        argv[argv.index("--checkpoint") + 1] = checkpoint
+        capsys.readouterr()
+        assert run_dlo(argv) == 2
+        said = capsys.readouterr().err.strip()
+        assert needle in said and len(said.splitlines()) == 1, said
+        assert not (tmp_path / "refused").exists()

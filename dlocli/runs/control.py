@@ -69,12 +69,17 @@ class ControlSpec(EnvSpec, CellChoice):
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
         "task.observation.latency_steps", "task.observation.dropout",
         "task.observation.occlusion_probability", "task.observation.gripper_markers",
-        "task.observation.marker_arc_lengths", "task.control_dt",
+        "task.observation.marker_arc_lengths", "task.control_dt", "cable",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
     checkpoint: Path | None = Field(
         None, description="Trained dynamics model: a .pt file or a `dlo train` run directory."
+    )
+    cable: Path | None = Field(
+        None,
+        description="The recorded cable (its marker dataset from `dlo import`) whose learned "
+        "code a model with cable codes plans with; without it, the mean of its codes.",
     )
     policy: Path | None = Field(
         None,
@@ -155,7 +160,29 @@ def load_control_model(spec: ControlSpec) -> Any:
     check_control_rate(model, spec.task.control_dt, f"model {spec.checkpoint}", "the task runs",
                        "re-train it on data at {used_hz} Hz, or pass --control-dt {dt} (task."
                        "control_dt) to control at the model's rate")  # fmt: skip
+    use_cable_code(model, spec)
     return model
+
+
+def use_cable_code(model: Any, spec: ControlSpec) -> None:
+    """Plan with the code ``model`` learned for ``spec.cable``; BadInput where it has no
+    codes, the file is no marker dataset, or it never trained on that cable."""
+    if spec.cable is None:
+        return
+    from dlocli.data import load_dataset
+    from dlocli.models.cable_codes import cable_key
+
+    if not getattr(model.spec, "cable_code", 0):
+        raise BadInput(f"model {spec.checkpoint} learned no cable codes: drop --cable")
+    dataset = load_dataset(spec.cable)
+    if dataset.form != "markers":
+        raise BadInput(f"--cable {spec.cable} is not a marker dataset: pass one from `dlo import`")
+    if model.use_cable(cable_key(dataset.held, dataset.episodes("train"))) is None:
+        raise BadInput(
+            f"model {spec.checkpoint} never trained on --cable {spec.cable}: learn its code "
+            f"with `dlo train --init-from {spec.checkpoint} --data {spec.cable} --fine-tune "
+            "code`, or drop --cable to plan with the mean code"
+        )
 
 
 def check_model_segments(model: Any, spec: ControlSpec, n_segments: int) -> None:
@@ -384,6 +411,7 @@ def summarise(
         "controller": spec.controller,
         "goal": str(spec.task.goal_file),
         "checkpoint": None if spec.checkpoint is None else str(spec.checkpoint),
+        "cable": None if spec.cable is None else str(spec.cable),
         "seed": spec.seed,
         "wall_s": round(wall_s, 2),
         "versions": versions(),
