@@ -84,6 +84,17 @@ def _second_cable(root) -> str:
     return str(data.save(root / "second.h5"))
 
 
+def _moved(source, path, scale: float = 1.0, shift: float = 0.0) -> str:
+    """Another cable: the recordings of ``source`` scaled and shifted (new recordings, so a
+    new key), saved to ``path``."""
+    data = load_dataset(source)
+    return str(MarkerDataset.from_trajectories(
+        {s: [(str(i), e * scale + shift) for i, e in enumerate(data.episodes(s))]
+         for s in ("train", "eval")},
+        data.held, {"rate_hz": 100.0},
+    ).save(path))  # fmt: skip
+
+
 def test_training_on_two_cables_learns_a_code_each_and_eval_picks_it(
     marker_run, tmp_path, one_thread
 ) -> None:
@@ -110,13 +121,7 @@ def test_training_on_two_cables_learns_a_code_each_and_eval_picks_it(
     assert result["model_scores_cm"] == pytest.approx(expected, rel=1e-3)
 
     # a cable it did not train on: the mean code, then --init-from learns it a code of its own
-    third = _second_cable(tmp_path / "..")
-    data3 = load_dataset(third)
-    moved = MarkerDataset.from_trajectories(
-        {s: [(str(i), e * 1.01) for i, e in enumerate(data3.episodes(s))]
-         for s in ("train", "eval")},
-        data3.held, {"rate_hz": 100.0},
-    ).save(tmp_path / "third.h5")  # fmt: skip
+    moved = _moved(_second_cable(tmp_path / ".."), tmp_path / "third.h5", scale=1.01)
     unseen = json.loads(cli("eval", "--checkpoint", str(tmp_path / "run"), "--data",
                             str(moved), "--json").output)  # fmt: skip
     assert unseen["cable_code"].startswith("the mean of 2")
@@ -149,13 +154,7 @@ def test_fine_tuning_the_code_alone_moves_nothing_else(marker_run, tmp_path, one
               "--update-steps", "10", "--rollout-steps", "4", "--eval-every", "5",
               "--out", str(tmp_path / "run"), "--json")  # fmt: skip
     assert res.exit_code == 0, res.output
-    new = tmp_path / "new.h5"
-    data = load_dataset(first)
-    MarkerDataset.from_trajectories(
-        {s: [(str(i), e + 0.01) for i, e in enumerate(data.episodes(s))]
-         for s in ("train", "eval")},
-        data.held, {"rate_hz": 100.0},
-    ).save(new)  # fmt: skip
+    new = _moved(first, tmp_path / "new.h5", shift=0.01)
     tuned = cli("train", "--init-from", str(tmp_path / "run"), "--data", str(new),
                 "--fine-tune", "code", "--update-steps", "10", "--rollout-steps", "4",
                 "--eval-every", "5", "--lr", "0.05", "--val-fraction", "0",
@@ -262,12 +261,7 @@ def test_control_plans_with_the_code_of_the_cable_it_is_given(
     from dlocli.runs.control import ControlSpec, load_control_model
 
     first = str(marker_run[0])
-    data = load_dataset(first)
-    second = MarkerDataset.from_trajectories(
-        {s: [(str(i), e * 1.01) for i, e in enumerate(data.episodes(s))]
-         for s in ("train", "eval")},
-        data.held, {"rate_hz": 100.0},
-    ).save(tmp_path / "second.h5")  # fmt: skip
+    second = _moved(first, tmp_path / "second.h5", scale=1.01)
     run = tmp_path / "run"
     train = ["train", "--data", first, "--data", str(second), "--model", "mlp", "--hidden", "16",
              "--cable-code", "2", "--update-steps", "4", "--rollout-steps", "4",
@@ -284,11 +278,7 @@ def test_control_plans_with_the_code_of_the_cable_it_is_given(
     out = tmp_path / "control"
     assert run_dlo([*control, str(out), "--cable", str(second)]) == 0
     assert json.loads((out / "summary.json").read_text())["cable"] == str(second)
-    third = MarkerDataset.from_trajectories(
-        {s: [(str(i), e * 1.02) for i, e in enumerate(data.episodes(s))]
-         for s in ("train", "eval")},
-        data.held, {"rate_hz": 100.0},
-    ).save(tmp_path / "third.h5")  # fmt: skip
+    third = _moved(first, tmp_path / "third.h5", scale=1.02)
     refused = [
         ([str(run), "--cable", str(third)], "never trained on --cable"),
         ([str(run), "--cable", str(small_dataset_dir)], "not a marker dataset"),
