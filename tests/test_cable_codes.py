@@ -292,3 +292,8 @@ def test_control_plans_with_the_code_of_the_cable_it_is_given(
         said = capsys.readouterr().err.strip()
         assert needle in said and len(said.splitlines()) == 1, said
         assert not (tmp_path / "refused").exists()
+    no_model = [a for a in control if a not in ("--checkpoint", str(run))]
+    assert run_dlo([*no_model, str(tmp_path / "refused"), "--cable", first]) == 2
+    said = capsys.readouterr().err.strip()
+    assert "pass --checkpoint" in said and len(said.splitlines()) == 1, said
+    assert not (tmp_path / "refused").exists()

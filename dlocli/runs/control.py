@@ -141,6 +141,8 @@ def check_inputs_used(spec: ControlSpec) -> None:
         )
     if spec.policy is not None and not learns:
         raise BadInput(f"--policy is for sac and td3, not '{spec.controller}'; drop it")
+    if spec.cable is not None and spec.checkpoint is None:
+        raise BadInput("--cable picks a learned model's cable code: pass --checkpoint or drop it")
     if spec.checkpoint is not None and "model" not in cls.needs:
         raise BadInput(
             f"controller '{spec.controller}' uses no dynamics model; drop --checkpoint "
