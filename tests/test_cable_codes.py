@@ -257,7 +257,8 @@ def test_control_plans_with_the_code_of_the_cable_it_is_given(
     marker_run, near_rest_goal, small_dataset_dir, tmp_path, capsys, one_thread
 ) -> None:
     """`dlo control --cable DATA` plans with that cable's code; a cable the model never
-    trained on, a rod dataset or a model without codes is refused in one line, exit 2."""
+    trained on, a rod dataset, a missing or garbled file, a model without codes or no model
+    at all is refused in one line, exit 2, before any run directory exists."""
     from dlocli.runs.control import ControlSpec, load_control_model
 
     first = str(marker_run[0])
@@ -279,10 +280,14 @@ def test_control_plans_with_the_code_of_the_cable_it_is_given(
     assert run_dlo([*control, str(out), "--cable", str(second)]) == 0
     assert json.loads((out / "summary.json").read_text())["cable"] == str(second)
     third = _moved(first, tmp_path / "third.h5", scale=1.02)
+    garbage = tmp_path / "garbage.h5"
+    garbage.write_bytes(b"\x89HDF\r\n" + bytes(range(256)) * 8)
     refused = [
         ([str(run), "--cable", str(third)], "never trained on --cable"),
         ([str(run), "--cable", str(small_dataset_dir)], "not a marker dataset"),
         ([str(marker_run[1]), "--cable", first], "learned no cable codes"),
+        ([str(run), "--cable", str(tmp_path / "missing.h5")], "does not exist"),
+        ([str(run), "--cable", str(garbage)], "not a readable HDF5 file"),
     ]
     for (checkpoint, *rest), needle in refused:
         argv = [*control, str(tmp_path / "refused"), *rest]
