@@ -38,6 +38,7 @@ from dlocli.controllers.base import (
     controller_spec,
     make_controller,
 )
+from dlocli.data import load_dataset
 from dlocli.env.metrics import episode_result, shape_error_mm
 from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
@@ -171,7 +172,6 @@ def use_cable_code(model: Any, spec: ControlSpec) -> None:
     codes, the file is no marker dataset, or it never trained on that cable."""
     if spec.cable is None:
         return
-    from dlocli.data import load_dataset
     from dlocli.models.cable_codes import cable_key
 
     if not getattr(model.spec, "cable_code", 0):
