@@ -90,7 +90,6 @@ LAZY_IMPORTS = {
     # `dlo online --help` and `dlo control --help` load these modules' specs
     ("dlocli.runs.control", "dlocli.models.base"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.control", "dlocli.models.checkpoints"): "torch; on the `dlo control --help` path",
-    ("dlocli.runs.control", "dlocli.models.cable_codes"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.online.loop", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.fitting"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.update_steps"): _TORCH,

@@ -146,6 +146,10 @@ class MarkerModel(torch.nn.Module):
         self.cable = self.cable_keys.index(key) if key in self.cable_keys else None
         return self.cable
 
+    def use_recorded_cable(self, held: np.ndarray, episodes: list[np.ndarray]) -> int | None:
+        """:meth:`use_cable` of the cable whose train recordings are ``episodes``."""
+        return self.use_cable(cable_codes.cable_key(held, episodes))
+
     def add_cables(self, keys: list[str]) -> list[int]:
         """The code rows of the cables with ``keys``, new rows (the mean code) for the new."""
         for key in keys:

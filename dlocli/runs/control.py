@@ -172,14 +172,12 @@ def use_cable_code(model: Any, spec: ControlSpec) -> None:
     codes, the file is no marker dataset, or it never trained on that cable."""
     if spec.cable is None:
         return
-    from dlocli.models.cable_codes import cable_key
-
     if not getattr(model.spec, "cable_code", 0):
         raise BadInput(f"model {spec.checkpoint} learned no cable codes: drop --cable")
     dataset = load_dataset(spec.cable)
     if dataset.form != "markers":
         raise BadInput(f"--cable {spec.cable} is not a marker dataset: pass one from `dlo import`")
-    if model.use_cable(cable_key(dataset.held, dataset.episodes("train"))) is None:
+    if model.use_recorded_cable(dataset.held, dataset.episodes("train")) is None:
         raise BadInput(
             f"model {spec.checkpoint} never trained on --cable {spec.cable}: learn its code "
             f"with `dlo train --init-from {spec.checkpoint} --data {spec.cable} --fine-tune "

@@ -12,7 +12,6 @@ from dlocli.errors import BadInput
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
 from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
 from dlocli.models.base import check_control_rate
-from dlocli.models.cable_codes import cable_key
 from dlocli.models.checkpoints import load_model
 from dlocli.models.evaluation import evaluate_model, plot_rollout
 from dlocli.models.marker_training import predict_episodes
@@ -105,6 +104,6 @@ def _evaluation_summary(
 def _choose_code(net: Any, dataset: MarkerDataset) -> str:
     """Use the code the model learned for this cable's recordings, the mean code where it
     learned none; say which."""
-    if net.use_cable(cable_key(dataset.held, dataset.episodes("train"))) is not None:
+    if net.use_recorded_cable(dataset.held, dataset.episodes("train")) is not None:
         return "its own: the model trained on this cable's train recordings"
     return f"the mean of {len(net.cable_keys)}: the model did not train on this cable"
