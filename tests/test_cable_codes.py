@@ -20,7 +20,7 @@ from dlocli.models.checkpoints import load_marker_model
 from dlocli.models.marker_training import Cable, scores_cm
 from dlocli.models.markers import build_marker_model
 
-from tiny import run_dlo
+from tiny import pair_and_singles, run_dlo
 
 runner = CliRunner()
 
@@ -31,13 +31,16 @@ def cli(*args: str):
     return runner.invoke(app, list(args))
 
 
+@pytest.mark.parametrize("members", [1, 2])
 @pytest.mark.parametrize("name", ["mlp", "arc-mlp"])
-def test_the_fused_rollout_with_a_folded_code_is_the_plain_one(name: str) -> None:
+def test_the_fused_rollout_with_a_folded_code_is_the_plain_one(name: str, members: int) -> None:
+    """One network, or an ensemble whose members each fold their own code."""
     torch.manual_seed(0)
     held = held_markers(7)
-    model = build_marker_model({"name": name, "hidden": 16, "cable_code": 3,
+    model = build_marker_model({"name": name, "hidden": 16, "cable_code": 3, "members": members,
                                 "length_projection": 2}, 7, held)  # fmt: skip
     model.add_cables(["a", "b"])
+    assert model.codes.shape == (2, 3) if members == 1 else (2, members, 3)
     torch.nn.init.normal_(model.codes)
     x = torch.randn(4, 7, 3) * 0.1
     future = x[:, None] + torch.randn(4, 5, 7, 3) * 0.01
@@ -47,6 +50,8 @@ def test_the_fused_rollout_with_a_folded_code_is_the_plain_one(name: str) -> Non
     model.reference = True  # plain PyTorch, the code appended to every marker's features
     plain = model.rollout(x, x, future)
     torch.testing.assert_close(fused, plain, rtol=1e-4, atol=1e-6)
+    model.codes.data[1, -1] += 1.0  # the last member's code of the cable in use
+    assert not torch.allclose(model.rollout(x, x, future), plain)
     model.cable = 0
     assert not torch.allclose(model.rollout(x, x, future), plain)  # the code matters
 
@@ -136,16 +141,47 @@ def test_training_on_two_cables_learns_a_code_each_and_eval_picks_it(
     assert own["cable_code"].startswith("its own")
 
 
-def test_codes_refuse_an_ensemble_and_a_rod_model_in_one_line(
-    marker_run, small_dataset_dir, tmp_path
-) -> None:
+def test_codes_refuse_a_rod_model_in_one_line(small_dataset_dir, tmp_path) -> None:
     out = tmp_path / "run"
-    both = cli("train", "--data", str(marker_run[0]), "--model", "mlp", "--members", "2",
-               "--cable-code", "4", "--out", str(out))  # fmt: skip
-    assert both.exit_code == 2 and "do not combine" in both.output
     rod = cli("train", "--data", str(small_dataset_dir), "--cable-code", "4", "--out", str(out))
     assert rod.exit_code == 2 and "drop --cable-code" in rod.output
     assert len(rod.output.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_each_coded_member_trains_as_the_coded_network_alone(
+    marker_run, tmp_path, one_thread
+) -> None:
+    """`--members 2` with codes: member i is the network and codes `--seed S+i` gives alone;
+    `--init-from` on a new cable learns each member a code for it; `dlo eval` picks them."""
+    first, second = str(marker_run[0]), _second_cable(tmp_path)
+    common = ["train", "--data", first, "--data", second, "--model", "arc-mlp", "--hidden",
+              "16", "--cable-code", "3", "--update-steps", "20", "--rollout-steps", "4",
+              "--eval-every", "10", "--length-projection", "2", "--json"]  # fmt: skip
+    pair, singles = pair_and_singles(cli, common, tmp_path)
+    ensemble = load_marker_model(pair)
+    assert ensemble.codes.shape == (2, 2, 3)
+    for i, alone in enumerate(singles):
+        single = load_marker_model(alone)
+        assert single.cable_keys == ensemble.cable_keys
+        torch.testing.assert_close(ensemble.codes[:, i], single.codes)
+        for key, value in ensemble.network.members[i].state_dict().items():
+            torch.testing.assert_close(value, single.network.state_dict()[key])
+
+    moved = _moved(second, tmp_path / "third.h5", scale=1.01)
+    tuned = cli("train", "--init-from", str(pair), "--data", moved,
+                "--update-steps", "10", "--rollout-steps", "4", "--eval-every", "5",
+                "--out", str(tmp_path / "tuned"), "--json")  # fmt: skip
+    assert tuned.exit_code == 0, tuned.output
+    grown = load_marker_model(tmp_path / "tuned")
+    assert grown.codes.shape == (3, 2, 3) and grown.cable_keys[:2] == ensemble.cable_keys
+    assert bool((grown.codes[2, 0] != grown.codes[2, 1]).any())  # each member learned its own
+    scored = json.loads(cli("eval", "--checkpoint", str(tmp_path / "tuned"), "--data", moved,
+                            "--json").output)  # fmt: skip
+    assert scored["cable_code"].startswith("its own")
+    data = load_dataset(moved)
+    grown.reference = True
+    expected = scores_cm(grown, Cable(data.episodes("eval"), data.held, grown.cable_keys[2]))
+    assert scored["model_scores_cm"] == pytest.approx(expected, rel=1e-3)
 
 
 def test_fine_tuning_the_code_alone_moves_nothing_else(marker_run, tmp_path, one_thread) -> None:

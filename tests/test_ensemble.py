@@ -20,7 +20,7 @@ from dlocli.models.markers import build_marker_model
 from dlocli.models.network import Nodes
 from dlocli.models.spec import model_spec
 
-from tiny import run_dlo
+from tiny import pair_and_singles, run_dlo
 
 runner = CliRunner()
 
@@ -70,16 +70,12 @@ def test_each_member_trains_as_the_network_alone_from_its_own_seed(
     common = ["train", "--data", str(dataset), "--model", "mlp", "--hidden", "16",
               "--layers", "2", "--update-steps", "30", "--rollout-steps", "4",
               "--eval-every", "10", "--device", "cpu", "--json"]  # fmt: skip
-    for seed in (3, 4):
-        alone = cli(*common, "--seed", str(seed), "--out", str(tmp_path / f"alone{seed}"))
-        assert alone.exit_code == 0, alone.output
-    pair = cli(*common, "--seed", "3", "--members", "2", "--out", str(tmp_path / "pair"))
-    assert pair.exit_code == 0, pair.output
+    pair, singles = pair_and_singles(cli, common, tmp_path)
 
-    ensemble = load_marker_model(tmp_path / "pair")
+    ensemble = load_marker_model(pair)
     assert isinstance(ensemble.network, Ensemble) and ensemble.spec.members == 2
-    for seed, member in zip((3, 4), ensemble.network.members, strict=True):
-        single = load_marker_model(tmp_path / f"alone{seed}").network.state_dict()
+    for alone, member in zip(singles, ensemble.network.members, strict=True):
+        single = load_marker_model(alone).network.state_dict()
         for key, value in member.state_dict().items():
             torch.testing.assert_close(value, single[key])  # member i: seed 3 + i, as alone
 

@@ -196,3 +196,14 @@ def write_cable(root: Path, n_train: int = 4, n_eval: int = 2, **kw) -> Path:
 def dlo_import(source: Path, out: Path, *flags: str) -> int:
     """`dlo import --json` of ``source`` into ``out``; its exit code."""
     return run_dlo(["import", "--source", str(source), "--out", str(out), "--json", *flags])
+
+
+def pair_and_singles(cli: Any, common: list[str], root: Path, seeds: tuple[int, int] = (3, 4)):
+    """Train ``common`` (`dlo train` arguments) alone with each of ``seeds`` and as a
+    two-member ensemble from the first: (the pair's run directory, the singles')."""
+    for seed in seeds:
+        alone = cli(*common, "--seed", str(seed), "--out", str(root / f"alone{seed}"))
+        assert alone.exit_code == 0, alone.output
+    pair = cli(*common, "--seed", str(seeds[0]), "--members", "2", "--out", str(root / "pair"))
+    assert pair.exit_code == 0, pair.output
+    return root / "pair", [root / f"alone{seed}" for seed in seeds]

@@ -10,6 +10,9 @@ same for every marker. Which code a cable gets is decided by its recordings (the
 key, :func:`cable_key`), never by a name: a cable the model trained on gets its own, a new
 one the mean of them all until ``--init-from`` on its recordings learns one.
 
+An ensemble's members train apart (:mod:`dlocli.models.member_fits`), so each learns its
+own codes: an ensemble's codes are (cables, members, D), member i reads column i.
+
 For a network of fully connected layers over the flattened inputs (``flat_layers``), a
 constant input is a bias: :func:`fold_code` moves the code into the first layer's bias, so
 the fused rollout trains and runs a coded model unchanged.
@@ -32,13 +35,19 @@ def cable_key(held: np.ndarray, episodes: list[np.ndarray]) -> str:
     return digest.hexdigest()[:16]
 
 
+def no_codes(width: int, members: int = 1) -> Tensor:
+    """The codes of a model that has trained on no cable yet: (0, D), an ensemble's
+    (0, members, D)."""
+    return torch.zeros(0, width) if members == 1 else torch.zeros(0, members, width)
+
+
 def grown(codes: Tensor, rows: int) -> Tensor:
-    """``codes`` (N, D) with rows added up to ``rows``, each new one the mean of the old
+    """``codes`` (N, ...) with rows added up to ``rows``, each new one the mean of the old
     (zero where there are none): a new cable starts where an unseen one would."""
     if rows <= codes.shape[0]:
         return codes
-    start = codes.mean(0) if codes.shape[0] else codes.new_zeros(codes.shape[1])
-    extra = start.expand(rows - codes.shape[0], -1)
+    start = chosen_code(codes, None)
+    extra = start.expand(rows - codes.shape[0], *start.shape)
     return torch.cat([codes.detach(), extra.detach()], 0)
 
 
@@ -47,12 +56,16 @@ def chosen_code(codes: Tensor, index: int | None) -> Tensor:
     when there are none yet."""
     if index is not None:
         return codes[index]
-    return codes.mean(0) if codes.shape[0] else codes.new_zeros(codes.shape[1])
+    return codes.mean(0) if codes.shape[0] else codes.new_zeros(codes.shape[1:])
 
 
 def with_code(features: Tensor, code: Tensor) -> Tensor:
-    """Per-marker features (B, V, F) with the code (D,) appended to every marker's."""
-    return torch.cat([features, code.expand(*features.shape[:2], -1)], -1)
+    """Per-marker features (B, V, F) with the code (D,) appended to every marker's; with an
+    ensemble's codes (M, D), the (M, B, V, F + D) inputs of each member."""
+    if code.dim() == 1:
+        return torch.cat([features, code.expand(*features.shape[:2], -1)], -1)
+    per_member = code[:, None, None].expand(-1, *features.shape[:2], -1)
+    return torch.cat([features.expand(code.shape[0], *features.shape), per_member], -1)
 
 
 def fold_code(

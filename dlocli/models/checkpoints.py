@@ -34,6 +34,7 @@ from dlocli.errors import BadInput
 from dlocli.io import versions, write_bytes_atomic
 from dlocli.migrations import completed
 from dlocli.models.base import ACTION_DIM, STATE_DIM, build_model, resolve_device, valid_model_spec
+from dlocli.models.cable_codes import no_codes
 from dlocli.models.markers import SCALES, build_marker_model
 from dlocli.models.spec import ModelSpec
 
@@ -226,7 +227,7 @@ def model_from_payload(
     if not torch.is_tensor(held) or held.dtype != torch.bool or held.dim() != 1:
         raise BadInput(f"checkpoint {path} lacks its held-marker mask; retrain it")
     if spec.cable_code and "codes" not in payload["state_dict"]:  # none learned yet
-        weights = {**payload["state_dict"], "codes": torch.zeros(0, spec.cable_code)}
+        weights = {**payload["state_dict"], "codes": no_codes(spec.cable_code, spec.members)}
         payload = {**payload, "state_dict": weights}
     model = build_marker_model(spec, len(held), held.numpy())
     model.add_cables(_cable_keys(payload, path))
@@ -240,7 +241,7 @@ def _cable_keys(payload: dict[str, Any], path: Path | str) -> list[str]:
     codes disagree."""
     keys = payload.get(CABLE_KEYS, [])
     codes = payload["state_dict"].get("codes")
-    rows = codes.shape[0] if torch.is_tensor(codes) and codes.dim() == 2 else 0
+    rows = codes.shape[0] if torch.is_tensor(codes) and codes.dim() >= 2 else 0
     if not rows:
         return []
     if not isinstance(keys, list) or len(keys) != rows or len(set(keys)) != rows:

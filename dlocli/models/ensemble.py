@@ -45,22 +45,36 @@ class Ensemble(Network):
             member.reference = bool(value)
 
     def forward(self, nodes: Tensor, relations: Tensor) -> Tensor:
-        return torch.stack([m(nodes, relations) for m in self.members]).mean(0)
+        """The members' mean output. ``nodes`` (B, V, W) go to every member; (M, B, V, W)
+        give member i row i (a view with per-member cable codes), relations alike."""
+        if nodes.dim() == 4:
+            outputs = [m(n, r) for m, n, r in zip(self.members, nodes, relations, strict=True)]
+        else:
+            outputs = [m(nodes, relations) for m in self.members]
+        return torch.stack(outputs).mean(0)
 
     def flat_layers(self, count: int) -> list[tuple[Tensor, Tensor]] | None:
-        """The members side by side: their first layers stacked, hidden layers block
-        diagonal, last layers' outputs averaged. None unless every member is such layers."""
-        stacks = [m.flat_layers(count) for m in self.members]
-        if any(s is None for s in stacks) or len({len(s) for s in stacks}) != 1:  # type: ignore[arg-type]
-            return None
-        layers = list(zip(*stacks, strict=True))  # per depth: every member's (weight, bias)
-        first = (torch.cat([w for w, _ in layers[0]]), torch.cat([b for _, b in layers[0]]))
-        hidden = [(torch.block_diag(*[w for w, _ in depth]), torch.cat([b for _, b in depth]))
-                  for depth in layers[1:-1]]  # fmt: skip
-        share = 1.0 / len(self.members)
-        last = (torch.cat([w for w, _ in layers[-1]], 1) * share,
-                torch.stack([b for _, b in layers[-1]]).mean(0))  # fmt: skip
-        return [first, *hidden, last]
+        """The members as one stack (:func:`side_by_side`); None unless every member is
+        fully connected layers."""
+        return side_by_side([m.flat_layers(count) for m in self.members])
+
+
+def side_by_side(
+    stacks: list[list[tuple[Tensor, Tensor]] | None],
+) -> list[tuple[Tensor, Tensor]] | None:
+    """Members' fully connected layers as the one stack that computes their mean: their
+    first layers stacked, hidden layers block diagonal, last layers' outputs averaged. None
+    unless every member is such layers, all of one depth."""
+    if any(s is None for s in stacks) or len({len(s) for s in stacks}) != 1:  # type: ignore[arg-type]
+        return None
+    layers = list(zip(*stacks, strict=True))  # per depth: every member's (weight, bias)
+    first = (torch.cat([w for w, _ in layers[0]]), torch.cat([b for _, b in layers[0]]))
+    hidden = [(torch.block_diag(*[w for w, _ in depth]), torch.cat([b for _, b in depth]))
+              for depth in layers[1:-1]]  # fmt: skip
+    share = 1.0 / len(stacks)
+    last = (torch.cat([w for w, _ in layers[-1]], 1) * share,
+            torch.stack([b for _, b in layers[-1]]).mean(0))  # fmt: skip
+    return [first, *hidden, last]
 
 
 def build_network(spec: ModelSpec, nodes: Nodes) -> Network:

@@ -34,7 +34,7 @@ from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
 from dlocli.models import cable_codes, marker_mlp_rollout, marker_steps
 from dlocli.models.base import valid_model_spec
-from dlocli.models.ensemble import build_network
+from dlocli.models.ensemble import build_network, side_by_side
 from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec
 from dlocli.registry import models
@@ -67,11 +67,10 @@ class MarkerModel(torch.nn.Module):
         network = models.get(spec.name)
         #: whether each marker's inputs include the cable's geometry (:meth:`descriptors`)
         self.geometry = bool(network.cable_geometry)
-        if spec.cable_code and spec.members > 1:  # members train apart, each its own codes
-            raise BadInput("cable codes and --members > 1 do not combine yet: drop one")
-        #: one learned code per training cable (:mod:`~dlocli.models.cable_codes`), their keys
-        codes = torch.nn.Parameter(torch.zeros(0, spec.cable_code)) if spec.cable_code else None
-        self.register_parameter("codes", codes)
+        #: one learned code per training cable (:mod:`~dlocli.models.cable_codes`; an
+        #: ensemble's members each their own), their keys
+        codes = cable_codes.no_codes(spec.cable_code, spec.members) if spec.cable_code else None
+        self.register_parameter("codes", None if codes is None else torch.nn.Parameter(codes))
         self.cable_keys: list[str] = []
         self.cable: int | None = None  # the code in use: a row of ``codes``, None the mean
         width = FEATURES + spec.cable_code + (DESCRIPTORS if self.geometry else 0)
@@ -88,8 +87,9 @@ class MarkerModel(torch.nn.Module):
         self.network.reference = bool(value)
 
     def predict(self, inputs: Tensor) -> Tensor:
-        """Normalised accelerations (B, V, 3) from the per-marker inputs (B, V, W)."""
-        return self.network(inputs, inputs[:, 1:] - inputs[:, :-1])
+        """Normalised accelerations (B, V, 3) from the per-marker inputs (B, V, W), or an
+        ensemble's per-member inputs (M, B, V, W) (per-member cable codes)."""
+        return self.network(inputs, inputs[..., 1:, :] - inputs[..., :-1, :])
 
     # ------------------------------------------------------------------ normalisation
     def fit_normalization(self, episodes: list[tuple[np.ndarray, np.ndarray]]) -> None:
@@ -133,11 +133,15 @@ class MarkerModel(torch.nn.Module):
     def _described(self, features: Tensor, x: Tensor) -> Tensor:
         if self.spec.cable_code:
             features = cable_codes.with_code(features, self.code())
-        return torch.cat([features, self.descriptors(x)], -1) if self.geometry else features
+        if not self.geometry:
+            return features
+        descriptors = self.descriptors(x)
+        return torch.cat([features, descriptors.expand(*features.shape[:-1], -1)], -1)
 
     # ------------------------------------------------------------------ cable codes
     def code(self) -> Tensor:
-        """The code in use (``cable_code``,): the cable's row, or the mean code."""
+        """The code in use (``cable_code``,), an ensemble's (members, ``cable_code``): the
+        cable's row, or the mean code."""
         return cable_codes.chosen_code(self.codes, self.cable)
 
     def use_cable(self, key: str | None) -> int | None:
@@ -235,10 +239,15 @@ class MarkerModel(torch.nn.Module):
             return None
         if not marker_mlp_rollout.usable(x, x_prev, held_future):
             return None
-        layers = self.network.flat_layers(x.shape[1])
+        count = x.shape[1]
         if not self.spec.cable_code:
-            return layers
-        return cable_codes.fold_code(layers, x.shape[1], FEATURES, self.code())
+            return self.network.flat_layers(count)
+        code = self.code()
+        if code.dim() == 1:
+            return _folded(self.network.flat_layers(count), count, code)
+        members = self.network.members  # type: ignore[union-attr]
+        return side_by_side([_folded(m.flat_layers(count), count, c)
+                             for m, c in zip(members, code, strict=True)])  # fmt: skip
 
     def _fused_step(
         self,
@@ -256,6 +265,13 @@ class MarkerModel(torch.nn.Module):
     @property
     def device(self) -> torch.device:
         return self.held.device
+
+
+def _folded(
+    layers: list[tuple[Tensor, Tensor]] | None, count: int, code: Tensor
+) -> list[tuple[Tensor, Tensor]] | None:
+    """Fully connected ``layers`` over features and ``code`` as layers over the features."""
+    return None if layers is None else cable_codes.fold_code(layers, count, FEATURES, code)
 
 
 def neighbour_distances(x: Tensor) -> Tensor:

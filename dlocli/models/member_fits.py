@@ -6,7 +6,8 @@ the ensemble's normalisation, from its own seed: a fresh ensemble's member i is 
 network `dlo train --seed SEED+i` trains alone (its initial weights, windows and
 augmentations are that seed's). The members are independent, so on CPU they train in
 parallel, one process per core (:class:`~dlocli.executors.LocalExecutor`); on a GPU one after
-another. The history is the members' mean at each validation, its last row the ensemble's.
+another. With cable codes, each member learns its own (the view's column i). The history is
+the members' mean at each validation, its last row the ensemble's.
 """
 
 from __future__ import annotations
@@ -45,20 +46,23 @@ def fit_members(
     count = len(model.network.members)
     jobs = min(count, machine_cpus()) if device.type == "cpu" else 1
     inline = jobs == 1  # this process: the member's own events and the cancel token reach it
+    # copies: sending a tensor to a process moves its storage to shared memory, and a numpy
+    # view of the old storage would be sent as whatever then lies there
     calls = [(member_state(model, i, weights=not fresh), model.spec, model.n_segments,
-              model.held.cpu().numpy(), train, val,
+              model.held.cpu().numpy().copy(), list(model.cable_keys), train, val,
               fit.model_copy(update={"seed": fit.seed + i}),
               progress if inline else None, cancel if inline else None)
              for i in range(count)]  # fmt: skip
     if progress:
         progress(Began("member", 0, count))
     histories: list[list[dict[str, float]]] = [[] for _ in range(count)]
+    codes: list[tuple[list[str], torch.Tensor | None]] = [([], None)] * count
     executor = LocalExecutor(jobs, threads=max(1, machine_cpus() // jobs))
     try:
         for done, (index, result) in enumerate(executor.map(_fit_member, calls), 1):
             if isinstance(result, BaseException):
                 raise result
-            state, histories[index] = result
+            state, codes[index], histories[index] = result
             model.network.members[index].load_state_dict(state)
             if cancel is not None:
                 cancel.raise_if_cancelled()
@@ -69,6 +73,7 @@ def fit_members(
                     "seconds": last.get("seconds", 0.0)}))  # fmt: skip
     finally:
         executor.close()
+    _gather_codes(model, codes)
     model.to(device).eval()
     return _merged(histories, validation_score(model, val))
 
@@ -76,11 +81,14 @@ def fit_members(
 def member_state(model: MarkerModel, index: int, weights: bool = True) -> dict[str, torch.Tensor]:
     """The state of member ``index`` seen through its own marker view: the ensemble view's
     buffers (mask, normalisation) and, with ``weights``, the member's weights."""
-    state = {k: v.cpu() for k, v in model.state_dict().items() if not k.startswith("network.")}
+    state = {k: v.cpu().clone() for k, v in model.state_dict().items()
+             if not k.startswith("network.")}  # fmt: skip
+    if model.codes is not None:  # the member's own codes
+        state["codes"] = model.codes.detach()[:, index].cpu().clone()
     if not weights:
         return state
     member = model.network.members[index]  # type: ignore[union-attr]
-    state.update({f"network.{k}": v.cpu() for k, v in member.state_dict().items()})
+    state.update({f"network.{k}": v.cpu().clone() for k, v in member.state_dict().items()})
     return state
 
 
@@ -89,19 +97,34 @@ def _fit_member(
     spec: Any,
     n_markers: int,
     held: np.ndarray,
+    cable_keys: list[str],
     train: list[Cable],
     val: list[Cable],
     fit: FitSpec,
     progress: Callback | None,
     cancel: CancelToken | None,
-) -> tuple[dict[str, torch.Tensor], list[dict[str, float]]]:
-    """One member trained through its own view: (its network's weights, its history). Given
-    no weights, it starts as the network alone would from ``fit.seed``."""
+) -> tuple[dict[str, torch.Tensor], tuple[list[str], torch.Tensor | None], list[dict]]:
+    """One member trained through its own view: (its network's weights, its cable keys and
+    codes, its history). Given no weights, it starts as the network alone would from
+    ``fit.seed``."""
     torch.manual_seed(fit.seed)
     view = MarkerModel(spec.model_copy(update={"members": 1}), n_markers, held)
+    view.add_cables(cable_keys)  # the codes' rows, before their values load
     view.load_state_dict(state, strict=any(k.startswith("network.") for k in state))
     rows = _fit_markers(view, train, val, fit, progress, cancel)
-    return {k: v.cpu() for k, v in view.network.state_dict().items()}, rows
+    codes = None if view.codes is None else view.codes.detach().cpu()
+    weights = {k: v.cpu() for k, v in view.network.state_dict().items()}
+    return weights, (list(view.cable_keys), codes), rows
+
+
+def _gather_codes(model: MarkerModel, codes: list[tuple[list[str], torch.Tensor | None]]) -> None:
+    """The members' codes (cables, D) as the ensemble view's (cables, members, D); every
+    member trained on the same cables, so their keys agree."""
+    keys, first = codes[0]
+    if first is None:
+        return
+    model.add_cables(keys)
+    model.codes.data = torch.stack([c for _, c in codes], 1).to(model.codes.device)  # type: ignore[misc, union-attr]
 
 
 def _merged(histories: list[list[dict[str, float]]], ensemble_score: float) -> list[dict]:

@@ -44,7 +44,8 @@ class ModelSpec(Spec):
         description="Marker form: width of a code learned per training cable (0: none). Trained "
         "on several cables, the model learns each one's code beside its weights (a cable's "
         "shape does not tell its stiffness and mass); `--init-from` on a new cable learns its "
-        "code; a cable it never saw gets the mean code.",
+        "code; a cable it never saw gets the mean code. In an ensemble each member learns its "
+        "own codes.",
     )  # fmt: skip
     length_projection: int = Field(
         0, ge=0, le=50,
