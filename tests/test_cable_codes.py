@@ -6,6 +6,7 @@ line and exit 2."""
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -14,11 +15,13 @@ import torch
 from typer.testing import CliRunner
 
 from dlocli.data import MarkerDataset, load_dataset
+from dlocli.errors import BadInput
 from dlocli.markers.deform import held_markers
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.checkpoints import load_marker_model
 from dlocli.models.marker_training import Cable, scores_cm
 from dlocli.models.markers import build_marker_model
+from dlocli.models.member_fits import joined
 
 from tiny import pair_and_singles, run_dlo
 
@@ -166,6 +169,16 @@ def test_each_coded_member_trains_as_the_coded_network_alone(
         torch.testing.assert_close(ensemble.codes[:, i], single.codes)
         for key, value in ensemble.network.members[i].state_dict().items():
             torch.testing.assert_close(value, single.network.state_dict()[key])
+    together = joined([load_marker_model(alone) for alone in singles])  # trained apart
+    assert together.cable_keys == ensemble.cable_keys
+    for key, value in ensemble.state_dict().items():
+        torch.testing.assert_close(together.state_dict()[key], value)
+    other = copy.deepcopy(single)
+    other.cable_keys = other.cable_keys[::-1]
+    with pytest.raises(BadInput, match="different cables"):
+        joined([single, other])
+    with pytest.raises(BadInput, match="different specs"):
+        joined([single, load_marker_model(marker_run[1])])
 
     moved = _moved(second, tmp_path / "third.h5", scale=1.01)
     tuned = cli("train", "--init-from", str(pair), "--data", moved,

@@ -18,12 +18,13 @@ import numpy as np
 import torch
 
 from dlocli.cancel import CancelToken
+from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event
 from dlocli.executors import LocalExecutor
 from dlocli.models.base import resolve_device
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.marker_training import Cable, _fit_markers, validation_score
-from dlocli.models.markers import MarkerModel
+from dlocli.models.markers import SCALES, MarkerModel
 from dlocli.models.spec import FitSpec
 from dlocli.threads import machine_cpus
 
@@ -142,3 +143,39 @@ def _merged(histories: list[list[dict[str, float]]], ensemble_score: float) -> l
     if rows:
         rows[-1]["val_score_cm"] = ensemble_score
     return rows
+
+
+def joined(models: list[MarkerModel]) -> MarkerModel:
+    """Networks trained apart (one spec, one cable layout, one normalisation, the same
+    cables) as the ensemble of them: what `--members` gives when they were trained with seeds
+    S, S+1, ... (on other machines, say); BadInput where they differ."""
+    first = models[0]
+    spec = first.spec.model_copy(update={"members": 1})
+    for model in models[1:]:
+        _check_joinable(first, model, spec)
+    ensemble = MarkerModel(spec.model_copy(update={"members": len(models)}), first.n_segments,
+                           first.held.cpu().numpy())  # fmt: skip
+    ensemble.add_cables(list(first.cable_keys))
+    state = {k: v for k, v in first.state_dict().items()
+             if not k.startswith("network.") and k != "codes"}  # fmt: skip
+    ensemble.load_state_dict(state, strict=False)
+    for member, model in zip(ensemble.network.members, models, strict=True):  # type: ignore[union-attr]
+        member.load_state_dict(model.network.state_dict())
+    if first.codes is not None:
+        ensemble.codes.data = torch.stack([m.codes.detach() for m in models], 1)  # type: ignore[union-attr]
+    return ensemble.to(first.device).eval()
+
+
+def _check_joinable(first: MarkerModel, model: MarkerModel, spec: Any) -> None:
+    if model.spec.model_copy(update={"members": 1}) != spec or model.spec.members != 1:
+        raise BadInput(
+            "networks of different specs, or ensembles, do not join: give single "
+            "networks trained with one spec"
+        )
+    if not torch.equal(model.held.cpu(), first.held.cpu()):
+        raise BadInput("networks of different cable layouts (held markers) do not join")
+    if model.cable_keys != first.cable_keys:
+        raise BadInput("networks trained on different cables do not join: their codes differ")
+    for name in SCALES:
+        if not torch.allclose(getattr(model, name), getattr(first, name)):
+            raise BadInput(f"networks with different normalisations ({name}) do not join")
