@@ -27,21 +27,4 @@ for c in DLO1 DLO2 DLO3 DLO4; do
   [ -f "$OUT/$c/eval/summary.json" ] || dlo eval --checkpoint "$OUT/$c/train" \
     --data "$OUT/data/$c" --out "$OUT/$c/eval" --overwrite --json > /dev/null
 done
-python - "$OUT" "$SPEC" "$FINE" "$SEED" <<'PY'
-import json, sys
-from pathlib import Path
-out, spec, fine, seed = Path(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
-def read(path):
-    return json.loads(path.read_text())
-cables = ("DLO1", "DLO2", "DLO3", "DLO4")
-entry = {"spec": spec, "fine_tune": fine, "seed": seed,
-         "train_seconds": read(out / "shared/train/summary.json")["seconds"],
-         "score_cm": {c: read(out / f"shared/eval-{c}/summary.json")["model_score_cm"] for c in cables},
-         "finetuned_score_cm": {c: read(out / c / "eval/summary.json")["model_score_cm"] for c in cables},
-         "finetune_seconds": {c: read(out / c / "train/summary.json")["seconds"] for c in cables}}
-target = Path("examples/real_cables/shared_model.json")
-saved = json.loads(target.read_text()) if target.is_file() else []
-saved = [e for e in saved if (e["spec"], e["fine_tune"], e["seed"]) != (spec, fine, seed)]
-target.write_text(json.dumps(saved + [entry], indent=1) + "\n")
-print(json.dumps(entry, indent=1))
-PY
+python "$HERE/shared_model_entry.py" "$OUT" "$SPEC" "$FINE" "$SEED"
