@@ -179,6 +179,10 @@ def test_each_coded_member_trains_as_the_coded_network_alone(
         joined([single, other])
     with pytest.raises(BadInput, match="different specs"):
         joined([single, load_marker_model(marker_run[1])])
+    with pytest.raises(BadInput, match="different specs, or ensembles"):
+        joined([ensemble, single])
+    with pytest.raises(BadInput, match="two or more"):
+        joined([single])
 
     moved = _moved(second, tmp_path / "third.h5", scale=1.01)
     tuned = cli("train", "--init-from", str(pair), "--data", moved,

@@ -149,9 +149,11 @@ def joined(models: list[MarkerModel]) -> MarkerModel:
     """Networks trained apart (one spec, one cable layout, one normalisation, the same
     cables) as the ensemble of them: what `--members` gives when they were trained with seeds
     S, S+1, ... (on other machines, say); BadInput where they differ."""
+    if len(models) < 2:
+        raise BadInput(f"an ensemble joins two or more networks, not {len(models)}")
     first = models[0]
     spec = first.spec.model_copy(update={"members": 1})
-    for model in models[1:]:
+    for model in models:
         _check_joinable(first, model, spec)
     ensemble = MarkerModel(spec.model_copy(update={"members": len(models)}), first.n_segments,
                            first.held.cpu().numpy())  # fmt: skip
