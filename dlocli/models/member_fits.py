@@ -157,14 +157,13 @@ def joined(models: list[MarkerModel]) -> MarkerModel:
         _check_joinable(first, model, spec)
     ensemble = MarkerModel(spec.model_copy(update={"members": len(models)}), first.n_segments,
                            first.held.cpu().numpy())  # fmt: skip
-    ensemble.add_cables(list(first.cable_keys))
     state = {k: v for k, v in first.state_dict().items()
              if not k.startswith("network.") and k != "codes"}  # fmt: skip
     ensemble.load_state_dict(state, strict=False)
     for member, model in zip(ensemble.network.members, models, strict=True):  # type: ignore[union-attr]
         member.load_state_dict(model.network.state_dict())
-    if first.codes is not None:
-        ensemble.codes.data = torch.stack([m.codes.detach() for m in models], 1)  # type: ignore[union-attr]
+    _gather_codes(ensemble, [(list(m.cable_keys), None if m.codes is None else m.codes.detach())
+                             for m in models])  # fmt: skip
     return ensemble.to(first.device).eval()
 
 
