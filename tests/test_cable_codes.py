@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from dlocli.models.member_fits import joined
 from tiny import pair_and_singles, run_dlo
 
 runner = CliRunner()
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def cli(*args: str):
@@ -152,9 +154,10 @@ def test_codes_refuse_a_rod_model_in_one_line(small_dataset_dir, tmp_path) -> No
 
 
 def test_each_coded_member_trains_as_the_coded_network_alone(
-    marker_run, tmp_path, one_thread
+    marker_run, tmp_path, one_thread, capsys
 ) -> None:
-    """`--members 2` with codes: member i is the network and codes `--seed S+i` gives alone;
+    """`--members 2` with codes: member i is the network and codes `--seed S+i` gives alone,
+    and `joined` (and join_members.py) makes the same ensemble of them trained apart;
     `--init-from` on a new cable learns each member a code for it; `dlo eval` picks them."""
     first, second = str(marker_run[0]), _second_cable(tmp_path)
     common = ["train", "--data", first, "--data", second, "--model", "arc-mlp", "--hidden",
@@ -183,6 +186,7 @@ def test_each_coded_member_trains_as_the_coded_network_alone(
         joined([ensemble, single])
     with pytest.raises(BadInput, match="two or more"):
         joined([single])
+    _check_join_members_script(singles, ensemble, tmp_path, capsys)
 
     moved = _moved(second, tmp_path / "third.h5", scale=1.01)
     tuned = cli("train", "--init-from", str(pair), "--data", moved,
@@ -199,6 +203,34 @@ def test_each_coded_member_trains_as_the_coded_network_alone(
     grown.reference = True
     expected = scores_cm(grown, Cable(data.episodes("eval"), data.held, grown.cable_keys[2]))
     assert scored["model_scores_cm"] == pytest.approx(expected, rel=1e-3)
+
+
+def _check_join_members_script(singles, ensemble, tmp_path, capsys) -> None:
+    """examples/real_cables/join_members.py writes the joined run directory, and refuses a
+    bad join in one line with exit 2, writing nothing."""
+    script = str(EXAMPLES / "real_cables" / "join_members.py")
+    out = tmp_path / "joined"
+    assert _run_script(script, out, *singles) == 0
+    for key, value in ensemble.state_dict().items():
+        torch.testing.assert_close(load_marker_model(out).state_dict()[key], value)
+    refused = tmp_path / "refused"
+    capsys.readouterr()
+    assert _run_script(script, refused, singles[0]) == 2
+    assert capsys.readouterr().err == "error: an ensemble joins two or more networks, not 1\n"
+    assert not refused.exists()
+
+
+def _run_script(script: str, *args) -> int:
+    import runpy
+    import sys
+    from unittest import mock
+
+    with mock.patch.object(sys, "argv", [script, *map(str, args)]):
+        try:
+            runpy.run_path(script, run_name="__main__")
+        except SystemExit as stop:
+            return stop.code
+    return 0
 
 
 def test_fine_tuning_the_code_alone_moves_nothing_else(marker_run, tmp_path, one_thread) -> None:

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
+from dlocli.errors import DloError
 from dlocli.io import write_json_atomic
 from dlocli.models.checkpoints import CABLE_KEYS, CONTROL_DT, load_marker_model, save_checkpoint
 from dlocli.models.member_fits import joined
@@ -26,18 +28,27 @@ def main() -> None:
     parser.add_argument("out", type=Path)
     parser.add_argument("runs", type=Path, nargs="+")
     args = parser.parse_args()
-    models = [load_marker_model(run) for run in args.runs]
+    try:
+        join(args.out, args.runs)
+    except DloError as error:  # one line and the CLI's exit code, as `dlo` gives
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(error.exit_code)
+
+
+def join(out: Path, runs: list[Path]) -> None:
+    """Write the ensemble of the networks in ``runs`` as the run directory ``out``."""
+    models = [load_marker_model(run) for run in runs]
     ensemble = joined(models)
     rate = getattr(models[0], "control_dt", None)
     extra = {CABLE_KEYS: ensemble.cable_keys, **({} if rate is None else {CONTROL_DT: rate})}
-    save_checkpoint(ensemble, args.out / "checkpoints" / "final.pt", extra)
-    spec = json.loads((args.runs[0] / "spec.json").read_text())
+    save_checkpoint(ensemble, out / "checkpoints" / "final.pt", extra)
+    spec = json.loads((runs[0] / "spec.json").read_text())
     spec["model"]["members"] = len(models)
-    write_json_atomic(args.out / "spec.json", spec)
-    seconds = [json.loads((run / "summary.json").read_text())["seconds"] for run in args.runs]
-    summary = {"joined_from": [str(run) for run in args.runs], "seconds": max(seconds),
+    write_json_atomic(out / "spec.json", spec)
+    seconds = [json.loads((run / "summary.json").read_text())["seconds"] for run in runs]
+    summary = {"joined_from": [str(run) for run in runs], "seconds": max(seconds),
                "member_seconds": seconds}  # fmt: skip
-    write_json_atomic(args.out / "summary.json", summary)
+    write_json_atomic(out / "summary.json", summary)
     print(json.dumps(summary))
 
 

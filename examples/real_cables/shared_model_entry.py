@@ -1,7 +1,7 @@
 """One entry of examples/real_cables/shared_model.json from a shared_model.sh (or
 joined_model.sh) output folder: the shared model's scores, its fine-tuned scores per
-cable, and their seconds. An entry with the same spec, fine-tuning recipe and seed is
-replaced.
+cable, and their seconds. An entry with the same spec, fine-tuning recipe, seed and way of
+training (one run, or members joined) is replaced.
 
     python examples/real_cables/shared_model_entry.py OUT SPEC FINE SEED [--joined]
 """
@@ -39,8 +39,10 @@ def main() -> None:
              "finetune_seconds": {c: read(out / c / "train/summary.json")["seconds"]
                                   for c in CABLES}}  # fmt: skip
     saved = json.loads(TARGET.read_text()) if TARGET.is_file() else []
-    key = (args.spec, args.fine, args.seed)
-    saved = [e for e in saved if (e["spec"], e["fine_tune"], e["seed"]) != key]
+    key = (args.spec, args.fine, args.seed, args.joined)
+    saved = [
+        e for e in saved if (e["spec"], e["fine_tune"], e["seed"], e.get("joined", False)) != key
+    ]
     TARGET.write_text(json.dumps(saved + [entry], indent=1) + "\n")
     print(json.dumps(entry, indent=1))
 
