@@ -207,7 +207,7 @@ def test_each_coded_member_trains_as_the_coded_network_alone(
 
 def _check_join_members_script(singles, ensemble, tmp_path, capsys) -> None:
     """examples/real_cables/join_members.py writes the joined run directory, and refuses a
-    bad join in one line with exit 2, writing nothing."""
+    bad join, or a folder that holds a run, in one line with exit 2, writing nothing."""
     script = str(EXAMPLES / "real_cables" / "join_members.py")
     out = tmp_path / "joined"
     assert _run_script(script, out, *singles) == 0
@@ -218,6 +218,10 @@ def _check_join_members_script(singles, ensemble, tmp_path, capsys) -> None:
     assert _run_script(script, refused, singles[0]) == 2
     assert capsys.readouterr().err == "error: an ensemble joins two or more networks, not 1\n"
     assert not refused.exists()
+    before = (out / "checkpoints" / "final.pt").read_bytes()
+    assert _run_script(script, out, singles[1], singles[0]) == 2  # the run there stays
+    assert "already holds a run" in capsys.readouterr().err
+    assert (out / "checkpoints" / "final.pt").read_bytes() == before
 
 
 def _run_script(script: str, *args) -> int:

@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from dlocli.errors import DloError
+from dlocli.errors import BadInput, DloError
 from dlocli.io import write_json_atomic
 from dlocli.models.checkpoints import CABLE_KEYS, CONTROL_DT, load_marker_model, save_checkpoint
 from dlocli.models.member_fits import joined
@@ -37,6 +37,8 @@ def main() -> None:
 
 def join(out: Path, runs: list[Path]) -> None:
     """Write the ensemble of the networks in ``runs`` as the run directory ``out``."""
+    if (out / "summary.json").exists():
+        raise BadInput(f"{out} already holds a run; remove it or give another folder")
     models = [load_marker_model(run) for run in runs]
     ensemble = joined(models)
     rate = getattr(models[0], "control_dt", None)
