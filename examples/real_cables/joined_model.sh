@@ -13,14 +13,13 @@ OUT=$1; FINE=$2; SEED=$3; shift 3
 RUNS=("$@")
 SPEC="$HERE/arc-mlp-long-coded-x${#RUNS[@]}.yaml"
 [ -f "$SPEC" ] || { echo "error: no recipe $SPEC for ${#RUNS[@]} runs; give 2 or 3" >&2; exit 2; }
-parts() { for run in "${RUNS[@]}"; do echo "$run/$1"; done; }
 [ -f "$OUT/shared/train/summary.json" ] || python "$HERE/join_members.py" "$OUT/shared/train" \
-  $(parts shared/train) > /dev/null
+  "${RUNS[@]/%//shared/train}" > /dev/null  # each run's folder + /shared/train
 for c in DLO1 DLO2 DLO3 DLO4; do
   [ -f "$OUT/shared/eval-$c/summary.json" ] || dlo eval --checkpoint "$OUT/shared/train" \
     --data "${RUNS[0]}/data/$c" --out "$OUT/shared/eval-$c" --overwrite --json > /dev/null
   [ -f "$OUT/$c/train/summary.json" ] || python "$HERE/join_members.py" "$OUT/$c/train" \
-    $(parts "$c/train") > /dev/null
+    "${RUNS[@]/%//$c/train}" > /dev/null
   [ -f "$OUT/$c/eval/summary.json" ] || dlo eval --checkpoint "$OUT/$c/train" \
     --data "${RUNS[0]}/data/$c" --out "$OUT/$c/eval" --overwrite --json > /dev/null
 done
