@@ -211,8 +211,9 @@ def _check_join_members_script(singles, ensemble, tmp_path, capsys) -> None:
     script = str(EXAMPLES / "real_cables" / "join_members.py")
     out = tmp_path / "joined"
     assert _run_script(script, out, *singles) == 0
+    written = load_marker_model(out).state_dict()
     for key, value in ensemble.state_dict().items():
-        torch.testing.assert_close(load_marker_model(out).state_dict()[key], value)
+        torch.testing.assert_close(written[key], value)
     refused = tmp_path / "refused"
     capsys.readouterr()
     assert _run_script(script, refused, singles[0]) == 2

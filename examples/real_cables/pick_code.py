@@ -36,10 +36,10 @@ def candidates(run: Path, model) -> dict[str, str | None]:
     return {MEAN_CODE: None, **codes}
 
 
-def mean_score(model, episodes, held, key: str | None) -> float:
-    """The mean score with the code of the training cable ``key``; None: the left-out
+def episode_scores(model, episodes, held, key: str | None) -> list[float]:
+    """Each episode's score with the code of the training cable ``key``; None: the left-out
     cable's own key, which the model has no code for, so the mean code."""
-    return float(np.mean(scores_cm(model, Cable(episodes, held, key))))
+    return scores_cm(model, Cable(episodes, held, key))
 
 
 def fold(out: Path, cable: str, counts: list[int]) -> dict:
@@ -49,10 +49,12 @@ def fold(out: Path, cable: str, counts: list[int]) -> dict:
     data = load_dataset(out / "data" / cable)
     train, evaluation = data.episodes("train"), data.episodes("eval")
     codes = candidates(run, model)
-    on_eval = {name: mean_score(model, evaluation, data.held, key) for name, key in codes.items()}
+    on_eval = {name: float(np.mean(episode_scores(model, evaluation, data.held, key)))
+               for name, key in codes.items()}  # fmt: skip
+    on_train = {name: episode_scores(model, train, data.held, key) for name, key in codes.items()}
     picks = {}
-    for n in sorted({min(n, len(train)) for n in counts}):
-        fitted = {name: mean_score(model, train[:n], data.held, key) for name, key in codes.items()}
+    for n in sorted({min(n, len(train)) for n in counts}):  # the first n of each, scored once
+        fitted = {name: float(np.mean(scores[:n])) for name, scores in on_train.items()}
         picked = min(fitted, key=fitted.get)
         picks[str(n)] = {"picked": picked, "eval_cm": on_eval[picked], "train_cm": fitted}
     return {"eval_cm": on_eval, "picks": picks}
