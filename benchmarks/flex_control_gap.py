@@ -5,7 +5,9 @@ each command in the environment of the run's backend).
     python benchmarks/flex_control_gap.py model RUN           # what the models see and predict
     python benchmarks/flex_control_gap.py trials RUN [--horizon H] [--noise-probability P]
                                                  [--max-step S] [--settle-steps S] [--trials N]
-                                                 [--iteration K]
+                                                 [--iteration K] [--set FIELD=JSON ...]
+    python benchmarks/flex_control_gap.py sweep RUN [RUN ...] [--iteration K] [--trials N]
+                                                [--set FIELD=JSON ...]
     python benchmarks/flex_control_gap.py pose RUN [--iteration K] [--trials N]
                                                [--offset-mm D] [--turn-deg A]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
@@ -17,10 +19,13 @@ state feature, the training objective) on the validation split it was fitted wit
 episode at these sizes) and on the trials it then drove (unseen); the jitter of the observed
 positions and orientations (energy of the second difference over the first's); the middle's
 speed per episode. ``trials``: the MPC trials of iteration K's saved model from iteration K's
-starts (the run's seeds: trials 1..5 repeat the run's), with one planner option changed; per
+starts (the run's seeds: trials 1..5 repeat the run's), with planner options changed (``--set``
+takes any spec field, e.g. ``mpc.motion_cost=32``); per
 trial the final error, the mean and least error of the last 40 steps, and the error after
 the grippers then stand still for 50 steps, and how far the grippers end from the goal's own
-gripper poses. ``pose``: no model, the grippers driven straight to the goal's own gripper
+gripper poses. ``sweep``: planner options (over the paper's: SWEEP_BASE) on iteration K's
+models of several runs, N trials each, as ``trials`` runs them: the share of the error closed over all trials
+and per run. ``pose``: no model, the grippers driven straight to the goal's own gripper
 poses from the same starts (:func:`pose_report`). ``horizon``:
 iteration K's model open loop on the trials it drove, its position error after 1, 5, 10, 20
 steps beside the recorded motion over as many steps. ``retrain``: iteration 3's model
@@ -276,6 +281,24 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
             "seconds": round(time.perf_counter() - start, 1), "per_trial": rows}  # fmt: skip
 
 
+#: the planner options every ``sweep`` row sets, at the paper's (the runs' own specs may differ)
+SWEEP_BASE = {"mpc.motion_cost": 0.0, "mpc.damping": 0.01, "mpc.settle_steps": 0}
+
+
+def sweep_report(runs: list[Path], k: int, n: int, changes: dict[str, Any]) -> dict[str, Any]:
+    """``changes`` (over SWEEP_BASE) on iteration k's model of each run, n trials each: the
+    share of the initial error closed over all trials (1 - sum final / sum initial) and per run."""
+    settings = {**SWEEP_BASE, **changes}
+    reports = [trials_report(run, k, n, settings) for run in runs]
+    initial = sum(r["mean"]["initial_mm"] for r in reports)
+    final = sum(r["mean"]["final_mm"] for r in reports)
+    return {"changes": changes, "runs": [str(r) for r in runs], "iteration": k, "trials": n,
+            "closed": round(1.0 - final / initial, 3),
+            "per_run": [round(1.0 - r["mean"]["final_mm"] / r["mean"]["initial_mm"], 3)
+                        for r in reports],
+            "final_mm": round(final / len(reports), 1)}  # fmt: skip
+
+
 def gripper_offset(env: Any) -> tuple[float, float]:
     """How far the moving grippers stand from the goal's own gripper poses at the episode's end:
     the largest position offset (mm) and turn (degrees)."""
@@ -372,6 +395,13 @@ def main(argv: list[str] | None = None) -> None:
     trials.add_argument("--noise-probability", type=float)
     trials.add_argument("--max-step", type=float)
     trials.add_argument("--settle-steps", type=int)
+    trials.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
+                        help="any other spec field, e.g. mpc.motion_cost=4")  # fmt: skip
+    many = sub.add_parser("sweep")
+    many.add_argument("runs", type=Path, nargs="+")
+    many.add_argument("--iteration", type=int, default=3)
+    many.add_argument("--trials", type=int, default=8)
+    many.add_argument("--set", action="append", default=[], metavar="FIELD=JSON")
     pose = sub.add_parser("pose")
     pose.add_argument("run", type=Path)
     pose.add_argument("--iteration", type=int, default=3)
@@ -403,7 +433,14 @@ def main(argv: list[str] | None = None) -> None:
             )
             if value is not None
         }
+        for item in args.set:
+            path, value = item.split("=", 1)
+            changes[path] = json.loads(value)
         report = trials_report(args.run, args.iteration, args.trials, changes)
+    elif args.what == "sweep":
+        changes = dict(item.split("=", 1) for item in args.set)
+        changes = {path: json.loads(value) for path, value in changes.items()}
+        report = sweep_report(args.runs, args.iteration, args.trials, changes)
     elif args.what == "pose":
         report = pose_report(args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg)
     elif args.what == "horizon":

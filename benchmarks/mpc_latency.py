@@ -3,8 +3,9 @@
     python benchmarks/mpc_latency.py [--model CKPT] [--hidden 150] [--steps 12] [--threads 2]
                                      [--quick] [--json]
 
-Each setting runs ``--steps`` closed-loop control steps of the MuJoCo single-gripper task
-(the first two are warm-up and not counted) and reports the median and 95th percentile of
+Each setting runs ``--steps`` closed-loop control steps of the MuJoCo single-gripper task,
+on the rod the installed MuJoCo runs (the cable on 3.x, the flex rod from 4.0 on; the first
+two steps are warm-up and not counted), and reports the median and 95th percentile of
 ``Controller.last_latency_ms``. "model %" is the share of that median spent in the model
 itself: the median time of ``iterations`` bare rollouts (+ gradient for ``mpc``) at the
 setting's batch size, divided by the step's median latency; the rest is the planner's own
@@ -36,6 +37,7 @@ import numpy as np
 import torch
 
 import dlocli
+from dlocli.backend_spec import default_backend
 from dlocli.controllers.base import Controller, make_controller
 from dlocli.controllers.planning import ModelPlanner
 from dlocli.models.base import ModelSpec, build_model
@@ -203,7 +205,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    env = dlocli.make_env(backend="mujoco", task="single", seed=0, episode_steps=10**6)
+    env = dlocli.make_env(backend=default_backend(), task="single", seed=0, episode_steps=10**6)
     model = get_model(args.model, args.hidden, env.n_segments, torch.device(args.device))
     rows = [
         time_setting(env, model, n, o, args.steps) for n, o in (QUICK if args.quick else SETTINGS)

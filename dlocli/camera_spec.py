@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from pydantic import Field, model_validator
 
+from dlocli.limits import MAX_CAMERA_PIXELS, MAX_TRACKER_NODES
 from dlocli.spec_base import Spec
 
 Vector = tuple[float, float, float]
@@ -65,6 +66,12 @@ class CameraSpec(Spec):
 
     @model_validator(mode="after")
     def _makes_an_image(self) -> CameraSpec:
+        if self.width * self.height > MAX_CAMERA_PIXELS:
+            raise ValueError(
+                f"width x height is {self.width} x {self.height} = {self.width * self.height:,} "
+                f"pixels, more than the {MAX_CAMERA_PIXELS:,} (1920 x 1080) a camera may have; "
+                "lower camera.width or camera.height"
+            )
         for name in ("fx", "fy"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -92,8 +99,10 @@ class TrackerSpec(Spec):
     """The tracker's options (a GMM-EM tracker of a chain of nodes along the cable)."""
 
     spacing: float = Field(
-        0.025, gt=0.0, le=1.0, description="Spacing of the tracked chain's nodes (rod lengths)."
-    )
+        0.025, ge=1.0 / MAX_TRACKER_NODES, le=1.0,
+        description="Spacing of the tracked chain's nodes (rod lengths); at least "
+        f"1/{MAX_TRACKER_NODES}, a chain of at most {MAX_TRACKER_NODES + 1} nodes.",
+    )  # fmt: skip
     iterations: int = Field(8, ge=1, le=200, description="EM iterations per frame.")
     outlier_weight: float = Field(
         0.1, ge=0.0, lt=1.0, description="Prior probability that a point is not the cable's."

@@ -27,6 +27,12 @@ CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.
 #: most worker processes or threads: one per CPU (two on a one-CPU machine, which only share
 #: it: results do not depend on the number of workers)
 MAX_PROCESSES = max(2, CPUS)
+#: most nodes of the tracker's chain (a spacing of 1/1000 of the cable): it solves a dense
+#: nodes x nodes system and weighs every cloud point against every node each EM iteration
+MAX_TRACKER_NODES = 1000
+#: most pixels of the simulated depth camera (full HD): a camera holds about 150 bytes per
+#: pixel (its rays and their hits; 4096 x 4096 took 2.5 GB)
+MAX_CAMERA_PIXELS = 1920 * 1080
 #: share of the usable memory one estimated allocation may take (the rest: the simulator,
 #: torch itself, the data)
 MEMORY_SHARE = 0.5

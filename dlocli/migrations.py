@@ -78,7 +78,14 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "air_damping": None,
     },
     "backend": {"gravity": 9.81},
-    "mpc": {"refresh": "inline", "tracking": "estimate", "settle_steps": 0},
+    "mpc": {
+        "refresh": "inline",
+        "tracking": "estimate",
+        "settle_steps": 0,
+        "motion_cost": 0.0,
+        "damping": 0.01,
+    },
+    "mppi": {"motion_cost": 0.0},
     "pilco": {"policy_scale_floor": 0.01},
 }
 

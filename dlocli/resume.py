@@ -30,6 +30,9 @@ def saved_spec(path: Path) -> Any:
         data["backend"] = completed("backend", backend)
         if isinstance(rod, dict):
             data["backend"]["rod"] = completed("rod", rod)
+    planner = data.get("planner", "mpc")  # runs saved before the planner could be chosen: mpc
+    if isinstance(planner, str) and isinstance(data.get("mpc"), dict):  # an online or bench run
+        data["mpc"] = completed(planner, data["mpc"])
     if "epochs" in data:  # a train run: the fit fields are its own
         data = completed("fit", data)
     return data

@@ -318,6 +318,18 @@ def refuse_outputs_in_inputs(spec: Any) -> None:
                 )
 
 
+def refuse_out_by_source(spec: Any) -> None:
+    """BadInput if ``spec.out`` lies inside ``spec.source``, a folder of recordings (`dlo
+    import`, `dlo track`): the dataset would land among the recordings the next run reads; or
+    holds it (--overwrite would put the recordings at stake)."""
+    out, source = resolved(spec.out, "--out"), resolved(spec.source, "--source")
+    if out == source or source in out.parents or out in source.parents:
+        raise BadInput(
+            f"--out {spec.out} lies inside or holds --source {spec.source}; write the dataset "
+            "to a folder apart from the recordings"
+        )
+
+
 def _run_of(path: Path, field: str) -> Path | None:
     """The run directory ``path`` is or lies in (one holding a spec.json), if any."""
     path = resolved(path, field)

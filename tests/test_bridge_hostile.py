@@ -190,11 +190,15 @@ def test_a_cell_off_loopback_needs_keys_on_both_sides(near_rest_goal, sac_policy
     port = free_port()
     assert run_dlo(["serve", "--address", f"tcp://0.0.0.0:{port}"]) == 2
     line = capsys.readouterr().err.strip()
-    assert len(line.splitlines()) == 1 and "dlo keys" in line and "--keys" in line, line
+    assert len(line.splitlines()) == 1 and "dlo keys" in line, line
+    # each side is told its own flag and the other side's: they differ
+    assert "pass --keys DIR here" in line and "--cell-keys DIR to the controller" in line, line
     out = tmp_path / "run"
     argv = control_argv(near_rest_goal, sac_policy, out, "--cell", f"tcp://{lan_address()}:{port}")
     assert run_dlo(argv) == 2
-    assert "--cell-keys" in capsys.readouterr().err
+    line = capsys.readouterr().err.strip()
+    assert len(line.splitlines()) == 1, line
+    assert "pass --cell-keys DIR here" in line and "--keys DIR to the cell" in line, line
     assert not out.exists()
     example = subprocess.run([sys.executable, str(EXAMPLE), "--address", f"tcp://0.0.0.0:{port}"],
                              capture_output=True, text=True, timeout=120)  # fmt: skip
@@ -202,7 +206,7 @@ def test_a_cell_off_loopback_needs_keys_on_both_sides(near_rest_goal, sac_policy
 
 
 def test_with_keys_a_bridged_run_off_loopback_equals_the_in_process_one(
-    near_rest_goal, sac_policy, tmp_path
+    near_rest_goal, sac_policy, tmp_path, capsys
 ):
     keys, strangers = tmp_path / "keys", tmp_path / "strangers"
     assert run_dlo(["keys", "--out", str(keys)]) == 0
@@ -215,7 +219,9 @@ def test_with_keys_a_bridged_run_off_loopback_equals_the_in_process_one(
         flags = ("--cell", address, "--cell-keys", str(keys))
         assert run_dlo(control_argv(near_rest_goal, sac_policy, there, *flags)) == 0
         flags = ("--cell", address, "--cell-keys", str(strangers), "--cell-timeout-s", "1")
+        capsys.readouterr()
         assert run_dlo(control_argv(near_rest_goal, sac_policy, refused, *flags)) == 2
+        assert "--cell-keys is the folder it was given as --keys" in capsys.readouterr().err
     assert step_errors(there) == step_errors(here)
     assert not refused.exists()
 

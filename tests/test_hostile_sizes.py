@@ -88,6 +88,43 @@ def test_physics_that_cannot_work_is_refused(case, text, words, tmp_path, capsys
     assert not (tmp_path / "goal.npy").exists()
 
 
+# (id, command, spec file text, words): tracker and camera settings that would size arrays
+# past the machine (a spacing of 1e-7 asked for 728 TiB; 4096 x 4096 pixels took 2.5 GB)
+TRACKING: list[tuple[str, str, str, str]] = [
+    ("control-spacing", "control --goal {goal} --controller zero",
+     "task: {observation: {kind: pointcloud, tracker: {spacing: 1.0e-7}}}",
+     "tracker.spacing': Input should be greater than or equal to 0.001"),
+    ("control-pixels", "control --goal {goal} --controller zero",
+     "task: {observation: {kind: pointcloud, camera: {width: 4096, height: 4096}}}",
+     "lower camera.width or camera.height"),
+    ("track-spacing", "track --source {source}", "tracker: {spacing: 1.0e-7}",
+     "tracker.spacing': Input should be greater than or equal to 0.001"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("case", "command", "text", "words"), TRACKING,
+                         ids=[c[0] for c in TRACKING])  # fmt: skip
+def test_a_tracker_or_camera_past_its_size_is_refused(
+    case, command, text, words, near_rest_goal, tmp_path, capsys
+):
+    spec, source, out = tmp_path / "spec.yaml", tmp_path / "source", tmp_path / "out"
+    spec.write_text(text + "\n")
+    source.mkdir()
+    (source / "kept.txt").write_text("mine\n")
+    args = command.format(goal=near_rest_goal, source=source).split()
+    _refused_in_one_line([*args, "--spec", str(spec), "--out", str(out)], words, capsys,
+                         [tmp_path])  # fmt: skip
+    assert not out.exists()
+
+
+def test_the_documented_cameras_and_the_finest_tracker_are_allowed():
+    from dlocli.camera_spec import CameraSpec, TrackerSpec
+
+    for width, height in ((160, 120), (640, 480), (800, 600), (1920, 1080), (4096, 1)):
+        CameraSpec(width=width, height=height)
+    TrackerSpec(spacing=0.001)
+
+
 def test_too_many_mppi_samples_are_refused():
     from pydantic import ValidationError
 

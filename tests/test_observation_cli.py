@@ -61,6 +61,8 @@ def test_control_plans_through_the_marker_model_under_faults(marker_run, near_re
         (["--observation", "markers", "--latency-steps", "15"], "shorter than the episode"),
         (["--observation", "markers", "--dropout", "1"], "dropout"),
         (["--observation", "markers", "--markers", "1"], "markers"),
+        # a marker model's update counts steps: --epochs would be silently ignored
+        (["--observation", "markers", "--epochs", "3"], "--schedule steps --update-steps"),
     ],
 )
 def test_bad_observation_settings_get_one_line(flags, says, tmp_path, capsys):

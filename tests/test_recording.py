@@ -141,6 +141,24 @@ def test_an_unwritable_recording_is_refused_before_the_run(near_rest_goal: Path,
     assert existing.read_bytes() == b"kept"
 
 
+@pytest.mark.parametrize(("flag", "name"), [("--record", "x.rrd"), ("--video", "x.gif")])
+@pytest.mark.parametrize("holds_out", [False, True])
+def test_a_recording_or_video_at_the_run_directory_is_refused_before_the_run(
+    flag: str, name: str, holds_out: bool, near_rest_goal: Path, tmp_path: Path, capsys
+):
+    """`--out C/x.rrd --record C/x.rrd` (or a --video, or an --out inside it) would run every
+    step, then fail writing the file where the run directory is: refused first, one line,
+    exit 2, nothing written."""
+    path = tmp_path / "C" / name
+    out = path / "run" if holds_out else path
+    code = run_dlo(["control", "--goal", str(near_rest_goal), "--controller", "zero",
+                    flag, str(path), "--out", str(out)])  # fmt: skip
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert f"{flag} {path} is where --out" in lines[0] and f"another {flag}" in lines[0], lines
+    assert not (tmp_path / "C").exists()
+
+
 @pytest.mark.parametrize("saved", ["dataset.h5", "data/iter_01/trial_001.h5"])
 def test_view_writes_a_runs_recording_from_its_episodes_and_says_where_it_is(
     saved: str, small_dataset_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -194,6 +212,23 @@ def test_view_without_the_extra_is_one_line(tmp_path: Path):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "pip install 'dlocli[view]'" in lines[0], result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("content", "says"), [(b"", "is empty"), (b"not a recording\n", "not a Rerun recording")]
+)
+def test_view_refuses_a_file_that_is_not_a_recording_in_one_line(
+    content: bytes, says: str, tmp_path: Path, capsys: pytest.CaptureFixture
+):
+    """A text or empty file named .rrd: one line naming the file and what to pass, exit 2,
+    the file kept."""
+    fake = tmp_path / "x.rrd"
+    fake.write_bytes(content)
+    assert run_dlo(["view", str(fake)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and str(fake) in lines[0] and says in lines[0], lines
+    assert "--record" in lines[0]
+    assert fake.read_bytes() == content
 
 
 def test_eval_records_recorded_markers_beside_the_prediction(marker_run, tmp_path: Path):

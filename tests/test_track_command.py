@@ -5,6 +5,7 @@ against the simulator's true ones; bad recordings refused in one line, exit 2.""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from dlocli.tracking.frames import save_frames
 from dlocli.tracking.measure import env_layout, policy_action, robot_held, true_markers
 from dlocli.tracking.spec import CameraSpec
 
-from tiny import MUJOCO_ROD, run_dlo
+from tiny import MUJOCO_ROD, file_digests, run_dlo
 
 STEPS = 30  # control steps per episode: 16 frames at 25 per second
 
@@ -99,6 +100,19 @@ def test_bad_recordings_are_one_line_and_exit_2(recorded, tmp_path, capsys):
         error = capsys.readouterr().err.strip()
         assert words in error and "\n" not in error and "Traceback" not in error, words
         assert not out.exists(), words
+
+
+def test_an_out_inside_the_source_is_refused_in_one_line(recorded, tmp_path, capsys):
+    """`--out src/train/tracked.npz` would land a dataset among the recordings and break the
+    next track of src: refused as `dlo import` refuses it, one line, exit 2, src unchanged."""
+    source = tmp_path / "src"
+    shutil.copytree(recorded[0], source)
+    before = file_digests(source)
+    assert run_dlo(["track", "--source", str(source),
+                    "--out", str(source / "train" / "tracked.npz")]) == 2  # fmt: skip
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "lies inside or holds --source" in lines[0], lines
+    assert file_digests(source) == before
 
 
 def test_without_the_robots_poses_the_cable_is_ordered_from_its_cloud(recorded, tmp_path):

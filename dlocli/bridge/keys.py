@@ -48,13 +48,21 @@ def is_loopback(address: str) -> bool:
     return bool(found) and all(ipaddress.ip_address(a[4][0]).is_loopback for a in found)
 
 
+#: the other side's keys flag, by this side's: the cell (`dlo serve`, a robot cell) takes the
+#: folder as --keys, the controller as --cell-keys
+OTHER_SIDE = {
+    "--keys": "the same folder as --cell-keys DIR to the controller (`dlo control`)",
+    "--cell-keys": "the same folder as --keys DIR to the cell (`dlo serve`)",
+}
+
+
 def require_keys_off_loopback(address: str, keys: Path | None, flag: str, keys_flag: str) -> None:
     """BadInput if ``address`` is reachable from other machines and no keys were given."""
     if keys is None and not is_loopback(address):
         raise BadInput(
             f"{flag} {address} is reachable from other machines: a cell off loopback needs "
-            f"CURVE keys; make them with `dlo keys --out DIR` and pass {keys_flag} DIR on both "
-            "sides (or use tcp://127.0.0.1:PORT or ipc://PATH on one machine)"
+            f"CURVE keys; make them with `dlo keys --out DIR`, pass {keys_flag} DIR here and "
+            f"{OTHER_SIDE[keys_flag]} (or use tcp://127.0.0.1:PORT or ipc://PATH on one machine)"
         )
 
 

@@ -144,7 +144,8 @@ class RemoteCell(Backend):
             return BadInput(
                 f"no cell answers at {self.address} within {waited_s:g} s "
                 "(--cell-timeout-s): start one with `dlo serve --address ADDRESS` or check the "
-                "address (and --cell-keys, if the cell has keys)"
+                "address (and, if the cell has keys, that --cell-keys is the folder it was "
+                "given as --keys)"
             )
         return CellLost(
             f"the cell at {self.address} stopped answering (no reply within {waited_s:g} s)"

@@ -53,7 +53,6 @@ from dlocli.controllers.specs import MPCSpec
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 FD_STEP = 0.05  # finite-difference step of the Gauss-Newton Jacobian, in action units
-GN_DAMPING = 1e-2  # Levenberg damping, relative to the mean diagonal of J^T J
 
 
 # ----------------------------------------------------------------------------- update rules
@@ -169,7 +168,7 @@ class GaussNewton(UpdateRule):
     def _install(self, jacobian_t: torch.Tensor) -> None:
         self.jacobian_t = jacobian_t
         gram = jacobian_t @ jacobian_t.T
-        damping = GN_DAMPING * gram.diagonal().mean().clamp_min(1e-12)
+        damping = self.spec.damping * gram.diagonal().mean().clamp_min(1e-12)
         gram.diagonal().add_(damping)
         self.curvature = torch.linalg.cholesky(gram)
 
@@ -234,13 +233,10 @@ class GradientMPC(ModelPlanner):
                 plans.clamp_(-1.0, 1.0)
             done = step
         assert first is not None and last is not None
-        best = int(torch.argmin(last))  # by the latest evaluated cost (before its update)
-        stats = {
-            "iterations": float(done),
-            "cost_initial": float(first[0]),
-            "cost_final": float(last[best]),
-        }
-        return plans.detach()[best], stats
+        # by the latest evaluated cost, the one before its update: the plan returned is never
+        # evaluated here (a run that reports it asks returned_cost())
+        best = int(torch.argmin(last))
+        return plans.detach()[best], {"iterations": float(done), "cost_initial": float(first[0])}
 
     def _candidates(self, init: torch.Tensor) -> torch.Tensor:
         """(R, H, A): the warm start then R-1 uniform random plans."""

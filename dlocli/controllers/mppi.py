@@ -43,11 +43,7 @@ class MPPI(ModelPlanner):
                 first = cost[0] if first is None else first
                 plan = (self._weights(cost)[:, None, None] * plans).sum(0)
         assert first is not None and cost is not None
-        stats = {
-            "iterations": float(self.spec.iterations),
-            "cost_initial": float(first),
-            "cost_final": float(cost.min()),
-        }
+        stats = {"iterations": float(self.spec.iterations), "cost_initial": float(first)}
         return plan.clone(), stats
 
     def _perturb(self, plan: torch.Tensor) -> torch.Tensor:

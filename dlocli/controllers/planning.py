@@ -61,6 +61,8 @@ class ModelPlanner(Planner):
         self._previous: torch.Tensor | None = None  # (1, N, 7), the state one step before it
         self._goal_pending = False  # the goal is read from the episode's first observation
         self._evaluated: torch.Tensor | None = None  # (B, H, N, 3) the latest predictions
+        # the latest re-plan's state and the one before it
+        self._replanned_from: tuple[torch.Tensor, torch.Tensor | None] | None = None
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -69,7 +71,7 @@ class ModelPlanner(Planner):
         self._goal_pending = True
         self._plan = None
         self._cursor = 0
-        self._observed = self._previous = self._evaluated = None
+        self._observed = self._previous = self._evaluated = self._replanned_from = None
         self.view.reset()
 
     @property
@@ -112,8 +114,19 @@ class ModelPlanner(Planner):
         stats["plan_ms"] = 1000.0 * (time.perf_counter() - start)
         stats["replanned"] = 1.0
         self._plan, self._cursor = plan.detach(), 1
+        self._replanned_from = (state, self._previous)
         self.last_stats = stats
         return self._plan[0].cpu().numpy()
+
+    def returned_cost(self) -> float | None:
+        """The model-predicted cost of the plan the latest re-plan returned, from that
+        re-plan's state (None before one): what the optimisation reached. One forward
+        rollout, outside :meth:`act` (a run that records it pays for it, the planner not)."""
+        if self._plan is None or self._replanned_from is None:
+            return None
+        state, previous = self._replanned_from
+        with torch.no_grad():
+            return float(self.residuals(state, self._plan[None], previous).square().sum())
 
     def state_tensor(self, obs: np.ndarray) -> torch.Tensor:
         """The model's state (1, N, 7) = concat(positions, quaternions) of a full observation
@@ -156,7 +169,17 @@ class ModelPlanner(Planner):
         assert self._goal is not None
         errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
-        return torch.cat([errors, effort], dim=1)
+        terms = [errors, effort]
+        if self.spec.motion_cost > 0.0:
+            terms.append(self._motion(state, predicted))
+        return torch.cat(terms, dim=1)
+
+    def _motion(self, state: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
+        """(B, K*N*3) sqrt(motion_cost) x the predicted change of every position per step."""
+        start = state[..., :3].expand(predicted.shape[0], -1, -1)[:, None]
+        path = torch.cat([start, predicted], dim=1)
+        steps = path[:, 1:] - path[:, :-1]
+        return self.spec.motion_cost**0.5 * steps.flatten(1)
 
     def _with_settling(self, plans: torch.Tensor) -> torch.Tensor:
         """(B, H+S, A): the plans then ``settle_steps`` standing still (zero actions), so the

@@ -54,6 +54,15 @@ class PlannerSpec(Spec):
         "the swing will cost (0 = the paper's objective; on MuJoCo 4's lightly damped flex "
         "rod, 20 once the model is well trained: docs, the flex rod's control gap).",
     )
+    motion_cost: float = Field(
+        0.0,
+        ge=0,
+        le=1e4,
+        description="Weight of the rod's predicted motion: the cost adds motion_cost * sum_k "
+        "||p_k - p_(k-1)||^2 over the plan's steps (the first from the observed positions), so "
+        "a plan that reaches the goal with the cable still swinging pays for the swing, and "
+        "the planner damps it. 0 = the paper's objective (docs: the flex rod's control gap).",
+    )
     tracking: Literal["estimate", "raw"] = Field(
         "estimate",
         description="With the markers observation: 'estimate' blends each report with the "
@@ -85,6 +94,12 @@ class MPCSpec(PlannerSpec):
         description="gauss-newton: largest change of one action coordinate per iteration "
         "(a trust region; the solution is clipped to it).",
     )
+    damping: float = Field(
+        1e-2, gt=0, le=1e3,
+        description="gauss-newton: Levenberg damping added to J^T J, relative to its mean "
+        "diagonal: larger moves less far along the directions the model barely sees (the "
+        "planner before 2026-12-06: 0.01).",
+    )  # fmt: skip
     exact_gradient: bool = Field(
         False,
         description="gauss-newton: back-propagate the exact gradient every iteration (a "

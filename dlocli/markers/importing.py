@@ -10,7 +10,7 @@ from dlocli.data import MarkerDataset, protocol, save_dataset_run
 from dlocli.errors import BadInput
 from dlocli.markers import deform, formats, rosbag, timing
 from dlocli.markers.spec import UNITS, ImportSpec
-from dlocli.rundir import resolved
+from dlocli.rundir import refuse_out_by_source
 
 #: plausible length (m) of a recorded cable along its markers; outside it, a unit error
 CABLE_LENGTH_M = (0.02, 10.0)
@@ -21,7 +21,7 @@ def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
     OUT/spec.json and OUT/summary.json; return the summary."""
     if spec.source is None:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
-    _refuse_out_by_source(spec)
+    refuse_out_by_source(spec)
     # everything is checked before --out is touched
     budget = spec.max_memory_mib * 2**20
     read = formats.read_folder(spec.source, budget, spec.fill_gaps, rosbag.reader(spec.topic))
@@ -56,17 +56,6 @@ def describe(dataset: MarkerDataset) -> dict[str, Any]:
         scores = [protocol.deform_score_cm(reference(e, dataset.held), e) for e in episodes]
         summary[f"{split}_{name}_cm"] = round(float(np.mean(scores)), 4)
     return summary
-
-
-def _refuse_out_by_source(spec: ImportSpec) -> None:
-    """BadInput if --out lies inside --source (the import would land among the recordings it
-    reads) or holds it (--overwrite would put the recordings at stake)."""
-    out, source = resolved(spec.out, "--out"), resolved(spec.source, "--source")
-    if out == source or source in out.parents or out in source.parents:
-        raise BadInput(
-            f"--out {spec.out} lies inside or holds --source {spec.source}; write the dataset "
-            "to a folder apart from the recordings"
-        )
 
 
 def in_metres(

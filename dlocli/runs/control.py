@@ -130,6 +130,19 @@ def check_video_path(path: Path | None, overwrite: bool) -> None:
     check_writable(path, "--video", overwrite)
 
 
+def check_apart_from_run_dir(path: Path | None, flag: str, out: Path) -> None:
+    """BadInput if the file ``path`` is the run directory ``out`` or holds it: the run would
+    make that directory first and fail only after its last step, when the file is written."""
+    if path is None:
+        return
+    file, run_dir = Path(path).resolve(), Path(out).resolve()
+    if file == run_dir or file in run_dir.parents:
+        raise BadInput(
+            f"{flag} {path} is where --out {out} makes the run directory; "
+            f"pass another {flag} path, e.g. {Path(out) / Path(path).name}"
+        )
+
+
 def check_inputs_used(spec: ControlSpec) -> None:
     """BadInput if the controller would ignore a given model or policy, or needs a policy
     it was not given (a learning agent never runs untrained here)."""
@@ -207,6 +220,8 @@ def prepare(
             "no goal: pass --goal shape.npy, a (N,3) float .npy in metres "
             "(make one with `dlo goal`)"
         )
+    check_apart_from_run_dir(spec.video, "--video", spec.out)
+    check_apart_from_run_dir(spec.record, "--record", spec.out)
     check_video_path(spec.video, overwrite)
     check_record_path(spec.record, overwrite)
     if spec.video is not None and spec.cell is not None:
@@ -311,6 +326,15 @@ class Loop:
     lost: CellLost | None = None
 
 
+def _returned_cost(controller: Controller) -> dict[str, float]:
+    """A planner's re-plan's ``cost_final``: the predicted cost of the plan it returned."""
+    returned = getattr(controller, "returned_cost", None)
+    if returned is None or not controller.last_stats.get("replanned"):
+        return {}
+    cost = returned()
+    return {} if cost is None else {"cost_final": cost}
+
+
 def closed_loop(
     env: DLOShapeEnv, controller: Controller, spec: ControlSpec, progress: Callback | None
 ) -> Loop:
@@ -325,6 +349,7 @@ def closed_loop(
             "latency_ms": controller.last_latency_ms,
             "cpu_ms": timed.cpu_ms,
             **controller.last_stats,
+            **_returned_cost(controller),
         }
         timed.records.append(record)
         timed.recording.stepped(env, step, reward, info)

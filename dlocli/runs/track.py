@@ -16,6 +16,7 @@ import numpy as np
 
 from dlocli.data import MarkerDataset, save_dataset_run
 from dlocli.errors import BadInput
+from dlocli.rundir import refuse_out_by_source
 from dlocli.tracking.bags import is_bag, read_cloud_bag
 from dlocli.tracking.frames import FrameSequence, load_frames
 from dlocli.tracking.spec import TrackSpec
@@ -115,6 +116,7 @@ def run_track(spec: TrackSpec, overwrite: bool = False) -> dict[str, Any]:
     """Track every file of ``spec.source``; write OUT/dataset.h5, spec.json, summary.json."""
     if spec.source is None:
         raise BadInput("no recordings given; pass --source FOLDER of .npz frame sequences")
+    refuse_out_by_source(spec)
     files = episode_files(Path(spec.source))
     arc, held = recorded_markers(spec)
     tracked = {s: [(p.stem, track_file(spec, p, arc, held)) for p in files[s]] for s in SPLITS}

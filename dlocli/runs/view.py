@@ -22,6 +22,9 @@ from dlocli.rundir import owned
 from dlocli.runs.recording import RunRecording
 
 WRITTEN = "recording.rrd"
+#: the bytes every Rerun recording (.rrd) starts with; the viewer would open anything else
+#: and show nothing, so `dlo view` checks them first
+RRD_MAGIC = b"RRF2"
 
 
 def recording_of(run: Path) -> Path:
@@ -88,6 +91,18 @@ def write_from_datasets(path: Path, datasets: list[Path], name: str) -> None:
         recording.close()
 
 
+def refuse_unless_recording(path: Path) -> None:
+    """BadInput unless ``path`` starts as a Rerun recording does."""
+    with open(path, "rb") as f:
+        start = f.read(len(RRD_MAGIC))
+    if start != RRD_MAGIC:
+        what = "is empty" if not start else "is not a Rerun recording (it does not start with RRF2)"
+        raise BadInput(
+            f"{path} {what}; pass a recording written by `dlo control --record` or "
+            "`dlo eval --record`, or the run directory that holds it"
+        )
+
+
 def has_display() -> bool:
     """Whether a viewer window can open here."""
     if sys.platform.startswith("linux"):
@@ -99,6 +114,7 @@ def view(run: Path) -> str:
     """Start the viewer on ``run``'s recording, or say where it is; the line to print."""
     require("view", "dlo view")
     path = recording_of(run)
+    refuse_unless_recording(path)
     if not has_display():
         return (
             f"no display here: the recording is {path}; open it with `rerun {path}` where "

@@ -7,7 +7,7 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import ClassVar
 
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, model_validator
 
 from dlocli.controllers.specs import (
     PlannerName,
@@ -19,7 +19,7 @@ from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.rundir import FINGERPRINTS_FILE
-from dlocli.specs import MODEL_OPTIONS, EnvSpec
+from dlocli.specs import MODEL_OPTIONS, EnvSpec, is_given
 from dlocli.tensorboard import TENSORBOARD_DIR
 from dlocli.threads import torch_threads, warn_if_oversubscribed
 
@@ -31,8 +31,8 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     moved: ClassVar[dict[str, str]] = {"steps": "task.episode_steps"}
     cli_flags: ClassVar[tuple[str, ...]] = (
         "iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
-        "initial_episodes", "planner", "mpc.horizon", "mpc.settle_steps", "fit.lr", MODEL_OPTIONS,
-        "task.goal",
+        "initial_episodes", "planner", "mpc.horizon", "mpc.settle_steps", "mpc.motion_cost",
+        "fit.lr", MODEL_OPTIONS, "task.goal",
         "task.name", "task.shapes", "backend.name", "fit.device", "noise_probability",
         "noise_std", "workers", "threads", "executor", "ray_address", "fit.mirror", "offline",
         "seed", "out", "task.observation.kind", "task.observation.markers",
@@ -48,7 +48,8 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
         10,
         gt=1,
         le=MAX_COUNT,
-        description="Random-action episodes (of T steps) in the initial dataset D.",
+        description="Random-action episodes (of T steps) in the initial dataset D; at least 2: "
+        "the first model update holds one out for validation and trains on the rest.",
     )
     noise_probability: float = Field(
         0.2, ge=0, le=1, description="Probability that a step's MPC action gets action noise."
@@ -87,6 +88,19 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     def _offline_needs_full(self) -> OnlineSpec:
         if self.offline and self.task.observation.reports_markers:
             raise ValueError("--offline compares rod models: drop it with --observation markers")
+        return self
+
+    @model_validator(mode="after")
+    def _marker_updates_count_steps(self, info: ValidationInfo) -> OnlineSpec:
+        # a marker model trains through rollouts, counted in gradient steps: epochs would be
+        # silently ignored (saved runs load as saved)
+        fit = self.fit
+        if (self.task.observation.reports_markers and fit.schedule == "epochs"
+                and "epochs" in fit.model_fields_set and is_given(info)):  # fmt: skip
+            raise ValueError(
+                "--epochs: a marker model's update counts gradient steps, not epochs; give "
+                "--schedule steps --update-steps N instead"
+            )
         return self
 
 
