@@ -8,6 +8,7 @@ each command in the environment of the run's backend).
                                                  [--iteration K] [--set FIELD=JSON ...]
     python benchmarks/flex_control_gap.py sweep RUN [RUN ...] [--iteration K] [--trials N]
                                                 [--set FIELD=JSON ...]
+    python benchmarks/flex_control_gap.py latency RUN [--iteration K] [--steps T] [--rounds R]
     python benchmarks/flex_control_gap.py pose RUN [--iteration K] [--trials N]
                                                [--offset-mm D] [--turn-deg A]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
@@ -24,8 +25,10 @@ takes any spec field, e.g. ``mpc.motion_cost=32``); per
 trial the final error, the mean and least error of the last 40 steps, and the error after
 the grippers then stand still for 50 steps, and how far the grippers end from the goal's own
 gripper poses. ``sweep``: planner options (over the paper's: SWEEP_BASE) on iteration K's
-models of several runs, N trials each, as ``trials`` runs them: the share of the error closed over all trials
-and per run. ``pose``: no model, the grippers driven straight to the goal's own gripper
+models of several runs, N trials each, as ``trials`` runs them: the share of the error closed
+over all trials and per run. ``latency``: the MPC's milliseconds per control step of the
+paper's cost and of the options that damp the swing, through one model, taking turns
+(:func:`latency_report`). ``pose``: no model, the grippers driven straight to the goal's own gripper
 poses from the same starts (:func:`pose_report`). ``horizon``:
 iteration K's model open loop on the trials it drove, its position error after 1, 5, 10, 20
 steps beside the recorded motion over as many steps. ``retrain``: iteration 3's model
@@ -299,6 +302,58 @@ def sweep_report(runs: list[Path], k: int, n: int, changes: dict[str, Any]) -> d
             "final_mm": round(final / len(reports), 1)}  # fmt: skip
 
 
+#: the planners ``latency`` times: the paper's cost, and the options that damp the swing
+LATENCY_SETTINGS = {
+    "paper": SWEEP_BASE,
+    "motion_cost 32": {**SWEEP_BASE, "mpc.motion_cost": 32.0},
+    "motion_cost 32, damping 1": {**SWEEP_BASE, "mpc.motion_cost": 32.0, "mpc.damping": 1.0},
+    "settle_steps 2": {**SWEEP_BASE, "mpc.settle_steps": 2},
+}
+
+
+def latency_report(run: Path, k: int, steps: int, rounds: int) -> dict[str, Any]:
+    """The MPC's time per control step (ms: median, mean) of each LATENCY_SETTINGS planner
+    through iteration k's model, one thread, on the same starts, the planners taking turns
+    episode by episode (so a busy host slows each alike); ``rounds`` episodes of ``steps``."""
+    import torch
+
+    from dlocli.controllers.base import make_controller
+    from dlocli.env.shape_env import make_env_from_spec
+    from dlocli.models.checkpoints import load_planning_model
+    from dlocli.runs.online.spec import OnlineSpec
+    from dlocli.runs.online.trials import env_spec
+
+    spec = OnlineSpec.model_validate(json.loads((run / "spec.json").read_text()))
+    checkpoint = (run / "checkpoints" / f"iter_{k:02d}.pt").read_bytes()
+    torch.set_num_threads(1)
+    env = make_env_from_spec(env_spec(spec))
+    times: dict[str, list[float]] = {name: [] for name in LATENCY_SETTINGS}
+    try:
+        for episode in range(-1, rounds):  # episode -1 warms torch and the simulator up
+            for name, settings in LATENCY_SETTINGS.items():
+                options = spec.mpc.model_copy(
+                    update={path.split(".", 1)[1]: value for path, value in settings.items()}
+                )
+                model = load_planning_model(checkpoint, "cpu")
+                planner = make_controller("mpc", env, options=options, seed=episode, model=model)
+                obs, _ = env.reset(seed=max(episode, 0))
+                planner.reset(env.goal)
+                for _ in range(steps if episode >= 0 else 5):
+                    action = planner.act(obs)
+                    if episode >= 0:
+                        times[name].append(planner.last_latency_ms)
+                    obs, *_ = env.step(action)
+    finally:
+        env.close()
+    report = {
+        name: {"median_ms": round(float(np.median(t)), 2), "mean_ms": round(float(np.mean(t)), 2)}
+        for name, t in times.items()
+    }
+    for entry in report.values():
+        entry["mean_over_paper"] = round(entry["mean_ms"] / report["paper"]["mean_ms"], 2)
+    return {"run": str(run), "iteration": k, "steps": steps, "rounds": rounds, "ms": report}
+
+
 def gripper_offset(env: Any) -> tuple[float, float]:
     """How far the moving grippers stand from the goal's own gripper poses at the episode's end:
     the largest position offset (mm) and turn (degrees)."""
@@ -402,6 +457,11 @@ def main(argv: list[str] | None = None) -> None:
     many.add_argument("--iteration", type=int, default=3)
     many.add_argument("--trials", type=int, default=8)
     many.add_argument("--set", action="append", default=[], metavar="FIELD=JSON")
+    timing = sub.add_parser("latency")
+    timing.add_argument("run", type=Path)
+    timing.add_argument("--iteration", type=int, default=3)
+    timing.add_argument("--steps", type=int, default=100)
+    timing.add_argument("--rounds", type=int, default=5)
     pose = sub.add_parser("pose")
     pose.add_argument("run", type=Path)
     pose.add_argument("--iteration", type=int, default=3)
@@ -441,6 +501,8 @@ def main(argv: list[str] | None = None) -> None:
         changes = dict(item.split("=", 1) for item in args.set)
         changes = {path: json.loads(value) for path, value in changes.items()}
         report = sweep_report(args.runs, args.iteration, args.trials, changes)
+    elif args.what == "latency":
+        report = latency_report(args.run, args.iteration, args.steps, args.rounds)
     elif args.what == "pose":
         report = pose_report(args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg)
     elif args.what == "horizon":

@@ -40,6 +40,9 @@ CUTS = {
     "control": ["--steps", "5"],
     "online": ["--iters", "1", "--trials", "1", "--steps", "10", "--epochs", "1",
                "--update-steps", "20", "--initial-episodes", "2", "--hidden", "16"],
+    # a marker model's update counts steps (--epochs is refused there)
+    "online markers": ["--iters", "1", "--trials", "1", "--steps", "10", "--update-steps",
+                       "20", "--initial-episodes", "2", "--hidden", "16"],
     "bench": ["--budget", "40", "--seeds", "1", "--evals", "1", "--eval-trials", "1",
               "--steps", "10", "--epochs", "1", "--hidden", "16"],
     "calibrate": ["--generations", "1", "--population", "2", "--train-trajectories", "1"],
@@ -88,7 +91,8 @@ def prepared(argv: list[str], places: dict[str, str]) -> list[str]:
         return words
     # a marker dataset's training: a recipe of examples/real_cables, or gradient steps
     markers = "real_cables" in " ".join(words) or "--update-steps" in words
-    form = " markers" if words[1] == "train" and markers else ""
+    observes_markers = words[1] == "online" and bool({"markers", "pointcloud"} & set(words))
+    form = " markers" if (words[1] == "train" and markers) or observes_markers else ""
     return words + CUTS.get(words[1] + form, [])
 
 
