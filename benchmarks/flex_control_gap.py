@@ -438,6 +438,11 @@ def swing_report(backend: str, rod: dict[str, Any]) -> dict[str, Any]:
     return {"backend": backend, "rod": rod, **{k: round(v, 4) for k, v in found.items()}}
 
 
+def spec_settings(items: list[str]) -> dict[str, Any]:
+    """``--set FIELD=JSON`` items as {dotted field: value}."""
+    return {path: json.loads(value) for path, value in (i.split("=", 1) for i in items)}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -493,14 +498,10 @@ def main(argv: list[str] | None = None) -> None:
             )
             if value is not None
         }
-        for item in args.set:
-            path, value = item.split("=", 1)
-            changes[path] = json.loads(value)
+        changes.update(spec_settings(args.set))
         report = trials_report(args.run, args.iteration, args.trials, changes)
     elif args.what == "sweep":
-        changes = dict(item.split("=", 1) for item in args.set)
-        changes = {path: json.loads(value) for path, value in changes.items()}
-        report = sweep_report(args.runs, args.iteration, args.trials, changes)
+        report = sweep_report(args.runs, args.iteration, args.trials, spec_settings(args.set))
     elif args.what == "latency":
         report = latency_report(args.run, args.iteration, args.steps, args.rounds)
     elif args.what == "pose":

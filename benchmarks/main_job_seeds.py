@@ -25,13 +25,13 @@ from typing import Any
 
 from readme_main_command import readme_command  # this folder: a script's first path entry
 
+from dlocli.backend_spec import default_backend
+
 REFERENCE = "paper"  # the label of the README's command as it is
 
 
 def run(out: Path, seeds: list[int], label: str, spec: Path | None) -> None:
-    import mujoco
-
-    backend = "mujoco-flex" if mujoco.__version__.startswith("4.") else "mujoco"
+    backend = default_backend()  # the command's own rod: the installed MuJoCo's
     extra = [] if spec is None else ["--spec", str(spec)]
     for seed in seeds:
         folder = out / f"{backend}-{label}-s{seed}"
@@ -90,13 +90,12 @@ def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
         def mean(key: str, members: list[dict[str, Any]] = members) -> float:
             return sum(m[key] for m in members) / len(members)
 
-        walls = [m["wall_s"] for m in members if m["wall_s"] is not None]
         group = {"seeds": [m["seed"] for m in members], "scores": scores,
                  "mean_score": round(sum(scores) / len(scores), 3), "worst_score": min(scores),
                  "final_mm": round(mean("final_mm"), 1), "zero_mm": round(mean("zero_mm"), 1),
                  "random_mm": round(mean("random_mm"), 1),
                  "mpc_ms_per_step": round(mean("mpc_ms_per_step"), 2),
-                 "wall_s_max": max(walls) if walls else None}  # fmt: skip
+                 "wall_s_max": max(m["wall_s"] for m in members)}  # fmt: skip
         summary["groups"][f"{backend}/{label}"] = group
         lines.append(
             f"| {backend} | {label} | {', '.join(map(str, group['seeds']))} | "
