@@ -64,6 +64,7 @@ def _write_bad_specs(bad: Path) -> None:
     (bad / "bomb.yaml").write_text("\n".join(levels) + "\nseed: [" + ", ".join(["*h"] * 9) + "]\n")
     (bad / "inf_length.yaml").write_text("backend:\n  rod:\n    length: .inf\n")
     (bad / "nan_lr.yaml").write_text("fit:\n  lr: .nan\n")
+    (bad / "nan_damping.yaml").write_text("mpc:\n  damping: .nan\n")
     (bad / "inf_lr.json").write_text('{"lr": Infinity}')
     (bad / "list.yaml").write_text("- 1\n- 2\n")
     (bad / "broken.yaml").write_text("seed: [1, 2\n")
@@ -171,6 +172,12 @@ CORPUS: list[tuple[str, str, int]] = [
     ("spec-alias-bomb", "train --spec {bad}/bomb.yaml --out {out}", 2),
     ("spec-inf-length", "collect --spec {bad}/inf_length.yaml --out {out}", 2),
     ("spec-nan-lr", "online --spec {bad}/nan_lr.yaml --out {out}", 2),
+    ("spec-nan-gauss-newton-damping", "online --spec {bad}/nan_damping.yaml --out {out}", 2),
+    ("motion-cost-nan", "online --motion-cost nan --out {out}", 2),
+    ("motion-cost-inf", "online --motion-cost inf --out {out}", 2),
+    ("motion-cost-negative", "online --motion-cost -1 --out {out}", 2),
+    ("motion-cost-huge", "online --motion-cost 1e9 --out {out}", 2),
+    ("motion-cost-text", "online --motion-cost abc --out {out}", 2),
     ("spec-json-infinity", "train --spec {bad}/inf_lr.json --data {data} --out {out}", 2),
     ("spec-not-mapping", "collect --spec {bad}/list.yaml --out {out}", 2),
     ("spec-broken-yaml", "collect --spec {bad}/broken.yaml --out {out}", 2),
