@@ -308,6 +308,19 @@ LATENCY_SETTINGS = {
     "motion_cost 32": {**SWEEP_BASE, "mpc.motion_cost": 32.0},
     "motion_cost 32, damping 1": {**SWEEP_BASE, "mpc.motion_cost": 32.0, "mpc.damping": 1.0},
     "settle_steps 2": {**SWEEP_BASE, "mpc.settle_steps": 2},
+    "motion_cost 32, damping 1, curvature_every 5": {
+        **SWEEP_BASE,
+        "mpc.motion_cost": 32.0,
+        "mpc.damping": 1.0,
+        "mpc.curvature_every": 5,
+    },
+    "motion_cost 32, damping 1, curvature_every 5, background": {
+        **SWEEP_BASE,
+        "mpc.motion_cost": 32.0,
+        "mpc.damping": 1.0,
+        "mpc.curvature_every": 5,
+        "mpc.refresh": "background",
+    },
 }
 
 

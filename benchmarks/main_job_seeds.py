@@ -9,8 +9,10 @@ seed into OUT/<backend>-<LABEL>-s<seed>, with ``--spec FILE`` added when given (
 examples/flex_planner.yaml). A finished run is kept (delete it to measure again). ``report``:
 per rod and label, each seed's score (1 - final / initial, the summary's), the final error,
 doing nothing and random actions from the same starts, MPC milliseconds per control step and
-wall seconds as the run measured them; the mean and the worst score. The label ``paper`` is
-the README's command as it is (the paper's cost, the default). Prints a markdown table;
+wall seconds as the run measured them; the mean and the worst score. The label ``default`` is
+the README's command as it is (its rod's planner defaults: on the flex rod motion_cost 32 and
+damping 1, on the composite cable the paper's cost); ``paper`` is the paper's planner,
+``--spec examples/paper_planner.yaml``. Prints a markdown table;
 ``--write STEM`` also writes STEM.md and STEM.json (benchmarks/results/main_job_seeds).
 """
 
@@ -27,7 +29,7 @@ from readme_main_command import readme_command  # this folder: a script's first 
 
 from dlocli.backend_spec import default_backend
 
-REFERENCE = "paper"  # the label of the README's command as it is
+REFERENCE = "default"  # the label of the README's command as it is
 
 
 def run(out: Path, seeds: list[int], label: str, spec: Path | None) -> None:

@@ -36,7 +36,6 @@ import numpy as np  # noqa: E402
 from dlocli.env.shape_env import make_env  # noqa: E402
 from dlocli.specs import TaskSpec  # noqa: E402
 from dlocli.tracking.camera import CloudFrame, DepthCamera  # noqa: E402
-from dlocli.tracking.marker_prior import MarkerModelPrior  # noqa: E402
 from dlocli.tracking.measure import (  # noqa: E402
     HiddenSpan,
     env_layout,
@@ -44,6 +43,7 @@ from dlocli.tracking.measure import (  # noqa: E402
     robot_held,
     track_episode,
 )
+from dlocli.tracking.model_prior import MarkerModelPrior  # noqa: E402
 from dlocli.tracking.spec import CameraSpec  # noqa: E402
 from dlocli.tracking.tracker import CableTracker  # noqa: E402
 

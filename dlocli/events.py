@@ -1,11 +1,11 @@
 """What a long-running command reports while it runs, and the one callback shape that takes it.
 
-Every run (a fit, `dlo train`, collect, control, calibrate, online, bench) takes
-``progress``, a :data:`Callback`, and calls it with :class:`Event`: ``done`` of ``total``
-``unit`` finished (an epoch, an episode, a trial, a job), with that unit's numbers in
-``values``. A :class:`Began` starts a phase of counting: its ``done`` units were finished
-before it (kept from a stopped run), so a rate or an ETA counts from there. Subclasses exist
-only where a consumer tells kinds apart (a fit's batches and validations,
+Every run (a fit, `dlo train`, collect, control, calibrate, online, bench, eval, track; an
+episode's rollout) takes ``progress``, a :data:`Callback`, and calls it with :class:`Event`:
+``done`` of ``total`` ``unit`` finished (an epoch, an episode, a trial, a job), with that
+unit's numbers in ``values``. A :class:`Began` starts a phase of counting: its ``done`` units
+were finished before it (kept from a stopped run), so a rate or an ETA counts from there.
+Subclasses exist only where a consumer tells kinds apart (a fit's batches and validations,
 :mod:`dlocli.models.fitting`). The CLI renders events (``dlocli/cli/progress.py``); a callback
 may raise (a test's KeyboardInterrupt) to stop the run where it reported.
 """

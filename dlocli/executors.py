@@ -29,10 +29,11 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager, suppress
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 
 from dlocli.errors import BadInput, DloError
 from dlocli.extras import require
+from dlocli.limits import MAX_PROCESSES
 from dlocli.processes import pool_initializer
 from dlocli.specs import Spec
 from dlocli.threads import machine_cpus, set_worker_threads
@@ -54,6 +55,20 @@ class ExecutorChoice(Spec):
         description="Ray cluster to join (host:port, ray://host:port or auto); None = "
         "start a local Ray instance.",
     )
+
+    @field_validator("workers", check_fields=False)
+    @classmethod
+    def _workers_of_this_machine(cls, value: int | None, info: ValidationInfo) -> int | None:
+        """Workers that run here (local processes, a local Ray instance) are at most this
+        machine's CPUs; on a cluster joined at an address, its CPUs bound them once joined
+        (:meth:`RayExecutor.connect`)."""
+        on_cluster = info.data.get("executor") == "ray" and info.data.get("ray_address")
+        if value is not None and value > MAX_PROCESSES and not on_cluster:
+            raise ValueError(
+                f"at most {MAX_PROCESSES} on this machine (its CPUs); a Ray cluster's own CPUs "
+                "bound it with --executor ray --ray-address HEAD:PORT"
+            )
+        return value
 
 
 class ClusterLost(DloError):
@@ -160,18 +175,21 @@ class RayExecutor:
         #: the run directory a lost cluster's line names (set by :func:`open_executor`)
         self.run_dir: Any = None
         self._watch: subprocess.Popen | None = None
+        self._cpus_checked = False
 
     @property
     def where(self) -> str:
         return f"the Ray cluster at {self.address}" if self.address else "the local Ray instance"
 
     def connect(self) -> None:
-        """Join the cluster (or start a local instance); BadInput if the address fails."""
+        """Join the cluster (or start a local instance); BadInput if the address fails or
+        the cluster has fewer CPUs than ``workers`` calls need at once."""
         import logging
 
         import ray
 
         if ray.is_initialized():
+            self._refuse_more_workers_than_cpus(ray)
             return
         options: dict[str, Any] = {
             "include_dashboard": False,
@@ -204,6 +222,24 @@ class RayExecutor:
                 os.environ.pop(WINDOW_VARIABLE, None)
         self._started = True
         self._watch = _start_watch(self.address, self.run_dir)
+        self._refuse_more_workers_than_cpus(ray)
+
+    def _refuse_more_workers_than_cpus(self, ray: Any) -> None:
+        """On a cluster joined at an address: BadInput (after closing) if its CPUs cannot run
+        ``workers`` calls of ``threads`` CPUs each at once. A local instance has as many CPUs
+        as it was started with."""
+        if self.address is None or self.workers is None or self._cpus_checked:
+            return
+        self._cpus_checked = True
+        cpus = int(ray.cluster_resources().get("CPU", 0))
+        if self.workers * self.threads > cpus:
+            self.close()
+            room = max(1, cpus // self.threads)
+            raise BadInput(
+                f"--workers {self.workers}: {self.where} has {cpus} CPUs, room for {room} "
+                f"calls of {self.threads} CPU(s) at once; give --workers {room} or fewer, or "
+                "add nodes to the cluster"
+            )
 
     def close(self) -> None:
         """Disconnect (and stop a local instance) if :meth:`connect` started Ray."""
@@ -361,12 +397,13 @@ def check_ray_address(address: str, timeout: float = 3.0) -> None:
             "the cluster (`ray start --head`) or drop --ray-address"
         ) from exc
     with connection:
-        if not _speaks_grpc(connection, timeout):
-            raise BadInput(
-                f"Ray address {address} listens but does not answer as a Ray cluster within "
-                f"{timeout:g} s (Ray speaks gRPC there); give the head's address or drop "
-                "--ray-address"
-            )
+        speaks = _speaks_grpc(connection, timeout)
+    if not speaks or not _answers_a_call(f"{host}:{port}", timeout):
+        raise BadInput(
+            f"Ray address {address} listens but does not answer as a Ray cluster within "
+            f"{timeout:g} s (Ray speaks gRPC there); give the head's address or drop "
+            "--ray-address"
+        )
 
 
 #: an HTTP/2 client's first bytes: the connection preface, then an empty SETTINGS frame
@@ -389,6 +426,23 @@ def _speaks_grpc(connection: Any, timeout: float) -> bool:
     except OSError:  # a timeout included
         return False
     return header[3] == _SETTINGS
+
+
+def _answers_a_call(target: str, timeout: float) -> bool:
+    """Whether a gRPC server at ``target`` answers a call within ``timeout`` seconds: every
+    one answers a method it does not know (UNIMPLEMENTED); a server that greets and then
+    stays silent would make ``ray.init`` wait forever."""
+    import grpc
+
+    channel = grpc.insecure_channel(target, options=[("grpc.enable_http_proxy", 0)])  # as Ray
+    try:
+        channel.unary_unary("/probe.NoSuchService/Answer")(b"", timeout=timeout)
+    except grpc.RpcError as exc:
+        return exc.code() not in (grpc.StatusCode.DEADLINE_EXCEEDED,
+                                  grpc.StatusCode.UNAVAILABLE)  # fmt: skip
+    finally:
+        channel.close()
+    return True
 
 
 @contextmanager

@@ -1,4 +1,5 @@
-"""Optional features and the extra that installs each (``pip install 'dlocli[EXTRA]'``).
+"""Optional features and the extra that installs each (``pip install -c constraints.txt
+torch==2.13.0 -e '.[EXTRA]'`` in dlocli's folder, the form of every install line of the docs).
 
 A command that needs a missing extra says which one in one line (exit 2) before it writes
 anything, never a ``ModuleNotFoundError``. Every extra of the package but the test tools is
@@ -32,5 +33,6 @@ def require(extra: str, feature: str, alternative: str = "") -> None:
         instead = f", or {alternative}" if alternative else ""
         raise BadInput(
             f"{feature} needs the '{extra}' extra, which is not installed: "
-            f"pip install 'dlocli[{extra}]'{instead}"
+            f"pip install -c constraints.txt torch==2.13.0 -e '.[{extra}]' (in dlocli's "
+            f"folder){instead}"
         ) from exc

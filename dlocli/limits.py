@@ -27,6 +27,10 @@ CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.
 #: most worker processes or threads: one per CPU (two on a one-CPU machine, which only share
 #: it: results do not depend on the number of workers)
 MAX_PROCESSES = max(2, CPUS)
+#: most workers a run may name on a Ray cluster it joins (``--ray-address``): the cluster's
+#: CPUs bound them once it is joined (:meth:`dlocli.executors.RayExecutor.connect`), this
+#: cap before (a typo of a million workers is refused at once)
+MAX_CLUSTER_WORKERS = 10_000
 #: most nodes of the tracker's chain (a spacing of 1/1000 of the cable): it solves a dense
 #: nodes x nodes system and weighs every cloud point against every node each EM iteration
 MAX_TRACKER_NODES = 1000

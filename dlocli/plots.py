@@ -6,12 +6,16 @@ with these."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from dlocli.controllers.base import references
 from dlocli.io import atomic_path
+
+if TYPE_CHECKING:
+    from dlocli.data import Dataset
+    from dlocli.models.base import DynamicsModel
 
 
 def pyplot() -> Any:
@@ -189,3 +193,21 @@ def plot_rollout_figure(
     err.legend()
     err.grid(alpha=0.3)
     return save_figure(fig, path)
+
+
+def plot_rollout(
+    model: DynamicsModel, dataset: Dataset, episode: int, path: Path, horizon: int = 50
+) -> Path:
+    """PNG: true vs predicted rod over an open-loop rollout from the episode's second state,
+    at a few instants (3D), and the error per step next to persistence's."""
+    from dlocli.models.evaluation import position_error_mm, predict, windows
+
+    start = 1 if dataset.episode_lengths[episode] > 1 else 0  # t = 1: s_{t-1} is recorded
+    h = int(min(horizon, dataset.episode_lengths[episode] - start))
+    state, actions, truth, previous = windows(dataset, [(episode, start)], h)
+    pred = predict(model, state, actions, previous)[0]
+    errors = {
+        model.spec.name: position_error_mm(pred, truth[0]),
+        "persistence": position_error_mm(state[:, None], truth)[0],
+    }
+    return plot_rollout_figure(truth[0], pred, errors, f"episode {episode}", path)

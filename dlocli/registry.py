@@ -133,3 +133,6 @@ backends = Registry("backend", home="dlocli.backends")
 models = Registry("model", home="dlocli.models")
 controllers = Registry("controller", home="dlocli.controllers")
 tasks = Registry("task", home="dlocli.env.tasks")
+#: what turns a sensor's frames into the observation's markers, by observation kind (the env
+#: asks for its kind's observer here and never imports the tracker)
+observers = Registry("observer", home="dlocli.tracking")

@@ -305,28 +305,35 @@ def resolved(path: Path, field: str) -> Path:
 
 def refuse_outputs_in_inputs(spec: Any) -> None:
     """BadInput if something ``spec`` writes would land in the run directory of something it
-    reads (``dlo train --data D --out D``): that run's results would be replaced; or if a path
-    of the spec's runs into a loop of links."""
-    runs = {name: run for name, path in _path_fields(spec) if (run := _run_of(path, name))}
+    reads (``dlo train --data D --out D``), or in a folder it reads (recordings, a policy,
+    keys): that run's results would be replaced, or the folder's next reader would find the
+    output among its inputs; or if a path of the spec's runs into a loop of links."""
+    roots: dict[str, tuple[Path, str]] = {}
+    for name, path in _path_fields(spec):
+        if run := _run_of(path, name):
+            roots[name] = (run, f"the run that {name} comes from")
+        elif path.is_dir() and name != "source":  # recordings: see refuse_out_by_source
+            flag = "--" + name.rstrip("0123456789").rstrip(".").rsplit(".", 1)[-1]
+            roots[name] = (resolved(path, name), f"the folder {flag.replace('_', '-')} reads")
     for output, path in _path_fields(spec, outputs=True):
         target = resolved(path, output)
-        for name, run in runs.items():
-            if target == run or run in target.parents:
+        for root, what in roots.values():
+            if target == root or root in target.parents:
                 raise BadInput(
-                    f"--{output.replace('_', '-')} {path} is inside {run}, the run that "
-                    f"{name} comes from; write to another path, outside input runs"
+                    f"--{output.replace('_', '-')} {path} lies inside {root}, {what}; write "
+                    "to another path, outside the inputs"
                 )
 
 
 def refuse_out_by_source(spec: Any) -> None:
     """BadInput if ``spec.out`` lies inside ``spec.source``, a folder of recordings (`dlo
-    import`, `dlo track`): the dataset would land among the recordings the next run reads; or
-    holds it (--overwrite would put the recordings at stake)."""
+    import`, `dlo track`, `dlo calibrate`): the output would land among the recordings the
+    next run reads; or holds it (--overwrite would put the recordings at stake)."""
     out, source = resolved(spec.out, "--out"), resolved(spec.source, "--source")
     if out == source or source in out.parents or out in source.parents:
         raise BadInput(
-            f"--out {spec.out} lies inside or holds --source {spec.source}; write the dataset "
-            "to a folder apart from the recordings"
+            f"--out {spec.out} lies inside or holds --source {spec.source}; write to a folder "
+            "apart from the recordings"
         )
 
 

@@ -20,7 +20,15 @@ import numpy as np
 import pytest
 import torch
 
-from tiny import MUJOCO_ROD, built_once, file_digests, lock_held_elsewhere, run_dlo
+from tiny import (
+    MUJOCO_ROD,
+    built_once,
+    dlo_import,
+    file_digests,
+    lock_held_elsewhere,
+    run_dlo,
+    write_cable,
+)
 
 # ----------------------------------------------------------------------------- fixtures
 
@@ -30,7 +38,8 @@ def world(tmp_path_factory: pytest.TempPathFactory, small_dataset_dir: Path) -> 
     """Real inputs (dataset, trained model, goal, finished runs) and crafted bad files: built
     once per test session, each test process its own copy."""
     root = built_once(tmp_path_factory, "corpus", lambda to: _build_world(to, small_dataset_dir))
-    names = {"data": "data", "train": "train", "goal": "goal.npy", "collect": "collect"}
+    names = {"data": "data", "train": "train", "goal": "goal.npy", "collect": "collect",
+             "cable": "cable", "markers": "markers", "keys": "keys"}  # fmt: skip
     return {"root": root} | {key: root / name for key, name in names.items()}
 
 
@@ -49,6 +58,10 @@ def _build_world(root: Path, dataset: Path) -> None:
     _write_bad_checkpoints(bad, root / "train" / "checkpoints" / "final.pt")
     (root / "a_file").write_text("not a directory\n")
     (root / "edited").mkdir()
+    write_cable(root / "cable", n_train=2, n_eval=1, frames=8)  # recordings, and their dataset
+    assert dlo_import(root / "cable", root / "markers") == 0
+    _dlo("keys", "--out", str(root / "keys"))
+    (root / "keys" / "cell.key_secret").chmod(0o644)  # a secret others can read
 
 
 def _dlo(*args: str) -> None:
@@ -73,6 +86,10 @@ def _write_bad_specs(bad: Path) -> None:
     (bad / "huge.yaml").write_text("# " + "x" * 1_100_000 + "\n")
     (bad / "bad_net_arch.yaml").write_text("options:\n  sac:\n    net_arch: [64, -1]\n")
     (bad / "bench_inf_lr.yaml").write_text("fit:\n  lr: .inf\n")
+    (bad / "workspace_excludes_rest.yaml").write_text(
+        "task:\n  workspace_low: [0.6, 0.4, 1.2]\n  workspace_high: [0.8, 0.6, 1.4]\n"
+        "  shapes: near-rest\n"
+    )
 
 
 def _write_bad_goals(bad: Path) -> None:
@@ -227,6 +244,24 @@ CORPUS: list[tuple[str, str, int]] = [
     ("ckpt-other-format", "eval --checkpoint {bad}/other.pt --data {data}", 2),
     ("ckpt-run-dir-without-model", "eval --checkpoint {collect} --data {data}", 2),
     ("init-from-text", "train --data {data} --init-from {bad}/text.pt --out {out}", 2),
+    # a marker model whose training cannot fit (rod models were already checked)
+    (
+        "train-marker-mlp-too-big",
+        "train --data {markers} --model mlp --hidden 8192 --members 64 --out {out}",
+        2,
+    ),
+    (
+        "init-from-other-members",
+        "train --data {data} --init-from {train} --members 3 --out {out}",
+        2,
+    ),
+    # a goal whose workspace excludes the grippers' rest (they were pulled into the box)
+    (
+        "goal-workspace-excludes-rest",
+        "goal --spec {bad}/workspace_excludes_rest.yaml --out {out}.npy",
+        2,
+    ),
+    ("serve-secret-key-readable", "serve --keys {keys}", 2),
     ("control-untrained-sac", "control --goal {goal} --controller sac --out {out}", 2),
     ("control-policy-for-mpc", "control --goal {goal} --policy {root} --out {out}", 2),
     (
@@ -254,6 +289,24 @@ CORPUS: list[tuple[str, str, int]] = [
     ("plot-unwritable", "eval --checkpoint {train} --data {data} --plot /proc/x/p.png", 2),
     ("record-rod-eval", "eval --checkpoint {train} --data {data} --record {out}.rrd", 2),
     ("bench-out-is-collect-run", "bench --out {collect}", 2),
+    # an --out inside a folder the command reads
+    (
+        "out-inside-calibrate-source",
+        "calibrate --source {cable} --cable-length 1 --cable-mass 0.1 --out {cable}/fit",
+        2,
+    ),
+    ("out-inside-import-source", "import --source {cable} --out {cable}/train/data", 2),
+    (
+        "out-inside-policy",
+        "control --goal {goal} --controller td3 --policy {root}/edited --out {root}/edited/run",
+        2,
+    ),
+    (
+        "out-inside-cell-keys",
+        "control --goal {goal} --cell tcp://127.0.0.1:1 --cell-keys {keys} --out {keys}/run",
+        2,
+    ),
+    ("out-inside-data-run", "train --data {markers} --out {markers}/train", 2),
     # resume
     ("resume-missing-dir", "train --resume {root}/nope", 2),
     ("resume-not-a-run", "online --resume {root}/edited", 2),

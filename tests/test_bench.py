@@ -17,7 +17,7 @@ from dlocli.cli import app
 from dlocli.errors import BadInput
 from dlocli.io import MANIFEST_FILE, written_by_dlo
 
-from tiny import TINY_BENCH, lock_held_elsewhere
+from tiny import TINY_BENCH, committed_bench, lock_held_elsewhere
 
 runner = CliRunner()
 TIMING = ("wall_seconds", "eval_seconds")
@@ -230,11 +230,11 @@ def test_each_seed_has_its_own_goal_and_agents_their_own_budgets():
 
 
 @pytest.mark.parametrize("example", ["bench_paper", "bench_bimanual", "bench_paper_mirror"])
-def test_committed_paper_bench_jobs_resume_without_rerunning(example: str):
+def test_committed_paper_bench_jobs_resume_without_rerunning(example: str, tmp_path: Path):
     """The committed bench runs' job files hold under today's code: a resume keeps them."""
     from dlocli.bench.run import BenchRun, load_bench_spec
 
-    source = Path(__file__).parent.parent / "examples" / example
+    source = committed_bench(example, tmp_path / example)
     run = BenchRun(load_bench_spec(source))
     jobs = sorted((source / "jobs").glob("*.json"))
     assert jobs
@@ -243,10 +243,24 @@ def test_committed_paper_bench_jobs_resume_without_rerunning(example: str):
         assert run.finished(agent, int(seed)) is not None, f"{path.name} would run again"
 
 
+def test_a_kept_bench_run_reports_its_kept_summary(tmp_path: Path):
+    """examples/bench_paper keeps the summary and jobs.json, not the job files: the job files
+    rebuilt from them (examples/bench_jobs.py) report the same results and tables."""
+    kept = Path(__file__).parent.parent / "examples" / "bench_paper"
+    run = committed_bench("bench_paper", tmp_path / "bench_paper")
+    bench("--report", str(run))
+    assert (run / "results.csv").read_bytes() == (kept / "results.csv").read_bytes()
+
+    def table(path: Path) -> list[str]:
+        return [line for line in path.read_text().splitlines() if line.startswith("|")]
+
+    assert table(run / "summary.md") == table(kept / "summary.md")
+
+
 def test_report_merges_runs_into_a_new_directory_labelling_shared_agents(tmp_path: Path):
     """Fig. 5 from several runs: the same agent learned alike in two runs (e.g. mpc with and
     without the mirror option) is two agents, each named after its run."""
-    committed = Path(__file__).parent.parent / "examples" / "bench_paper"
+    committed = committed_bench("bench_paper", tmp_path / "bench_paper")
     plain, mirrored, merged = tmp_path / "plain", tmp_path / "mirrored", tmp_path / "fig5"
     for run in (plain, mirrored):
         (run / "jobs").mkdir(parents=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -58,6 +59,59 @@ def test_a_delayed_cell_counts_its_late_steps_and_the_run_finishes(
     summary = _through_cell(["--realtime", "--delay-ms", "20"], argv)
     assert summary["steps"] == 12
     assert summary["cell_late_steps"] >= 6, summary
+
+
+def test_a_realtime_cell_counts_late_steps_from_the_first_step(
+    near_rest_goal, sac_policy, tmp_path
+):
+    """40 steps of a controller that keeps up: no late step, whatever the run did between
+    the reset and its first step; the steps' wall time is theirs, about 40 periods. (A 100 ms
+    period leaves a busy shared test machine room; a SAC policy keeps up at 20 ms too.)"""
+    period = ["--control-dt", "0.1"]
+    argv = _control(near_rest_goal, sac_policy, tmp_path / "run", *period, steps=40)
+    summary = _through_cell(["--realtime", *period], argv)
+    assert summary["steps"] == 40
+    assert summary["cell_late_steps"] == 0, summary
+    assert 40 * 0.1 <= summary["steps_wall_s"] <= summary["wall_s"], summary
+
+
+def test_a_command_three_periods_late_counts_late_once():
+    """A controller that sleeps three periods before one step: that command is late once;
+    the cell stepped the periods it missed with the held command (``step`` counts them)."""
+    import json
+
+    import zmq
+
+    from dlocli.bridge import protocol
+    from dlocli.specs import BackendSpec
+
+    context = zmq.Context()
+    sock = context.socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+
+    def ask(kind: str, **fields) -> dict:
+        sock.send(json.dumps({"type": kind, **fields}).encode())
+        assert sock.poll(10_000), kind
+        return json.loads(sock.recv())
+
+    still, period = [[0.0] * 6, [0.0] * 6], 0.1  # a period a busy test machine keeps up with
+    with served("--realtime", "--control-dt", str(period)) as address:
+        sock.connect(address)
+        welcome = ask("hello", protocol=protocol.PROTOCOL, version=protocol.VERSION,
+                      backend=BackendSpec().model_dump(mode="json"), control_dt=period)  # fmt: skip
+        token = welcome["session"]
+        ask("reset", session=token, seed=0)
+        time.sleep(0.5)  # a controller's first plan: no period of the cell's yet
+        states = [ask("step", session=token, velocities=still) for _ in range(5)]
+        assert [s["step"] for s in states] == [1, 2, 3, 4, 5] and states[-1]["late"] == 0
+        time.sleep(3 * period)
+        state = ask("step", session=token, velocities=still)
+        assert state["late"] == 1 and state["step"] >= 5 + 3, state
+        state = ask("step", session=token, velocities=still)
+        assert state["late"] == 1, state
+        ask("bye", session=token)
+    sock.close()
+    context.term()
 
 
 def test_dropped_commands_are_counted_and_the_run_finishes(near_rest_goal, sac_policy, tmp_path):

@@ -226,6 +226,83 @@ def test_with_keys_a_bridged_run_off_loopback_equals_the_in_process_one(
     assert not refused.exists()
 
 
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o604])
+def test_a_secret_key_others_can_read_is_refused_on_both_sides(
+    mode, near_rest_goal, sac_policy, tmp_path, capsys
+):
+    keys = tmp_path / "keys"
+    assert run_dlo(["keys", "--out", str(keys)]) == 0
+    (keys / "cell.key_secret").chmod(mode)
+    (keys / "controller.key_secret").chmod(mode)
+    capsys.readouterr()
+    assert run_dlo(["serve", "--keys", str(keys)]) == 2
+    line = capsys.readouterr().err.strip()
+    assert len(line.splitlines()) == 1 and "readable by others" in line, line
+    assert f"chmod 600 {keys / 'cell.key_secret'}" in line, line
+    out = tmp_path / "run"
+    argv = control_argv(near_rest_goal, sac_policy, out, "--cell", "tcp://127.0.0.1:1",
+                        "--cell-keys", str(keys))  # fmt: skip
+    assert run_dlo(argv) == 2
+    line = capsys.readouterr().err.strip()
+    assert len(line.splitlines()) == 1 and "--cell-keys" in line, line
+    assert f"chmod 600 {keys / 'controller.key_secret'}" in line and not out.exists(), line
+
+
+def test_the_banner_says_what_an_operator_needs_and_the_log_names_each_refusal(tmp_path):
+    """`dlo serve`'s first line states the address, keys, camera and the session idle time;
+    a client without the keys, one whose key the folder does not hold, and a busy client are
+    logged one line each (repeats of one failure within seconds are counted, not logged)."""
+    import zmq.auth
+
+    keys, strangers = tmp_path / "keys", tmp_path / "strangers"
+    assert run_dlo(["keys", "--out", str(keys)]) == 0
+    assert run_dlo(["keys", "--out", str(strangers)]) == 0
+    argv = [sys.executable, "-m", "dlocli.cli", "serve", "--address", "tcp://0.0.0.0:*",
+            "--keys", str(keys), "--camera", "--session-idle-s", "7"]  # fmt: skip
+    with listening(argv, r"(.*)") as (banner, cell):
+        port = banner.split(" at tcp://0.0.0.0:")[1].split(";")[0]
+        address = f"tcp://{lan_address()}:{port}"
+        keyless = RawClient(address, timeout_ms=1500)
+        assert keyless.ask("bye", session="x") is None  # no keys: never answered
+        keyless.close()
+        context = zmq.Context()
+        sock = context.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        public, secret = zmq.auth.load_certificate(strangers / "controller.key_secret")
+        sock.curve_publickey, sock.curve_secretkey = public, secret
+        sock.curve_serverkey = zmq.auth.load_certificate(keys / "cell.key")[0]
+        sock.connect(address)
+        sock.send(b"{}")
+        assert not sock.poll(1500)  # a key the folder does not hold: never answered
+        sock.close()
+        context.term()
+    log = cell.stderr.read()
+    assert f"at tcp://0.0.0.0:{port}; keys on ({keys}); camera on (160 x 120 px)" in banner
+    assert "a session ends after 7 s without a request" in banner
+    failures = [line for line in log.splitlines() if "a handshake failed" in line]
+    # the keyless client's, then the stranger's (the first may be told as a hang-up)
+    assert "without this cell's keys" in failures[0], log
+    assert any("does not hold" in line for line in failures[1:]), log
+    assert len(failures) <= 4, log  # each client's retries are counted, not logged
+
+    with listening([sys.executable, "-m", "dlocli.cli", "serve"], r"(.*)") as (banner, cell):
+        address = banner.split(" at ")[1].split(";")[0]
+        assert "keys off (loopback only); camera off" in banner
+        client = RawClient(address)
+        token = _hello(client)["session"]
+        assert _hello(client)["code"] == "busy"
+        # a token of non-ASCII characters: busy, not a fault of the cell
+        assert client.ask("reset", session="\u00e9" * 32, seed=0)["code"] == "busy"
+        lone = client.ask("reset", session="\ud800" * 32, seed=0)  # not UTF-8: not JSON
+        assert lone["code"] == "bad_request", lone
+        assert client.ask("bye", session=token)["type"] == "bye"
+        client.close()
+    log = cell.stderr.read()
+    assert log.count("refused a hello: busy") == 1, log
+    assert log.count("refused a request: busy") == 1, log
+    assert "cell_fault" not in log and "failed" not in log, log
+
+
 # --------------------------------------------------------------------------- the controller
 @contextmanager
 def lying_cell(state_changes: dict):

@@ -361,11 +361,14 @@ def test_mpc_reduces_true_error_in_mujoco(tmp_path, checkpoint):
         return float(np.mean([m[key] / z[key] for m, z in zip(mpc, nothing, strict=True)]))
 
     # The tiny model differs between CPUs (float rounding in its training), so the margins
-    # come from the spread over 8 tiny models (training seeds 0-7, AMD EPYC): the 3-start mean
-    # of final/nothing ranged 0.15-0.69 (mean 0.43, sd 0.18; one start alone up to 1.05),
-    # of best/nothing 0.11-0.46 (mean 0.24, sd 0.11). Bounds: about 3 sd above the mean.
+    # come from the spread over 8 tiny models (training seeds 0-7, AMD EPYC), with the default
+    # rod's planner defaults (on the flex rod the cost also pays for the motion, which slows
+    # the approach within 30 steps): the 3-start mean of final/nothing ranged 0.36-0.82 (mean
+    # 0.55, sd 0.15; one start alone up to 0.91), of best/nothing 0.33-0.78 (mean 0.46, sd
+    # 0.14); with the paper's planner 0.35-0.93 and 0.23-0.67. Bounds: about 3 sd above the
+    # mean.
     assert ratio("final_error_mm") < 1.0
-    assert ratio("best_error_mm") < 0.6
+    assert ratio("best_error_mm") < 0.9
     out = tmp_path / "run-0"
     assert (
         json.loads((out / "summary.json").read_text())["final_error_mm"] == mpc[0]["final_error_mm"]

@@ -144,7 +144,8 @@ def test_a_missing_extra_is_named_in_one_line(extra: str, tmp_path: Path) -> Non
         f"sys.argv = ['dlo', *{argv!r}]\n"
         "from dlocli.cli import main; main()\n"
     )
-    assert f"pip install 'dlocli[{extra}]'" in one_line_refusal(program)
+    hint = f"pip install -c constraints.txt torch==2.13.0 -e '.[{extra}]'"
+    assert hint in one_line_refusal(program)
     assert not out.exists()
 
 

@@ -1,7 +1,10 @@
-"""Every indented `dlo` line of the documentation (docs/*.md) runs as written, read from the
-pages themselves, page by page in order in a fresh directory, with only their counts cut to
-seconds and the page's placeholders (a DEFORM folder, a recorded cable, a cell's address, a
-Ray head) filled in by the test. A count this test does not know how to cut fails it, never
+"""Every indented `dlo` line of the documentation (docs/*.md), and every `dlo` command of the
+README's feature table, runs as written, read from the pages themselves, page by page (and the
+table row by row) in order in a fresh directory, with only their counts cut to seconds and a
+cell's address and a Ray head filled in by the test. No data but what the lines make: a page
+that reads a recording makes it first (`dlo sample`), so a missing prerequisite, or two lines
+writing one `--out`, fails the test. The pages that start from the quickstart's goal and model
+say so with a link, and get them. A count this test does not know how to cut fails it, never
 silently a long run; so does a page whose commands no test runs."""
 
 from __future__ import annotations
@@ -17,9 +20,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_own_cable import write_recordings
 
-from tiny import run_dlo, write_cable
+from tiny import run_dlo
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -27,10 +29,11 @@ DOCS = ROOT / "docs"
 RUN_ELSEWHERE = {"own_cable.md": "test_own_cable.py"}
 #: a page's count flags and the value they run at here
 COUNTS = {"--episodes": "2", "--iters": "1", "--workers": "1", "--num-cpus": "2",
-          "--update-steps": "20"}  # fmt: skip
+          "--update-steps": "20", "--train": "2", "--eval": "1", "--seconds": "0.4"}  # fmt: skip
 #: numeric flags of the pages that are not counts: kept as written
 NOT_COUNTS = {"--seed", "--delay-ms", "--control-hz", "--fill-gaps", "--noise-mm",
-              "--latency-steps", "--markers", "--lr"}  # fmt: skip
+              "--latency-steps", "--markers", "--lr", "--rate-hz", "--gripper-markers",
+              "--cable-length", "--cable-mass"}  # fmt: skip
 #: flags each command gets on top of the page's, by command (and by the form of its data)
 CUTS = {
     "collect": ["--steps", "10"],
@@ -46,12 +49,15 @@ CUTS = {
     "bench": ["--budget", "40", "--seeds", "1", "--evals", "1", "--eval-trials", "1",
               "--steps", "10", "--epochs", "1", "--hidden", "16"],
     "calibrate": ["--generations", "1", "--population", "2", "--train-trajectories", "1"],
+    "sample": ["--train", "2", "--eval", "1", "--seconds", "0.4"],
 }  # fmt: skip
 #: lines the docs promise that dlocli refuses today (exit 2): each is run and must still be
 #: refused, so the day it runs this test fails and the entry goes
 KNOWN_REFUSED: dict[str, str] = {}
-#: what a page needs from the quickstart before its own lines (a goal, a trained model)
+#: what a page needs from the quickstart before its own lines (a goal, a trained model): the
+#: page links to the quickstart where it does
 NEEDS_QUICKSTART = {"commands.md", "real-cell.md"}
+QUICKSTART_LINK = "getting-started.md#quickstart"
 
 
 def pages() -> list[str]:
@@ -96,12 +102,28 @@ def prepared(argv: list[str], places: dict[str, str]) -> list[str]:
     return words + CUTS.get(words[1] + form, [])
 
 
+def readme_commands() -> list[list[str]]:
+    """The `dlo ...` commands of the README's feature table, row by row, in order."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    table = readme.split("\n## What it does", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in table.splitlines() if line.startswith("| ")]
+    return [shlex.split(command) for row in rows for command in re.findall(r"`(dlo [^`]+)`", row)]
+
+
 def run_page(page: str, folder: Path, places: dict[str, str]) -> list[list[str]]:
-    """Run the page's lines in ``folder``, in order; a line ending in `&` serves a cell in the
-    background, as on the page, until the page's lines are done. Returns what ran."""
+    """Run the page's lines (or the README's table's) in ``folder``, in order."""
+    commands = readme_commands() if page == "README.md" else page_commands(page)
+    return run_lines(page, commands, folder, places)
+
+
+def run_lines(
+    page: str, commands: list[list[str]], folder: Path, places: dict[str, str]
+) -> list[list[str]]:
+    """Run ``commands`` in ``folder``, in order, each to exit 0; a line ending in `&` serves a
+    cell in the background, as on the page, until the lines are done. Returns what ran."""
     ran, cells = [], []
     try:
-        for argv in page_commands(page):
+        for argv in commands:
             words = prepared(argv, places)
             if words[-1] == "&":
                 cell = subprocess.Popen(
@@ -125,14 +147,10 @@ def run_page(page: str, folder: Path, places: dict[str, str]) -> list[list[str]]
     return ran
 
 
-def _placeholders(folder: Path) -> dict[str, str]:
-    """The pages' placeholders, each filled with something small this test wrote."""
-    deform = folder / "DEFORM"
-    for cable in ("DLO1", "DLO3"):
-        write_cable(deform / "data_set" / cable, n_train=2, n_eval=1)
-        shutil.copytree(deform / "data_set" / cable, deform / cable)
-    write_recordings(folder / "mycable")
-    return {"$DEFORM": str(deform), "tcp://127.0.0.1:5555": _free_address()}
+def _placeholders() -> dict[str, str]:
+    """The pages' placeholders: a free address for the page's cell (no data: the pages make
+    their own)."""
+    return {"tcp://127.0.0.1:5555": _free_address()}
 
 
 @pytest.fixture(scope="module")
@@ -160,8 +178,9 @@ def test_every_page_with_dlo_lines_is_run_by_a_test() -> None:
 def test_the_pages_dlo_lines_run(page: str, tmp_path: Path, monkeypatch, request) -> None:
     pytest.importorskip("zmq")
     monkeypatch.chdir(tmp_path)
-    places = _placeholders(tmp_path)
+    places = _placeholders()
     if page in NEEDS_QUICKSTART:
+        assert QUICKSTART_LINK in (DOCS / page).read_text(encoding="utf-8"), page
         shutil.copytree(request.getfixturevalue("quickstart"), tmp_path, dirs_exist_ok=True)
     ran = run_page(page, tmp_path, places)
     assert len(ran) == len(page_commands(page))
@@ -170,17 +189,10 @@ def test_the_pages_dlo_lines_run(page: str, tmp_path: Path, monkeypatch, request
 def test_the_cluster_pages_lines_run_on_a_local_ray_head(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:
-    ray = pytest.importorskip("ray")
     pytest.importorskip("cma")
     monkeypatch.chdir(tmp_path)
-    places = _placeholders(tmp_path)
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        places["HEAD:6379"] = ray.get_runtime_context().gcs_address
-        ran = run_page("clusters.md", tmp_path, places)
-    finally:
-        ray.shutdown()
-    assert [words[1] for words in ran] == ["online", "online", "calibrate"]
+    ran = run_page_on_a_ray_head("clusters.md", tmp_path)
+    assert [words[1] for words in ran] == ["online", "online", "sample", "calibrate"]
     errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
     assert errors == [f"error: {why}" for why in KNOWN_REFUSED.values()], errors
 
@@ -206,3 +218,56 @@ def test_each_readme_feature_command_is_a_docs_line_the_suite_runs() -> None:
     }
     for command in quoted:
         assert shlex.join(shlex.split(command)) in lines, command
+
+
+@pytest.mark.slow  # about a minute: every row, the cluster's included
+def test_the_readme_feature_tables_commands_run_in_order_in_one_folder(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Row by row, as a newcomer copies them: each row makes what it reads (a goal, a model,
+    a recording), and no row writes another's --out."""
+    pytest.importorskip("zmq")
+    pytest.importorskip("cma")
+    monkeypatch.chdir(tmp_path)
+    ran = run_page_on_a_ray_head("README.md", tmp_path)
+    assert len(ran) == len(readme_commands()) >= 15
+
+
+def run_page_on_a_ray_head(page: str, folder: Path) -> list[list[str]]:
+    """:func:`run_page` with HEAD:6379 a local Ray head of 2 CPUs, shut down after."""
+    ray = pytest.importorskip("ray")
+    places = _placeholders()
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        places["HEAD:6379"] = ray.get_runtime_context().gcs_address
+        return run_page(page, folder, places)
+    finally:
+        ray.shutdown()
+
+
+def _outs(commands: list[list[str]]) -> list[str]:
+    return [argv[argv.index("--out") + 1] for argv in commands if "--out" in argv]
+
+
+def test_no_two_lines_of_a_page_or_of_the_readme_table_write_one_out() -> None:
+    """Run in order in one folder, the second of two lines with one --out would be refused
+    (or, with --overwrite, undo the first); `--resume` lines name no --out."""
+    for name, commands in [("README.md", readme_commands())] + [
+        (page, page_commands(page)) for page in [*pages(), *RUN_ELSEWHERE]
+    ]:
+        outs = _outs(commands)
+        assert len(outs) == len(set(outs)), (name, sorted(o for o in outs if outs.count(o) > 1))
+    assert _outs([["dlo", "x", "--out", "a"], ["dlo", "y", "--out", "a"]]) == ["a", "a"]
+
+
+def test_a_missing_prerequisite_or_a_shared_out_fails_the_run(tmp_path: Path, monkeypatch):
+    """What the runs above rely on: a line whose input no earlier line made, or a second line
+    writing an earlier one's --out, exits 2, and the run stops there."""
+    monkeypatch.chdir(tmp_path)
+    control = "dlo control --goal shape.npy --checkpoint runs/model --out runs/ctl"
+    with pytest.raises(AssertionError, match="runs/model"):
+        run_lines("missing", [shlex.split(control)], tmp_path, {})
+    twice = [shlex.split("dlo goal --seed 0 --out shape.npy")] * 2
+    with pytest.raises(AssertionError, match="shape.npy"):
+        run_lines("shared", twice, tmp_path, {})
+    assert (tmp_path / "shape.npy").is_file() and not (tmp_path / "runs").exists()

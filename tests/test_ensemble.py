@@ -115,3 +115,30 @@ def test_a_bad_member_count_is_refused_in_one_line(marker_run, tmp_path, capsys,
     said = capsys.readouterr().err.strip()
     assert needle in said and "--members" in said and len(said.splitlines()) == 1
     assert not out.exists()
+
+
+def test_a_fine_tune_saves_the_model_it_trains_and_refuses_other_members(marker_run, tmp_path,
+                                                                         capsys):  # fmt: skip
+    """`dlo train --init-from` a 2-member mlp: spec.json and the summary name the
+    checkpoint's model (not the default in-bilstm); --members 3 is one line, nothing
+    written."""
+    data, _ = marker_run
+    fast = ["--update-steps", "4", "--rollout-steps", "3", "--eval-every", "2", "--device",
+            "cpu", "--json"]  # fmt: skip
+    pair = tmp_path / "pair"
+    assert run_dlo(["train", "--data", str(data), "--model", "mlp", "--hidden", "8",
+                    "--members", "2", *fast, "--out", str(pair)]) == 0  # fmt: skip
+    tuned = tmp_path / "tuned"
+    assert run_dlo(["train", "--data", str(data), "--init-from", str(pair), *fast,
+                    "--out", str(tuned)]) == 0  # fmt: skip
+    saved = json.loads((tuned / "spec.json").read_text())["model"]
+    assert (saved["name"], saved["hidden"], saved["members"]) == ("mlp", 8, 2), saved
+    assert json.loads((tuned / "summary.json").read_text())["model"] == "mlp"
+    assert load_marker_model(tuned / "checkpoints" / "final.pt").spec.members == 2
+    capsys.readouterr()
+    other = tmp_path / "other"
+    assert run_dlo(["train", "--data", str(data), "--init-from", str(pair), "--members", "3",
+                    *fast, "--out", str(other)]) == 2  # fmt: skip
+    line = capsys.readouterr().err.strip()
+    assert len(line.splitlines()) == 1 and "members 2, not the 3 requested" in line, line
+    assert "drop --members" in line and not other.exists()

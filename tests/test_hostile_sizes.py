@@ -54,6 +54,15 @@ PHYSICS: list[tuple[str, str, str]] = [
      "workspace_low"),
     ("separation-inverted", "task: {min_separation: 0.9, max_separation: 0.1}",
      "min_separation"),
+    # a box without the grippers' rest: the first step pulled them in (a "near-rest" goal
+    # 653 mm from rest)
+    ("workspace-excludes-rest", "task: {workspace_low: [0.6, 0.4, 1.2], "
+     "workspace_high: [0.8, 0.6, 1.4], shapes: near-rest}", "excludes the grippers' rest"),
+    ("workspace-excludes-rest-pose", "task: {workspace_low: [0.6, 0.4, 1.2], "
+     "workspace_high: [0.8, 0.6, 1.4]}", "widen the workspace"),
+    ("workspace-excludes-rest-pybullet", "backend: {name: pybullet}\ntask: {workspace_low: "
+     "[0.6, 0.4, 1.2], workspace_high: [0.8, 0.6, 1.4], shapes: near-rest}",
+     "excludes the grippers' rest"),
     ("rest-state-mujoco", f"backend: {{name: {MUJOCO_ROD}, rod: {{radius: 1.0e-4, density: 10}}}}",
      "cannot build this rod"),
 ]  # fmt: skip

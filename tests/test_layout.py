@@ -69,6 +69,77 @@ def test_the_walker_sees_circles():
     assert cycle_from(graph, "a") == ["a", "b", "c", "a"] and cycle_from(graph, "d") is None
 
 
+# ------------------------------------------------------------------ layers
+#: dlocli's top-level modules and folders from the lowest to the highest (ARCHITECTURE.md's
+#: rooms): each imports only what comes before it, imports inside functions included;
+#: `dlocli` is the package's own __init__. What a lower layer needs of a higher one comes
+#: through a registry: the cell's client (dlocli.backends.CELL_CLIENT), the point-cloud
+#: observer (dlocli.registry.observers)
+LAYERS = [
+    # foundations: errors, cancellation, events, files, limits, registries, specs
+    "errors", "cancel", "events", "threads", "migrations", "tensorboard", "io", "limits",
+    "extras", "registry", "spec_base", "rundir", "processes", "camera_spec", "backend_spec",
+    "specs", "cell_spec", "resume", "executors",
+    # data, simulators, the task (and the package's namespace over it), learned models,
+    # recordings, the depth camera and tracker
+    "data", "backends", "env", "dlocli", "models", "markers", "tracking",
+    # what acts on the rod, its figures, the calibration, the served cell
+    "controllers", "plots", "calibration", "bridge",
+    # the commands' runs, the bench over them, the CLI
+    "runs", "bench", "cli", "__main__",
+]  # fmt: skip
+
+
+def unit(module: str) -> str:
+    """The top-level module or folder of dlocli a module belongs to."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def upward_imports(graph: dict[str, set[str]], layers: list[str]) -> list[str]:
+    """``a -> b`` for each import of a module of a lower unit's from a higher one's, or of a
+    unit ``layers`` does not place."""
+    rank = {name: i for i, name in enumerate(layers)}
+    found = []
+    for module, imports in sorted(graph.items()):
+        for target in sorted(imports):
+            low, high = unit(module), unit(target)
+            if low == high:
+                continue
+            if low not in rank or high not in rank or rank[high] > rank[low]:
+                found.append(f"{module} -> {target}")
+    return found
+
+
+def mutual_units(graph: dict[str, set[str]]) -> list[str]:
+    """``a <-> b`` for each two units that import each other (by any of their modules)."""
+    edges = {(unit(m), unit(t)) for m, imports in graph.items() for t in imports}
+    return sorted(f"{a} <-> {b}" for a, b in edges if a < b and (b, a) in edges)
+
+
+def test_imports_run_down_the_layers():
+    graph = import_graph()
+    assert {unit(m) for m in graph} == set(LAYERS), "place each new module or folder in LAYERS"
+    assert not upward_imports(graph, LAYERS), upward_imports(graph, LAYERS)
+
+
+def test_no_two_folders_import_each_other():
+    assert not mutual_units(import_graph()), mutual_units(import_graph())
+
+
+def test_the_layer_check_sees_an_upward_import_and_a_pair():
+    layers = ["errors", "models", "plots"]
+    fine = {"dlocli.errors": set(), "dlocli.models.a": {"dlocli.errors"},
+            "dlocli.models.b": {"dlocli.models.a"},
+            "dlocli.plots": {"dlocli.models.b"}}  # fmt: skip
+    assert upward_imports(fine, layers) == [] and mutual_units(fine) == []
+    looped = {**fine, "dlocli.models.c": {"dlocli.plots"}}
+    assert upward_imports(looped, layers) == ["dlocli.models.c -> dlocli.plots"]
+    assert mutual_units(looped) == ["models <-> plots"]
+    unplaced = {**fine, "dlocli.tracking.x": {"dlocli.errors"}}
+    assert upward_imports(unplaced, layers) == ["dlocli.tracking.x -> dlocli.errors"]
+
+
 # ------------------------------------------------------------------ what the source cites
 #: a `dlocli.x.y` path, and a repository path (examples/..., benchmarks/..., tests/..., dlocli/...)
 DOTTED = re.compile(r"\bdlocli(?:\.[A-Za-z_]\w*)+")

@@ -83,10 +83,13 @@ LAZY_IMPORTS = {
     # a command's module is loaded for its --help; its torch-importing runner waits for the run
     ("dlocli.cli.bench", "dlocli.bench.run"): _CLI_RUNNER,
     ("dlocli.cli.bench", "dlocli.bench.report"): _CLI_RUNNER,
+    ("dlocli.cli.adapt", "dlocli.runs.adapt"): _CLI_RUNNER,
     ("dlocli.cli.eval", "dlocli.runs.evaluate"): _CLI_RUNNER,
     ("dlocli.cli.train", "dlocli.models.fitting"): _CLI_RUNNER,
     ("dlocli.cli.train", "dlocli.runs.train"): _CLI_RUNNER,
     ("dlocli.cli.track", "dlocli.runs.track"): "scipy; `dlo track --help` needs only the spec",
+    ("dlocli.cli.sample", "dlocli.runs.sample"): "the simulator; `dlo sample --help` needs only "
+    "the spec",
     # `dlo online --help` and `dlo control --help` load these modules' specs
     ("dlocli.runs.control", "dlocli.models.base"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.control", "dlocli.models.checkpoints"): "torch; on the `dlo control --help` path",
@@ -94,12 +97,12 @@ LAZY_IMPORTS = {
     ("dlocli.runs.online.loop", "dlocli.models.fitting"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.update_steps"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.checkpoints"): _TORCH,
-    ("dlocli.runs.online.loop", "dlocli.runs.online.markers"): _TORCH,
+    ("dlocli.runs.online.loop", "dlocli.runs.online.marker_update"): _TORCH,
     ("dlocli.runs.online.results", "dlocli.models.checkpoints"): _TORCH,
     ("dlocli.runs.online.run", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.trials", "dlocli.models.checkpoints"): _TORCH,
-    ("dlocli.env.observation", "dlocli.tracking.observer"): (
-        "scipy and the camera, only for the pointcloud observation"
+    ("dlocli.plots", "dlocli.models.evaluation"): (
+        "torch, only for a model's rollout figure; the bench and control figures need none"
     ),
     # an optional library, only for a fallback
     ("dlocli.backends.pybullet_chain", "dlocli.backends.render"): (

@@ -77,13 +77,15 @@ def test_ray_trials_equal_the_local_executors(cluster, local_run, tmp_path):
     assert json.loads((out / "spec.json").read_text())["executor"] == "ray"
 
 
-def _lose_the_cluster_in_iteration_2(spec_json: str, model: object, k: int, j: int) -> object:
+def _lose_the_cluster_in_iteration_2(
+    spec_json: str, model: object, k: int, j: int, cancel: object = None
+) -> object:
     """A trial that takes its Ray worker down in iteration 2 (as a node that dies would)."""
     from dlocli.runs.online import trials
 
     if k == 2:
         os._exit(1)
-    return trials.run_trial(spec_json, model, k, j)
+    return trials.run_trial(spec_json, model, k, j, cancel)
 
 
 def test_a_cluster_lost_midway_keeps_finished_trials_and_resume_ends_the_same(
@@ -124,11 +126,16 @@ def test_an_address_that_does_not_answer_is_one_line_and_nothing_written(address
     assert not out.exists()
 
 
-@pytest.mark.parametrize("reply", [b"", b"HTTP/1.1 400 Bad Request\r\n\r\n"],
-                         ids=["silent", "http1"])  # fmt: skip
+#: an HTTP/2 server's first frame: an empty SETTINGS frame
+SETTINGS = bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+
+
+@pytest.mark.parametrize("reply", [b"", b"HTTP/1.1 400 Bad Request\r\n\r\n", SETTINGS],
+                         ids=["silent", "http1", "greets-then-silent"])  # fmt: skip
 def test_an_address_that_listens_but_is_not_ray_is_one_line_within_its_timeout(reply, tmp_path):
-    """A server that accepts and stays silent (or speaks another protocol) used to hang the
-    run until killed."""
+    """A server that accepts and stays silent (or speaks another protocol, or answers the
+    HTTP/2 preface and then nothing: ray.init waited forever) used to hang the run until
+    killed."""
     import socket
     import threading
     import time
@@ -137,10 +144,14 @@ def test_an_address_that_listens_but_is_not_ray_is_one_line_within_its_timeout(r
     accepted = []
 
     def serve() -> None:
-        connection, _ = server.accept()
-        accepted.append(connection)
-        if reply:
-            connection.sendall(reply)
+        while True:
+            try:
+                connection, _ = server.accept()
+            except OSError:  # closed at the end
+                return
+            accepted.append(connection)
+            if reply:
+                connection.sendall(reply)
 
     threading.Thread(target=serve, daemon=True).start()
     address = f"127.0.0.1:{server.getsockname()[1]}"

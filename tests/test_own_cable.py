@@ -1,7 +1,8 @@
-"""docs/own_cable.md runs as written: its `dlo` lines, read from the page itself, on a tiny
-synthetic recording (a motion-capture CSV in mm at 120 Hz), with only their counts cut, end
-to end: import, calibrate, train, evaluate, a served cell and control through it; for a cable
-held by one marker at each end, as the page's line says, and by two (DEFORM's layout)."""
+"""docs/own_cable.md runs as written: its `dlo` lines, read from the page itself, on the
+cable its first line simulates (`dlo sample`: a motion-capture CSV in mm at 120 Hz), with only
+their counts cut, end to end: import, calibrate, train, evaluate, a served cell and control
+through it; for a cable held by one marker at each end, as the page's line says, and by two
+(DEFORM's layout)."""
 
 from __future__ import annotations
 
@@ -36,10 +37,11 @@ CUTS = {
     "train": ["--update-steps", "20", "--rollout-steps", "4", "--hidden", "16",
               "--eval-every", "10", "--device", "cpu"],
     "control": ["--steps", "5"],
+    "sample": ["--train", "3", "--eval", "1", "--seconds", "0.6"],
 }  # fmt: skip
 #: numeric flags of the page that are not counts (a new count must be cut above)
 NOT_COUNTS = {"--control-hz", "--cable-length", "--cable-mass", "--seed", "--markers",
-              "--gripper-markers"}  # fmt: skip
+              "--gripper-markers", "--rate-hz"}  # fmt: skip
 
 
 def page_commands() -> list[list[str]]:
@@ -116,13 +118,16 @@ LAYOUTS = {"page": None, "two-per-end": "0,1,-2,-1"}
 def test_the_own_cable_page_runs_end_to_end(tmp_path: Path, monkeypatch, layout: str) -> None:
     assert "docs/own_cable.md" in (ROOT / "README.md").read_text(encoding="utf-8")
     commands = page_commands()
-    held_flag = commands[0].index("--held") + 1
-    held = commands[0][held_flag] if LAYOUTS[layout] is None else LAYOUTS[layout]
-    commands[0][held_flag] = held
     steps = [argv[1] for argv in commands]
-    assert steps == ["import", "calibrate", "train", "eval", "goal", "serve", "control"]
+    assert steps == ["sample", "import", "calibrate", "train", "eval", "goal", "serve", "control"]
+    sampled, imported = commands[0], commands[1]
+    held_flag = imported.index("--held") + 1
+    held = imported[held_flag] if LAYOUTS[layout] is None else LAYOUTS[layout]
+    imported[held_flag] = held
+    if LAYOUTS[layout] is not None:  # the simulated cable with a marker on each gripper
+        at = sampled.index("--gripper-markers")
+        del sampled[at : at + 2]
     monkeypatch.chdir(tmp_path)
-    write_recordings(tmp_path / "mycable")
     serve = commands[steps.index("serve")]
     page_address = serve[serve.index("--address") + 1]
     address = _free_address()
@@ -143,13 +148,14 @@ def test_the_own_cable_page_runs_end_to_end(tmp_path: Path, monkeypatch, layout:
             cell.send_signal(signal.SIGINT)
             cell.wait(timeout=30)
     data = load_dataset(tmp_path / "runs" / "mycable")
-    assert data.rate_hz == 100.0 and data.n_markers == MARKERS  # the recipe's rate
-    held_markers = [int(i) % MARKERS for i in held.split(",")]
+    markers = data.n_markers  # 10 along the rod (and one on each gripper: 12)
+    assert data.rate_hz == 100.0 and markers == (10 if LAYOUTS[layout] is None else 12)
+    held_markers = [int(i) % markers for i in held.split(",")]
     assert np.flatnonzero(data.held).tolist() == sorted(held_markers)
     calibrated = yaml.safe_load((tmp_path / "runs/mycable-sim/calibrated.yaml").read_text())
     assert calibrated["task"]["control_dt"] == pytest.approx(1 / data.rate_hz)
     arcs = calibrated["task"]["observation"]["marker_arc_lengths"]
-    assert len(arcs) == MARKERS and sum(a < 0 or a > 1 for a in arcs) == len(held_markers) - 2
+    assert len(arcs) == markers and sum(a < 0 or a > 1 for a in arcs) == len(held_markers) - 2
     model = torch.load(tmp_path / "runs/mycable-model/checkpoints/final.pt", weights_only=True)
     assert model["control_dt"] == pytest.approx(1 / data.rate_hz)
     assert model["state_dict"]["held"].tolist() == data.held.tolist()

@@ -85,7 +85,10 @@ def test_online_and_control_through_the_camera(cloud_run, near_rest_goal, tmp_pa
             str(cloud_run / "checkpoints" / "iter_02.pt"), "--observation", "pointcloud",
             "--steps", "8", "--shapes", "near-rest", "--out", str(out)]  # fmt: skip
     assert run_dlo(argv) == 0
-    assert json.loads((out / "summary.json").read_text())["steps"] == 8
+    control = json.loads((out / "summary.json").read_text())
+    assert control["steps"] == 8
+    # in simulation the run says how far the tracked markers were from the true ones
+    assert 0 < control["tracking_error_mm"] < 50, control
 
 
 def test_a_bridged_camera_run_equals_the_in_process_one(cloud_run, near_rest_goal, tmp_path):
@@ -106,6 +109,8 @@ def test_a_bridged_camera_run_equals_the_in_process_one(cloud_run, near_rest_goa
     assert not blind.exists()
     assert step_errors(there) == step_errors(here)
     assert len(step_errors(here)) == 8
+    summaries = [json.loads((run / "summary.json").read_text()) for run in (here, there)]
+    assert summaries[0]["tracking_error_mm"] == summaries[1]["tracking_error_mm"]
 
 
 def test_a_camera_run_records_its_clouds_and_the_tracked_markers(cloud_run, near_rest_goal,

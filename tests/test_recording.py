@@ -210,7 +210,7 @@ def test_view_without_the_extra_is_one_line(tmp_path: Path):
                             timeout=120)  # fmt: skip
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "pip install 'dlocli[view]'" in lines[0], result.stderr
+    assert len(lines) == 1 and "-e '.[view]'" in lines[0], result.stderr
     assert list(tmp_path.iterdir()) == []
 
 

@@ -14,7 +14,8 @@ from dlocli.runs.online import OnlineSpec
 from dlocli.specs import BackendSpec, RodSpec
 
 REGISTRIES = {"backends": registry.backends, "models": registry.models,
-              "controllers": registry.controllers, "tasks": registry.tasks}  # fmt: skip
+              "controllers": registry.controllers, "tasks": registry.tasks,
+              "observers": registry.observers}  # fmt: skip
 
 
 @pytest.mark.parametrize("kind", sorted(REGISTRIES))
@@ -39,6 +40,26 @@ def test_a_run_spec_plans_with_a_registered_planner_only():
         OnlineSpec(planner="sac")
     with pytest.raises(UnknownName, match="did you mean 'mpc'"):
         OnlineSpec(planner="mpx")
+
+
+def test_the_env_takes_its_observer_from_the_registry(monkeypatch):
+    """The pointcloud observation's tracker is the observer registered for its kind (the env
+    imports no tracker); the markers observation keeps the env's own faulty-marker tracker."""
+    from dlocli.env.observation import Tracker, marker_tracker
+    from dlocli.specs import ObservationSpec
+
+    assert registry.observers.names() == ["pointcloud"]
+    assert registry.observers.get("pointcloud").__name__ == "CloudObserver"
+
+    class Stub:
+        def __init__(self, *args):
+            self.args = args
+
+    monkeypatch.setattr(registry.observers, "get", lambda name: Stub)
+    layout = [0, 1, 2]
+    made = marker_tracker(ObservationSpec(kind="pointcloud"), layout, "backend", 0.02)
+    assert isinstance(made, Stub) and made.args[1:4] == ("backend", layout, 0.02)
+    assert isinstance(marker_tracker(ObservationSpec(kind="markers"), layout, None, 0.02), Tracker)
 
 
 def test_a_backends_segment_limit_is_its_fact():

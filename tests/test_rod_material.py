@@ -17,6 +17,8 @@ from dlocli.errors import BadInput
 from dlocli.migrations import LEGACY_VALUES
 from dlocli.specs import BackendSpec, CollectSpec, RodSpec, resolve_spec
 
+from tiny import committed_bench
+
 BACKENDS = runnable_backends()
 #: positions every 5th step of MOTION at the default spec, recorded at commit 7473c21 (before
 #: the damping fields existed) on an AMD EPYC; bit-identical there with today's code
@@ -133,11 +135,11 @@ def test_a_spec_saved_before_the_rod_fields_is_the_earlier_rod_with_its_fingerpr
     assert fingerprint(damped) != fingerprint(legacy)
 
 
-def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod() -> None:
+def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod(tmp_path: Path) -> None:
     from dlocli.bench.spec import BenchSpec, fingerprint
     from dlocli.resume import load_saved_spec
 
-    run = Path(__file__).parents[1] / "examples" / "bench_paper"
+    run = committed_bench("bench_paper", tmp_path / "bench_paper")
     spec = load_saved_spec(BenchSpec, run / "spec.json")
     assert spec.backend.rod == RodSpec(**LEGACY_VALUES["rod"])
     today = spec.model_copy(update={"backend": spec.backend.model_copy(update={"rod": RodSpec()})})
@@ -147,13 +149,15 @@ def test_committed_bench_jobs_are_marked_as_made_with_the_earlier_rod() -> None:
         assert job["fingerprint"] != fingerprint(today, job["agent"]), path.name
 
 
-def test_committed_bench_jobs_keep_the_composite_cable_in_their_fingerprints() -> None:
+def test_committed_bench_jobs_keep_the_composite_cable_in_their_fingerprints(
+    tmp_path: Path,
+) -> None:
     """MuJoCo 4's flex rod is today's default: a bench on it reruns its jobs rather than taking
     the ones the composite cable made (MuJoCo 3.17) as its own."""
     from dlocli.bench.spec import BenchSpec, fingerprint
     from dlocli.resume import load_saved_spec
 
-    run = Path(__file__).parents[1] / "examples" / "bench_paper"
+    run = committed_bench("bench_paper", tmp_path / "bench_paper")
     spec = load_saved_spec(BenchSpec, run / "spec.json")
     assert spec.backend.name == "mujoco"
     flex = spec.model_copy(

@@ -15,7 +15,6 @@ from dlocli.models.markers import build_marker_model
 from dlocli.specs import TaskSpec
 from dlocli.tracking.camera import CloudFrame, DepthCamera
 from dlocli.tracking.frames import load_frames, save_frames
-from dlocli.tracking.marker_prior import MarkerModelPrior
 from dlocli.tracking.measure import (
     HiddenSpan,
     env_layout,
@@ -24,6 +23,7 @@ from dlocli.tracking.measure import (
     track_episode,
     true_markers,
 )
+from dlocli.tracking.model_prior import MarkerModelPrior
 from dlocli.tracking.priors import ContinuityPrior, NodePrior
 from dlocli.tracking.spec import CameraSpec, TrackerSpec
 from dlocli.tracking.tracker import CableTracker

@@ -207,3 +207,13 @@ def pair_and_singles(cli: Any, common: list[str], root: Path, seeds: tuple[int, 
     pair = cli(*common, "--seed", str(seeds[0]), "--members", "2", "--out", str(root / "pair"))
     assert pair.exit_code == 0, pair.output
     return root / "pair", [root / f"alone{seed}" for seed in seeds]
+
+
+def committed_bench(example: str, out: Path) -> Path:
+    """examples/EXAMPLE's bench run as a run directory OUT, its job files rebuilt from the kept
+    results.csv and jobs.json (examples/bench_jobs.py unpack)."""
+    import runpy
+
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    runpy.run_path(str(examples / "bench_jobs.py"))["unpack"](examples / example, out)
+    return out

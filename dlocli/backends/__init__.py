@@ -7,9 +7,15 @@ lazily: importing this package imports no simulator.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from dlocli.extras import require
 from dlocli.registry import backends, import_target
+
+if TYPE_CHECKING:
+    from dlocli.backend_spec import BackendSpec
+    from dlocli.backends.base import Backend
+    from dlocli.cell_spec import CellChoice
 
 backends.register(
     "mujoco",
@@ -30,8 +36,24 @@ backends.register(
     facts="dlocli.backends.facts:PybulletFacts",
 )
 
+#: the client of a cell (`dlo serve`, or a robot speaking the dlocli-cell protocol): a backend
+#: reached by an address rather than picked by name, imported when a run names a cell
+CELL_CLIENT = "dlocli.bridge.remote:RemoteCell"
+
 _EXPORTS = {"Backend": "dlocli.backends.base", "GripperLimits": "dlocli.backends.base"}
-__all__ = [*sorted(_EXPORTS), "runnable_backends"]
+__all__ = [*sorted(_EXPORTS), "make_backend", "runnable_backends"]
+
+
+def make_backend(
+    spec: BackendSpec, control_dt: float = 0.02, cell: CellChoice | None = None
+) -> Backend:
+    """Build the registered backend named by ``spec.name``, or, with ``cell.cell`` set, the
+    rod of ``spec`` stepped by the cell at that address (:data:`CELL_CLIENT`)."""
+    if cell is not None and cell.cell is not None:
+        require("bridge", "--cell", "drop --cell to simulate in this process")
+        client = import_target(CELL_CLIENT)
+        return client(spec, control_dt, cell.cell, cell.cell_timeout_s, cell.cell_keys)
+    return backends.get(spec.name)(spec, control_dt=control_dt)
 
 
 def runnable_backends() -> list[str]:

@@ -20,6 +20,9 @@ class BackendFacts:
     max_segments: ClassVar[int | None] = None
     #: the value a rod field left at None stands for in this backend (its own constant)
     unset_rod_values: ClassVar[Mapping[str, float]] = {}
+    #: per planner name, options (fields of its spec) that a run on this backend plans with
+    #: unless it sets them: what its rod's motion asks of the planner (none: the paper's)
+    planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {}
 
     @classmethod
     def effective_rod(cls, rod: RodSpec) -> RodSpec:
@@ -57,6 +60,14 @@ class PybulletFacts(BackendFacts):
 
 class FlexFacts(BackendFacts):
     """MuJoCo 4's flex rod."""
+
+    # its sideways swing decays 4x slower than the cable's: the plan pays for the motion it
+    # leaves (it damps the swing instead of chasing it), and Gauss-Newton steps are damped as
+    # much as the curvature they scale (docs/benchmarks.md, a planner that damps the swing)
+    # (measured for the gradient MPC only)
+    planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {
+        "mpc": {"motion_cost": 32.0, "damping": 1.0}
+    }
 
     # MuJoCo's flex damping time for bending and twist
     unset_rod_values: ClassVar[Mapping[str, float]] = {

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dlocli.bench.spec import eval_points, mpc_points, mpc_schedule
+from dlocli.cancel import CancelToken
 from dlocli.controllers.base import LearningAgent, make_controller
 from dlocli.data import Dataset
 from dlocli.env.rollout import episode_scores, stream_seed
@@ -39,7 +40,6 @@ from dlocli.io import atomic_path, read_json, write_json_atomic
 from dlocli.models.base import build_model, resolve_device
 from dlocli.models.checkpoints import load_planning_model
 from dlocli.models.update_steps import train_like_online
-from dlocli.processes import signal_token
 from dlocli.registry import controllers
 from dlocli.runs.online import TRAIN, OnlineRun, OnlineSpec, random_data_episode
 from dlocli.specs import BackendSpec, GoalSpec, TaskSpec
@@ -74,16 +74,19 @@ def fixed_goal(spec: BenchSpec, task: str, seed: int) -> np.ndarray:
     return _goal(spec.backend.model_dump_json(), task_json, seed).copy()
 
 
-def make_bench_env(spec: BenchSpec, task: str, goals: str, seed: int) -> DLOShapeEnv:
-    """A DLOShapeEnv of ``task`` with the seed's fixed goal or random goals."""
+def make_bench_env(
+    spec: BenchSpec, task: str, goals: str, seed: int, cancel: CancelToken | None = None
+) -> DLOShapeEnv:
+    """A DLOShapeEnv of ``task`` with the seed's fixed goal or random goals; ``cancel`` stops
+    it between physics steps."""
     task_spec = spec.task.model_copy(update={"name": task, "goal": goals, "goal_file": None})
     goal = fixed_goal(spec, task, seed) if goals == "fixed" else None
-    return make_env(spec.backend, task_spec, goal=goal, seed=seed, cancel=signal_token())
+    return make_env(spec.backend, task_spec, goal=goal, seed=seed, cancel=cancel)
 
 
-def train_env(spec: BenchSpec, seed: int) -> DLOShapeEnv:
+def train_env(spec: BenchSpec, seed: int, cancel: CancelToken | None = None) -> DLOShapeEnv:
     """The env an agent learns on (the bench's task and goal mode)."""
-    return make_bench_env(spec, spec.task.name, spec.task.goal, seed)
+    return make_bench_env(spec, spec.task.name, spec.task.goal, seed, cancel)
 
 
 # ----------------------------------------------------------------------------- agents
@@ -135,13 +138,17 @@ def check_agent(name: str) -> None:
 
 
 class BenchLearner(ABC):
-    """One agent x seed of a benchmark. ``transitions``: env steps used so far."""
+    """One agent x seed of a benchmark. ``transitions``: env steps used so far; ``cancel``
+    stops its learning (its envs between physics steps, its fits between gradient steps)."""
 
-    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
+    def __init__(
+        self, name: str, spec: BenchSpec, seed: int, work: Path, cancel: CancelToken | None = None
+    ) -> None:
         self.name = name
         self.spec = spec
         self.seed = seed
         self.work = Path(work)
+        self.cancel = cancel
         self.transitions = 0
 
     def points(self) -> list[int]:
@@ -194,9 +201,11 @@ class FixedLearner(BenchLearner):
 class AgentLearner(BenchLearner):
     """A registered :class:`LearningAgent` (sac, td3, pilco) on its own training env."""
 
-    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
-        super().__init__(name, spec, seed, work)
-        self.env = train_env(spec, seed)
+    def __init__(
+        self, name: str, spec: BenchSpec, seed: int, work: Path, cancel: CancelToken | None = None
+    ) -> None:
+        super().__init__(name, spec, seed, work, cancel)
+        self.env = train_env(spec, seed, cancel)
         options = spec.options.get(name)
         self.agent: LearningAgent = make_controller(name, self.env, options=options, seed=seed)
         self.agent.log_to(self.work / TENSORBOARD_DIR)
@@ -247,9 +256,11 @@ class MPCLearner(BenchLearner):
 class OnlineMPCLearner(MPCLearner):
     """Algorithm 1 (``dlocli.runs.online``) in ``work``; evaluated after every model update."""
 
-    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
-        super().__init__(name, spec, seed, work)
-        self.run = OnlineRun(online_spec(spec, seed, work), cancel=signal_token())
+    def __init__(
+        self, name: str, spec: BenchSpec, seed: int, work: Path, cancel: CancelToken | None = None
+    ) -> None:
+        super().__init__(name, spec, seed, work, cancel)
+        self.run = OnlineRun(online_spec(spec, seed, work), cancel=cancel)
         self.updates = 0  # model updates done: the model of point k is update k+1
 
     def learn_to(self, transitions: int) -> None:
@@ -289,8 +300,10 @@ class OfflineMPCLearner(MPCLearner):
     Its checkpoint is the transition count alone (:meth:`BenchLearner.save_state`): every
     point trains a fresh model, and the random episodes are seeded one by one."""
 
-    def __init__(self, name: str, spec: BenchSpec, seed: int, work: Path) -> None:
-        super().__init__(name, spec, seed, work)
+    def __init__(
+        self, name: str, spec: BenchSpec, seed: int, work: Path, cancel: CancelToken | None = None
+    ) -> None:
+        super().__init__(name, spec, seed, work, cancel)
         self.data: Dataset | None = None
         self._model: DynamicsModel | None = None
 
@@ -304,7 +317,7 @@ class OfflineMPCLearner(MPCLearner):
         model = build_model(self.spec.model, data.n_segments).to(device)
         fit = self.spec.fit.model_copy(update={"seed": stream_seed(self.seed, TRAIN, 1) % 2**31})
         # as long as the online model's updates so far
-        train_like_online(model, data, fit, k + 1, cancel=signal_token())
+        train_like_online(model, data, fit, k + 1, cancel=self.cancel)
         self._model = model
         self.transitions = data.n_transitions
 
@@ -315,7 +328,7 @@ class OfflineMPCLearner(MPCLearner):
         if needed <= 0:
             assert self.data is not None
             return self.data
-        env = train_env(self.spec, self.seed)
+        env = train_env(self.spec, self.seed, self.cancel)
         try:
             new = []
             for e in range(episodes, episodes + needed):

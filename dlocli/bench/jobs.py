@@ -17,6 +17,7 @@ import numpy as np
 from dlocli.bench.agents import learner_class, make_bench_env
 from dlocli.bench.checkpoint import JobCheckpoint, Standing
 from dlocli.bench.spec import BenchSpec, fingerprint, resolved_options
+from dlocli.cancel import CancelToken
 from dlocli.env.rollout import episode_scores, rollout, stream_seed
 from dlocli.io import versions
 from dlocli.tensorboard import Scalars
@@ -89,8 +90,16 @@ def _workdir(scratch: str | None) -> Iterator[Path]:
         yield Path(tmp)
 
 
-def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -> dict[str, Any]:
-    """Learn and evaluate one agent x seed; returns its result (rows of results.csv)."""
+def run_job(
+    spec_json: str,
+    agent: str,
+    seed: int,
+    scratch: str | None = None,
+    cancel: CancelToken | None = None,
+) -> dict[str, Any]:
+    """Learn and evaluate one agent x seed; returns its result (rows of results.csv).
+    ``cancel`` stops it between physics and gradient steps, its last evaluation point kept
+    in ``scratch``'s checkpoint (a copy in another process: that process's signals end it)."""
     spec = BenchSpec.model_validate_json(spec_json)
     _seed_globals(seed)
     with torch_threads(spec.threads), _workdir(scratch) as work:
@@ -100,7 +109,7 @@ def run_job(spec_json: str, agent: str, seed: int, scratch: str | None = None) -
         checkpoint = None
         if scratch is not None:
             checkpoint = JobCheckpoint(work / RESUME_DIR, fingerprint(spec, agent))
-        progress, saved = _learn_and_evaluate(spec, agent, seed, work, policy, checkpoint)
+        progress, saved = _learn_and_evaluate(spec, agent, seed, work, policy, checkpoint, cancel)
         if checkpoint is not None:
             checkpoint.remove()
     return {
@@ -123,12 +132,13 @@ def _learn_and_evaluate(
     work: Path,
     policy: Path | None,
     checkpoint: JobCheckpoint | None = None,
+    cancel: CancelToken | None = None,
 ) -> tuple[Standing, bool]:
     """The job's evaluation rows (in its final Standing), and whether its final policy was
     saved in ``policy``; with ``checkpoint``, continued from the last one and checkpointed
     after every point."""
-    learner, progress = _start(spec, agent, seed, work, checkpoint)
-    envs = {setting: make_bench_env(spec, *setting, seed) for setting in curve_settings(spec)}
+    learner, progress = _start(spec, agent, seed, work, checkpoint, cancel)
+    envs = {s: make_bench_env(spec, *s, seed, cancel) for s in curve_settings(spec)}
     rows, wall, trained = progress.rows, progress.wall, progress.trained
     began = time.perf_counter() - progress.seconds  # as if never stopped
     scalars = Scalars(work)
@@ -154,7 +164,7 @@ def _learn_and_evaluate(
                 checkpoint.save(learner, progress)
             clock.report(learner.transitions, points[-1], evaluated)
         for setting in final_settings(spec):
-            env = make_bench_env(spec, *setting, seed)
+            env = make_bench_env(spec, *setting, seed, cancel)
             try:
                 rows += _evaluation_rows(spec, learner, env, setting, seed, point_row)
             finally:
@@ -217,11 +227,16 @@ def _point_row(
 
 
 def _start(
-    spec: BenchSpec, agent: str, seed: int, work: Path, checkpoint: JobCheckpoint | None
+    spec: BenchSpec,
+    agent: str,
+    seed: int,
+    work: Path,
+    checkpoint: JobCheckpoint | None,
+    cancel: CancelToken | None = None,
 ) -> tuple[Any, Standing]:
     """The job's learner and progress: at its last checkpoint, or new (and no stale
     checkpoint files left) where there is none or it does not load."""
-    learner = learner_class(agent)(agent, spec, seed, work)
+    learner = learner_class(agent)(agent, spec, seed, work, cancel)
     progress = None
     if checkpoint is not None:
         try:
@@ -233,7 +248,7 @@ def _start(
             )
             learner.close()
             _seed_globals(seed)
-            learner = learner_class(agent)(agent, spec, seed, work)
+            learner = learner_class(agent)(agent, spec, seed, work, cancel)
         if progress is None:
             checkpoint.remove()  # not this job's (another fingerprint or versions), or damaged
     return learner, progress or Standing(-1, [], 0.0, 0)

@@ -61,6 +61,7 @@ from dlocli.bench.spec import (
     option_agents,
     seeds_of,
 )
+from dlocli.cancel import CancelToken
 from dlocli.controllers.base import controller_spec
 from dlocli.controllers.sb3_specs import SB3Spec
 from dlocli.env.shape_env import observation_space, observed_markers
@@ -145,14 +146,19 @@ def _refuse_oversized_agents(spec: BenchSpec) -> None:
 class BenchRun:
     """The jobs of a bench over a run directory; :meth:`run` again resumes."""
 
-    def __init__(self, spec: BenchSpec, progress: Callback | None = None) -> None:
+    def __init__(
+        self, spec: BenchSpec, progress: Callback | None = None, cancel: CancelToken | None = None
+    ) -> None:
         """``progress`` gets a Began of the jobs to run (``values``: the bench's ``total``
         jobs, those ``continuing`` from a checkpoint, at how many transitions, and those left
         to another process, by PID: ``elsewhere``), then an Event per finished job (its
-        ``job`` name and ``seconds``; a failed one: ``error``)."""
+        ``job`` name and ``seconds``; a failed one: ``error``). ``cancel`` stops the bench
+        between jobs, and a job run in this process between its physics and gradient steps;
+        finished jobs are saved, a stopped job keeps its last evaluation point."""
         self.spec = spec
         self.out = Path(spec.out)
         self.progress = progress or ignore
+        self.cancel = cancel or CancelToken()
 
     def job_file(self, agent: str, seed: int) -> Path:
         return self.out / "jobs" / f"{agent}-s{seed}.json"
@@ -225,7 +231,7 @@ class BenchRun:
         """Run ``todo``, saving each job as it finishes; what each failed job raised."""
         failed: dict[str, BaseException] = {}
         spec_json = self.spec.model_dump_json()
-        calls = [(spec_json, job.agent, job.seed, job.scratch) for job in todo]
+        calls = [(spec_json, job.agent, job.seed, job.scratch, self.cancel) for job in todo]
         try:
             for done, (index, result) in enumerate(executor.map(run_job, calls), 1):
                 job = todo[index]
@@ -237,6 +243,7 @@ class BenchRun:
                 write_json_atomic(self.job_file(job.agent, job.seed), result)
                 took = {"job": job.name, "seconds": result["seconds"]}
                 self.progress(Event("job", done, len(todo), took))
+                self.cancel.raise_if_cancelled()
         except ClusterLost as lost:
             raise DloError(lost.line(self.out)) from lost
         return failed
@@ -276,9 +283,13 @@ class BenchRun:
 
 # ----------------------------------------------------------------------------- entry points
 def start_bench(
-    spec: BenchSpec, overwrite: bool = False, progress: Callback | None = None
+    spec: BenchSpec,
+    overwrite: bool = False,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
-    """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept)."""
+    """A new bench in ``spec.out`` (with ``overwrite``: finished jobs of the same spec kept);
+    ``progress`` and ``cancel`` as :class:`BenchRun` takes them."""
     check_spec(spec)
     if (Path(spec.out) / "spec.json").is_file() and not overwrite:
         if (Path(spec.out) / "jobs").is_dir():
@@ -291,7 +302,7 @@ def start_bench(
     with open_executor(spec, spec.threads) as executor, owned(spec.out):
         out = prepare_run_dir(spec.out, overwrite)
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-        return BenchRun(spec, progress).run(executor)
+        return BenchRun(spec, progress, cancel).run(executor)
 
 
 def load_bench_spec(run_dir: Path, overrides: dict[str, Any] | None = None) -> BenchSpec:
@@ -301,15 +312,19 @@ def load_bench_spec(run_dir: Path, overrides: dict[str, Any] | None = None) -> B
 
 
 def resume_bench(
-    run_dir: Path, overrides: dict[str, Any], progress: Callback | None = None
+    run_dir: Path,
+    overrides: dict[str, Any],
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
-    """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change."""
+    """Run the missing jobs of ``run_dir``. Agents, seeds and the executor may change;
+    ``progress`` and ``cancel`` as :class:`BenchRun` takes them."""
     spec = load_bench_spec(run_dir, overrides)
     check_spec(spec)
     with open_executor(spec, spec.threads) as executor, owned(run_dir, shared=True):
         adopt_written(Path(run_dir), LAYOUT_TOPS)  # a run killed outright could not record them
         write_json_atomic(Path(run_dir) / "spec.json", spec.model_dump(mode="json"))
-        return BenchRun(spec, progress).run(executor)
+        return BenchRun(spec, progress, cancel).run(executor)
 
 
 def _cause(exc: BaseException) -> str:

@@ -18,7 +18,13 @@ from dlocli.controllers.specs import (
     planner_options_field,
 )
 from dlocli.executors import ExecutorChoice
-from dlocli.limits import MAX_COUNT, MAX_PROCESSES, MAX_SEEDS, MAX_TRANSITIONS
+from dlocli.limits import (
+    MAX_CLUSTER_WORKERS,
+    MAX_COUNT,
+    MAX_PROCESSES,
+    MAX_SEEDS,
+    MAX_TRANSITIONS,
+)
 from dlocli.migrations import (
     fit_fingerprint_form,
     model_fingerprint_form,
@@ -90,8 +96,9 @@ class BenchSpec(EnvSpec, ExecutorChoice):
     workers: int | None = Field(
         None,
         gt=0,
-        le=MAX_PROCESSES,
-        description="Parallel jobs (local processes or Ray CPUs); None = CPU count.",
+        le=MAX_CLUSTER_WORKERS,
+        description="Parallel jobs (local processes or Ray CPUs; at most this machine's CPUs, "
+        "or with --ray-address the cluster's); None = CPU count.",
     )
     threads: int = Field(1, gt=0, le=MAX_PROCESSES, description="Torch threads per job.")
     out: Path = Field(Path("runs/bench"), description="Run directory.")

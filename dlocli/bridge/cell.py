@@ -2,9 +2,12 @@
 the checks and the session of :mod:`dlocli.bridge.server`.
 
 In lockstep (the default) the rod steps when a command comes, so a bridged run equals an
-in-process one. In real time the cell keeps its own clock, as a robot does: a control period
-whose command has not come by its tick is stepped with the held command and counted late; a
-cell left without commands for ``hold_s`` stops (zero velocity) by itself. ``delay_s`` holds
+in-process one. In real time the cell keeps its own clock, as a robot does, from the first
+step after a reset (what a controller does before it, planning included, costs no period): a
+control period whose command has not come by its tick is stepped with the held command, and
+a command that came after one or more such ticks is counted late once (``step`` counts every
+period, so the periods missed are ``step`` less the commands sent); a cell left without
+commands for ``hold_s`` stops (zero velocity) by itself. ``delay_s`` holds
 every reply back (a tracker's latency), ``drop_probability`` loses commands (the held one
 acts instead).
 """
@@ -17,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.backends import make_backend
 from dlocli.backends.base import Backend
 from dlocli.bridge import messages
 from dlocli.bridge.keys import require_keys_off_loopback
@@ -25,7 +29,6 @@ from dlocli.bridge.server import serve as serve_handler
 from dlocli.bridge.spec import ServeSpec
 from dlocli.camera_spec import CameraSpec
 from dlocli.cancel import CancelToken
-from dlocli.env.shape_env import make_backend
 from dlocli.errors import BadInput
 from dlocli.tracking.camera import DepthCamera
 
@@ -41,7 +44,10 @@ class Cell(CellHandler):
         self.rng = np.random.default_rng(spec.seed)
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
-        self.clock_start = self.commanded_at = time.monotonic()
+        #: when the first step after the reset came (real time: the periods' ticks count
+        #: from it); None until then
+        self.clock_start: float | None = None
+        self.commanded_at = time.monotonic()
         self.seen: dict[str, np.ndarray] = {}  # the cable as the tracker last saw it
         self.state_size = self.backend.get_state().size
         self.camera = served_camera(spec, backend.rod.length)
@@ -65,13 +71,13 @@ class Cell(CellHandler):
         self.backend.reset(request.seed)
         self.held = np.zeros((2, 6))
         self.step_count = self.late = self.dropped = 0
-        self.clock_start = self.commanded_at = time.monotonic()
+        self.clock_start, self.commanded_at = None, time.monotonic()
         return self._state(reset=True)
 
     def on_step(self, request: messages.Step) -> dict[str, Any]:
         velocities = np.array(request.velocities, dtype=np.float64)
         if self.spec.realtime:
-            self._catch_up()
+            self._start_clock_or_catch_up()
         if self.rng.random() < self.spec.drop_probability:
             self.dropped += 1  # lost on the way: the held command acts in its period
         else:
@@ -116,6 +122,7 @@ class Cell(CellHandler):
 
     def on_release(self) -> None:
         self.held = np.zeros((2, 6))
+        self.clock_start = None  # the next controller's first step starts the clock again
 
     # ------------------------------------------------------------------ the rod
     def _apply_limits(self, limits: messages.Limits) -> None:
@@ -139,22 +146,29 @@ class Cell(CellHandler):
         own.min_separation, own.max_separation = limits.min_separation, limits.max_separation
 
     def _advance(self, velocities: np.ndarray) -> None:
-        if self.spec.realtime:
+        if self.spec.realtime and self.clock_start is not None:
             _sleep_until(self.clock_start + (self.step_count + 1) * self.backend.control_dt)
         self.backend.step(velocities)
         self.step_count += 1
 
-    def _catch_up(self) -> None:
-        """Real time: the periods whose tick passed before this command came run with the
-        held command (late); from ``hold_s`` after the last command the held one is zero."""
-        dt = self.backend.control_dt
+    def _start_clock_or_catch_up(self) -> None:
+        """Real time: the first step after a reset starts the clock (its period ends one
+        control period later). Later, the periods whose tick passed before this command came
+        run with the held command, and the command counts late once; from ``hold_s`` after
+        the last command the held one is zero."""
         now = time.monotonic()
+        if self.clock_start is None:
+            self.clock_start = now - self.step_count * self.backend.control_dt
+            return
+        dt = self.backend.control_dt
+        missed = 0
         while (tick := self.clock_start + (self.step_count + 1) * dt) < now:
             if tick - self.commanded_at > self.spec.hold_s:
                 self.held = np.zeros((2, 6))
             self.backend.step(self.held)
             self.step_count += 1
-            self.late += 1
+            missed += 1
+        self.late += int(missed > 0)
 
     def _state(self, reset: bool = False) -> dict[str, Any]:
         if self.spec.delay_s > 0:

@@ -104,6 +104,13 @@ def _load(folder: Path, name: str, secret: bool, flag: str) -> tuple[bytes, byte
         raise BadInput(
             f"{flag} {folder}: no {path.name} there; make the keys with `dlo keys --out {folder}`"
         )
+    mode = path.stat().st_mode & 0o777
+    if secret and mode & 0o077:  # as ssh refuses a private key others can read
+        raise BadInput(
+            f"{flag} {folder}: {path.name} is readable by others (mode {mode:o}), and it is "
+            f"a secret key: run `chmod 600 {path}` (and make new keys if others may have "
+            "read it)"
+        )
     try:
         public, secret_key = zmq.auth.load_certificate(path)
     except (OSError, ValueError, KeyError) as exc:

@@ -35,8 +35,10 @@ Requests (``type``) and their replies:
 ``state`` = {step, time, diverged, tracked, positions (N x 3), quaternions (N x 4), grippers
 (2 x 7: x y z qw qx qy qz), late, dropped}: ``step`` counts the cell's control periods since
 the reset, ``tracked`` is false when the tracker lost the cable (positions and quaternions are
-then the last ones it saw), ``late`` counts the periods the cell stepped with the held command
-because none had come in time, ``dropped`` the commands it lost. Any request may get
+then the last ones it saw), ``late`` counts the commands that came after their period's tick
+(a real-time cell; each once, however many periods it stepped with the held command
+meanwhile; its clock starts at the first step after a reset), ``dropped`` the commands it
+lost. Any request may get
 ``error`` {code, message}: ``bad_request`` (the request was refused and nothing changed),
 ``busy`` (another controller owns the cell), ``no_session`` (send ``hello`` first; a session
 that idled out is gone), ``refused`` (the cell cannot do it, e.g. ``set_state`` on a robot).

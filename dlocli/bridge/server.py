@@ -7,7 +7,9 @@ dropped unread), one frame, a JSON object of one of the protocol's types whose e
 its type, range and shape (:mod:`dlocli.bridge.messages`), and the session: a cell belongs to
 the controller that said ``hello`` until its ``bye`` or until it stayed silent for
 ``session_idle_s`` (the grippers are then stopped). A refused request gets ``error`` and
-changes nothing; the cell serves on, whatever it was sent.
+changes nothing; the cell serves on, whatever it was sent. The log gets a line for each
+session opened and ended, each request refused as ``busy`` and each failed handshake (a
+client without the cell's keys, or of another protocol).
 """
 
 from __future__ import annotations
@@ -129,6 +131,7 @@ class CellServer:
     # ------------------------------------------------------------------ sessions
     def _hello(self, hello: messages.Hello) -> bytes:
         if self.session is not None:
+            self.log("refused a hello: busy (a controller owns the cell)")
             raise _Denied("busy", self._busy())
         spoken = (hello.protocol, hello.version)
         if spoken != (protocol.PROTOCOL, protocol.VERSION):
@@ -155,7 +158,10 @@ class CellServer:
                 f"no session: send hello first (a session ends with bye or after "
                 f"{self.idle_s:g} s without a request)",
             )
-        if not secrets.compare_digest(token, self.session):
+        # bytes: compare_digest refuses str holding anything but ASCII
+        if not secrets.compare_digest(token.encode("utf-8", "surrogatepass"),
+                                      self.session.encode()):  # fmt: skip
+            self.log("refused a request: busy (not the session's token)")
             raise _Denied("busy", self._busy())
         self.last_request = time.monotonic()
 
@@ -221,7 +227,7 @@ def serve(
     socket = context.socket(zmq.REP)
     socket.setsockopt(zmq.LINGER, 0)
     socket.setsockopt(zmq.MAXMSGSIZE, protocol.MAX_MESSAGE_BYTES)
-    authenticator = None
+    authenticator = monitor = None
     try:
         if keys is not None:
             authenticator = secure_cell(context, socket, keys)
@@ -229,20 +235,65 @@ def serve(
             socket.bind(address)
         except zmq.ZMQError as exc:
             raise BadInput(f"--address {address}: cannot listen there ({exc})") from None
+        monitor = socket.get_monitor_socket(HANDSHAKE_FAILURES)
         if ready is not None:
             ready(socket.getsockopt_string(zmq.LAST_ENDPOINT))
-        _loop(CellServer(handler, idle_s, log), socket, cancel or CancelToken())
+        _loop(CellServer(handler, idle_s, log), socket, monitor, cancel or CancelToken())
     finally:
+        if monitor is not None:
+            socket.disable_monitor()
+            monitor.close()
         socket.close()
         if authenticator is not None:
             authenticator.stop()
         context.term()
 
 
-def _loop(server: CellServer, socket: Any, cancel: CancelToken) -> None:
+def _loop(server: CellServer, socket: Any, monitor: Any, cancel: CancelToken) -> None:
+    import zmq
+
+    poller = zmq.Poller()
+    poller.register(socket, zmq.POLLIN)
+    poller.register(monitor, zmq.POLLIN)
+    handshakes = _HandshakeLog(server.log)
     while True:
         cancel.raise_if_cancelled()
-        if not socket.poll(POLL_MS):
+        ready = dict(poller.poll(POLL_MS))
+        if monitor in ready:
+            handshakes.failed(monitor)
+        if socket not in ready:
             server.expire_idle()
             continue
         socket.send(server.answer(socket.recv_multipart()))
+
+
+#: the socket events of a client that failed to connect (ZeroMQ's monitor)
+HANDSHAKE_FAILURES = 0x0800 | 0x2000 | 0x4000  # FAILED_NO_DETAIL, FAILED_PROTOCOL, FAILED_AUTH
+#: a refused client retries every 100 ms: its repeats within this long are counted, not logged
+REPEATS_QUIET_S = 10.0
+_WHY_FAILED = {
+    0x0800: "a client without this cell's keys, of another protocol, or one that hung up",
+    0x2000: "a client without this cell's keys (or not speaking ZeroMQ's CURVE) was refused",
+    0x4000: "a client whose key this cell's --keys folder does not hold was refused",
+}
+
+
+class _HandshakeLog:
+    """One log line per failed handshake the monitor reports; the same failure again within
+    :data:`REPEATS_QUIET_S` is counted, and the next line says how many."""
+
+    def __init__(self, log: Log) -> None:
+        self.log, self.last, self.quiet_until, self.repeats = log, "", 0.0, 0
+
+    def failed(self, monitor: Any) -> None:
+        from zmq.utils.monitor import recv_monitor_message
+
+        event = recv_monitor_message(monitor)
+        why = _WHY_FAILED.get(event["event"], f"socket event {event['event']}")
+        now = time.monotonic()
+        if why == self.last and now < self.quiet_until:
+            self.repeats += 1
+            return
+        more = f" (the failure before repeated {self.repeats} times)" if self.repeats else ""
+        self.log(f"a handshake failed: {why}{more}")
+        self.last, self.quiet_until, self.repeats = why, now + REPEATS_QUIET_S, 0

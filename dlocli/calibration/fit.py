@@ -23,7 +23,7 @@ from pydantic import ValidationError
 
 from dlocli.calibration import parameters as params
 from dlocli.calibration.replay import (
-    MarkerLayout,
+    RecordedArcs,
     ReplaySettings,
     check_end_pairs,
     check_rod_fits,
@@ -72,8 +72,8 @@ def load_cable(spec: CalibrateSpec) -> Cable:
     check_end_pairs(list(everything.values()), list(everything))
     train, evaluation = found["train"], found.get("eval") or found["train"]
     grip = grip_markers(held, spec.backend.rod.clamp_compliance)
-    layout = MarkerLayout.from_recordings([r for _, r in train]).between(grip)
-    rod_length = spec.rod_length or layout.span(grip)
+    arcs = RecordedArcs.from_recordings([r for _, r in train]).between(grip)
+    rod_length = spec.rod_length or arcs.span(grip)
     if spec.cable_length < rod_length:
         raise BadInput(
             f"cable_length {spec.cable_length:g} m is shorter than the rod between its "
@@ -87,7 +87,7 @@ def load_cable(spec: CalibrateSpec) -> Cable:
         backend = BackendSpec.model_validate({**spec.backend.model_dump(), "rod": rod})
     except ValidationError as exc:
         raise BadInput(f"the cable's rod: {format_validation_error(exc)}") from None
-    arc = layout.arc * (rod_length / layout.span(grip))
+    arc = arcs.arc * (rod_length / arcs.span(grip))
     return Cable(train, evaluation, arc, backend, held)
 
 

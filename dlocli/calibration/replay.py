@@ -59,8 +59,9 @@ def grip_markers(held: np.ndarray, clamp_compliance: str) -> tuple[int, int]:
 
 
 @dataclass(frozen=True)
-class MarkerLayout:
-    """Where the markers sit on the simulated rod: arc lengths (m) from marker 0."""
+class RecordedArcs:
+    """Where the recorded markers sit along the cable, as the recordings measure it: arc
+    lengths (m) from marker 0 (where markers sit on a simulated rod: ``MarkerLayout``)."""
 
     arc: np.ndarray
 
@@ -69,15 +70,15 @@ class MarkerLayout:
         return float(self.arc[-1])
 
     @classmethod
-    def from_recordings(cls, recordings: list[np.ndarray]) -> MarkerLayout:
+    def from_recordings(cls, recordings: list[np.ndarray]) -> RecordedArcs:
         """Mean marker spacing over every frame of (T,V,3) recordings."""
         frames = np.concatenate(recordings)
         spacing = np.linalg.norm(np.diff(frames, axis=1), axis=-1).mean(0)
         return cls(np.concatenate([[0.0], np.cumsum(spacing)]))
 
-    def between(self, grip: tuple[int, int]) -> MarkerLayout:
+    def between(self, grip: tuple[int, int]) -> RecordedArcs:
         """Arc lengths from the left grip marker (the rod's length: up to the right one)."""
-        return MarkerLayout(self.arc - self.arc[grip[0]])
+        return RecordedArcs(self.arc - self.arc[grip[0]])
 
     def span(self, grip: tuple[int, int]) -> float:
         """The rod's length between the grip markers (m)."""
@@ -278,7 +279,7 @@ def replay(
     """Drive ``backend`` with a (T,V,3) recording's held-marker motion (see module doc).
 
     The backend's control period must be the recording's frame period; ``arc`` is measured
-    from the left grip marker (:meth:`MarkerLayout.between`)."""
+    from the left grip marker (:meth:`RecordedArcs.between`)."""
     dt = backend.control_dt
     offset = workspace_offset(recording, backend)
     held = settings.held_mask(recording.shape[1])

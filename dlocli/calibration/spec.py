@@ -9,7 +9,7 @@ from pydantic import Field, field_validator
 
 from dlocli.calibration.parameters import PARAMETERS
 from dlocli.executors import ExecutorChoice
-from dlocli.limits import MAX_PROCESSES, MAX_SEED
+from dlocli.limits import MAX_CLUSTER_WORKERS, MAX_SEED
 from dlocli.specs import BackendSpec, RodSpec
 
 
@@ -102,9 +102,10 @@ class CalibrateSpec(ExecutorChoice):
         0.25, gt=0, le=1, description="CMA-ES initial step, in units of each parameter's range."
     )
     workers: int = Field(
-        2, ge=1, le=MAX_PROCESSES,
-        description="Processes replaying trajectories in parallel; with --executor ray and no "
-        "--ray-address, the CPUs of the local Ray instance (a cluster's are its own).",
+        2, ge=1, le=MAX_CLUSTER_WORKERS,
+        description="Processes replaying trajectories in parallel (at most one per CPU); with "
+        "--executor ray and no --ray-address, the CPUs of the local Ray instance; with "
+        "--ray-address, at most the cluster's CPUs.",
     )  # fmt: skip
     seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of the draw and of CMA-ES.")
     out: Path = Field(Path("runs/calibrate"), description="Run directory.")

@@ -9,7 +9,6 @@ import ast
 import importlib
 import importlib.util
 import sys
-import textwrap
 import typing
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -17,7 +16,6 @@ from typing import TYPE_CHECKING, Any
 
 import typer
 import typer.main
-from typer._click import _textwrap as _click_textwrap
 from typer.core import TyperCommand, TyperGroup, TyperOption
 
 from dlocli import __version__
@@ -26,15 +24,36 @@ from dlocli.errors import BadInput
 from dlocli.processes import handle_stop_signals
 from dlocli.threads import fit_this_process
 
-if TYPE_CHECKING:  # Typer carries its own Click; these names are for annotations only
+if TYPE_CHECKING:
     from importlib.metadata import EntryPoint
 
-    from typer._click import Context, HelpFormatter
+#: a hyphen while Click wraps --help: a character its wrapping never splits a word at
+_HELD_HYPHEN = "\u2011"
 
-# --help wraps at spaces only: a value such as optimizer=gauss-newton is copied from it, so it
-# must not be split at its hyphen (Typer's Click wraps with textwrap, which splits words at
-# hyphens by its wordsep_re; its whitespace-only pattern is textwrap's own)
-_click_textwrap.TextWrapper.wordsep_re = textwrap.TextWrapper.wordsep_simple_re
+
+class _HelpFormatter(typer.Context.formatter_class):  # type: ignore[valid-type,misc]
+    """--help wrapped at spaces only: a value such as optimizer=gauss-newton is copied from
+    it, so it must not be split at its hyphen (Click wraps with textwrap, which splits words
+    at hyphens). Hyphens are held as a one-character stand-in while Click wraps, so the lines
+    break where they would at spaces alone."""
+
+    def write_dl(self, rows: Any, col_max: int = 30, col_spacing: int = 2) -> None:
+        start = len(self.buffer)
+        held = [(first, second.replace("-", _HELD_HYPHEN)) for first, second in rows]
+        super().write_dl(held, col_max, col_spacing)
+        self.buffer[start:] = [s.replace(_HELD_HYPHEN, "-") for s in self.buffer[start:]]
+
+    def write_text(self, text: str) -> None:
+        start = len(self.buffer)
+        super().write_text(text.replace("-", _HELD_HYPHEN))
+        self.buffer[start:] = [s.replace(_HELD_HYPHEN, "-") for s in self.buffer[start:]]
+
+
+class _Context(typer.Context):
+    """A command's context: its --help through :class:`_HelpFormatter`."""
+
+    formatter_class = _HelpFormatter
+
 
 # (command name, "module:function"); a command's module is imported only when that command
 # runs or shows its help, so `dlo --help` and `dlo --version` import no torch or simulator.
@@ -42,11 +61,13 @@ COMMANDS = [
     ("list", "dlocli.cli.listing:list_plugins"),
     ("goal", "dlocli.cli.goal:goal"),
     ("collect", "dlocli.cli.collect:collect"),
+    ("sample", "dlocli.cli.sample:sample"),
     ("import", "dlocli.cli.importing:import_recordings"),
     ("track", "dlocli.cli.track:track"),
     ("calibrate", "dlocli.cli.calibrate:calibrate"),
     ("train", "dlocli.cli.train:train"),
     ("eval", "dlocli.cli.eval:evaluate"),
+    ("adapt", "dlocli.cli.adapt:adapt"),
     ("control", "dlocli.cli.control:control"),
     ("online", "dlocli.cli.online:online"),
     ("bench", "dlocli.cli.bench:bench"),
@@ -65,8 +86,9 @@ class _Command(TyperCommand):
     that needs imports the command itself does not)."""
 
     lazy_help: Mapping[str, Callable[[], str]] = {}
+    context_class = _Context
 
-    def format_options(self, ctx: Context, formatter: HelpFormatter) -> None:
+    def format_options(self, ctx: typer.Context, formatter: _HelpFormatter) -> None:
         for param in self.params:
             if param.name in self.lazy_help:
                 param.help = self.lazy_help[param.name]()
@@ -223,6 +245,8 @@ def _plugin_origin(ep: EntryPoint) -> str:
 class _LazyGroup(TyperGroup):
     """The root group: commands load on first use; its help lists them from their sources."""
 
+    context_class = _Context
+
     def __init__(self, **attrs: Any) -> None:
         super().__init__(**attrs)
         plugins = plugin_commands()
@@ -234,7 +258,7 @@ class _LazyGroup(TyperGroup):
             self.plugins,
         )
 
-    def format_commands(self, ctx: Context, formatter: HelpFormatter) -> None:
+    def format_commands(self, ctx: typer.Context, formatter: _HelpFormatter) -> None:
         limit = formatter.width - 6 - max(len(name) for name, _ in self.listed)
         rows = [
             (name, _short_help(_listed_help(name, target, self.plugins), limit))

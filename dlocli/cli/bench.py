@@ -14,6 +14,7 @@ from dlocli.cli.common import ResumeFlag, handle_errors
 from dlocli.cli.flags import RunFlags, parse_options, spec_flags
 from dlocli.cli.progress import Bars
 from dlocli.events import Began, Event
+from dlocli.processes import signal_token
 
 OPTION_HELP = (
     "An option of a learning agent, AGENT.KEY=VALUE (a field of its spec), repeatable: "
@@ -55,9 +56,9 @@ def bench(
         run.overrides |= parse_options(option or [], "options")
         with Bars(run.json, _describe) as bars:
             if resume is not None:
-                summary = resume_bench(resume, run.overrides, bars)
+                summary = resume_bench(resume, run.overrides, bars, signal_token())
             else:
-                summary = start_bench(run.spec(), run.overwrite, bars)
+                summary = start_bench(run.spec(), run.overwrite, bars, signal_token())
     _emit(summary, run.json)
 
 

@@ -9,7 +9,10 @@ import typer
 
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.progress import Bars
+from dlocli.events import Began, Event
 from dlocli.models.spec import EvalSpec
+from dlocli.processes import signal_token
 
 
 @handle_errors
@@ -28,5 +31,15 @@ def evaluate(
     """Errors (mm) of --checkpoint on --data: one step, 5 and 50 steps open loop, vs persistence."""
     from dlocli.runs.evaluate import run_evaluation
 
-    summary = run_evaluation(run.spec(), run.overwrite, record)
+    with Bars(run.json, _describe) as bars:
+        summary = run_evaluation(run.spec(), run.overwrite, record, bars, signal_token())
     emit_summary(summary, run.json, "dlo eval")
+
+
+def _describe(event: Event) -> str:
+    """A measurement's name and its errors."""
+    if isinstance(event, Began):
+        return ""
+    numbers = [f"{key} {value:.4g}" for key, value in event.values.items()
+               if key.endswith(("_mm", "_cm")) and isinstance(value, float)]  # fmt: skip
+    return f"{event.values['name']}: {', '.join(numbers)}" if numbers else event.values["name"]

@@ -26,7 +26,7 @@ def list_plugins(
         "controllers": registry.controllers,
     }
     if json_out:
-        print(json.dumps({k: {n: r.summary(n) for n in r.names()} for k, r in kinds.items()}))
+        print(json.dumps({k: {n: _what(k, r, n) for n in r.names()} for k, r in kinds.items()}))
         return
     table = Table(title="dlocli registry")
     table.add_column("kind")
@@ -34,5 +34,17 @@ def list_plugins(
     table.add_column("what")
     for kind, reg in kinds.items():
         for name in reg.names():
-            table.add_row(kind, name, reg.summary(name))
+            table.add_row(kind, name, _what(kind, reg, name))
     Console().print(table)
+
+
+def _what(kind: str, reg: registry.Registry, name: str) -> str:
+    """The entry's summary; a backend's planner defaults after it (what its runs plan with)."""
+    summary = reg.summary(name)
+    if kind != "backends":
+        return summary
+    defaults = reg.facts(name).planner_defaults
+    for planner, options in defaults.items():
+        fields = ", ".join(f"{field} {value:g}" for field, value in options.items())
+        summary += f"; {planner} plans with {fields} unless a run sets them"
+    return summary

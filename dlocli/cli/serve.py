@@ -4,10 +4,25 @@ from __future__ import annotations
 
 from dlocli.bridge.cell import serve as serve_cell
 from dlocli.bridge.spec import ServeSpec
+from dlocli.camera_spec import CameraSpec
 from dlocli.cli.common import handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.extras import require
 from dlocli.processes import signal_token, stop_handled
+
+
+def banner(spec: ServeSpec, address: str) -> str:
+    """The line `dlo serve` says once it listens: the rod, the clock, the address, and who
+    may come in and what they get (keys, camera, a session's idle time)."""
+    mode = "real time" if spec.realtime else "lockstep"
+    keys = f"keys on ({spec.keys})" if spec.keys is not None else "keys off (loopback only)"
+    camera = spec.task.observation.camera or CameraSpec()
+    seen = f"camera on ({camera.width} x {camera.height} px)" if spec.camera else "camera off"
+    return (
+        f"serving {spec.backend.name} ({spec.backend.rod.n_segments} segments, "
+        f"{spec.control_dt:g} s period, {mode}) at {address}; {keys}; {seen}; a session ends "
+        f"after {spec.session_idle_s:g} s without a request; Ctrl-C stops"
+    )
 
 
 @handle_errors
@@ -28,12 +43,7 @@ def serve(
 
     def ready(address: str) -> None:
         bound[0] = address  # tcp://HOST:* names its port only once bound
-        mode = "real time" if spec.realtime else "lockstep"
-        typer.echo(
-            f"serving {spec.backend.name} ({spec.backend.rod.n_segments} segments, "
-            f"{spec.control_dt:g} s period, {mode}) at {address}; Ctrl-C stops",
-            err=True,
-        )
+        typer.echo(banner(spec, address), err=True)
 
     def log(line: str) -> None:
         typer.echo(f"dlo serve: {line}", err=True)

@@ -24,7 +24,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from dlocli.errors import BadInput
-from dlocli.registry import controllers
+from dlocli.registry import backends, controllers
 from dlocli.specs import Spec, format_validation_error
 
 SpecT = TypeVar("SpecT", bound=Spec)
@@ -175,17 +175,36 @@ class LearningAgent(Controller):
         raise NotImplementedError(f"controller '{self.name}' cannot resume learning")
 
 
-def controller_spec(name: str, options: dict[str, Any] | None = None) -> Spec | None:
-    """Validate ``options`` against the registered controller's spec class (BadInput if wrong)."""
+def controller_spec(
+    name: str, options: dict[str, Any] | None = None, backend: str | None = None
+) -> Spec | None:
+    """Validate ``options`` against the registered controller's spec class (BadInput if wrong);
+    the options it leaves unset that ``backend`` has defaults for take them."""
     spec_cls = controllers.spec_cls(name)
     if spec_cls is None:
         if options:
             raise BadInput(f"controller '{name}' takes no options; remove {sorted(options)}")
         return None
     try:
-        return spec_cls.model_validate(options or {})
+        spec = spec_cls.model_validate(options or {})
     except ValidationError as exc:
         raise BadInput(format_validation_error(exc, f"controller '{name}' options")) from exc
+    return spec if backend is None else with_backend_defaults(spec, name, backend)
+
+
+def with_backend_defaults(options: Spec, planner: str, backend: str) -> Spec:
+    """``options`` of ``planner`` with each field it leaves unset that ``backend`` has a
+    default for (:attr:`~dlocli.backends.facts.BackendFacts.planner_defaults`) set to that
+    default; the fields a run sets are kept, and a resolved spec saves them all."""
+    if backend not in backends:  # the run refuses it by name, with the valid ones
+        return options
+    defaults = backends.facts(backend).planner_defaults.get(planner, {})
+    unset = {
+        name: value
+        for name, value in defaults.items()
+        if name in type(options).model_fields and name not in options.model_fields_set
+    }
+    return options.model_copy(update=unset) if unset else options
 
 
 def make_controller(

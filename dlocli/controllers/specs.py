@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo
 
-from dlocli.controllers.base import is_planner
+from dlocli.controllers.base import is_planner, with_backend_defaults
 from dlocli.errors import UnknownName
 from dlocli.limits import MAX_COUNT
 from dlocli.registry import controllers
@@ -61,7 +61,8 @@ class PlannerSpec(Spec):
         description="Weight of the rod's predicted motion: the cost adds motion_cost * sum_k "
         "||p_k - p_(k-1)||^2 over the plan's steps (the first from the observed positions), so "
         "a plan that reaches the goal with the cable still swinging pays for the swing, and "
-        "the planner damps it. 0 = the paper's objective (docs: the flex rod's control gap).",
+        "the planner damps it. 0 = the paper's objective; unset, the backend's default "
+        "(mpc on the flex rod: 32; docs: a planner that damps the swing).",
     )
     tracking: Literal["estimate", "raw"] = Field(
         "estimate",
@@ -97,8 +98,8 @@ class MPCSpec(PlannerSpec):
     damping: float = Field(
         1e-2, gt=0, le=1e3,
         description="gauss-newton: Levenberg damping added to J^T J, relative to its mean "
-        "diagonal: larger moves less far along the directions the model barely sees (the "
-        "planner before 2026-12-06: 0.01).",
+        "diagonal: larger moves less far along the directions the model barely sees; unset, "
+        "the backend's default (the flex rod: 1).",
     )  # fmt: skip
     exact_gradient: bool = Field(
         False,
@@ -234,7 +235,11 @@ def planner_options(name: str, options: Any) -> PlannerSpec:
 def _as_planner_options(value: Any, info: ValidationInfo) -> Any:
     planner = info.data.get("planner")
     # a planner name that failed validation has its own error; these options wait for it
-    return value if planner is None else planner_options(planner, value)
+    if planner is None:
+        return value
+    options = planner_options(planner, value)
+    backend = info.data.get("backend")  # None: it failed validation, with its own error
+    return options if backend is None else with_backend_defaults(options, planner, backend.name)
 
 
 def _registered_planner(name: Any) -> Any:

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from dlocli.errors import BadInput
+from dlocli.registry import observers
 from dlocli.specs import ObservationSpec
 
 MM = 1e-3
@@ -147,16 +148,18 @@ def marker_tracker(
     spec: ObservationSpec, layout: MarkerLayout, backend: Any, control_dt: float
 ) -> Any:
     """What reports the markers: :class:`Tracker` (the markers observation's faults on the
-    true markers), or for the pointcloud observation a depth camera on ``backend`` and the
-    cable tracker (:class:`dlocli.tracking.observer.CloudObserver`, the same interface)."""
-    if spec.kind != "pointcloud":
+    true markers), or the observer registered for the observation's kind
+    (:data:`dlocli.registry.observers`; the pointcloud observation's is a depth camera on
+    ``backend`` and the cable tracker, :class:`dlocli.tracking.observer.CloudObserver`, the
+    same interface)."""
+    if spec.kind not in observers:
         return Tracker(spec, len(layout))
-    from dlocli.tracking.observer import CloudObserver
+    observer = observers.get(spec.kind)
 
     def held_of(grippers: np.ndarray) -> np.ndarray:
         return held_markers(layout, grippers)[layout.held]
 
-    return CloudObserver(spec, backend, layout, control_dt, held_of)
+    return observer(spec, backend, layout, control_dt, held_of)
 
 
 class Tracker:

@@ -16,18 +16,16 @@ an iteration's trials) from the run's seed and integer keys.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from dlocli.data import Episode
 from dlocli.env.metrics import episode_result, shape_error_mm
+from dlocli.events import Callback, Event
 
 #: the most control steps a random action is held (random holds explore further than noise)
 MAX_HOLD = 10
-
-OnStep = Callable[[int, float, dict[str, Any]], None]
 
 
 def stream_seed(seed: int, *keys: int) -> int:
@@ -82,12 +80,13 @@ def rollout(
     env: Any,
     policy: Any,
     seed: int,
-    on_step: OnStep | None = None,
+    progress: Callback | None = None,
     options: dict[str, Any] | None = None,
 ) -> Episode:
     """One episode of ``policy`` on ``env`` from ``env.reset(seed=seed, options=options)``.
 
-    ``on_step(t, reward, info)`` is called after every recorded step (t = 1, 2, ...).
+    ``progress`` gets an Event after every recorded step: unit "step", ``done`` t = 1, 2, ...
+    of ``episode_steps``, ``values`` the step's ``reward`` and the env's ``info``.
     """
     obs, _ = env.reset(seed=seed, options=options)
     policy.reset(env.goal)
@@ -102,8 +101,9 @@ def rollout(
         observations.append(obs)
         commands.append(info["commands"])
         rewards.append(reward)
-        if on_step is not None:
-            on_step(t, reward, info)
+        if progress is not None:
+            step = {"reward": reward, "info": info}
+            progress(Event("step", t, env.task_spec.episode_steps, step))
         if truncated:
             break
     tracked = getattr(env, "tracker", None) is not None

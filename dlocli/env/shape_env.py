@@ -26,11 +26,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from dlocli.backends.base import Backend
+from dlocli.backends import make_backend
 from dlocli.backends.rotations import state_change
-from dlocli.bridge.remote import RemoteCell
-from dlocli.bridge.spec import CellChoice
 from dlocli.cancel import CancelToken
+from dlocli.cell_spec import CellChoice
 from dlocli.env.envelope import Envelope
 from dlocli.env.goals import check_goal_reachable, load_goal, save_goal  # noqa: F401 (its API)
 from dlocli.env.metrics import REWARD_CLIP, shape_error_mm
@@ -61,22 +60,7 @@ from dlocli.env.spaces import (
 )
 from dlocli.env.tasks import Task, make_task
 from dlocli.errors import BadInput, BadOption, UnworkablePhysics
-from dlocli.extras import require
-from dlocli.registry import backends as backend_registry
 from dlocli.specs import BackendSpec, EnvSpec, GoalSpec, TaskSpec
-
-
-def make_backend(
-    spec: BackendSpec, control_dt: float = 0.02, cell: CellChoice | None = None
-) -> Backend:
-    """Build the registered backend named by ``spec.name``, or, with ``cell.cell`` set, the
-    rod of ``spec`` stepped by the cell at that address (:mod:`dlocli.bridge`)."""
-    if cell is not None and cell.cell is not None:
-        require("bridge", "--cell", "drop --cell to simulate in this process")
-
-        return RemoteCell(spec, control_dt, cell.cell, cell.cell_timeout_s, cell.cell_keys)
-    cls = backend_registry.get(spec.name)
-    return cls(spec, control_dt=control_dt)
 
 
 class DLOShapeEnv(gym.Env):

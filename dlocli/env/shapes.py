@@ -48,17 +48,27 @@ def max_twist(task: TaskSpec) -> np.ndarray:
 
 def apply_task_limits(backend: Backend, task: TaskSpec) -> None:
     """Set ``backend``'s gripper limits to ``task``'s workspace and separation (fractions of
-    the rod length). BadInput if the separation limits exclude the grippers' rest separation:
-    every start and goal is driven from rest, and the backend refuses any translation that
-    leaves the separation outside its limits, so the grippers would stay at rest."""
+    the rod length). BadInput if the workspace excludes a moving gripper's rest position or
+    the separation limits the grippers' rest separation: every start and goal is driven from
+    rest; the backend would pull a gripper outside the box into it at the first step (a jump,
+    not a motion) and refuses any translation that leaves the separation outside its limits,
+    so the grippers would stay at rest."""
     length, limits = backend.rod.length, backend.limits
     limits.low = np.array(task.workspace_low) * length
     limits.high = np.array(task.workspace_high) * length
     limits.min_separation = task.min_separation * length
     limits.max_separation = task.max_separation * length
+    rest = backend.rest_gripper_poses()
+    held = rest[backend.moving, :3]
+    if np.any(held < limits.low - 1e-9) or np.any(held > limits.high + 1e-9):
+        raise BadInput(
+            f"task.workspace_low {list(task.workspace_low)} to task.workspace_high "
+            f"{list(task.workspace_high)} excludes the grippers' rest positions "
+            f"{np.round(held, 3).tolist()} (m), where every start and goal begins: widen the "
+            "workspace to hold them"
+        )
     if not backend.moving.all():  # one gripper: no separation to keep
         return
-    rest = backend.rest_gripper_poses()
     separation = float(np.linalg.norm(rest[1, :3] - rest[0, :3])) / length
     if task.min_separation - 1e-9 <= separation <= task.max_separation + 1e-9:
         return

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,27 +30,46 @@ def evaluate_markers(
     CPU thread at batch 1. The curves, per frame: the free markers' mean Euclidean error
     (mm) and the mean absolute error per coordinate over all markers (cm; its mean over
     frames 2.. is the benchmark score)."""
-    episodes, held = dataset.episodes(split), dataset.held
-    predictions = {"model": predict_episodes(model, episodes, held)}
-    for name, reference in protocol.REFERENCES.items():
-        predictions[name] = [reference(e, held) for e in episodes]
-    summary: dict[str, Any] = {"split": split, "episodes": len(episodes)}
+    summary: dict[str, Any] = {"split": split, "episodes": len(dataset.episodes(split))}
     curves: dict[str, dict[str, list[float]]] = {"free_error_mm": {}, "abs_error_cm": {}}
-    for name, preds in predictions.items():
-        pairs = list(zip(preds, episodes, strict=True))
+    for _, measured, curve in marker_evaluation_parts(model, dataset, split):
+        summary.update(measured)
+        for key, values in curve.items():
+            curves[key].update(values)
+    return summary, curves
+
+
+def marker_evaluation_parts(
+    model: MarkerModel, dataset: MarkerDataset, split: str = "eval"
+) -> Iterator[tuple[str, dict[str, Any], dict[str, dict[str, list[float]]]]]:
+    """:func:`evaluate_markers` one predictor at a time: (name, its summary entries, its
+    curves) for the model, then each reference, then ("timing", the model's time per step,
+    no curves); a caller may stop between them (``dlo eval``'s cancel) and keep what was
+    measured. :data:`MARKER_PARTS` counts them."""
+    episodes, held = dataset.episodes(split), dataset.held
+    predictors = {"model": lambda: predict_episodes(model, episodes, held)}
+    for name, reference in protocol.REFERENCES.items():
+        predictors[name] = lambda reference=reference: [reference(e, held) for e in episodes]
+    for name, predict in predictors.items():
+        pairs = list(zip(predict(), episodes, strict=True))
         scores = [protocol.deform_score_cm(p, e) for p, e in pairs]
-        summary[f"{name}_score_cm"] = round(float(np.mean(scores)), 4)
+        summary: dict[str, Any] = {f"{name}_score_cm": round(float(np.mean(scores)), 4)}
         if name == "model":
             summary["model_scores_cm"] = [round(float(x), 4) for x in scores]
         horizons = [protocol.horizon_errors_mm(p, e, held, dataset.rate_hz) for p, e in pairs]
         for key in horizons[0]:
             summary[f"{name}_error_mm_{key}"] = round(float(np.mean([h[key] for h in horizons])), 2)
         free = [protocol.error_by_frame_mm(p, e, held) for p, e in pairs]
-        curves["free_error_mm"][name] = np.mean(free, 0).round(3).tolist()
         per_coordinate = [np.abs(p - e).mean((1, 2)) * 100 for p, e in pairs]
-        curves["abs_error_cm"][name] = np.mean(per_coordinate, 0).round(4).tolist()
-    summary["ms_per_step_1_thread"] = round(time_per_step_ms(model, episodes[0], held), 3)
-    return summary, curves
+        curves = {"free_error_mm": {name: np.mean(free, 0).round(3).tolist()},
+                  "abs_error_cm": {name: np.mean(per_coordinate, 0).round(4).tolist()}}  # fmt: skip
+        yield name, summary, curves
+    timing = round(time_per_step_ms(model, episodes[0], held), 3)
+    yield "timing", {"ms_per_step_1_thread": timing}, {}
+
+
+#: how many parts :func:`marker_evaluation_parts` yields: the model, the references, timing
+MARKER_PARTS = 2 + len(protocol.REFERENCES)
 
 
 @torch.no_grad()

@@ -10,7 +10,7 @@ nothing moves (s_{t+k} = s_t); a useful model beats it by far.
 from __future__ import annotations
 
 import math
-from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,6 @@ import torch
 
 from dlocli.data import Dataset
 from dlocli.models.base import DynamicsModel
-from dlocli.plots import plot_rollout_figure
 
 HORIZONS = (5, 50)
 ROLL_BATCH = 256
@@ -85,6 +84,22 @@ def evaluate_model(
     ``eval_episodes``, ``eval_transitions``. At most ``max_starts`` evenly spread start
     states per horizon (all transitions for the one-step error).
     """
+    result: dict[str, Any] = {}
+    for _, measured in evaluation_parts(model, dataset, episodes, horizons, max_starts):
+        result.update(measured)
+    return result
+
+
+def evaluation_parts(
+    model: DynamicsModel,
+    dataset: Dataset,
+    episodes: np.ndarray | None = None,
+    horizons: tuple[int, ...] = HORIZONS,
+    max_starts: int = 512,
+) -> Iterator[tuple[str, dict[str, Any]]]:
+    """:func:`evaluate_model` one measurement at a time: ("one step", the counts and the
+    one-step errors), then ("H steps", the H-step errors) per horizon; a caller may stop
+    between them (``dlo eval``'s cancel) and keep what was measured."""
     episodes = np.arange(dataset.n_episodes) if episodes is None else np.asarray(episodes)
     model.eval()
     tr = dataset.transitions(episodes, skip_first=True)
@@ -95,33 +110,19 @@ def evaluate_model(
     pred = predict(model, tr["state"], tr["action"][:, None], tr["previous_state"])[:, 0]
     result["one_step_mm"] = _mean(position_error_mm(pred, tr["next_state"]))
     result["persistence_one_step_mm"] = _mean(position_error_mm(tr["state"], tr["next_state"]))
+    yield "one step", result
     for h in horizons:
         starts = rollout_starts(dataset, episodes, h, max_starts)
         state, actions, truth, previous = windows(dataset, starts, h)
         final = predict(model, state, actions, previous)[:, -1] if starts else state
-        result[f"rollout{h}_mm"] = _mean(position_error_mm(final, truth[:, -1])) if starts else None
-        result[f"persistence_rollout{h}_mm"] = (
-            _mean(position_error_mm(state, truth[:, -1])) if starts else None
-        )
-    return result
+        errors = {
+            f"rollout{h}_mm": _mean(position_error_mm(final, truth[:, -1])) if starts else None,
+            f"persistence_rollout{h}_mm": (
+                _mean(position_error_mm(state, truth[:, -1])) if starts else None
+            ),
+        }
+        yield f"{h} steps", errors
 
 
 def _mean(values: np.ndarray) -> float | None:
     return float(np.mean(values)) if len(values) and not math.isnan(np.mean(values)) else None
-
-
-# ---------------------------------------------------------------------- plots
-def plot_rollout(
-    model: DynamicsModel, dataset: Dataset, episode: int, path: Path, horizon: int = 50
-) -> Path:
-    """PNG: true vs predicted rod over an open-loop rollout from the episode's second state,
-    at a few instants (3D), and the error per step next to persistence's."""
-    start = 1 if dataset.episode_lengths[episode] > 1 else 0  # t = 1: s_{t-1} is recorded
-    h = int(min(horizon, dataset.episode_lengths[episode] - start))
-    state, actions, truth, previous = windows(dataset, [(episode, start)], h)
-    pred = predict(model, state, actions, previous)[0]
-    errors = {
-        model.spec.name: position_error_mm(pred, truth[0]),
-        "persistence": position_error_mm(state[:, None], truth)[0],
-    }
-    return plot_rollout_figure(truth[0], pred, errors, f"episode {episode}", path)

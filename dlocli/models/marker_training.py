@@ -167,7 +167,9 @@ def _fit_markers(
     """Train ``model`` in place on one or more cables (see the module docstring); returns
     the validation history. The model ends in eval mode with the best validated weights.
     ``progress`` gets a Began, then a :class:`~dlocli.models.fitting.RolloutValidated` after
-    each validation; ``cancel`` stops the fit before the next gradient step once cancelled."""
+    each validation; ``cancel`` stops the fit before the next gradient step once cancelled.
+    A spec with ``seconds`` (`dlo adapt`'s) also ends the fit, validated, once that many
+    seconds have passed."""
     device = resolve_device(fit.device)
     torch.manual_seed(fit.seed)
     if not bool(model.fitted):
@@ -190,6 +192,7 @@ def _fit_markers(
     start, running = time.perf_counter(), []
     if getattr(fit, "init_from", None) is not None and val:  # `dlo train --init-from`
         history.append(_starting_point(model, val, best))  # fine-tuning keeps it if no better
+    budget = getattr(fit, "seconds", None)  # `dlo adapt --seconds`: a wall-clock limit too
     if progress:
         progress(Began("step", 0, total))
     for step in range(1, total + 1):
@@ -207,7 +210,8 @@ def _fit_markers(
         optimizer.step()
         schedule.step()
         running.append(loss.item())
-        if step % fit.eval_every == 0 or step == total:
+        last = step == total or (budget is not None and time.perf_counter() - start >= budget)
+        if step % fit.eval_every == 0 or last:
             model.eval()
             val_score = validation_score(model, val)
             model.train()
@@ -225,6 +229,8 @@ def _fit_markers(
                 progress(RolloutValidated("step", step, total, {
                     "val_loss": val_score, "stopped_early": False, "k": k,
                     "train_loss": record["train_loss"]}))  # fmt: skip
+        if last:
+            break
     best.restore(total, model)
     model.eval()
     return history

@@ -32,6 +32,7 @@ from torch import Tensor
 
 from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
+from dlocli.limits import refuse_unless_fits
 from dlocli.models import cable_codes, marker_mlp_rollout, marker_steps
 from dlocli.models.base import valid_model_spec
 from dlocli.models.ensemble import build_network, side_by_side
@@ -73,8 +74,7 @@ class MarkerModel(torch.nn.Module):
         self.register_parameter("codes", None if codes is None else torch.nn.Parameter(codes))
         self.cable_keys: list[str] = []
         self.cable: int | None = None  # the code in use: a row of ``codes``, None the mean
-        width = FEATURES + spec.cable_code + (DESCRIPTORS if self.geometry else 0)
-        self.network = build_network(spec, Nodes(n_markers, width, 3, relative=width))
+        self.network = build_network(spec, node_features(spec, n_markers))
 
     @property
     def reference(self) -> bool:
@@ -323,5 +323,31 @@ def _compiled_projection() -> Any:
 
 
 def build_marker_model(spec: ModelSpec | dict, n_markers: int, held: np.ndarray) -> MarkerModel:
-    """A fresh (untrained) model of the registered kind ``spec.name`` in the marker view."""
-    return MarkerModel(valid_model_spec(spec), n_markers, held)
+    """A fresh (untrained) model of the registered kind ``spec.name`` in the marker view;
+    BadInput if its training would not fit in memory."""
+    spec = valid_model_spec(spec)
+    refuse_oversized_marker_model(spec, n_markers)
+    return MarkerModel(spec, n_markers, held)
+
+
+def node_features(spec: ModelSpec, n_markers: int) -> Nodes:
+    """The nodes the network of ``spec`` sees: one per marker, with the marker view's
+    features, the cable's code and (for a network that reads it) the cable's geometry."""
+    geometry = bool(models.get(spec.name).cable_geometry)
+    width = FEATURES + spec.cable_code + (DESCRIPTORS if geometry else 0)
+    return Nodes(n_markers, width, 3, relative=width)
+
+
+def refuse_oversized_marker_model(spec: ModelSpec, n_markers: int) -> None:
+    """BadInput if the network's weights, gradients and Adam's two moments (4 float32 copies,
+    every member of an ensemble) exceed the memory this run may use, as for a rod model
+    (:func:`~dlocli.models.base.refuse_oversized_model`): counted on the meta device."""
+    with torch.device("meta"):
+        network = build_network(spec, node_features(spec, n_markers))
+        parameters = sum(p.numel() for p in network.parameters())
+    refuse_unless_fits(
+        f"model {spec.name} (hidden {spec.hidden}, {spec.members} member(s), {n_markers} "
+        f"markers: {parameters:,} parameters)",
+        16.0 * parameters,
+        "choose a smaller --hidden, fewer --members or fewer layers",
+    )

@@ -18,7 +18,7 @@ from pydantic import (
 from dlocli.limits import MAX_COUNT, MAX_SEED
 from dlocli.migrations import RETIRED_TRAIN_FIELDS, model_data, without_retired_train_fields
 from dlocli.registry import models
-from dlocli.specs import MODEL_OPTIONS, Device, RetiredField, Spec, is_given
+from dlocli.specs import MODEL_OPTIONS, Device, RetiredField, Spec, is_given, new_default
 
 
 class ModelSpec(Spec):
@@ -365,3 +365,72 @@ class EvalSpec(Spec):
     out: Path | None = Field(
         None, description="Run directory for spec.json and summary.json (none: print only)."
     )
+
+
+class AdaptSpec(FitSpec):
+    """`dlo adapt`: a model with cable codes given a new cable's code from a few of its
+    recordings; write a run directory with the adapted model."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "checkpoint", "data", "recordings", "fine_tune", "update_steps", "seconds", "lr",
+        "rollout_steps", "batch_size", "eval_every", "device", "seed", "out",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("checkpoint", "data")
+
+    checkpoint: Path | None = Field(
+        None,
+        description="The model to adapt: a .pt file or `dlo train` run directory of a marker "
+        "model with cable codes (--cable-code).",
+    )
+    data: Path | None = Field(
+        None, description="The new cable: a marker dataset (`dlo import`); its train split is read."
+    )
+    recordings: int = Field(
+        1, ge=1, le=MAX_COUNT,
+        description="How many of the new cable's train recordings (its first ones) pick the "
+        "code, and train it with --fine-tune.",
+    )  # fmt: skip
+    fine_tune: Literal["all", "code"] | None = Field(
+        None,
+        description='After the pick (none: the pick alone, no gradient step): "code" learns '
+        'the new cable\'s code alone, "all" fine-tunes the whole model, within --update-steps '
+        "and --seconds; the best weights on the recordings read stand (the pick among them).",
+    )
+    update_steps: int = Field(
+        200, gt=0, le=MAX_COUNT,
+        description="With --fine-tune: most gradient steps (it also stops at --seconds).",
+    )  # fmt: skip
+    seconds: float | None = Field(
+        None, gt=0, le=86_400,
+        description="With --fine-tune: also stop after this many seconds of training (none: "
+        "--update-steps alone).",
+    )  # fmt: skip
+    lr: float | None = Field(
+        None, gt=0,
+        description="Adam learning rate of --fine-tune (none: 1e-2 for the code alone, 3e-4 for "
+        "the whole model).",
+    )  # fmt: skip
+    rollout_steps: int = new_default(FitSpec, "rollout_steps", 64)
+    rollout_start: int = new_default(FitSpec, "rollout_start", 64)
+    batch_size: int = new_default(FitSpec, "batch_size", 32)
+    eval_every: int = new_default(FitSpec, "eval_every", 50)
+    out: Path = Field(Path("runs/adapt"), description="Run directory for the results.")
+
+    @property
+    def init_from(self) -> Path | None:
+        """The model a fine-tune starts from: the fit keeps it where no step does better."""
+        return self.checkpoint
+
+    def fit_lr(self) -> float:
+        """The learning rate of the fine-tune: ``lr``, else the default of its kind."""
+        return self.lr if self.lr is not None else (1e-2 if self.fine_tune == "code" else 3e-4)
+
+    @model_validator(mode="after")
+    def _budget_needs_a_fine_tune(self) -> AdaptSpec:
+        default = type(self).model_fields["update_steps"].default
+        if self.fine_tune is None and (self.seconds is not None or self.update_steps != default):
+            raise ValueError(
+                "--update-steps and --seconds budget a fine-tune: add --fine-tune code (or "
+                "all), or drop them"
+            )
+        return self

@@ -41,7 +41,7 @@ from dlocli.io import (
 from dlocli.markers import deform
 from dlocli.registry import backends
 from dlocli.resume import resumed_run_spec
-from dlocli.rundir import owned
+from dlocli.rundir import owned, refuse_out_by_source
 
 #: a generation's record in history.json (its candidates and scores), a state read from it
 Record = dict[str, Any]
@@ -127,6 +127,7 @@ def run_calibration(
     backends.check(spec.backend.name)
     require("calibrate", "dlo calibrate (CMA-ES from pycma)")
     check_executor(spec.executor, spec.ray_address)
+    refuse_out_by_source(spec)
     spec = at_recorded_rate(spec)
     cable = load_cable(spec)  # every input checked before OUT is touched
     task, unobserved = recorded_task(cable, spec.rate_hz)

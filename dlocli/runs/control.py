@@ -22,7 +22,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -40,6 +40,7 @@ from dlocli.controllers.base import (
 )
 from dlocli.data import load_dataset
 from dlocli.env.metrics import episode_result, shape_error_mm
+from dlocli.env.observation import markers_of_state
 from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
@@ -192,9 +193,9 @@ def use_cable_code(model: Any, spec: ControlSpec) -> None:
         raise BadInput(f"--cable {spec.cable} is not a marker dataset: pass one from `dlo import`")
     if model.use_recorded_cable(dataset.held, dataset.episodes("train")) is None:
         raise BadInput(
-            f"model {spec.checkpoint} never trained on --cable {spec.cable}: learn its code "
-            f"with `dlo train --init-from {spec.checkpoint} --data {spec.cable} --fine-tune "
-            "code`, or drop --cable to plan with the mean code"
+            f"model {spec.checkpoint} never trained on --cable {spec.cable}: give it a code "
+            f"with `dlo adapt --checkpoint {spec.checkpoint} --data {spec.cable}`, or drop "
+            "--cable to plan with the mean code"
         )
 
 
@@ -226,7 +227,7 @@ def prepare(
     check_record_path(spec.record, overwrite)
     if spec.video is not None and spec.cell is not None:
         raise BadInput("--video needs the simulator in this process: drop --video or --cell")
-    options = controller_spec(spec.controller, spec.controller_options)
+    options = controller_spec(spec.controller, spec.controller_options, spec.backend.name)
     load_goal(spec.task.goal_file, spec.backend.rod.n_segments)  # refused before anything
     check_inputs_used(spec)
     controllers.get(spec.controller).warm_up()  # its slow imports before a cell is claimed
@@ -284,7 +285,7 @@ def _run_closed_loop(
         with torch_threads(spec.threads):
             loop = closed_loop(env, controller, spec, progress)
         wall = time.perf_counter() - start
-        counts = cell_counts(env) | env.envelope.summary()
+        counts = loop.measured | env.envelope.summary()
     finally:
         env.close()
     if loop.lost is not None and not loop.records:  # lost before the first step: nothing kept
@@ -305,25 +306,31 @@ def _run_closed_loop(
     return summary
 
 
-def cell_counts(env: DLOShapeEnv) -> dict[str, int]:
-    """What a cell (``--cell``) counted: periods stepped with the held command because the
-    command came late, and commands lost; nothing for a simulator in this process."""
+def cell_counts(env: DLOShapeEnv, late_before: int = 0) -> dict[str, int]:
+    """What a cell (``--cell``) counted: the controller's commands that came after their
+    period's tick (a real-time cell; less ``late_before``, those up to the controller's first
+    step: the reset's motion and settling, the first plan), and commands lost since the
+    reset; nothing for a simulator in this process."""
     if not isinstance(env.backend, RemoteCell) or not env.backend.state:
         return {}
     state = env.backend.state
-    return {"cell_late_steps": state["late"], "cell_dropped_commands": state["dropped"]}
+    return {"cell_late_steps": state["late"] - late_before,
+            "cell_dropped_commands": state["dropped"]}  # fmt: skip
 
 
 @dataclass
 class Loop:
     """A closed loop's per-step records, initial shape error (mm), video frames, whether the
-    rod diverged, and the error that ended it early (a lost cell), if any."""
+    rod diverged, the error that ended it early (a lost cell), if any, and what the summary
+    reports of it beside: ``steps_wall_s`` (from the first act after the reset to the last
+    step's end), the cell's counts, the tracking error."""
 
     records: list[dict[str, float]]
     initial_error: float
     frames: list[np.ndarray]
     diverged: bool
     lost: CellLost | None = None
+    measured: dict[str, Any] = field(default_factory=dict)
 
 
 def _returned_cost(controller: Controller) -> dict[str, float]:
@@ -342,6 +349,10 @@ def closed_loop(
     timed = _Recorded(controller, env, spec, open_recording(spec.record, spec.out.name))
 
     def on_step(step: int, reward: float, info: dict[str, Any]) -> None:
+        timed.steps_ended = time.perf_counter()
+        if step == 1:  # a real-time cell's late commands count from here: before, its clock
+            # ran through the reset's motion and settling and the first plan
+            timed.cell_late_before = cell_counts(env).get("cell_late_steps", 0)
         record = {
             "step": step,
             "shape_error_mm": float(info["shape_error_mm"]),
@@ -361,13 +372,29 @@ def closed_loop(
             progress(Event("step", step, spec.task.episode_steps, record))
 
     try:
-        episode = rollout(env, timed, spec.seed, on_step)
+        episode = rollout(env, timed, spec.seed, lambda e: on_step(int(e.done), **e.values))
     except CellLost as lost:
-        return Loop(timed.records, timed.initial_error, timed.frames, False, lost)
+        return Loop(timed.records, timed.initial_error, timed.frames, False, lost, timed.measured())
     finally:
         timed.recording.close()
     initial_error = float(shape_error_mm(episode.positions[0], episode.goal))
-    return Loop(timed.records, initial_error, timed.frames, episode.diverged)
+    return Loop(timed.records, initial_error, timed.frames, episode.diverged,
+                measured=timed.measured() | tracking_error(env, episode))  # fmt: skip
+
+
+def tracking_error(env: DLOShapeEnv, episode: Any) -> dict[str, float]:
+    """Markers observed (tracked, or tracked in a camera's clouds) on a simulated rod: the mean
+    distance (mm) of the free markers the controller was told from the true ones over the
+    episode; nothing otherwise (a robot's state is its own tracker's: no truth to compare)."""
+    layout = getattr(env, "marker_layout", None)
+    remote = isinstance(env.backend, RemoteCell)
+    if layout is None or episode.markers is None or (
+            remote and (env.backend.cell is None or env.backend.cell.backend is None)):  # fmt: skip
+        return {}
+    true = markers_of_state(layout, episode.positions, episode.quaternions, episode.grippers)
+    steps = min(len(true), len(episode.markers))
+    error = np.linalg.norm(episode.markers[:steps] - true[:steps], axis=-1) * 1e3  # (T, M)
+    return {"tracking_error_mm": round(float(error[:, ~layout.held].mean()), 3)}
 
 
 class _Recorded:
@@ -383,6 +410,8 @@ class _Recorded:
         self.frames: list[np.ndarray] = []
         self.cpu_ms = 0.0
         self.initial_error = float("nan")
+        self.steps_started = self.steps_ended = 0.0
+        self.cell_late_before = 0
 
     def reset(self, goal: np.ndarray) -> None:
         self.initial_error = float(shape_error_mm(self.env.backend.segment_positions(), goal))
@@ -390,6 +419,12 @@ class _Recorded:
         self.recording.episode(self.env, 0)
         if self.spec.video is not None:
             self.frames.append(self.env.render())
+        self.steps_started = time.perf_counter()
+
+    def measured(self) -> dict[str, Any]:
+        """The steps' wall seconds and the cell's counts, for the summary."""
+        steps_s = max(self.steps_ended - self.steps_started, 0.0)  # 0 before the first step
+        return cell_counts(self.env, self.cell_late_before) | {"steps_wall_s": round(steps_s, 2)}
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         step = len(self.records)  # the observation's step
@@ -438,6 +473,7 @@ def summarise(
         "checkpoint": None if spec.checkpoint is None else str(spec.checkpoint),
         "cable": None if spec.cable is None else str(spec.cable),
         "seed": spec.seed,
+        # the closed loop: reset and settling, the controller's reset, every step (planning)
         "wall_s": round(wall_s, 2),
         "versions": versions(),
     }

@@ -4,28 +4,47 @@ protocol (:mod:`dlocli.markers.evaluation`)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from dlocli.cancel import CancelToken
 from dlocli.data import Dataset, MarkerDataset, load_dataset
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
-from dlocli.markers.evaluation import evaluate_markers, plot_error_by_horizon
+from dlocli.markers.evaluation import (
+    MARKER_PARTS,
+    marker_evaluation_parts,
+    plot_error_by_horizon,
+)
 from dlocli.models.base import check_control_rate
 from dlocli.models.checkpoints import load_model
-from dlocli.models.evaluation import evaluate_model, plot_rollout
+from dlocli.models.evaluation import HORIZONS, evaluation_parts
 from dlocli.models.marker_training import predict_episodes
 from dlocli.models.spec import EvalSpec
+from dlocli.plots import plot_rollout
 from dlocli.rundir import owned
 from dlocli.runs.recording import RunRecording, check_record_path
 
 
 def run_evaluation(
-    spec: EvalSpec, overwrite: bool = False, record: Path | None = None
+    spec: EvalSpec,
+    overwrite: bool = False,
+    record: Path | None = None,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """`dlo eval`: the errors of ``spec.checkpoint`` on ``spec.data``; with ``spec.out``, the
     spec and the summary are written there; with ``record`` (a marker dataset), a recording of
-    the eval trajectories beside the model's open-loop predictions."""
+    the eval trajectories beside the model's open-loop predictions.
+
+    ``progress`` gets a Began of the measurements (unit "measurement": on rod data the one-step
+    errors, then each horizon's; on markers the model's scores, each reference's, the timing),
+    then an Event per measurement (``values``: its ``name`` and its summary entries).
+    ``cancel`` stops it between measurements: the summary of those made, marked ``stopped``,
+    is written to ``spec.out`` before the stop is raised again."""
+    progress, cancel = progress or ignore, cancel or CancelToken()
     if spec.checkpoint is None or spec.data is None:
         raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
     if spec.plot is not None and spec.plot.suffix != ".png":
@@ -51,11 +70,19 @@ def run_evaluation(
     if dataset.control_dt is not None:
         check_control_rate(net, dataset.control_dt, f"model {spec.checkpoint}",
                            f"{spec.data} is", "evaluate it on data at {hz} Hz")  # fmt: skip
+    summary: dict[str, Any] = {}
     if spec.out is None:
-        return _evaluation_summary(spec, net, dataset, record)
+        _measure(spec, net, dataset, record, summary, progress, cancel)
+        return summary
     with owned(spec.out):  # one writer per run directory
         out = prepare_run_dir(spec.out, overwrite)
-        summary = _evaluation_summary(spec, net, dataset, record)
+        try:
+            _measure(spec, net, dataset, record, summary, progress, cancel)
+        except KeyboardInterrupt as stop:  # the measurements made are kept
+            summary["stopped"] = type(stop).__name__
+            write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+            write_json_atomic(out / "summary.json", summary)
+            raise
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         write_json_atomic(out / "summary.json", summary)
     return summary
@@ -76,34 +103,65 @@ def record_predictions(path: Path, net: Any, dataset: MarkerDataset, name: str) 
         recording.close()
 
 
-def _evaluation_summary(
-    spec: EvalSpec, net: Any, dataset: Dataset | MarkerDataset, record: Path | None = None
-) -> dict[str, Any]:
-    summary = {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
+def _measure(
+    spec: EvalSpec,
+    net: Any,
+    dataset: Dataset | MarkerDataset,
+    record: Path | None,
+    summary: dict[str, Any],
+    progress: Callback,
+    cancel: CancelToken,
+) -> None:
+    """Fill ``summary`` measurement by measurement (``cancel`` checked between them), then
+    draw the plot and the recording."""
+    summary |= {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
     if isinstance(dataset, MarkerDataset):
         if net.spec.cable_code:
             summary["cable_code"] = _choose_code(net, dataset)
-        scores, curves = evaluate_markers(net, dataset)
-        summary.update(scores)
+        curves: dict[str, dict[str, list[float]]] = {"free_error_mm": {}, "abs_error_cm": {}}
+
+        def parts() -> Iterator[tuple[str, dict[str, Any]]]:
+            for name, measured, curve in marker_evaluation_parts(net, dataset):
+                for key, values in curve.items():
+                    curves[key].update(values)
+                yield name, measured
+
+        summary |= {"split": "eval", "episodes": len(dataset.episodes("eval"))}
+        _measured(parts(), MARKER_PARTS, summary, progress, cancel)
         if spec.plot is not None:
-            plot_error_by_horizon(scores, curves, dataset.rate_hz, spec.plot)
+            plot_error_by_horizon(summary, curves, dataset.rate_hz, spec.plot)
             summary["plot"] = str(spec.plot)
         if record is not None:
             record_predictions(record, net, dataset, Path(spec.data).stem)
             summary["recording"] = str(record)
         if spec.out is not None:
             write_json_atomic(Path(spec.out) / "error_by_frame.json", curves)
-        return summary
-    summary.update(evaluate_model(net, dataset, max_starts=spec.max_starts))
+        return
+    parts = evaluation_parts(net, dataset, max_starts=spec.max_starts)
+    _measured(parts, 1 + len(HORIZONS), summary, progress, cancel)
     if spec.plot is not None:
         plot_rollout(net, dataset, 0, spec.plot)
         summary["plot"] = str(spec.plot)
-    return summary
+
+
+def _measured(
+    parts: Iterable[tuple[str, dict[str, Any]]],
+    total: int,
+    summary: dict[str, Any],
+    progress: Callback,
+    cancel: CancelToken,
+) -> None:
+    """Each measurement of ``parts`` into ``summary``, reported as it is made."""
+    progress(Began("measurement", 0, total))
+    for done, (name, measured) in enumerate(parts, 1):
+        summary.update(measured)
+        progress(Event("measurement", done, total, {"name": name, **measured}))
+        cancel.raise_if_cancelled()
 
 
 def _choose_code(net: Any, dataset: MarkerDataset) -> str:
     """Use the code the model learned for this cable's recordings, the mean code where it
     learned none; say which."""
     if net.use_recorded_cable(dataset.held, dataset.episodes("train")) is not None:
-        return "its own: the model trained on this cable's train recordings"
+        return "its own: the model holds a code for this cable's train recordings"
     return f"the mean of {len(net.cable_keys)}: the model did not train on this cable"

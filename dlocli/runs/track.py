@@ -14,8 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.cancel import CancelToken
 from dlocli.data import MarkerDataset, save_dataset_run
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.rundir import refuse_out_by_source
 from dlocli.tracking.bags import is_bag, read_cloud_bag
 from dlocli.tracking.frames import FrameSequence, load_frames
@@ -70,8 +72,15 @@ def read_episode(spec: TrackSpec, path: Path) -> FrameSequence:
     return read_cloud_bag(path, spec.topic, np.array(spec.camera_position), BAG_BUDGET)
 
 
-def track_file(spec: TrackSpec, path: Path, arc: np.ndarray, held: np.ndarray) -> dict:
-    """One episode's tracked markers (F, M, 3), visibility and timing."""
+def track_file(
+    spec: TrackSpec,
+    path: Path,
+    arc: np.ndarray,
+    held: np.ndarray,
+    cancel: CancelToken | None = None,
+) -> dict:
+    """One episode's tracked markers (F, M, 3), visibility and timing; ``cancel`` stops it
+    between frames."""
     sequence = read_episode(spec, path)
     robot = _held_positions(sequence, path, spec, int(held.sum()))
     if len(sequence.frames) < 2:
@@ -80,6 +89,8 @@ def track_file(spec: TrackSpec, path: Path, arc: np.ndarray, held: np.ndarray) -
     markers, visible = [], []
     start = time.perf_counter()
     for i, frame in enumerate(sequence.frames):
+        if cancel is not None:
+            cancel.raise_if_cancelled()
         given = None if robot is None else robot[i]
         report = (tracker.start if i == 0 else tracker.step)(frame, given)
         markers.append(report.markers)
@@ -112,14 +123,53 @@ def _held_positions(
     return sequence.held
 
 
-def run_track(spec: TrackSpec, overwrite: bool = False) -> dict[str, Any]:
-    """Track every file of ``spec.source``; write OUT/dataset.h5, spec.json, summary.json."""
+def run_track(
+    spec: TrackSpec,
+    overwrite: bool = False,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
+) -> dict[str, Any]:
+    """Track every file of ``spec.source``; write OUT/dataset.h5, spec.json, summary.json.
+
+    ``progress`` gets a Began of the episodes (unit "episode"), then an Event per tracked
+    file (``values``: its ``episode`` name, ``split``, ``visible`` share and ``ms_per_frame``).
+    ``cancel`` stops it between frames: the episodes tracked so far are saved as the dataset
+    (its summary marked ``stopped``) before the stop is raised again."""
     if spec.source is None:
         raise BadInput("no recordings given; pass --source FOLDER of .npz frame sequences")
     refuse_out_by_source(spec)
+    progress, cancel = progress or ignore, cancel or CancelToken()
     files = episode_files(Path(spec.source))
     arc, held = recorded_markers(spec)
-    tracked = {s: [(p.stem, track_file(spec, p, arc, held)) for p in files[s]] for s in SPLITS}
+    tracked: dict[str, list[tuple[str, dict]]] = {s: [] for s in SPLITS}
+    total = sum(len(files[s]) for s in SPLITS)
+    progress(Began("episode", 0, total))
+    try:
+        for split in SPLITS:
+            for path in files[split]:
+                run = track_file(spec, path, arc, held, cancel)
+                tracked[split].append((path.stem, run))
+                frames_ms = 1e3 * run["seconds"] / len(run["markers"])
+                values = {"episode": path.stem, "split": split, "visible": run["visible"],
+                          "ms_per_frame": frames_ms}  # fmt: skip
+                progress(Event("episode", sum(map(len, tracked.values())), total, values))
+    except KeyboardInterrupt as stop:  # the episodes tracked so far are kept
+        if tracked["train"]:
+            _save(spec, tracked, arc, held, overwrite, stopped=type(stop).__name__)
+        raise
+    return _save(spec, tracked, arc, held, overwrite)
+
+
+def _save(
+    spec: TrackSpec,
+    tracked: dict[str, list[tuple[str, dict]]],
+    arc: np.ndarray,
+    held: np.ndarray,
+    overwrite: bool,
+    stopped: str | None = None,
+) -> dict[str, Any]:
+    """The tracked episodes as the run's dataset, and its summary (``stopped``: what ended
+    the run before every file was tracked)."""
     runs = [run for items in tracked.values() for _, run in items]
     rates = np.array([run["rate_hz"] for run in runs])
     if rates.max() > rates.min() * (1 + RATE_TOLERANCE):
@@ -143,4 +193,6 @@ def run_track(spec: TrackSpec, overwrite: bool = False) -> dict[str, Any]:
         "visible_share": round(float(np.mean([run["visible"] for run in runs])), 4),
         "ms_per_frame": round(1e3 * sum(run["seconds"] for run in runs) / frames, 3),
     }
+    if stopped is not None:
+        summary["stopped"] = stopped
     return save_dataset_run(spec, dataset, summary, overwrite)

@@ -24,14 +24,19 @@ from dlocli.models.checkpoints import (
     read_checkpoint,
     save_checkpoint,
 )
-from dlocli.models.evaluation import evaluate_model, plot_rollout
+from dlocli.models.evaluation import evaluate_model
 from dlocli.models.fit import fit
 from dlocli.models.fitting import FitRecord, KeepBest
 from dlocli.models.spec import TrainSpec
-from dlocli.plots import plot_losses
+from dlocli.plots import plot_losses, plot_rollout
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
-from dlocli.runs.train_markers import check_init_rate, recorded_rate, run_marker_training
+from dlocli.runs.train_markers import (
+    check_init_rate,
+    fine_tuned_spec,
+    recorded_rate,
+    run_marker_training,
+)
 from dlocli.tensorboard import Scalars
 
 LAST_CHECKPOINT = Path("checkpoints") / "last.pt"  # after every epoch, for --resume
@@ -40,13 +45,13 @@ LAST_CHECKPOINT = Path("checkpoints") / "last.pt"  # after every epoch, for --re
 def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dict[str, Any] | None]:
     """A fresh model (seeded) or the one in ``spec.init_from`` and its optimizer state.
 
-    With ``init_from``, model fields given explicitly must match the checkpoint's; none given
-    means "the checkpoint's model".
+    With ``init_from``, model fields given explicitly must match the checkpoint's
+    (:func:`fine_tuned_spec`); none given means "the checkpoint's model".
     """
     device = resolve_device(spec.device)
     if spec.init_from is not None:
-        expect = spec.model if "model" in spec.model_fields_set else None
-        model = load_model(spec.init_from, device, expect=expect)
+        model = load_model(spec.init_from, device)
+        fine_tuned_spec(spec, model.spec)
         check_init_rate(model, spec, dataset, spec.data[0])
         opt_state = read_checkpoint(spec.init_from).get("optimizer")
         if model.n_segments != dataset.n_segments:

@@ -32,7 +32,7 @@ from dlocli.models.fit import fit
 from dlocli.models.fitting import FitRecord
 from dlocli.models.marker_training import Cable, Cables, validation_score
 from dlocli.models.markers import FORM, MarkerModel, build_marker_model
-from dlocli.models.spec import TrainSpec
+from dlocli.models.spec import ModelSpec, TrainSpec
 from dlocli.models.splits import split_episodes
 
 
@@ -44,6 +44,23 @@ def check_init_rate(
     if dataset.control_dt is not None:
         check_control_rate(model, dataset.control_dt, f"--init-from {spec.init_from}",
                            f"--data {path} is", "fine-tune it on data at {hz} Hz")  # fmt: skip
+
+
+def fine_tuned_spec(spec: TrainSpec, held: ModelSpec) -> TrainSpec:
+    """``spec`` with the model of its --init-from checkpoint (``held``), the model the run
+    trains and its spec.json saves; BadInput if a model option given differs from the
+    checkpoint's (a fine-tune cannot change the network)."""
+    given = spec.model.model_fields_set if "model" in spec.model_fields_set else set()
+    for name in sorted(given):
+        want, have = getattr(spec.model, name), getattr(held, name, None)
+        if want != have:
+            flag = "--model" if name == "name" else "--" + name.replace("_", "-")
+            raise BadInput(
+                f"--init-from {spec.init_from} holds model {held.name} with {name} "
+                f"{have!r}, not the {want!r} requested: drop {flag} (a fine-tune trains the "
+                "checkpoint's model) or train a new model without --init-from"
+            )
+    return spec.model_copy(update={"model": held})
 
 
 def recorded_rate(dataset: Dataset | MarkerDataset) -> dict[str, float]:
@@ -63,6 +80,8 @@ def run_marker_training(
     check_same_rate(datasets, paths)
     torch.manual_seed(spec.seed)
     model = starting_model(spec, datasets, paths)
+    if spec.init_from is not None:
+        spec = fine_tuned_spec(spec, model.spec)
     train, val = split_cables(datasets, spec.val_fraction)
     out = prepare_run_dir(spec.out, overwrite)
     write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))

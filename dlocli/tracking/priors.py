@@ -3,7 +3,7 @@
 The tracker asks its prior for every frame's prediction, which seeds the fit and holds the
 nodes the camera does not see. A prior sees only node positions (the markers), oldest
 first, and the held nodes' next positions when the robot knows them: the learned marker
-model (:mod:`dlocli.tracking.marker_prior`) or :class:`ContinuityPrior`, geometry alone.
+model (:mod:`dlocli.tracking.model_prior`) or :class:`ContinuityPrior`, geometry alone.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Calibrate the simulated rod to each DEFORM cable (MuJoCo; PyBullet on DLO3) and keep the
-# small reports here. Usage:
+# Calibrate the simulated rod to each DEFORM cable (MuJoCo; PyBullet on DLO3); the runs stay in
+# RUNS (outside the repository), each fit's calibrated.yaml and report.json are kept here. Usage:
 #   DEFORM=/path/to/DEFORM/data_set examples/calibration/run.sh [runs/calibration]
 # One cable at a time, two replay workers each. What was run for the committed results of
 # the composite cable (results/CABLE-mujoco; a 2-core machine shared with other jobs), in a
@@ -37,8 +37,9 @@
 # train_trajectories 4, generations 3 and no rod_length) and its sim-to-real study:
 #   for c in DLO1 DLO2 DLO3 DLO4; do python examples/calibration/sim_to_real.py \
 #     runs/calibration/$c-mujoco runs/real/$c/data runs/real/$c runs/sim_to_real/$c; done
-#   python examples/calibration/table.py examples/calibration/results/rigid \
+#   python examples/calibration/table.py examples/calibration/results/rigid runs/calibration \
 #     > examples/calibration/results/rigid/summary.md
+# (the variants' and the earlier rod's fits stay in their runs: notes.md and rigid/summary.md)
 set -euo pipefail
 DEFORM=${DEFORM:?set DEFORM to the folder holding DLO1 ... DLO4}
 RUNS=${1:-runs/calibration}
@@ -52,7 +53,7 @@ for b in $BACKENDS; do
       --backend "$b" --workers "${WORKERS:-2}" ${GENERATIONS:+--generations "$GENERATIONS"} \
       --out "$run" --overwrite --json > /dev/null
     mkdir -p "$HERE/results/$c-$b"
-    cp "$run/report.json" "$run/report.md" "$run/calibrated.yaml" "$HERE/results/$c-$b/"
+    cp "$run/report.json" "$run/calibrated.yaml" "$HERE/results/$c-$b/"
     python -c "import json;r=json.load(open('$run/report.json'));print('$c $b', r['eval_default_cm'], '->', r['eval_calibrated_cm'], 'cm in', r['fit_seconds'], 's')"
   done
 done

@@ -2,9 +2,10 @@
 composite cable's (RESULTS/CABLE-mujoco-flex, with the swing decays of
 RESULTS/swing_decay_*.json) and the sim-to-real results (RESULTS/sim_to_real_*.json) as
 markdown tables; RESULTS defaults to results/ (today's rod), results/rigid/ holds the earlier
-rod's (rigid clamps).
+rod's (rigid clamps). The fits' reports are read from REPORTS (default RESULTS: the fits kept
+there; the earlier rod's are in the calibration runs, e.g. runs/calibration).
 
-python examples/calibration/table.py [RESULTS] > RESULTS/summary.md
+python examples/calibration/table.py [RESULTS [REPORTS]] > RESULTS/summary.md
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ import sys
 from pathlib import Path
 
 RESULTS = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent / "results"
+REPORTS = Path(sys.argv[2]) if len(sys.argv) > 2 else RESULTS
 
 
 def main() -> None:
     reports = {
-        p.parent.name: json.loads(p.read_text()) for p in sorted(RESULTS.glob("*/report.json"))
+        p.parent.name: json.loads(p.read_text()) for p in sorted(REPORTS.glob("*/report.json"))
     }
     print(
         "| cable, backend | default material | calibrated | DER (published) | XPBD (published) "

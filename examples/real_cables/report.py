@@ -3,7 +3,7 @@
     python examples/real_cables/report.py [runs/real]
 
 Reads RUNS/<cable>/<model>-s<seed>-eval/{summary,error_by_frame}.json (runs without the
-curves, as kept in git, enter the tables only) and writes, beside this script,
+curves enter the tables only) and writes, beside this script,
 results.json, results.md and horizon.png: per cable, the DEFORM score of each model (mean ±
 std over seeds) next to the published rows and the references, with the longest training
 run's time; results.md keeps its notes below the tables; the figure shows the score of the
@@ -43,7 +43,7 @@ def collect(runs: Path) -> dict:
         for summary_path in sorted((runs / cable).glob("*-s*-eval/summary.json")):
             model, seed = summary_path.parent.name.removesuffix("-eval").rsplit("-s", 1)
             summary = json.loads(summary_path.read_text())
-            curves_path = summary_path.parent / "error_by_frame.json"  # not kept in git
+            curves_path = summary_path.parent / "error_by_frame.json"  # a run may lack it
             curves = json.loads(curves_path.read_text()) if curves_path.is_file() else None
             entry = results.setdefault(cable, {}).setdefault(model, {"seeds": {}})
             trained = json.loads((runs / cable / f"{model}-s{seed}" / "summary.json").read_text())
@@ -181,7 +181,7 @@ def main() -> None:
     results = collect(runs)
     curves = [s.get("abs_error_cm") for c in results.values() for e in c.values()
               for s in e.get("seeds", {}).values()]  # fmt: skip
-    if all(curves):  # runs kept in git lack their curves: the committed figure stays
+    if all(curves):  # a run without its curves leaves the committed figure as it is
         figure(results, HERE / "horizon.png")
     slim = {c: {m: {k: v for k, v in e.items() if k != "abs_error_cm"} for m, e in models.items()}
             for c, models in results.items()}  # fmt: skip

@@ -3,6 +3,13 @@
 # train split, score on its eval split by the published protocol. Usage:
 #   DEFORM=/path/to/DEFORM/data_set examples/real_cables/run.sh [runs/real]
 # Two jobs at a time, one torch thread each (a 2-core machine); about an hour there.
+# The runs stay in RUNS (outside the repository); report.py writes what results.md quotes:
+#   MODELS="in-bilstm mlp attention mlp-long" examples/real_cables/run.sh runs/real
+#   MODELS=mlp-long-all CABLES=DLO1 examples/real_cables/run.sh runs/real
+#   MODELS=mlp-long-all-x2 CABLES=DLO1 SEEDS="0 2 4" examples/real_cables/run.sh runs/real
+#   MODELS=mlp-long-x2 CABLES="DLO2 DLO3 DLO4" SEEDS="0 2" examples/real_cables/run.sh runs/real
+#   python examples/real_cables/report.py runs/real
+# The validation runs behind the recipes: validation.py (validation.json).
 set -euo pipefail
 DEFORM=${DEFORM:?set DEFORM to the folder holding DLO1 ... DLO4}
 RUNS=${1:-runs/real}

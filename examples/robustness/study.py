@@ -182,7 +182,7 @@ def evaluate(job: tuple[argparse.Namespace, str, int, str]) -> list[dict[str, An
     try:
         controller = make_agent(options, env, name, seed)
         if name.endswith(PRIOR) and getattr(env.tracker, "tracker", None) is not None:
-            from dlocli.tracking.marker_prior import MarkerModelPrior
+            from dlocli.tracking.model_prior import MarkerModelPrior
 
             held = env.marker_layout.held
             env.tracker.tracker.prior = MarkerModelPrior(controller.model, held)

@@ -155,14 +155,14 @@ class OnlineRun:
 
     def update_marker_model(self, k: int, data: Dataset) -> None:
         """The update of the marker form (the markers observation,
-        :mod:`dlocli.runs.online.markers`): ``fit.update_steps`` steps from iteration k-1's
+        :mod:`dlocli.runs.online.marker_update`): ``fit.update_steps`` steps from iteration k-1's
         weights; checkpointed as iteration k."""
         import torch
 
         from dlocli.models.base import resolve_device
         from dlocli.models.checkpoints import load_marker_model, save_checkpoint
         from dlocli.models.fitting import RolloutValidated
-        from dlocli.runs.online.markers import new_marker_model, update_marker_model
+        from dlocli.runs.online.marker_update import new_marker_model, update_marker_model
 
         if k == 1:
             torch.manual_seed(stream_seed(self.spec.seed, TRAIN, 0))
@@ -219,7 +219,7 @@ class OnlineRun:
         if todo:
             spec_json = self.trial_spec().model_dump_json()
             model = self.executor.share(Path(checkpoint).read_bytes())
-            calls = [(spec_json, model, k, j) for j in todo]
+            calls = [(spec_json, model, k, j, self.cancel) for j in todo]
             for index, result in self.executor.map(trials.run_trial, calls):
                 episode, attrs = trials.returned(result)
                 j = todo[index]
@@ -250,7 +250,7 @@ class OnlineRun:
             return
         spec_json = self.spec.model_dump_json()
         shares = [missing[w :: self.spec.workers] for w in range(self.spec.workers)]
-        calls = [(spec_json, k, share) for share in shares if share]
+        calls = [(spec_json, k, share, self.cancel) for share in shares if share]
         for _, result in self.executor.map(trials.reference_episodes, calls):
             for name, j, scores in trials.returned(result):
                 table.add(name, k, j, scores)

@@ -16,7 +16,7 @@ from dlocli.controllers.specs import (
     planner_options_field,
 )
 from dlocli.executors import ExecutorChoice
-from dlocli.limits import MAX_COUNT, MAX_PROCESSES
+from dlocli.limits import MAX_CLUSTER_WORKERS, MAX_COUNT, MAX_PROCESSES
 from dlocli.models.spec import ModelField, UpdateSpec, model_field
 from dlocli.rundir import FINGERPRINTS_FILE
 from dlocli.specs import MODEL_OPTIONS, EnvSpec, is_given
@@ -66,9 +66,10 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     planner: PlannerName = planner_name_field()
     mpc: PlannerOptions = planner_options_field("Options of the planner that explores.")
     workers: int = Field(
-        1, gt=0, le=MAX_PROCESSES,
+        1, gt=0, le=MAX_CLUSTER_WORKERS,
         description="Processes running an iteration's trials (at most one per CPU); with "
-        "--executor ray and no --ray-address, the CPUs of the local Ray instance.",
+        "--executor ray and no --ray-address, the CPUs of the local Ray instance; with "
+        "--ray-address, at most the cluster's CPUs.",
     )  # fmt: skip
     threads: int | None = Field(
         None, gt=0, le=MAX_PROCESSES,

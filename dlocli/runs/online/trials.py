@@ -1,7 +1,9 @@
 """The jobs of an online run that an executor runs anywhere (:mod:`dlocli.executors`): one
 trial of the planner through the model, and reference episodes from the trials' starts. Each
 gets the spec as JSON and the model's checkpoint as bytes, and returns what happened; the
-driver writes every file."""
+driver writes every file. Each also gets the run's cancel token: in the driver's process it
+stops the episode between physics steps; a copy in another process is never cancelled (that
+process's own signals end it)."""
 
 from __future__ import annotations
 
@@ -10,11 +12,11 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.cancel import CancelToken
 from dlocli.controllers.base import make_controller
 from dlocli.data import Episode
 from dlocli.env.rollout import NoisyPolicy, episode_scores, random_episode, rollout, stream_seed
 from dlocli.env.shape_env import make_env_from_spec
-from dlocli.processes import signal_token
 from dlocli.runs.online.spec import INITIAL, NOISE, REFERENCE, TRIAL, OnlineSpec, job_threads
 from dlocli.runs.references import reference_episode_scores
 from dlocli.specs import EnvSpec
@@ -50,12 +52,14 @@ class TimedController:
             self.seconds += time.perf_counter() - start
 
 
-def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[Episode, float]:
+def trial_episode(
+    spec: OnlineSpec, checkpoint: bytes, k: int, j: int, cancel: CancelToken | None = None
+) -> tuple[Episode, float]:
     """One trial of the spec's planner through the model ``checkpoint`` holds (seeds from
     (seed, k, j)), and the seconds the planner took in it."""
     from dlocli.models.checkpoints import load_planning_model
 
-    env = make_env_from_spec(env_spec(spec), cancel=signal_token())
+    env = make_env_from_spec(env_spec(spec), cancel=cancel)
     try:
         model = load_planning_model(checkpoint, spec.fit.device)
         seed = stream_seed(spec.seed, TRIAL, k, j)
@@ -68,7 +72,9 @@ def trial_episode(spec: OnlineSpec, checkpoint: bytes, k: int, j: int) -> tuple[
         env.close()
 
 
-def run_trial(spec_json: str, checkpoint: bytes, k: int, j: int) -> tuple[Episode, dict[str, Any]]:
+def run_trial(
+    spec_json: str, checkpoint: bytes, k: int, j: int, cancel: CancelToken | None = None
+) -> tuple[Episode, dict[str, Any]]:
     """Trial j of iteration k through the model whose checkpoint file holds ``checkpoint``:
     its episode and scores (an executor's job; the driver writes the file)."""
     import torch
@@ -76,7 +82,7 @@ def run_trial(spec_json: str, checkpoint: bytes, k: int, j: int) -> tuple[Episod
     spec = OnlineSpec.model_validate_json(spec_json)
     start = time.perf_counter()
     with torch_threads(job_threads(spec)):
-        episode, planner_seconds = trial_episode(spec, checkpoint, k, j)
+        episode, planner_seconds = trial_episode(spec, checkpoint, k, j, cancel)
         threads = torch.get_num_threads()
     attrs = {
         **episode_scores(episode, spec.task.episode_steps),
@@ -88,12 +94,12 @@ def run_trial(spec_json: str, checkpoint: bytes, k: int, j: int) -> tuple[Episod
 
 
 def reference_episodes(
-    spec_json: str, k: int, runs: list[tuple[str, int]]
+    spec_json: str, k: int, runs: list[tuple[str, int]], cancel: CancelToken | None = None
 ) -> list[tuple[str, int, dict[str, float]]]:
     """The reference episodes ``runs`` ((controller, trial) pairs) of iteration k, on one
     env, from the trials' starts (an executor's job)."""
     spec = OnlineSpec.model_validate_json(spec_json)
-    env = make_env_from_spec(env_spec(spec), cancel=signal_token())
+    env = make_env_from_spec(env_spec(spec), cancel=cancel)
     try:
         return [
             (name, j, reference_episode_scores(env, name, stream_seed(spec.seed, TRIAL, k, j),

@@ -1,0 +1,81 @@
+"""A backend's planner defaults: the options its rod's motion asks of a planner, taken by
+every run that plans on it unless the run sets them, and saved in its resolved spec."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from dlocli.backends.facts import BackendFacts, FlexFacts
+from dlocli.bench.spec import BenchSpec
+from dlocli.controllers.base import controller_spec
+from dlocli.controllers.specs import MPCSpec
+from dlocli.registry import backends
+from dlocli.runs.online.spec import OnlineSpec
+
+PAPER = {"motion_cost": MPCSpec().motion_cost, "damping": MPCSpec().damping}
+FLEX = dict(FlexFacts.planner_defaults["mpc"])
+
+
+def planned(spec_cls: type, data: dict) -> dict[str, float]:
+    spec = spec_cls.model_validate(data)
+    return {"motion_cost": spec.mpc.motion_cost, "damping": spec.mpc.damping}
+
+
+@pytest.mark.parametrize("spec_cls", [OnlineSpec, BenchSpec])
+def test_the_flex_rod_plans_with_its_defaults_the_others_with_the_papers(spec_cls):
+    assert FLEX == {"motion_cost": 32.0, "damping": 1.0} != PAPER
+    assert PAPER == {"motion_cost": 0.0, "damping": 0.01}
+    assert planned(spec_cls, {"backend": {"name": "mujoco-flex"}}) == FLEX
+    for name in ("mujoco", "pybullet"):
+        assert planned(spec_cls, {"backend": {"name": name}}) == PAPER
+
+
+def test_what_a_run_sets_is_kept_and_the_resolved_spec_saves_it():
+    spec = OnlineSpec.model_validate({"backend": {"name": "mujoco-flex"},
+                                      "mpc": {"motion_cost": 0.0}})  # fmt: skip
+    assert (spec.mpc.motion_cost, spec.mpc.damping) == (0.0, FLEX["damping"])
+    saved = json.loads(spec.model_dump_json())
+    assert saved["mpc"]["motion_cost"] == 0.0 and saved["mpc"]["damping"] == FLEX["damping"]
+    again = OnlineSpec.model_validate(saved)
+    assert again.mpc == spec.mpc
+    # a spec saved on one rod, read for another, keeps what it saved
+    saved["backend"]["name"] = "mujoco"
+    assert OnlineSpec.model_validate(saved).mpc.damping == FLEX["damping"]
+
+
+def test_a_planner_without_defaults_on_the_rod_gets_none():
+    spec = OnlineSpec.model_validate({"backend": {"name": "mujoco-flex"}, "planner": "mppi"})
+    assert spec.mpc.motion_cost == 0.0
+
+
+def test_dlo_controls_options_take_the_backends_defaults():
+    assert controller_spec("mpc", {}, "mujoco-flex").model_dump().items() >= FLEX.items()
+    assert controller_spec("mpc", {"damping": 0.1}, "mujoco-flex").damping == 0.1
+    assert controller_spec("mpc", {}, "mujoco").model_dump().items() >= PAPER.items()
+    assert controller_spec("zero", {}, "mujoco-flex") is None
+
+
+def test_every_registered_backend_names_planner_options_that_exist():
+    for name in backends.names():
+        facts = backends.facts(name)
+        assert issubclass(facts, BackendFacts)
+        for planner, options in facts.planner_defaults.items():
+            spec_cls = controller_spec(planner).__class__
+            assert set(options) <= set(spec_cls.model_fields), (name, planner)
+            spec_cls.model_validate(options)
+
+
+def test_dlo_list_names_each_backends_planner_defaults():
+    from typer.testing import CliRunner
+
+    from dlocli.cli import app
+
+    result = CliRunner().invoke(app, ["list", "--json"])
+    assert result.exit_code == 0, result.output
+    listed = json.loads(result.output)["backends"]
+    assert listed["mujoco-flex"].endswith(
+        "mpc plans with motion_cost 32, damping 1 unless a run sets them"
+    )
+    assert "plans with" not in listed["mujoco"]
