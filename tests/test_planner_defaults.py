@@ -79,3 +79,26 @@ def test_dlo_list_names_each_backends_planner_defaults():
         "mpc plans with motion_cost 32, damping 1 unless a run sets them"
     )
     assert "plans with" not in listed["mujoco"]
+
+
+def test_make_controller_gives_unnamed_options_the_envs_defaults():
+    import dlocli
+    from dlocli.controllers.base import make_controller
+    from dlocli.models import build_model
+    from dlocli.models.spec import model_spec
+
+    from tiny import MUJOCO_ROD
+
+    model = build_model(model_spec({"hidden": 8, "edge_layers": 1, "node_layers": 1,
+                                    "lstm_layers": 1}), 20)  # fmt: skip
+    env = dlocli.make_env(MUJOCO_ROD, "single", seed=0, episode_steps=5)
+    try:
+        expected = PAPER if MUJOCO_ROD == "mujoco" else FLEX
+        made = make_controller("mpc", env, model=model).spec
+        assert {"motion_cost": made.motion_cost, "damping": made.damping} == expected
+        named = make_controller("mpc", env, options={"damping": 0.5}, model=model).spec
+        assert (named.motion_cost, named.damping) == (expected["motion_cost"], 0.5)
+        whole = make_controller("mpc", env, options=MPCSpec(), model=model).spec
+        assert (whole.motion_cost, whole.damping) == (PAPER["motion_cost"], PAPER["damping"])
+    finally:
+        env.close()

@@ -217,8 +217,10 @@ def make_controller(
 ) -> Controller:
     """Build the registered controller ``name`` for ``env``.
 
-    ``options`` are its spec's fields (dict or spec instance); ``provided`` holds what
-    controllers may need (``model=``); only the names in the class's ``needs`` are passed on.
+    ``options`` are its spec's fields (dict or spec instance; a dict or None leaves the fields
+    it does not name to ``env``'s backend's planner defaults, a spec instance is taken whole);
+    ``provided`` holds what controllers may need (``model=``); only the names in the class's
+    ``needs`` are passed on.
     """
     cls = controllers.get(name)
     missing = [need for need in cls.needs if provided.get(need) is None]
@@ -226,10 +228,11 @@ def make_controller(
         needed = " and a ".join(missing)
         raise BadInput(f"controller '{name}' needs a {needed}; pass --{missing[0]}")
     kwargs: dict[str, Any] = {need: provided[need] for need in cls.needs}
+    backend = getattr(getattr(env, "backend_spec", None), "name", None)
     if isinstance(options, Spec):
-        options = options.model_dump()
+        options, backend = options.model_dump(), None
     if cls.spec_cls is not None:
-        kwargs["spec"] = controller_spec(name, options)
+        kwargs["spec"] = controller_spec(name, options, backend)
     return cls(env, seed=seed, **kwargs)
 
 

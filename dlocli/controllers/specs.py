@@ -61,8 +61,8 @@ class PlannerSpec(Spec):
         description="Weight of the rod's predicted motion: the cost adds motion_cost * sum_k "
         "||p_k - p_(k-1)||^2 over the plan's steps (the first from the observed positions), so "
         "a plan that reaches the goal with the cable still swinging pays for the swing, and "
-        "the planner damps it. 0 = the paper's objective; unset, the backend's default "
-        "(mpc on the flex rod: 32; docs: a planner that damps the swing).",
+        "the planner damps it. 0 = the paper's objective; unset, the backend's planner default "
+        "(`dlo list` names them; docs: a planner that damps the swing).",
     )
     tracking: Literal["estimate", "raw"] = Field(
         "estimate",
@@ -99,7 +99,7 @@ class MPCSpec(PlannerSpec):
         1e-2, gt=0, le=1e3,
         description="gauss-newton: Levenberg damping added to J^T J, relative to its mean "
         "diagonal: larger moves less far along the directions the model barely sees; unset, "
-        "the backend's default (the flex rod: 1).",
+        "the backend's planner default (`dlo list` names them).",
     )  # fmt: skip
     exact_gradient: bool = Field(
         False,
