@@ -32,6 +32,8 @@ runner = CliRunner()
 TINY = ["--iters", "2", "--trials", "2", "--steps", "15", "--epochs", "1",
         "--initial-episodes", "2", "--hidden", "16", "--seed", "3"]  # fmt: skip
 TRIALS = [(k, j) for k in (1, 2) for j in (1, 2)]
+#: Ray's command line beside this Python: a suite run without its venv's bin on PATH finds it
+RAY_CLI = shutil.which("ray", path=os.path.dirname(sys.executable)) or "ray"
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +204,7 @@ def test_a_head_that_dies_midway_is_one_line_naming_it_and_trials_are_kept(local
     env |= {"OMP_NUM_THREADS": "1", "RAY_AUTH_MODE": "token"}  # older Rays ignore the mode
     temp = tempfile.mkdtemp(prefix="dlo-ray-", dir="/tmp")  # Ray's socket paths must be short
     head = subprocess.run(
-        ["ray", "start", "--head", "--port", str(_free_port()), "--num-cpus", "2",
+        [RAY_CLI, "start", "--head", "--port", str(_free_port()), "--num-cpus", "2",
          "--include-dashboard", "false", "--ray-client-server-port", str(_free_port()),
          "--dashboard-agent-listen-port", str(_free_port()), "--temp-dir", temp],
         env=env, capture_output=True, text=True, timeout=120, start_new_session=True,
