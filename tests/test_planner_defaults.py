@@ -102,3 +102,13 @@ def test_make_controller_gives_unnamed_options_the_envs_defaults():
         assert (whole.motion_cost, whole.damping) == (PAPER["motion_cost"], PAPER["damping"])
     finally:
         env.close()
+
+
+def test_help_says_a_backend_may_set_the_option():
+    from dlocli.cli.flags import shown_default
+    from dlocli.specs import field_info
+
+    for field in ("motion_cost", "damping"):
+        shown = shown_default(field_info(MPCSpec, field), field, False)
+        assert shown.endswith(", or the backend's planner default]"), shown
+    assert shown_default(field_info(MPCSpec, "horizon"), "horizon", False) == "  [default: 5]"

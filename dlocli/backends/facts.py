@@ -13,6 +13,11 @@ if TYPE_CHECKING:
     from dlocli.backend_spec import RodSpec
 
 
+#: the ``json_schema_extra`` of a planner option a backend's ``planner_defaults`` may set
+#: (--help says so beside its default)
+BACKEND_DEFAULT = {"backend_default": True}
+
+
 class BackendFacts:
     """The facts every backend has; the defaults suit a backend without limits."""
 

@@ -23,6 +23,7 @@ from typing import Annotated, Any, Literal, get_args, get_origin
 import typer
 import yaml
 
+from dlocli.backends.facts import BACKEND_DEFAULT
 from dlocli.cli.common import JsonFlag, OverwriteFlag, SpecFile
 from dlocli.errors import BadInput
 from dlocli.models.spec import ModelSpec, model_spec_classes
@@ -132,6 +133,8 @@ def shown_default(info: Any, flag: str, required: bool) -> str:
         value = ",".join(str(v) for v in value)
     elif isinstance(value, Spec):  # a nested spec: its fields are flags of their own
         return ""
+    if info.json_schema_extra == BACKEND_DEFAULT:
+        return f"  [default: {value}, or the backend's planner default]"
     return f"  [default: {value}]"
 
 

@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo
 
+from dlocli.backends.facts import BACKEND_DEFAULT
 from dlocli.controllers.base import is_planner, with_backend_defaults
 from dlocli.errors import UnknownName
 from dlocli.limits import MAX_COUNT
@@ -58,6 +59,7 @@ class PlannerSpec(Spec):
         0.0,
         ge=0,
         le=1e4,
+        json_schema_extra=BACKEND_DEFAULT,
         description="Weight of the rod's predicted motion: the cost adds motion_cost * sum_k "
         "||p_k - p_(k-1)||^2 over the plan's steps (the first from the observed positions), so "
         "a plan that reaches the goal with the cable still swinging pays for the swing, and "
@@ -96,7 +98,7 @@ class MPCSpec(PlannerSpec):
         "(a trust region; the solution is clipped to it).",
     )
     damping: float = Field(
-        1e-2, gt=0, le=1e3,
+        1e-2, gt=0, le=1e3, json_schema_extra=BACKEND_DEFAULT,
         description="gauss-newton: Levenberg damping added to J^T J, relative to its mean "
         "diagonal: larger moves less far along the directions the model barely sees; unset, "
         "the backend's planner default (`dlo list` names them).",
