@@ -31,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from dlocli.env.observation import MarkerLayout
+from dlocli.data.markers import DEFAULT_RATE_HZ as IMPORT_RATE_HZ
+from dlocli.env.observation import MM, MarkerLayout
 from dlocli.env.rollout import stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env
 from dlocli.errors import BadInput
@@ -46,9 +47,7 @@ from dlocli.specs import ObservationSpec
 from dlocli.tracking.camera import DepthCamera
 from dlocli.tracking.frames import save_frames
 from dlocli.tracking.measure import env_layout, policy_action, robot_held, true_markers
-from dlocli.tracking.spec import CameraSpec
-
-MM = 1e-3
+from dlocli.tracking.spec import CameraSpec, TrackSpec
 
 
 def resolved(spec: SampleSpec) -> SampleSpec:
@@ -182,7 +181,7 @@ def _summary(spec: SampleSpec, held: np.ndarray) -> dict[str, Any]:
     markers: int | None = None
     if spec.kind == "cable":
         reads = ["dlo", "import", "--source", out]
-        if spec.format == "pkl" and spec.rate_hz != 100.0:
+        if spec.format == "pkl" and spec.rate_hz != IMPORT_RATE_HZ:
             reads += ["--rate-hz", f"{spec.rate_hz:g}"]
         if spec.units != "m":
             reads += ["--units", spec.units]
@@ -194,9 +193,9 @@ def _summary(spec: SampleSpec, held: np.ndarray) -> dict[str, Any]:
     else:
         reads = ["dlo", "track", "--source", out]
         behind = spec.task.observation.gripper_markers
-        if behind != 0.05:
+        if behind != TrackSpec.model_fields["gripper_markers"].default:
             reads += ["--gripper-markers", f"{behind:g}"]
-        if spec.backend.rod.length != 1.0:
+        if spec.backend.rod.length != TrackSpec.model_fields["length"].default:
             reads += ["--length", f"{spec.backend.rod.length:g}"]
     summary = {
         "kind": spec.kind,
