@@ -25,8 +25,9 @@ from dlocli.models.mirror import (
     mirror_task_action,
     mirror_transitions,
 )
+from dlocli.models.rod_training import transition_tensors
 from dlocli.models.spec import FitSpec
-from dlocli.models.training import split_episodes, transition_tensors
+from dlocli.models.splits import split_episodes
 
 MOTION_STEPS = 60  # control steps of piecewise-constant random commands (1.2 s)
 SETTLE_STEPS = 60  # then the grippers stand still and the rod settles (1.2 s)
@@ -182,7 +183,7 @@ def test_mirror_is_on_by_default_and_runs_saved_before_it_resume_without_it(tmp_
 
 def test_data_with_a_free_right_end_are_not_mirrored(small_dataset_dir):
     """A cantilever's twin would have a free left end: no backend simulates that rod."""
-    from dlocli.models.training import mirror_applies
+    from dlocli.models.rod_training import mirror_applies
 
     data = load_dataset(small_dataset_dir)
     assert mirror_applies(data)

@@ -15,12 +15,9 @@ from dlocli.models.checkpoints import load_model, read_checkpoint
 from dlocli.models.evaluation import evaluate_model
 from dlocli.models.fit import fit as fit_model
 from dlocli.models.fitting import Validated
-from dlocli.models.training import (
-    FitSpec,
-    split_episodes,
-    transition_tensors,
-    validation_loss,
-)
+from dlocli.models.rod_training import transition_tensors, validation_loss
+from dlocli.models.spec import FitSpec
+from dlocli.models.splits import split_episodes
 from dlocli.registry import models
 
 TINY = {"hidden": 24}

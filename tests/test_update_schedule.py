@@ -18,13 +18,10 @@ from dlocli.migrations import LEGACY_VALUES
 from dlocli.models.base import build_model
 from dlocli.models.checkpoints import read_checkpoint
 from dlocli.models.fit import fit as fit_model
+from dlocli.models.rod_training import transition_tensors, validation_loss
 from dlocli.models.spec import TrainSpec, UpdateSpec
+from dlocli.models.splits import split_episodes
 from dlocli.models.step_schedule import recent_rows, sample_batch
-from dlocli.models.training import (
-    split_episodes,
-    transition_tensors,
-    validation_loss,
-)
 from dlocli.models.update_steps import train_like_online
 
 runner = CliRunner()
@@ -242,8 +239,8 @@ def test_fit_is_the_one_entry_point_of_both_rod_schedules(data):
     """dlocli.fit picks the schedule from the spec: the same weights as the schedule's own
     (private) function (the marker schedule runs in tests/test_real_cables.py through `dlo
     train`)."""
+    from dlocli.models.rod_training import _train_model
     from dlocli.models.step_schedule import _train_steps
-    from dlocli.models.training import _train_model
 
     steps = UpdateSpec(**{**STEPS, "update_steps": 12, "eval_every": 6})
     epochs = steps.model_copy(update={"schedule": "epochs", "epochs": 1})

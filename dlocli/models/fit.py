@@ -2,7 +2,7 @@
 schedule chosen by the model's form and the spec:
 
 - epochs (the paper's): passes over all the training transitions
-  (:func:`dlocli.models.training._train_model`);
+  (:func:`dlocli.models.rod_training._train_model`);
 - steps (an ``UpdateSpec`` with schedule "steps"): a fixed number of gradient steps with the
   newest episodes weighted in (:func:`dlocli.models.step_schedule._train_steps`);
 - rollout windows (a marker model, recorded cables): gradient steps through k-step open-loop
@@ -28,14 +28,14 @@ from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.ensemble import Ensemble
-from dlocli.models.fitting import FitRecord, TrainResult
+from dlocli.models.fitting import TrainResult
 from dlocli.models.marker_training import Cable, Cables, _fit_markers
 from dlocli.models.markers import MarkerModel
 from dlocli.models.member_fits import fit_members
+from dlocli.models.rod_training import _train_model
 from dlocli.models.spec import FitSpec, UpdateSpec
 from dlocli.models.splits import split_episodes
 from dlocli.models.step_schedule import _train_steps
-from dlocli.models.training import _train_model
 
 
 def fit(
@@ -85,12 +85,7 @@ def _fit_windows(
         val = [Cable([episodes[i] for i in val_idx], data.held, key)] if len(val_idx) else []
         cables = Cables([train], val)
     fit_all = fit_members if isinstance(model.network, Ensemble) else _fit_markers
-    rows = fit_all(model, cables.train, cables.val, schedule, progress, cancel)
-    history, before = [], 0.0
-    for row in rows:  # their seconds count from the start, a record's from the previous one
-        history.append(FitRecord("step", row["step"], row["train_loss"], row["val_score_cm"],
-                                 row["seconds"] - before, k=row["k"]))  # fmt: skip
-        before = row["seconds"]
+    history = fit_all(model, cables.train, cables.val, schedule, progress, cancel)
     return TrainResult(
         history=history,
         train_episodes=train_idx,

@@ -1,13 +1,15 @@
-"""The one fit loop of the rod models, whatever counts the training: a plan yields rounds of
-mini-batches (an epoch's, or ``eval_every`` gradient steps'), each ended by a validation;
-:class:`KeepBest` tracks the best validation, stops early and restores the best weights
-where the plan asks it to. :func:`dlocli.models.training._train_model` plans epochs (the
-paper's schedule), :func:`dlocli.models.step_schedule._train_steps` gradient steps.
+"""The one training loop of every view: a plan yields rounds of mini-batches (an epoch's,
+``eval_every`` gradient steps', or rollout windows'), each ended by a validation; the view's
+:class:`Objective` says what a batch's loss is and how it validates, so the loop itself (Adam
+steps, divergence, validation records, progress, cancel, keeping the best) is written once.
+:class:`KeepBest` tracks the best validation, stops early and restores the best weights where
+the plan asks it to.
 
-Every model is fitted with Adam on the mean squared error of the normalised state change,
-with Gaussian noise on the input state (paper Sec. IV-C), on a train/validation split by
-trajectory that stays the same as the dataset grows (so continued training in the online
-loop never validates on what it trained on).
+The rod view's objective is :class:`dlocli.models.rod_training.RodObjective` (one-step loss with
+input noise, paper Sec. IV-C), under the epochs plan of :mod:`dlocli.models.rod_training` (the
+paper's schedule) or the steps plan of :mod:`dlocli.models.step_schedule`; the marker view's is
+:class:`dlocli.models.marker_training.RolloutObjective` (k-step open-loop rollouts) under its
+own steps plan. :func:`dlocli.models.fit.fit` picks them.
 
 Every fit reports its progress as :class:`~dlocli.events.Event` (its start, a batch done, a
 validation) and is stopped through the :class:`~dlocli.cancel.CancelToken` it is given,
@@ -27,15 +29,9 @@ import numpy as np
 import torch
 
 from dlocli.cancel import CancelToken
-from dlocli.data import Dataset
-from dlocli.errors import BadInput, DloError
+from dlocli.errors import DloError
 from dlocli.events import Began, Callback, Event
-from dlocli.models.base import DynamicsModel, resolve_device
-from dlocli.models.mirror import with_mirrored
-from dlocli.models.spec import FitSpec
-from dlocli.models.splits import split_episodes
 
-EVAL_BATCH = 1024
 Unit = Literal["epoch", "step"]
 
 
@@ -112,9 +108,10 @@ class TrainResult:
 @dataclass
 class KeepBest:
     """The lowest validation loss so far and the count it came at (a NaN counts as lower:
-    without validation the latest weights stand). With ``keep``, the weights (and Adam's
-    state) that had it, restored at the end; with ``patience``, a stop after that many
-    validations in a row without a lower loss (0: never)."""
+    without validation the latest weights stand; with ``nan_is_worst``, a NaN is a rollout
+    that blew up on validation data and counts as the highest). With ``keep``, the weights
+    (and Adam's state) that had it, restored at the end; with ``patience``, a stop after that
+    many validations in a row without a lower loss (0: never)."""
 
     val_loss: float = math.inf
     count: int = 0
@@ -122,6 +119,7 @@ class KeepBest:
     keep: bool = False
     stale: int = 0
     saved: dict[str, Any] | None = None
+    nan_is_worst: bool = False
 
     def start(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None) -> None:
         """Hold the starting weights as the best so far (at ``val_loss``, count 0)."""
@@ -136,6 +134,8 @@ class KeepBest:
         optimizer: torch.optim.Optimizer | None = None,
     ) -> bool:
         """Take a validation; True if it is the best so far."""
+        if self.nan_is_worst and math.isnan(val_loss):
+            val_loss = math.inf
         if val_loss >= self.val_loss:
             self.stale += 1
             return False
@@ -151,11 +151,12 @@ class KeepBest:
     def restore(
         self, count: int, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None
     ) -> None:
-        """Back to the best weights (and Adam state), unless they are those at ``count``."""
+        """Back to the best weights (and Adam state, where it was held with them), unless
+        they are those at ``count``."""
         if self.saved is None or self.count == count:
             return
         model.load_state_dict(self.saved["model"])
-        if optimizer is not None:
+        if optimizer is not None and self.saved["optimizer"] is not None:
             optimizer.load_state_dict(self.saved["optimizer"])
 
 
@@ -166,197 +167,134 @@ def _snapshot(model: torch.nn.Module, optimizer: torch.optim.Optimizer | None) -
     }
 
 
-# ---------------------------------------------------------------------- split and tensors
-def transition_tensors(
-    dataset: Dataset, episodes: np.ndarray, device: torch.device, mirror: bool = False
-) -> dict[str, torch.Tensor]:
-    """``previous_state``, ``state`` (M,N,7), ``action`` (M,2,6), ``next_state`` (M,N,7)
-    float32 on ``device``, for the transitions whose previous state is recorded (t >= 1);
-    with ``mirror``, followed by their mirrored twins (2M rows, :mod:`dlocli.models.mirror`)."""
-    arrays = dataset.transitions(episodes, skip_first=True)
-    if mirror:
-        arrays = with_mirrored(arrays)
-    return {
-        k: torch.as_tensor(arrays[k], dtype=torch.float32, device=device)
-        for k in ("previous_state", "state", "action", "next_state")
-    }
-
-
-def mirror_applies(dataset: Dataset) -> bool:
-    """Whether ``dataset``'s transitions have valid mirrored twins: both rod ends held (a free
-    right end's twin would be a rod with a free left end, which no backend simulates)."""
-    spec = dataset.attrs.get("spec")
-    backend = spec.get("backend") if isinstance(spec, dict) else None
-    return not (isinstance(backend, dict) and backend.get("held_ends") == "left")
-
-
-@dataclass
-class Setup:
-    """What every fit trains with: the split, its tensors and the optimizer."""
-
-    train_episodes: np.ndarray
-    val_episodes: np.ndarray
-    train: dict[str, torch.Tensor]
-    val: dict[str, torch.Tensor]
-    optimizer: torch.optim.Optimizer
-    mirror: bool  # whether the training rows include the mirrored twins
-
-
-def set_up(
-    model: DynamicsModel, dataset: Dataset, fit: FitSpec, optimizer_state: dict[str, Any] | None
-) -> Setup:
-    """Move ``model`` to ``fit.device``, split ``dataset``, fit the normalisation of a model
-    that never had one, and make Adam (resuming ``optimizer_state``, at ``fit.lr``)."""
-    if dataset.n_segments != model.n_segments:
-        raise BadInput(
-            f"dataset has {dataset.n_segments} segments but the model {model.n_segments}; "
-            "train a new model or use a matching dataset"
-        )
-    device = resolve_device(fit.device)
-    model.to(device)
-    train_eps, val_eps = split_episodes(dataset.n_episodes, fit.val_fraction)
-    mirror = fit.mirror and mirror_applies(dataset)
-    train = transition_tensors(dataset, train_eps, device, mirror=mirror)
-    val = transition_tensors(dataset, val_eps, device)  # the recorded data only
-    if len(train["state"]) == 0:
-        raise BadInput("the training split has no transitions; collect more episodes")
-    if not bool(model.fitted):
-        arrays = dataset.transitions(train_eps)
-        model.fit_normalization(with_mirrored(arrays) if mirror else arrays)
-    model.requires_grad_(True)  # a loaded model comes frozen for planning
-    optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
-    if optimizer_state:
-        optimizer.load_state_dict(copy.deepcopy(optimizer_state))  # the caller's stays as is
-        for group in optimizer.param_groups:
-            group["lr"] = fit.lr
-    return Setup(train_eps, val_eps, train, val, optimizer, mirror)
-
-
-# ---------------------------------------------------------------------- a step, a validation
-def gradient_step(
-    model: DynamicsModel,
-    optimizer: torch.optim.Optimizer,
-    data: dict[str, torch.Tensor],
-    idx: torch.Tensor,
-    fit: FitSpec,
-    gen: torch.Generator,
-    cancel: CancelToken | None = None,
-) -> torch.Tensor:
-    """One Adam step on the rows ``idx`` of ``data``, with input noise from ``gen``; the
-    batch's loss (detached). A cancelled ``cancel`` raises its stop before the step."""
-    if cancel is not None:
-        cancel.raise_if_cancelled()
-    state = data["state"][idx]
-    noise = None
-    if fit.input_noise > 0:  # in units of the one-step change, expressed in state units
-        scale = fit.input_noise * model.delta_std / model.state_std
-        noise = torch.randn(state.shape, generator=gen).to(state.device) * scale
-    loss = model.loss(
-        state, data["action"][idx], data["next_state"][idx], noise, data["previous_state"][idx]
-    )
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    optimizer.step()
-    return loss.detach()
-
-
-@torch.no_grad()
-def validation_loss(model: DynamicsModel, data: dict[str, torch.Tensor]) -> float:
-    """Mean normalised-delta MSE on ``data`` without input noise (NaN if it is empty)."""
-    n = len(data["state"])
-    if n == 0:
-        return math.nan
-    was_training = model.training
-    model.eval()
-    total = 0.0
-    for i in range(0, n, EVAL_BATCH):
-        sl = slice(i, i + EVAL_BATCH)
-        batch = data["state"][sl]
-        loss = model.loss(
-            batch, data["action"][sl], data["next_state"][sl], previous=data["previous_state"][sl]
-        )
-        total += float(loss) * len(batch)
-    model.train(was_training)
-    return total / n
-
-
 # ---------------------------------------------------------------------- the loop
 @dataclass
 class Round:
-    """The mini-batches between two validations: ``size`` of them (row indices; an iterator
-    may draw each as it is asked for), after which ``count`` epochs or steps are done."""
+    """The mini-batches between two validations: ``size`` of them (an iterator may draw each
+    as it is asked for), after which ``count`` epochs or steps are done. A plan whose rounds
+    can end early (a time budget) updates ``count`` as its batches are drawn; a fit through
+    rollout windows sets ``k``, the length of the round's last windows."""
 
     count: int
-    batches: Iterable[torch.Tensor]
+    batches: Iterable[Any]
     size: int
+    k: int | None = None
 
 
 class Plan(Protocol):
-    """What a schedule tells the loop: its unit, its length (and the count it starts at),
-    its validation data, its rounds, and what stays of the model if the loss diverges."""
+    """What a schedule tells the loop: its unit, its length (and the count it starts at), its
+    rounds, what stays of the model if the loss diverges, and the generator of its random
+    draws (handed to ``on_validation`` for checkpoints; None: the plan has none to resume)."""
 
     unit: Unit
     total: int
     start: int
-    val: dict[str, torch.Tensor]
     kept: str
+    gen: torch.Generator | None
 
     def rounds(self) -> Iterator[Round]: ...
 
 
+class Objective(Protocol):
+    """What a view trains on: the loss of one of its batches (with its graph; a view may refuse
+    a non-finite one at once), the validation loss of the model as it is (NaN: no validation
+    data), and the round's training loss from its batches' losses and sizes. ``clip``: the
+    gradient norm every step is clipped to (None: no clipping); ``scheduler``: stepped after
+    every optimizer step (None: a constant learning rate)."""
+
+    clip: float | None
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None
+
+    def loss(self, batch: Any) -> torch.Tensor: ...
+
+    def validate(self) -> float: ...
+
+    def mean_loss(self, losses: list[torch.Tensor], sizes: list[int]) -> float: ...
+
+
 def fit_loop(
-    model: DynamicsModel,
-    setup: Setup,
-    fit: FitSpec,
+    model: torch.nn.Module,
+    objective: Objective,
     plan: Plan,
-    gen: torch.Generator,
+    optimizer: torch.optim.Optimizer,
     best: KeepBest,
     progress: Callback | None = None,
     on_validation: OnValidation | None = None,
     cancel: CancelToken | None = None,
 ) -> tuple[list[FitRecord], int]:
-    """Train ``model`` round by round as ``plan`` says, validating after each round; stop
-    when ``best`` says so and end with the weights it keeps, or raise ``cancel``'s stop before
-    any gradient step once it is cancelled. Returns the records and the training rows
-    processed."""
+    """Train ``model`` round by round as ``plan`` says, each batch's loss from ``objective``,
+    validating after each round; stop when ``best`` says so and end (in eval mode) with the
+    weights it keeps, or raise ``cancel``'s stop before any gradient step once it is
+    cancelled. Returns the records and the training rows (batch sizes) processed."""
     history: list[FitRecord] = []
-    optimizer, rows, count = setup.optimizer, 0, 0
+    rows, count = 0, 0
     if progress is not None:
         progress(Began(plan.unit, plan.start, plan.total))
     for each in plan.rounds():
-        count, t0 = each.count, time.perf_counter()
+        t0 = time.perf_counter()
         model.train()
-        total, seen = torch.zeros((), device=setup.train["state"].device), 0
-        for b, idx in enumerate(each.batches, 1):
-            loss = gradient_step(model, optimizer, setup.train, idx, fit, gen, cancel)
-            total += loss * len(idx)
-            seen += len(idx)
+        losses, sizes = [], []
+        for b, batch in enumerate(each.batches, 1):
+            loss = _step(model, objective, optimizer, batch, cancel)
+            losses.append(loss)
+            sizes.append(len(batch))
             if progress is not None and (b % 10 == 1 or b == each.size):
-                progress(BatchDone("batch", b, each.size, {plan.unit: count, "loss": loss.item()}))
-        rows += seen
-        train_loss = float(total) / seen
+                values = {plan.unit: each.count, "loss": loss.item()}
+                progress(BatchDone("batch", b, each.size, values))
+        count = each.count
+        rows += sum(sizes)
+        train_loss = objective.mean_loss(losses, sizes)
         if not math.isfinite(train_loss):  # the model is lost; never save it as a result
             raise DloError(
                 f"training diverged: the loss became {train_loss} in {plan.unit} {count} at lr "
-                f"{fit.lr:g}; start again with a lower --lr ({plan.kept})"
+                f"{optimizer.defaults['lr']:g}; start again with a lower --lr ({plan.kept})"
             )
-        val_loss = validation_loss(model, plan.val)
-        record = FitRecord(plan.unit, count, train_loss, val_loss, time.perf_counter() - t0)
+        val_loss = objective.validate()
+        seconds = time.perf_counter() - t0
+        record = FitRecord(plan.unit, count, train_loss, val_loss, seconds, each.k)
         history.append(record)
         best.observe(count, val_loss, model, optimizer)
         if progress is not None:
-            progress(Validated(plan.unit, count, plan.total, _validated(val_loss)))
-        if on_validation is not None:
-            on_validation(record, optimizer, gen)
+            progress(_validated(record, plan.total))
+        if on_validation is not None and plan.gen is not None:
+            on_validation(record, optimizer, plan.gen)
         if best.stop:
             if progress is not None:  # the bar ends full, at the count reached
-                progress(Validated(plan.unit, count, count, _validated(best.val_loss, True)))
+                values = {"val_loss": best.val_loss, "stopped_early": True}
+                progress(Validated(plan.unit, count, count, values))
             break
     best.restore(count, model, optimizer)
     model.eval()
     return history, rows
 
 
-def _validated(val_loss: float, stopped_early: bool = False) -> dict[str, Any]:
-    """The numbers of a :class:`Validated`."""
-    return {"val_loss": val_loss, "stopped_early": stopped_early}
+def _step(
+    model: torch.nn.Module,
+    objective: Objective,
+    optimizer: torch.optim.Optimizer,
+    batch: Any,
+    cancel: CancelToken | None,
+) -> torch.Tensor:
+    """One Adam step on ``batch``; its loss (detached). A cancelled ``cancel`` raises its stop
+    before the step."""
+    if cancel is not None:
+        cancel.raise_if_cancelled()
+    loss = objective.loss(batch)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if objective.clip is not None:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), objective.clip)
+    optimizer.step()
+    if objective.scheduler is not None:
+        objective.scheduler.step()
+    return loss.detach()
+
+
+def _validated(record: FitRecord, total: int) -> Validated:
+    """The event of a validation: a :class:`RolloutValidated` for a fit through rollout
+    windows (its record has ``k``)."""
+    values: dict[str, Any] = {"val_loss": record.val_loss, "stopped_early": False}
+    if record.k is None:
+        return Validated(record.unit, record.count, total, values)
+    values.update(k=record.k, train_loss=record.train_loss)
+    return RolloutValidated(record.unit, record.count, total, values)

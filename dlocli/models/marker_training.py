@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,10 +31,10 @@ import torch
 from dlocli.cancel import CancelToken
 from dlocli.data.protocol import deform_score_cm
 from dlocli.errors import BadInput, DloError
-from dlocli.events import Began, Callback
+from dlocli.events import Callback
 from dlocli.models.base import resolve_device
 from dlocli.models.cable_codes import cable_key
-from dlocli.models.fitting import KeepBest, RolloutValidated
+from dlocli.models.fitting import FitRecord, KeepBest, Round, Unit, fit_loop
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import FitSpec
 
@@ -156,6 +157,95 @@ def validation_score(model: MarkerModel, cables: list[Cable]) -> float:
     return float(np.mean(scores)) if scores else math.nan
 
 
+@dataclass
+class Windows:
+    """One batch of a rollout fit: gradient step ``step``'s windows (B, k + 2, V, 3) of cable
+    ``cable`` (its index in the fit's cables) and that cable's held mask."""
+
+    step: int
+    k: int
+    windows: torch.Tensor
+    held: torch.Tensor
+    cable: int
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+
+@dataclass
+class WindowPlan:
+    """``fit.update_steps`` gradient steps in rounds of ``fit.eval_every`` (and the last),
+    each on windows of :func:`rollout_length` steps from ``sampler``; with ``budget``, the
+    first step after which that many seconds since ``began`` have passed ends the last
+    round."""
+
+    fit: FitSpec
+    sampler: WindowSampler
+    began: float
+    budget: float | None = None
+    unit: Unit = "step"
+    start: int = 0
+    kept: str = "nothing is saved"
+    gen: torch.Generator | None = None
+    step: int = 0
+    ended: bool = False
+
+    @property
+    def total(self) -> int:
+        return self.fit.update_steps
+
+    def rounds(self) -> Iterator[Round]:
+        every = self.fit.eval_every
+        while self.step < self.total and not self.ended:
+            size = min(every - self.step % every, self.total - self.step)
+            each = Round(self.step + size, [], size)
+            each.batches = self._windows(each)
+            yield each
+
+    def _windows(self, each: Round) -> Iterator[Windows]:
+        for _ in range(each.size):
+            self.step += 1
+            each.count = self.step
+            each.k = rollout_length(self.fit, self.step)
+            windows, held, cable = self.sampler.sample(self.fit.batch_size, each.k)
+            yield Windows(self.step, each.k, windows, held, cable)
+            if self.budget is not None and time.perf_counter() - self.began >= self.budget:
+                self.ended = True
+                return
+
+
+@dataclass
+class RolloutObjective:
+    """The marker view's :class:`~dlocli.models.fitting.Objective`: a batch is
+    :class:`Windows`, its loss :func:`rollout_loss` (cm; a non-finite one is refused at once,
+    before it reaches Adam's moments); the validation loss is the benchmark score of
+    ``val``'s whole episodes (:func:`validation_score`); a round's training loss is the mean
+    of its steps'. Gradients are clipped to norm 1, the rate decays on ``scheduler``."""
+
+    model: MarkerModel
+    val: list[Cable]
+    rows: list[int]
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None
+    clip: float | None = 1.0
+
+    def loss(self, batch: Windows) -> torch.Tensor:
+        self.model.cable = self.rows[batch.cable] if self.rows else None
+        loss = rollout_loss(self.model, batch.windows, batch.held)
+        if not math.isfinite(loss.item()):
+            raise DloError(f"training diverged (loss {loss.item()}) at step {batch.step}; "
+                           "lower --lr")  # fmt: skip
+        return loss
+
+    def validate(self) -> float:
+        self.model.eval()
+        score = validation_score(self.model, self.val)
+        self.model.train()
+        return score
+
+    def mean_loss(self, losses: list[torch.Tensor], sizes: list[int]) -> float:
+        return float(np.mean([loss.item() for loss in losses]))
+
+
 def _fit_markers(
     model: MarkerModel,
     train: list[Cable],
@@ -163,13 +253,14 @@ def _fit_markers(
     fit: FitSpec,
     progress: Callback | None = None,
     cancel: CancelToken | None = None,
-) -> list[dict[str, float]]:
-    """Train ``model`` in place on one or more cables (see the module docstring); returns
-    the validation history. The model ends in eval mode with the best validated weights.
-    ``progress`` gets a Began, then a :class:`~dlocli.models.fitting.RolloutValidated` after
-    each validation; ``cancel`` stops the fit before the next gradient step once cancelled.
-    A spec with ``seconds`` (`dlo adapt`'s) also ends the fit, validated, once that many
-    seconds have passed."""
+) -> list[FitRecord]:
+    """Train ``model`` in place on one or more cables (see the module docstring) through
+    :mod:`dlocli.models.fitting`'s loop; returns the validation history (a fine-tune's
+    starting point first, as step 0). The model ends in eval mode with the best validated
+    weights. ``progress`` gets a Began, then batches and a
+    :class:`~dlocli.models.fitting.RolloutValidated` after each validation; ``cancel`` stops
+    the fit before the next gradient step once cancelled. A spec with ``seconds`` (`dlo
+    adapt`'s) also ends the fit, validated, once that many seconds have passed."""
     device = resolve_device(fit.device)
     torch.manual_seed(fit.seed)
     if not bool(model.fitted):
@@ -187,66 +278,22 @@ def _fit_markers(
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
     )
-    history: list[dict[str, float]] = []
-    best = KeepBest(keep=True)
-    start, running = time.perf_counter(), []
+    history: list[FitRecord] = []
+    best = KeepBest(keep=True, nan_is_worst=bool(val))
+    start = time.perf_counter()
     if getattr(fit, "init_from", None) is not None and val:  # `dlo train --init-from`
         history.append(_starting_point(model, val, best))  # fine-tuning keeps it if no better
-    budget = getattr(fit, "seconds", None)  # `dlo adapt --seconds`: a wall-clock limit too
-    if progress:
-        progress(Began("step", 0, total))
-    for step in range(1, total + 1):
-        if cancel is not None:
-            cancel.raise_if_cancelled()
-        k = rollout_length(fit, step)
-        windows, held, cable = sampler.sample(fit.batch_size, k)
-        model.cable = rows[cable] if rows else None
-        loss = rollout_loss(model, windows, held)
-        if not math.isfinite(loss.item()):
-            raise DloError(f"training diverged (loss {loss.item()}) at step {step}; lower --lr")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        optimizer.step()
-        schedule.step()
-        running.append(loss.item())
-        last = step == total or (budget is not None and time.perf_counter() - start >= budget)
-        if step % fit.eval_every == 0 or last:
-            model.eval()
-            val_score = validation_score(model, val)
-            model.train()
-            record = {
-                "step": step,
-                "k": k,
-                "train_loss": float(np.mean(running)),
-                "val_score_cm": val_score,
-                "seconds": time.perf_counter() - start,
-            }
-            history.append(record)
-            running = []
-            best.observe(step, _as_kept(val_score, val), model)
-            if progress:
-                progress(RolloutValidated("step", step, total, {
-                    "val_loss": val_score, "stopped_early": False, "k": k,
-                    "train_loss": record["train_loss"]}))  # fmt: skip
-        if last:
-            break
-    best.restore(total, model)
-    model.eval()
-    return history
+    plan = WindowPlan(fit, sampler, start, getattr(fit, "seconds", None))  # `dlo adapt --seconds`
+    objective = RolloutObjective(model, val, rows, schedule)
+    rounds, _ = fit_loop(model, objective, plan, optimizer, best, progress, cancel=cancel)
+    return history + rounds
 
 
-def _starting_point(model: MarkerModel, val: list[Cable], best: KeepBest) -> dict[str, float]:
+def _starting_point(model: MarkerModel, val: list[Cable], best: KeepBest) -> FitRecord:
     """The validation of the weights a fine-tune starts from, as step 0 of its history and a
     candidate of ``best``: fine-tuning never leaves the model worse on validation."""
     model.eval()
     score = validation_score(model, val)
     model.train()
-    best.observe(0, _as_kept(score, val), model)
-    return {"step": 0, "k": 0, "train_loss": math.nan, "val_score_cm": score, "seconds": 0.0}
-
-
-def _as_kept(score: float, val: list[Cable]) -> float:
-    """What :class:`KeepBest` compares: a NaN score where there is validation is a rollout
-    that blew up (worst, not best); without validation the NaN keeps the latest weights."""
-    return math.inf if val and math.isnan(score) else score
+    best.observe(0, score, model)
+    return FitRecord("step", 0, math.nan, score, 0.0, k=0)

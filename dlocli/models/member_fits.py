@@ -7,7 +7,8 @@ network `dlo train --seed SEED+i` trains alone (its initial weights, windows and
 augmentations are that seed's). The members are independent, so on CPU they train in
 parallel, one process per core (:class:`~dlocli.executors.LocalExecutor`); on a GPU one after
 another. With cable codes, each member learns its own (the view's column i). The history is
-the members' mean at each validation, its last row the ensemble's.
+the members' mean at each validation (seconds: the slowest member's), its last record's
+validation the ensemble's.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from dlocli.events import Began, Callback, Event
 from dlocli.executors import LocalExecutor
 from dlocli.models.base import resolve_device
 from dlocli.models.ensemble import Ensemble
+from dlocli.models.fitting import FitRecord
 from dlocli.models.marker_training import Cable, _fit_markers, validation_score
 from dlocli.models.markers import SCALES, MarkerModel
 from dlocli.models.spec import FitSpec
@@ -36,7 +38,7 @@ def fit_members(
     fit: FitSpec,
     progress: Callback | None = None,
     cancel: CancelToken | None = None,
-) -> list[dict[str, float]]:
+) -> list[FitRecord]:
     """Train every member of ``model``'s ensemble in place (see the module docstring);
     returns the validation history. ``progress`` gets a Began and an Event per member done."""
     assert isinstance(model.network, Ensemble)
@@ -56,7 +58,7 @@ def fit_members(
              for i in range(count)]  # fmt: skip
     if progress:
         progress(Began("member", 0, count))
-    histories: list[list[dict[str, float]]] = [[] for _ in range(count)]
+    histories: list[list[FitRecord]] = [[] for _ in range(count)]
     codes: list[tuple[list[str], torch.Tensor | None]] = [([], None)] * count
     executor = LocalExecutor(jobs, threads=max(1, machine_cpus() // jobs))
     try:
@@ -68,10 +70,10 @@ def fit_members(
             if cancel is not None:
                 cancel.raise_if_cancelled()
             if progress:
-                last = histories[index][-1] if histories[index] else {}
+                records = histories[index]
                 progress(Event("member", done, count, {
-                    "val_loss": last.get("val_score_cm", float("nan")),
-                    "seconds": last.get("seconds", 0.0)}))  # fmt: skip
+                    "val_loss": records[-1].val_loss if records else float("nan"),
+                    "seconds": sum(r.seconds for r in records)}))  # fmt: skip
     finally:
         executor.close()
     _gather_codes(model, codes)
@@ -104,7 +106,7 @@ def _fit_member(
     fit: FitSpec,
     progress: Callback | None,
     cancel: CancelToken | None,
-) -> tuple[dict[str, torch.Tensor], tuple[list[str], torch.Tensor | None], list[dict]]:
+) -> tuple[dict[str, torch.Tensor], tuple[list[str], torch.Tensor | None], list[FitRecord]]:
     """One member trained through its own view: (its network's weights, its cable keys and
     codes, its history). Given no weights, it starts as the network alone would from
     ``fit.seed``."""
@@ -128,21 +130,21 @@ def _gather_codes(model: MarkerModel, codes: list[tuple[list[str], torch.Tensor 
     model.codes.data = torch.stack([c for _, c in codes], 1).to(model.codes.device)  # type: ignore[misc, union-attr]
 
 
-def _merged(histories: list[list[dict[str, float]]], ensemble_score: float) -> list[dict]:
-    """The members' mean at each validation (seconds: the slowest member's); the last row's
-    validation score is the ensemble's."""
-    rows = []
+def _merged(histories: list[list[FitRecord]], ensemble_score: float) -> list[FitRecord]:
+    """The members' mean at each validation (seconds: the slowest member's); the last
+    record's validation score is the ensemble's."""
+    merged = []
     for records in zip(*histories, strict=True):
-        rows.append({
-            "step": records[0]["step"],
-            "k": records[0]["k"],
-            "train_loss": float(np.mean([r["train_loss"] for r in records])),
-            "val_score_cm": float(np.mean([r["val_score_cm"] for r in records])),
-            "seconds": max(r["seconds"] for r in records),
-        })  # fmt: skip
-    if rows:
-        rows[-1]["val_score_cm"] = ensemble_score
-    return rows
+        first = records[0]
+        merged.append(FitRecord(
+            first.unit, first.count,
+            float(np.mean([r.train_loss for r in records])),
+            float(np.mean([r.val_loss for r in records])),
+            max(r.seconds for r in records), first.k,
+        ))  # fmt: skip
+    if merged:
+        merged[-1].val_loss = ensemble_score
+    return merged
 
 
 def joined(models: list[MarkerModel]) -> MarkerModel:

@@ -2,7 +2,8 @@
 mini-batches drawn from all the data with the newest episodes weighted in, stopped early on
 (a capped subset of) the validation split, the best weights kept. Its cost does not grow with
 the dataset, unlike the paper's E epochs over all of it
-(:func:`dlocli.models.training._train_model`). Both run :mod:`dlocli.models.fitting`'s loop;
+(:func:`dlocli.models.rod_training._train_model`). Both run :mod:`dlocli.models.fitting`'s loop
+with the rod view's :class:`~dlocli.models.rod_training.RodObjective`;
 :func:`dlocli.models.fit.fit` picks the schedule.
 """
 
@@ -21,15 +22,8 @@ from dlocli.cancel import CancelToken
 from dlocli.data import Dataset
 from dlocli.events import Callback
 from dlocli.models.base import DynamicsModel
-from dlocli.models.fitting import (
-    KeepBest,
-    OnValidation,
-    Round,
-    TrainResult,
-    fit_loop,
-    set_up,
-    validation_loss,
-)
+from dlocli.models.fitting import KeepBest, OnValidation, Round, TrainResult, fit_loop
+from dlocli.models.rod_training import RodObjective, set_up, validation_loss
 from dlocli.models.spec import UpdateSpec
 
 
@@ -42,7 +36,6 @@ class StepPlan:
     fit: UpdateSpec
     n_train: int
     recent: torch.Tensor
-    val: dict[str, torch.Tensor]
     gen: torch.Generator
     device: torch.device
     start: int = 0
@@ -97,7 +90,7 @@ def _train_steps(
     and their Adam state are restored. Without a validation split every step runs and the
     last weights are kept.
 
-    Set-up as :func:`~dlocli.models.training._train_model`. Every random draw comes from one
+    Set-up as :func:`~dlocli.models.rod_training._train_model`. Every random draw comes from one
     generator seeded with ``fit.seed``, so the result is a function of the seed, the data and
     the starting weights and optimizer state. ``progress`` gets a Began, then a
     :class:`~dlocli.models.fitting.Validated` (unit "step") after each validation;
@@ -110,11 +103,13 @@ def _train_steps(
     val = _val_subset(setup.val, fit.val_transitions, gen)
     has_val = len(val["state"]) > 0
     recent = recent_rows(dataset, setup.train_episodes, recent_episodes, setup.mirror)
-    plan = StepPlan(fit, n_train, recent, val, gen, setup.train["state"].device)
+    plan = StepPlan(fit, n_train, recent, gen, setup.train["state"].device)
+    objective = RodObjective(model, setup.train, val, fit, gen)
     best = KeepBest(validation_loss(model, val), patience=fit.patience, keep=has_val)
     best.start(model, setup.optimizer)
     start = time.perf_counter()
-    history, _ = fit_loop(model, setup, fit, plan, gen, best, progress, on_validation, cancel)
+    history, _ = fit_loop(model, objective, plan, setup.optimizer, best, progress,
+                          on_validation, cancel)  # fmt: skip
     elapsed = time.perf_counter() - start
     step = plan.steps
     return TrainResult(
@@ -146,7 +141,7 @@ def sample_batch(
 def recent_rows(
     dataset: Dataset, train_episodes: np.ndarray, recent: np.ndarray | None, mirror: bool
 ) -> torch.Tensor:
-    """The rows of :func:`~dlocli.models.fitting.transition_tensors` ``(dataset,
+    """The rows of :func:`~dlocli.models.rod_training.transition_tensors` ``(dataset,
     train_episodes, mirror=mirror)`` that come from an episode in ``recent`` (with ``mirror``,
     their twins too)."""
     if recent is None:

@@ -40,7 +40,7 @@ from dlocli.models.marker_training import Cable, Cables, scores_cm
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import AdaptSpec
 from dlocli.rundir import owned
-from dlocli.runs.train_markers import recorded_rate
+from dlocli.runs.train import recorded_rate
 from dlocli.specs import MAX_SPEC_BYTES
 
 #: what the fine-tune of each kind is called in the scores
