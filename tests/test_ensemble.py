@@ -1,7 +1,7 @@
 """Ensembles (`--members N`): the mean of independently trained networks. Its flattened
 layers (what the fused rollout runs) compute its forward; each member trains exactly as the
-network alone would from its own seed, in parallel processes; `dlo eval` scores it; a rod
-model refuses it in one line."""
+network alone would from its own seed, in parallel processes, in either view; `dlo eval`
+scores it."""
 
 from __future__ import annotations
 
@@ -12,13 +12,15 @@ import torch
 from typer.testing import CliRunner
 
 from dlocli.data import load_dataset
+from dlocli.errors import BadInput
 from dlocli.markers import deform
-from dlocli.models.checkpoints import load_marker_model
+from dlocli.models.checkpoints import load_marker_model, load_model
 from dlocli.models.ensemble import Ensemble
+from dlocli.models.fit import fit
 from dlocli.models.marker_training import Cable, scores_cm
 from dlocli.models.markers import build_marker_model
 from dlocli.models.network import Nodes
-from dlocli.models.spec import model_spec
+from dlocli.models.spec import UpdateSpec, model_spec
 
 from tiny import pair_and_singles, run_dlo
 
@@ -94,12 +96,30 @@ def test_each_member_trains_as_the_network_alone_from_its_own_seed(
     assert result["model_scores_cm"] == pytest.approx(expected, rel=1e-3)
 
 
-def test_a_rod_model_refuses_members_in_one_line(small_dataset_dir, tmp_path) -> None:
-    out = tmp_path / "run"
-    res = cli("train", "--data", str(small_dataset_dir), "--members", "2", "--out", str(out))
-    assert res.exit_code == 2
-    assert "drop --members" in res.output and len(res.output.strip().splitlines()) == 1
-    assert not out.exists()
+def test_a_rod_ensemble_trains_each_member_as_the_network_alone(
+    small_dataset_dir, tmp_path, one_thread
+) -> None:
+    """The rod view trains an ensemble through the same mechanism: member i is the network
+    `dlo train --seed 3+i` trains alone; `dlo eval` scores it; it does not resume after an
+    epoch, and the online loop's updates refuse it, each in one line."""
+    common = ["train", "--data", str(small_dataset_dir), "--model", "mlp", "--hidden", "16",
+              "--epochs", "2", "--batch-size", "64", "--device", "cpu", "--json"]  # fmt: skip
+    pair, singles = pair_and_singles(cli, common, tmp_path)
+    ensemble = load_model(pair, "cpu")
+    assert isinstance(ensemble.network, Ensemble) and ensemble.spec.members == 2
+    for alone, member in zip(singles, ensemble.network.members, strict=True):
+        single = load_model(alone, "cpu").network.state_dict()
+        for key, value in member.state_dict().items():
+            torch.testing.assert_close(value, single[key], rtol=0, atol=0)
+    assert not (pair / "checkpoints" / "last.pt").exists()  # saved once all members are done
+
+    scored = cli("eval", "--checkpoint", str(pair), "--data", str(small_dataset_dir), "--json")
+    assert scored.exit_code == 0, scored.output
+    resumed = cli("train", "--resume", str(pair))
+    assert resumed.exit_code == 2 and len(resumed.output.strip().splitlines()) == 1
+    assert "does not resume after an epoch" in resumed.output, resumed.output
+    with pytest.raises(BadInput, match="the online loop updates one network"):
+        fit(ensemble, load_dataset(small_dataset_dir), UpdateSpec(device="cpu"))
 
 
 @pytest.mark.parametrize(

@@ -42,6 +42,17 @@ from dlocli.specs import format_validation_error
 STATE_DIM = 7  # position (3) + quaternion (4)
 ACTION_DIM = 6  # per gripper: linear (3) + angular (3) velocity command
 _STD_FLOOR = {"state": 1e-3, "delta": 1e-6}
+#: why the online loop refuses an ensemble (``{members}``: its size)
+ONE_NETWORK_ONLINE = (
+    "the online loop updates one network between trials; an ensemble ({members} members) "
+    "trains its members apart in `dlo train`: drop --members"
+)
+#: why the rod view has no cable codes: a rod dataset is one simulated rod (one backend, one
+#: material; `dlo train` takes one), so there is no second cable for a code to tell apart
+NO_CABLE_CODES = (
+    "cable codes tell recorded cables apart (marker datasets from `dlo import`); a rod "
+    "dataset is one simulated rod, so a rod model has no cable to tell apart: drop --cable-code"
+)
 
 
 class DynamicsModel(torch.nn.Module):
@@ -53,6 +64,11 @@ class DynamicsModel(torch.nn.Module):
     normalised command of the gripper holding it (6; zeros elsewhere); the relations between
     neighbours are their normalised poses' difference at unit scale; the network's output is
     the segment's normalised change (7).
+
+    With ``spec.members`` > 1 its network is an ensemble (:mod:`dlocli.models.ensemble`),
+    the members trained apart (:func:`dlocli.models.member_fits.fit_rod_members`) and their
+    predicted changes averaged at every step, so planners read it as one model. It has no
+    cable codes (:data:`NO_CABLE_CODES`).
 
     Buffers (saved with the weights): ``state_mean``/``state_std`` (7,) normalise the input
     state per feature over all segments; ``delta_mean``/``delta_std`` (7,) the predicted change;
@@ -68,16 +84,8 @@ class DynamicsModel(torch.nn.Module):
         super().__init__()
         if n_segments < 2:
             raise BadInput(f"a rod model needs at least 2 segments, got {n_segments}")
-        if spec.members > 1:  # its one-step epochs train one network; members train apart
-            raise BadInput(
-                f"an ensemble ({spec.members} members) trains on recorded cables (marker "
-                "datasets from `dlo import`); a rod model is one network: drop --members"
-            )
-        if spec.cable_code:  # one simulated rod: there is no cable to tell apart
-            raise BadInput(
-                "cable codes tell recorded cables apart (marker datasets from `dlo import`); "
-                "a rod model learns one rod: drop --cable-code"
-            )
+        if spec.cable_code:
+            raise BadInput(NO_CABLE_CODES)
         self.spec = spec
         self.n_segments = int(n_segments)
         for name, size, value in (
@@ -242,7 +250,7 @@ def build_model(spec: ModelSpec | dict[str, Any], n_segments: int) -> DynamicsMo
     """A fresh (untrained) model of the registered kind ``spec.name`` (a spec, or its fields
     as a dict); BadInput if its training would not fit in memory."""
     spec = valid_model_spec(spec)
-    refuse_oversized_model(spec, n_segments)
+    refuse_oversized_model(spec, n_segments, members_apart=True)
     return DynamicsModel(spec, n_segments)
 
 
@@ -254,10 +262,14 @@ def valid_model_spec(spec: ModelSpec | dict[str, Any], source: str = "model spec
         raise BadInput(format_validation_error(exc, source)) from exc
 
 
-def refuse_oversized_model(spec: ModelSpec, n_segments: int) -> None:
+def refuse_oversized_model(spec: ModelSpec, n_segments: int, members_apart: bool = False) -> None:
     """BadInput if the model's weights, gradients and Adam's two moments (4 float32 copies)
-    exceed the memory this run may use. The model is built on the meta device, which counts
-    its parameters exactly without allocating them."""
+    exceed the memory this run may use, or if it is an ensemble and the run does not train
+    members apart (``members_apart``: `dlo train` does; the online loop, which checks its
+    model here before it starts, updates one network: :data:`ONE_NETWORK_ONLINE`). The model
+    is built on the meta device, which counts its parameters exactly without allocating them."""
+    if spec.members > 1 and not members_apart:
+        raise BadInput(ONE_NETWORK_ONLINE.format(members=spec.members))
     with torch.device("meta"):
         parameters = sum(p.numel() for p in DynamicsModel(spec, n_segments).parameters())
     refuse_unless_fits(

@@ -9,6 +9,10 @@ schedule chosen by the model's form and the spec:
   rollouts (:func:`dlocli.models.marker_training._fit_markers`); an ensemble's members each
   so, in parallel (:func:`dlocli.models.member_fits.fit_members`).
 
+An ensemble's members train apart in either view (:mod:`dlocli.models.member_fits`): a rod
+ensemble's each for the epochs; the online loop's updates (``UpdateSpec``), which continue
+one optimiser's state from update to update, train one network and refuse an ensemble.
+
 It is the only way in: those three are private to their modules.
 
 Every schedule reports :class:`~dlocli.events.Event` to ``progress``, stops before
@@ -24,18 +28,25 @@ from typing import Any
 import numpy as np
 
 from dlocli.cancel import CancelToken
+from dlocli.errors import BadInput
 from dlocli.events import Callback
-from dlocli.models.base import DynamicsModel
+from dlocli.models.base import ONE_NETWORK_ONLINE, DynamicsModel
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.fitting import TrainResult
 from dlocli.models.marker_training import Cable, Cables, _fit_markers
 from dlocli.models.markers import MarkerModel
-from dlocli.models.member_fits import fit_members
+from dlocli.models.member_fits import fit_members, fit_rod_members
 from dlocli.models.rod_training import _train_model
 from dlocli.models.spec import FitSpec, UpdateSpec
 from dlocli.models.splits import split_episodes
 from dlocli.models.step_schedule import _train_steps
+
+#: why a rod ensemble's run does not resume after an epoch
+ENSEMBLE_DOES_NOT_RESUME = (
+    "an ensemble's members train apart and it is saved once all are done, so its run does "
+    "not resume after an epoch: train it again with --overwrite"
+)
 
 
 def fit(
@@ -57,6 +68,8 @@ def fit(
     steps ``optimizer_state`` and ``on_validation``; rollout windows none."""
     if isinstance(model, MarkerModel):
         return _fit_windows(model, data, schedule, progress, cancel, **state)
+    if isinstance(model.network, Ensemble):
+        return _fit_rod_ensemble(model, data, schedule, progress, cancel, **state)
     if isinstance(schedule, UpdateSpec) and schedule.schedule == "steps":
         return _train_steps(model, data, schedule, progress=progress, cancel=cancel,
                             recent_episodes=recent_episodes, **state)  # fmt: skip
@@ -93,3 +106,21 @@ def _fit_windows(
         steps=schedule.update_steps,
         best_val_loss=min((r.val_loss for r in history), default=math.nan),
     )
+
+
+def _fit_rod_ensemble(
+    model: DynamicsModel,
+    data: Any,
+    schedule: FitSpec,
+    progress: Callback | None,
+    cancel: CancelToken | None,
+    **state: Any,
+) -> TrainResult:
+    """The members of a rod ensemble, each for the epochs (:func:`fit_rod_members`): they
+    start afresh, so nothing the epochs would continue from (an optimiser's state, a finished
+    epoch, a checkpoint per epoch) applies; BadInput for the online loop's updates."""
+    if isinstance(schedule, UpdateSpec):
+        raise BadInput(ONE_NETWORK_ONLINE.format(members=model.spec.members))
+    if state.get("start_epoch") or state.get("generator_state") is not None:
+        raise BadInput(ENSEMBLE_DOES_NOT_RESUME)
+    return fit_rod_members(model, data, schedule, progress, cancel)

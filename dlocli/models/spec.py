@@ -37,7 +37,8 @@ class ModelSpec(Spec):
         1, ge=1, le=64,
         description="Independently trained copies of the network (seeds seed, seed+1, ...), "
         "their predictions averaged: an ensemble holds long rollouts closer than one network. "
-        "Marker datasets (recorded cables); the copies train in parallel, one per core.",
+        "`dlo train` on marker or rod datasets (not the online loop); the copies train in "
+        "parallel, one per core.",
     )  # fmt: skip
     cable_code: int = Field(
         0, ge=0, le=64,

@@ -1,7 +1,9 @@
 """`dlo train`: fit a dynamics model to a dataset and write a run directory: the data, the
 model (fresh, or continued from ``init_from``), training (:func:`dlocli.models.fit.fit`:
 epochs on a rod dataset, rollout windows on a marker dataset), checkpoints, metrics,
-evaluation and plots; a rod run resumes after any finished epoch.
+evaluation and plots; a rod run of one network resumes after any finished epoch. An ensemble
+(``members`` > 1) trains its members apart in either view, member i as the network alone
+would from seed ``seed + i``, and is saved once all are done (checkpoints/final.pt).
 
 On recorded cables the model is seen through the marker view and trained through open-loop
 rollout windows on one cable or several at once (any marker counts, for a network that serves
@@ -40,7 +42,7 @@ from dlocli.models.checkpoints import (
     save_checkpoint,
 )
 from dlocli.models.evaluation import evaluate_model
-from dlocli.models.fit import fit
+from dlocli.models.fit import ENSEMBLE_DOES_NOT_RESUME, fit
 from dlocli.models.fitting import FitRecord, KeepBest
 from dlocli.models.marker_training import Cable, Cables, validation_score
 from dlocli.models.markers import FORM, MarkerModel, build_marker_model
@@ -121,6 +123,8 @@ def run_training(
             raise BadInput("--resume is not supported for marker datasets yet; train again")
         with owned(spec.out):
             return run_marker_training(spec, dataset, overwrite, progress, cancel)
+    if resume and spec.model.members > 1:
+        raise BadInput(ENSEMBLE_DOES_NOT_RESUME)
     if spec.rollout_steps > 1:
         raise BadInput(
             "--rollout-steps > 1 trains marker datasets (`dlo import`); rod datasets train "
@@ -183,6 +187,12 @@ def _train_in(
                      on_validation=on_epoch, start_epoch=done.epoch,
                      generator_state=done.generator, best=best,
                      cancel=cancel)  # fmt: skip
+        if not history and result.history:  # an ensemble's: its members' mean, at the end
+            for record in result.history:
+                history.append(record)
+                scalars.add(record.count, "loss", train=record.train_loss, val=record.val_loss)
+            best.val_loss = result.best_val_loss
+            _write_metrics(out / "metrics.csv", history)
     finally:
         scalars.close()
     final = {"epoch": spec.epochs, "optimizer": result.optimizer_state, **rate}
