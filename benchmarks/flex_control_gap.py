@@ -321,6 +321,23 @@ LATENCY_SETTINGS = {
         "mpc.curvature_every": 5,
         "mpc.refresh": "background",
     },
+    **{
+        f"motion_cost 32, damping 1, shifted Jacobian every {k}{' + drift' * drift}": {
+            **SWEEP_BASE,
+            "mpc.motion_cost": 32.0,
+            "mpc.damping": 1.0,
+            "mpc.jacobian": "shifted",
+            "mpc.curvature_every": k,
+            **({"mpc.disturbance": "drift"} if drift else {}),
+        }
+        for k, drift in ((5, False), (3, False), (5, True), (4, True), (3, True))
+    },
+    "motion_cost 32, damping 1, drift": {
+        **SWEEP_BASE,
+        "mpc.motion_cost": 32.0,
+        "mpc.damping": 1.0,
+        "mpc.disturbance": "drift",
+    },
 }
 
 

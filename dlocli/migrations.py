@@ -84,8 +84,11 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "settle_steps": 0,
         "motion_cost": 0.0,
         "damping": 0.01,
+        "jacobian": "full",
+        "disturbance": "none",
+        "disturbance_gain": 0.2,
     },
-    "mppi": {"motion_cost": 0.0},
+    "mppi": {"motion_cost": 0.0, "disturbance": "none", "disturbance_gain": 0.2},
     "pilco": {"policy_scale_floor": 0.01},
 }
 

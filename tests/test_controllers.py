@@ -473,3 +473,72 @@ def test_cli_bad_settle_steps_exit_2_and_write_nothing(tmp_path, capsys, value, 
     said = capsys.readouterr().err.strip()
     assert needle in said and len(said.splitlines()) == 1
     assert not out.exists()
+
+
+# ------------------------------------------------------------- shifted Jacobian, disturbance
+def test_shifted_jacobian_delays_the_first_actions_response(envs, tiny_model):
+    """The shifted Jacobian nudges the first action only: its columns for the first action are
+    the full Jacobian's, the effort terms are exact for every action, and action j's response
+    of the predicted positions is the first action's delayed by j steps."""
+    from dlocli.controllers.mpc import full_jacobian, shifted_jacobian
+
+    env = envs["bimanual"]
+    obs, _ = env.reset(seed=2)
+    mpc = GradientMPC(env, tiny_model, MPCSpec(horizon=5, motion_cost=16.0, settle_steps=2))
+    mpc.reset(env.goal)
+    state = mpc.state_tensor(obs)
+    plan = torch.linspace(-0.5, 0.5, 60).view(5, 12)
+    full, _ = full_jacobian(mpc, state, plan, None)
+    shifted, _ = shifted_jacobian(mpc, state, plan, None)
+    assert shifted.shape == full.shape == (60, 7 * 20 * 3 + 60 + 7 * 20 * 3)
+    torch.testing.assert_close(shifted[:12], full[:12], atol=1e-5, rtol=1e-4)
+    positions = 7 * 20 * 3
+    torch.testing.assert_close(
+        shifted[:, positions : positions + 60], full[:, positions : positions + 60]
+    )
+    first = shifted[:12, :positions].view(12, 7, 60)
+    later = shifted[24:36, :positions].view(12, 7, 60)  # action 2: two steps later
+    assert float(later[:, :2].abs().max()) == 0.0
+    torch.testing.assert_close(later[:, 2:], first[:, :5])
+
+
+def test_shifted_jacobian_plans_lower_the_predicted_cost(envs, tiny_model):
+    """Gauss-Newton with the shifted Jacobian refreshed at every re-plan lowers the predicted
+    cost of the plan it executes below the start's."""
+    env = envs["bimanual"]
+    obs, _ = env.reset(seed=2)
+    spec = MPCSpec(iterations=10, jacobian="shifted", curvature_every=1, warm_start=False)
+    controller = GradientMPC(env, tiny_model, spec)
+    controller.reset(env.goal)
+    controller.act(obs)
+    assert controller.returned_cost() < controller.last_stats["cost_initial"]
+
+
+@pytest.mark.parametrize("mode", ["offset", "drift"])
+def test_disturbance_adds_the_one_step_prediction_error(envs, tiny_model, mode):
+    """With a disturbance option the planner predicts the next observation under each action it
+    executes; the error it then sees (gain 1: the latest alone) is added to every predicted
+    step ('offset') or k times to the k-th ('drift'); without one, nothing is added."""
+    env = envs["single"]
+    obs, _ = env.reset(seed=2)
+    corrected = GradientMPC(env, tiny_model, MPCSpec(disturbance=mode, disturbance_gain=1.0))
+    plain = GradientMPC(env, tiny_model, MPCSpec())
+    for mpc in (corrected, plain):
+        mpc.reset(env.goal)
+    action = corrected.act(obs)
+    with torch.no_grad():
+        commands = corrected.task.to_grippers(torch.as_tensor(action)[None, None])
+        expected = corrected.view.predict(corrected.state_tensor(obs), commands, None)[0, 0]
+    obs, *_ = env.step(action)
+    corrected.act(obs)
+    plain.act(obs)
+    state = corrected._observed
+    error = state[0, :, :3] - expected
+    assert float(error.abs().max()) > 0.0
+    torch.testing.assert_close(corrected._disturbance, error)
+    plan = torch.linspace(-0.6, 0.6, 30).view(1, 5, 6)
+    with torch.no_grad():
+        ours = corrected.predicted(state, plan)
+        theirs = plain.predicted(state, plan, corrected._previous)
+    steps = torch.ones(5) if mode == "offset" else torch.arange(1.0, 6.0)
+    torch.testing.assert_close(ours - theirs, steps[None, :, None, None] * error, atol=1e-6, rtol=0)

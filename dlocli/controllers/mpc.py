@@ -121,6 +121,7 @@ class GaussNewton(UpdateRule):
         self.jacobian_t: torch.Tensor | None = None  # J^T (H*A, residuals)
         self.replans = 0
         self._pending: Future | None = None  # a background refresh (its result is dropped)
+        self._fresh: torch.Tensor | None = None  # the refreshed plan's residuals (1, R)
         self._install_at = 0
 
     def start(self, planner: ModelPlanner, state: torch.Tensor, plans: torch.Tensor) -> None:
@@ -134,12 +135,20 @@ class GaussNewton(UpdateRule):
         the rod's state, the gradient does not). With ``refresh="background"`` the rollout
         runs in a second thread (see :class:`MPCSpec`); the first one is always inline."""
         self.replans += 1
+        self._fresh = None
         due = (self.replans - 1) % self.spec.curvature_every == 0
         if self.curvature is None or (due and self.spec.refresh == "inline"):
-            self._install(self.jacobian(planner, state, plan, planner.previous_of(state)))
+            jacobian_t, predicted = self.jacobian(planner, state, plan, planner.previous_of(state))
+            self._install(jacobian_t)
+            if self.spec.jacobian == "shifted":
+                # its rollout of the plan itself is the re-plan's first evaluation: not twice
+                # (the full refresh's plans run as one batch on another path: its results
+                # are kept as they were measured)
+                planner.evaluated(predicted)
+                self._fresh = planner.residuals_of(state, plan[None], predicted)
             return
         if self._pending is not None and self.replans == self._install_at:
-            self._install(self._pending.result())
+            self._install(self._pending.result()[0])
             self._pending = None
         if due:  # background
             if self._pool is None:
@@ -149,21 +158,18 @@ class GaussNewton(UpdateRule):
             self._pending = self._pool.submit(self.jacobian, planner, state, plan.clone(), previous)
             self._install_at = self.replans + max(self.spec.curvature_every - 1, 1)
 
-    @staticmethod
     def jacobian(
+        self,
         planner: ModelPlanner,
         state: torch.Tensor,
         plan: torch.Tensor,
         previous: torch.Tensor | None,
-    ) -> torch.Tensor:
-        """J^T (H*A, residuals) at ``plan`` (H, A) by forward differences, each action nudged
-        towards the inside of [-1, 1]; one batched rollout, no gradient."""
-        n = plan.numel()
-        signs = torch.where(plan.flatten() > 0, -1.0, 1.0)
-        nudges = (torch.eye(n, device=plan.device) * (FD_STEP * signs)).view(n, *plan.shape)
-        with torch.no_grad():
-            res = planner.residuals(state, torch.cat([plan[None], plan[None] + nudges]), previous)
-        return (res[1:] - res[:1]) / (FD_STEP * signs)[:, None]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """J^T (H*A, residuals) at ``plan`` (H, A), as ``spec.jacobian`` says, and the
+        predicted positions (1, H+S, N, 3) along ``plan``."""
+        if self.spec.jacobian == "shifted":
+            return shifted_jacobian(planner, state, plan, previous)
+        return full_jacobian(planner, state, plan, previous)
 
     def _install(self, jacobian_t: torch.Tensor) -> None:
         self.jacobian_t = jacobian_t
@@ -179,8 +185,11 @@ class GaussNewton(UpdateRule):
         if self.spec.exact_gradient:
             return super().cost_and_gradient(planner, state, plans)
         assert self.jacobian_t is not None
-        with torch.no_grad():
-            res = planner.residuals(state, plans)
+        if self._fresh is not None and plans.shape[0] == 1:  # this re-plan's refreshed plan
+            res, self._fresh = self._fresh, None
+        else:
+            with torch.no_grad():
+                res = planner.residuals(state, plans)
         grad = 2.0 * (res @ self.jacobian_t.T).view_as(plans)
         return res.square().sum(dim=1), grad
 
@@ -192,6 +201,53 @@ class GaussNewton(UpdateRule):
         flat = grad.flatten(1).T / 2  # (n, R)
         step = torch.cholesky_solve(flat, self.curvature).T.view_as(grad)
         return step.clamp(-self.spec.max_step, self.spec.max_step)
+
+
+def _inward(actions: torch.Tensor) -> torch.Tensor:
+    """Finite-difference steps towards the inside of [-1, 1], one per action coordinate."""
+    return torch.where(actions > 0, -FD_STEP, FD_STEP)
+
+
+def full_jacobian(
+    planner: ModelPlanner, state: torch.Tensor, plan: torch.Tensor, previous: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """J^T (H*A, residuals) at ``plan`` (H, A) by forward differences, each action nudged
+    towards the inside of [-1, 1]; one batched rollout, no gradient. Also the predicted
+    positions (1, H+S, N, 3) along ``plan``."""
+    n = plan.numel()
+    steps = _inward(plan.flatten())
+    plans = torch.cat([plan[None], plan[None] + torch.diag(steps).view(n, *plan.shape)])
+    with torch.no_grad():
+        predicted = planner.predicted(state, plans, previous)
+        res = planner.residuals_of(state, plans, predicted)
+    return (res[1:] - res[:1]) / steps[:, None], predicted[:1]
+
+
+def shifted_jacobian(
+    planner: ModelPlanner, state: torch.Tensor, plan: torch.Tensor, previous: torch.Tensor | None
+) -> torch.Tensor:
+    """J^T (H*A, residuals) at ``plan`` (H, A) from the first action's nudges alone (A+1
+    rollouts): the predicted positions' change under action j's coordinate i is taken as
+    under the first action's, delayed by j steps; the residuals are affine in the
+    predictions and the actions, so their Jacobian follows exactly from that one. Also the
+    predicted positions (1, H+S, N, 3) along ``plan``."""
+    horizon, size = plan.shape
+    steps = _inward(plan[0])
+    nudges = plan.new_zeros(size, horizon, size)
+    nudges[:, 0] = torch.diag(steps)
+    with torch.no_grad():
+        predicted = planner.predicted(state, torch.cat([plan[None], plan[None] + nudges]), previous)
+        base, response = predicted[:1], (predicted[1:] - predicted[:1]) / steps[:, None, None, None]
+        length = response.shape[1]
+        delayed = [
+            torch.nn.functional.pad(response[:, : length - j], (0, 0, 0, 0, j, 0))
+            for j in range(horizon)
+        ]  # each (A, K, N, 3): action j's coordinates
+        change = torch.cat(delayed)  # (H*A, K, N, 3), in plan.flatten()'s order
+        unit = torch.eye(horizon * size, device=plan.device).view(-1, horizon, size)
+        before = planner.residuals_of(state, plan[None], base)
+        after = planner.residuals_of(state, plan[None] + unit, base + change)
+    return after - before, base
 
 
 #: the update rules by ``MPCSpec.optimizer``

@@ -63,6 +63,8 @@ class ModelPlanner(Planner):
         self._evaluated: torch.Tensor | None = None  # (B, H, N, 3) the latest predictions
         # the latest re-plan's state and the one before it
         self._replanned_from: tuple[torch.Tensor, torch.Tensor | None] | None = None
+        self._expected: torch.Tensor | None = None  # (N, 3) positions predicted for this step
+        self._disturbance: torch.Tensor | None = None  # (N, 3) averaged one-step error
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -72,6 +74,7 @@ class ModelPlanner(Planner):
         self._plan = None
         self._cursor = 0
         self._observed = self._previous = self._evaluated = self._replanned_from = None
+        self._expected = self._disturbance = None
         self.view.reset()
 
     @property
@@ -103,20 +106,51 @@ class ModelPlanner(Planner):
         # view estimates it itself
         self._previous = self._observed if before is None else before
         self._observed = state
+        self._update_disturbance(state)
         if self._plan is not None and self._cursor < min(self.spec.replan_every, self.spec.horizon):
             action = self._plan[self._cursor]
             self._cursor += 1
             self.last_stats = {"replanned": 0.0}
-            return action.cpu().numpy()
-        init = self._initial_plan()
-        start = time.perf_counter()
-        plan, stats = self._optimise(state, init)
-        stats["plan_ms"] = 1000.0 * (time.perf_counter() - start)
-        stats["replanned"] = 1.0
-        self._plan, self._cursor = plan.detach(), 1
-        self._replanned_from = (state, self._previous)
-        self.last_stats = stats
-        return self._plan[0].cpu().numpy()
+        else:
+            init = self._initial_plan()
+            start = time.perf_counter()
+            plan, stats = self._optimise(state, init)
+            stats["plan_ms"] = 1000.0 * (time.perf_counter() - start)
+            stats["replanned"] = 1.0
+            self._plan, self._cursor = plan.detach(), 1
+            self._replanned_from = (state, self._previous)
+            self.last_stats = stats
+            action = self._plan[0]
+        self._expect(state, action)
+        return action.cpu().numpy()
+
+    # ------------------------------------------------------------------ disturbance
+    def _expect(self, state: torch.Tensor, action: torch.Tensor) -> None:
+        """With the disturbance option: the positions (N, 3) the model predicts for the next
+        observation under ``action`` (A,), one step of its rollout."""
+        if self.spec.disturbance == "none":
+            return
+        commands = self.task.to_grippers(action.clamp(-1.0, 1.0)[None, None])
+        with torch.no_grad():
+            self._expected = self.view.predict(state, commands, self._previous)[0, 0]
+
+    def _update_disturbance(self, state: torch.Tensor) -> None:
+        """Average the one-step prediction error of the positions into the disturbance."""
+        if self._expected is None:
+            return
+        error = state[0, :, :3] - self._expected
+        gain = self.spec.disturbance_gain
+        old = self._disturbance
+        self._disturbance = error * gain if old is None else old + gain * (error - old)
+
+    def _corrected(self, state: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:
+        """Predictions (B, K, N, 3) from the latest observation plus the disturbance."""
+        if self._disturbance is None or state is not self._observed:
+            return predicted
+        if self.spec.disturbance == "offset":
+            return predicted + self._disturbance
+        steps = torch.arange(1, predicted.shape[1] + 1, device=predicted.device)
+        return predicted + steps[:, None, None] * self._disturbance
 
     def returned_cost(self) -> float | None:
         """The model-predicted cost of the plan the latest re-plan returned, from that
@@ -159,13 +193,35 @@ class ModelPlanner(Planner):
         predicted position errors (m) over the horizon and the S settle steps, then
         sqrt(action_cost) x the actions. ``previous`` is the state one
         step before ``state`` (None: at rest); by default :meth:`previous_of` finds it."""
+        return self.residuals_of(state, plans, self.predicted(state, plans, previous))
+
+    def predicted(
+        self,
+        state: torch.Tensor,
+        plans: torch.Tensor,
+        previous: torch.Tensor | None | EllipsisType = ...,
+    ) -> torch.Tensor:
+        """(B, H+S, N, 3) the positions the model predicts along plans (B, H, A) and the S
+        settle steps (``previous`` as in :meth:`residuals`)."""
         commands = self.task.to_grippers(self._with_settling(plans))  # (B, H+S, 2, 6)
         planning = previous is ...  # not a Jacobian's nudged plans (maybe on another thread)
         if planning:
             previous = self.previous_of(state)
-        predicted = self.view.predict(state, commands, previous)
+        predicted = self._corrected(state, self.view.predict(state, commands, previous))
         if planning:
             self._evaluated = predicted[:, : plans.shape[1]].detach()
+        return predicted
+
+    def evaluated(self, predicted: torch.Tensor) -> None:
+        """Note predictions (1, H+S, N, 3) along the plan being optimised, computed elsewhere
+        (a Jacobian's rollout), as the latest evaluation (:meth:`planned_path`)."""
+        self._evaluated = predicted[:, : self.spec.horizon].detach()
+
+    def residuals_of(
+        self, state: torch.Tensor, plans: torch.Tensor, predicted: torch.Tensor
+    ) -> torch.Tensor:
+        """:meth:`residuals` given the predicted positions (B, H+S, N, 3): affine in both
+        plans and predictions."""
         assert self._goal is not None
         errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)

@@ -66,6 +66,21 @@ class PlannerSpec(Spec):
         "the planner damps it. 0 = the paper's objective; unset, the backend's planner default "
         "(`dlo list` names them; docs: a planner that damps the swing).",
     )
+    disturbance: Literal["none", "offset", "drift"] = Field(
+        "none",
+        description="Correct the model's predictions by what it got wrong at the last steps "
+        "(offset-free MPC): each step's one-step prediction error of the positions, averaged "
+        "with weight disturbance_gain, is added to every predicted step ('offset') or once per "
+        "predicted step, so k steps ahead carry k of it ('drift': the model's own drift at "
+        "rest cancels). 'none' = the paper's predictions.",
+    )
+    disturbance_gain: float = Field(
+        0.2,
+        gt=0,
+        le=1,
+        description="Weight of the latest one-step prediction error in the running average "
+        "the disturbance option adds (1 = the latest error alone).",
+    )
     tracking: Literal["estimate", "raw"] = Field(
         "estimate",
         description="With the markers observation: 'estimate' blends each report with the "
@@ -114,6 +129,14 @@ class MPCSpec(PlannerSpec):
         ge=1,
         description="gauss-newton: re-plans between refreshes of the Gauss-Newton matrix "
         "(one batched forward rollout of H*A+1 plans by finite differences).",
+    )
+    jacobian: Literal["full", "shifted"] = Field(
+        "full",
+        description="gauss-newton: how the Jacobian is refreshed. full: every action of the "
+        "plan nudged (H*A+1 plans). shifted: the first action's coordinates only (A+1 plans), "
+        "each later action's effect taken as the first's delayed by its steps (the rod's "
+        "response to a nudge depends on how long ago it was, not when), about H times "
+        "cheaper, so it can be refreshed that much more often.",
     )
     refresh: Literal["inline", "background"] = Field(
         "inline",
