@@ -1,4 +1,5 @@
-"""One registry mechanism for every plugin kind (backends, models, controllers, tasks).
+"""One registry mechanism for every plugin kind (backends, models, controllers, tasks,
+observers, cell clients).
 
 Entries are lazy ``"module:attr"`` strings, so an optional dependency costs nothing until the
 entry is used. Each kind's built-ins register themselves in their own package (its
@@ -136,3 +137,6 @@ tasks = Registry("task", home="dlocli.env.tasks")
 #: what turns a sensor's frames into the observation's markers, by observation kind (the env
 #: asks for its kind's observer here and never imports the tracker)
 observers = Registry("observer", home="dlocli.tracking")
+#: the clients of a cell, by protocol: a backend reached by an address rather than picked by
+#: name (the backends ask for the dlocli-cell protocol's client here and never import the bridge)
+cells = Registry("cell", home="dlocli.bridge")

@@ -1,4 +1,6 @@
-"""The package's structure: no import circles, imports inside functions included."""
+"""The package's structure: no import circles; imports run down the layers and no two units
+import each other (imports inside functions and lazy "module:attr" strings included); no other
+package's private parts; citations that exist; modules of one idea."""
 
 from __future__ import annotations
 
@@ -11,8 +13,8 @@ import dlocli
 ROOT = Path(dlocli.__file__).parent
 
 
-def module_name(path: Path) -> str:
-    parts = path.relative_to(ROOT.parent).with_suffix("").parts
+def module_name(path: Path, root: Path = ROOT) -> str:
+    parts = path.relative_to(root.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
@@ -20,12 +22,32 @@ def _type_checking_block(node: ast.AST) -> bool:
     return isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
 
 
-def imported(path: Path, modules: set[str]) -> set[str]:
-    """The dlocli modules ``path`` imports anywhere (not under ``if TYPE_CHECKING``)."""
+#: modules whose ``"module:attr"`` strings name what sits above them, by design: the registry
+#: (each kind's ``home``, imported to register its built-ins) and the package's namespace
+#: (its public names, each imported on first use; Python imports it before any submodule)
+NAMES_WHAT_IS_ABOVE = {"dlocli", "dlocli.registry"}
+
+
+def _absolute(node: ast.ImportFrom, package: str) -> str:
+    """The module an ``from ... import`` names, a relative one resolved from ``package``."""
+    if not node.level:
+        return node.module or ""
+    base = package.split(".")[: len(package.split(".")) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imported(path: Path, modules: set[str], root: Path = ROOT) -> set[str]:
+    """The modules of the package ``path`` imports anywhere (not under ``if TYPE_CHECKING``):
+    ``import``, ``from ... import`` (relative ones too), and a ``"module:attr"`` or
+    ``"module"`` string naming a module of another unit (a lazy import: a registry's target,
+    ``importlib.import_module``'s argument), except in :data:`NAMES_WHAT_IS_ABOVE`."""
+    name = module_name(path, root)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     tree = ast.parse(path.read_text())
     skip = {
         id(n) for block in ast.walk(tree) if _type_checking_block(block) for n in ast.walk(block)
     }
+    target = re.compile(rf"({re.escape(root.name)}(?:\.\w+)+)(?::\w+)?")
     found = set()
     for node in ast.walk(tree):
         if id(node) in skip:
@@ -33,16 +55,21 @@ def imported(path: Path, modules: set[str]) -> set[str]:
         names = []
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            module = _absolute(node, package)
+            names = [module] + [f"{module}.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            lazy = target.fullmatch(node.value)
+            outside = lazy and unit(lazy.group(1)) != unit(name)  # its own unit's: not a loop
+            names = [lazy.group(1)] if outside and name not in NAMES_WHAT_IS_ABOVE else []
         found |= {name for name in names if name in modules}
     return found
 
 
-def import_graph() -> dict[str, set[str]]:
-    paths = {module_name(p): p for p in ROOT.rglob("*.py")}
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    paths = {module_name(p, root): p for p in root.rglob("*.py")}
     modules = set(paths)
-    return {name: imported(path, modules) - {name} for name, path in paths.items()}
+    return {name: imported(path, modules, root) - {name} for name, path in paths.items()}
 
 
 def cycle_from(graph: dict[str, set[str]], start: str) -> list[str] | None:
@@ -72,9 +99,9 @@ def test_the_walker_sees_circles():
 # ------------------------------------------------------------------ layers
 #: dlocli's top-level modules and folders from the lowest to the highest (ARCHITECTURE.md's
 #: rooms): each imports only what comes before it, imports inside functions included;
-#: `dlocli` is the package's own __init__. What a lower layer needs of a higher one comes
-#: through a registry: the cell's client (dlocli.backends.CELL_CLIENT), the point-cloud
-#: observer (dlocli.registry.observers)
+#: lazy "module:attr" strings included; `dlocli` is the package's own __init__. What a lower
+#: layer needs of a higher one comes through a registry: the cell's client
+#: (dlocli.registry.cells), the point-cloud observer (dlocli.registry.observers)
 LAYERS = [
     # foundations: errors, cancellation, events, files, limits, registries, specs
     "errors", "cancel", "events", "threads", "migrations", "tensorboard", "io", "limits",
@@ -138,6 +165,81 @@ def test_the_layer_check_sees_an_upward_import_and_a_pair():
     assert mutual_units(looped) == ["models <-> plots"]
     unplaced = {**fine, "dlocli.tracking.x": {"dlocli.errors"}}
     assert upward_imports(unplaced, layers) == ["dlocli.tracking.x -> dlocli.errors"]
+
+
+def test_the_layer_check_reads_every_kind_of_import(tmp_path):
+    """On a small package written out: an import inside a function, a relative one and a lazy
+    ``"module:attr"`` string each count; one under ``if TYPE_CHECKING`` does not."""
+    files = {
+        "__init__.py": "",
+        "errors.py": "",
+        "low/__init__.py": "",
+        "low/a.py": "import pkg.errors\n\ndef late():\n    from pkg.high import b\n",
+        "low/c.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import pkg.high.b\n",
+        "low/d.py": 'TARGET = "pkg.high.b:thing"\nOWN = "pkg.low.a:late"\n',
+        "high/__init__.py": "",
+        "high/b.py": "from ..low import a\n",
+    }
+    for name, text in files.items():
+        (tmp_path / "pkg" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "pkg" / name).write_text(text)
+    layers = ["errors", "low", "high"]
+    graph = import_graph(tmp_path / "pkg")
+    assert graph["pkg.high.b"] == {"pkg.low", "pkg.low.a"} and graph["pkg.low.c"] == set()
+    assert upward_imports(graph, layers) == [
+        "pkg.low.a -> pkg.high", "pkg.low.a -> pkg.high.b", "pkg.low.d -> pkg.high.b"
+    ]  # fmt: skip
+    assert mutual_units(graph) == ["high <-> low"]
+    (tmp_path / "pkg/low/a.py").write_text("import pkg.errors\n")
+    (tmp_path / "pkg/low/d.py").write_text('OWN = "pkg.low.a:late"\n')
+    graph = import_graph(tmp_path / "pkg")
+    assert upward_imports(graph, layers) == [] and mutual_units(graph) == []
+
+
+# ------------------------------------------------------------------ other packages' insides
+#: documented public names that start with an underscore
+PUBLIC_UNDERSCORED = {"os._exit"}
+
+
+def _private(dotted: str) -> bool:
+    parts = dotted.split(".")
+    return dotted not in PUBLIC_UNDERSCORED and any(
+        part.startswith("_") and not part.startswith("__") for part in parts
+    )
+
+
+def private_imports(source: str) -> list[str]:
+    """What ``source`` takes from another package's private parts: an import of a module or
+    name starting with ``_`` (``typer._click``), or such an attribute of an imported package."""
+    tree = ast.parse(source)
+    packages = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.Import)
+                for a in n.names if not a.name.startswith("dlocli")}  # fmt: skip
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [a.name for a in node.names if _private(a.name)]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if not node.module.startswith("dlocli"):
+                names = [f"{node.module}.{a.name}" for a in node.names]
+                found += [name for name in names if _private(name)]
+        elif isinstance(node, ast.Attribute) and ast.unparse(node.value) in packages:
+            found += [name] if _private(name := ast.unparse(node)) else []
+    return found
+
+
+def test_no_private_import_of_another_package():
+    """dlocli uses Typer (and the Click it carries) and every other dependency through their
+    public names only: no ``typer._click``."""
+    found = {str(p.relative_to(ROOT.parent)): private_imports(p.read_text())
+             for p in sorted(ROOT.rglob("*.py"))}  # fmt: skip
+    assert not {path: names for path, names in found.items() if names}
+
+
+def test_the_private_import_check_sees_one():
+    source = "import typer\nimport typer.main\nfrom typer._click import Context\nx = typer._click\n"
+    assert private_imports(source) == ["typer._click.Context", "typer._click"]
+    fine = "from __future__ import annotations\nimport os\nimport typer.core\nos._exit(0)\n"
+    assert private_imports(fine) == []
 
 
 # ------------------------------------------------------------------ what the source cites

@@ -15,7 +15,7 @@ from dlocli.specs import BackendSpec, RodSpec
 
 REGISTRIES = {"backends": registry.backends, "models": registry.models,
               "controllers": registry.controllers, "tasks": registry.tasks,
-              "observers": registry.observers}  # fmt: skip
+              "observers": registry.observers, "cells": registry.cells}  # fmt: skip
 
 
 @pytest.mark.parametrize("kind", sorted(REGISTRIES))
@@ -40,6 +40,20 @@ def test_a_run_spec_plans_with_a_registered_planner_only():
         OnlineSpec(planner="sac")
     with pytest.raises(UnknownName, match="did you mean 'mpc'"):
         OnlineSpec(planner="mpx")
+
+
+def test_the_backends_take_the_cell_client_from_the_registry(monkeypatch):
+    """A run naming a cell gets the client the bridge registers for its protocol (the backends
+    import no bridge)."""
+    from dlocli.backends import CELL_PROTOCOL, make_backend
+    from dlocli.bridge.protocol import PROTOCOL
+    from dlocli.cell_spec import CellChoice
+
+    assert CELL_PROTOCOL == PROTOCOL and registry.cells.names() == [PROTOCOL]
+    assert registry.cells.get(PROTOCOL).__name__ == "RemoteCell"
+    monkeypatch.setattr(registry.cells, "get", lambda name: lambda *args: (name, *args))
+    made = make_backend(BackendSpec(), 0.02, CellChoice(cell="tcp://127.0.0.1:5555"))
+    assert made[:4] == (PROTOCOL, BackendSpec(), 0.02, "tcp://127.0.0.1:5555")
 
 
 def test_the_env_takes_its_observer_from_the_registry(monkeypatch):

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from dlocli.extras import require
-from dlocli.registry import backends, import_target
+from dlocli.registry import backends, cells, import_target
 
 if TYPE_CHECKING:
     from dlocli.backend_spec import BackendSpec
@@ -36,9 +36,10 @@ backends.register(
     facts="dlocli.backends.facts:PybulletFacts",
 )
 
-#: the client of a cell (`dlo serve`, or a robot speaking the dlocli-cell protocol): a backend
-#: reached by an address rather than picked by name, imported when a run names a cell
-CELL_CLIENT = "dlocli.bridge.remote:RemoteCell"
+#: the protocol of a cell (`dlo serve`, or a robot speaking it; dlocli.bridge.protocol.PROTOCOL):
+#: its client, a backend reached by an address rather than picked by name, is registered under
+#: it in :data:`dlocli.registry.cells` and imported when a run names a cell
+CELL_PROTOCOL = "dlocli-cell"
 
 _EXPORTS = {"Backend": "dlocli.backends.base", "GripperLimits": "dlocli.backends.base"}
 __all__ = [*sorted(_EXPORTS), "make_backend", "runnable_backends"]
@@ -48,10 +49,10 @@ def make_backend(
     spec: BackendSpec, control_dt: float = 0.02, cell: CellChoice | None = None
 ) -> Backend:
     """Build the registered backend named by ``spec.name``, or, with ``cell.cell`` set, the
-    rod of ``spec`` stepped by the cell at that address (:data:`CELL_CLIENT`)."""
+    rod of ``spec`` stepped by the cell at that address (the client of :data:`CELL_PROTOCOL`)."""
     if cell is not None and cell.cell is not None:
         require("bridge", "--cell", "drop --cell to simulate in this process")
-        client = import_target(CELL_CLIENT)
+        client = cells.get(CELL_PROTOCOL)
         return client(spec, control_dt, cell.cell, cell.cell_timeout_s, cell.cell_keys)
     return backends.get(spec.name)(spec, control_dt=control_dt)
 
