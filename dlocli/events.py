@@ -6,8 +6,11 @@ episode's rollout) takes ``progress``, a :data:`Callback`, and calls it with :cl
 unit's numbers in ``values``. A :class:`Began` starts a phase of counting: its ``done`` units
 were finished before it (kept from a stopped run), so a rate or an ETA counts from there.
 Subclasses exist only where a consumer tells kinds apart (a fit's batches and validations,
-:mod:`dlocli.models.fitting`). The CLI renders events (``dlocli/cli/progress.py``); a callback
-may raise (a test's KeyboardInterrupt) to stop the run where it reported.
+:mod:`dlocli.models.fitting`). A fit's ``on_validation`` is no report but a hook: it hands the
+live optimiser and random generator to whoever checkpoints them, which events never carry.
+The CLI renders events (``dlocli/cli/progress.py``); a callback may raise (a test's
+KeyboardInterrupt) to stop the run where it reported; a run stops at its safe points when
+the :class:`~dlocli.cancel.CancelToken` it is handed is cancelled.
 """
 
 from __future__ import annotations

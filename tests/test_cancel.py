@@ -1,6 +1,9 @@
 """A cancel token handed to a long run stops it where it is safe, its finished work saved, and
 the run reports through the one callback shape as it goes: `dlo eval`, `dlo track` and
-`dlo bench`, each a small real run whose progress callback cancels after the first unit."""
+`dlo bench`, each a small real run whose progress callback cancels after the first unit; a
+token cancelled before the run, or at its first event, stops it before its first unit with
+nothing written (an earlier run's files left as they were); each command hands its run the
+process's token and ends as on Ctrl-C (exit 130, one line)."""
 
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from test_track_command import recorded  # noqa: F401  (the recorded clouds, a fixture)
+from typer.testing import CliRunner
 
 from dlocli.bench.run import resume_bench, start_bench
 from dlocli.bench.spec import BenchSpec
@@ -22,6 +26,8 @@ from dlocli.runs.train import run_training
 from dlocli.tracking.spec import TrackSpec
 
 from tiny import TINY_BENCH
+
+runner = CliRunner()
 
 
 class CancelAfter:
@@ -40,6 +46,45 @@ class CancelAfter:
 
     def done(self) -> list[float]:
         return [e.done for e in self.events if e.unit == self.unit]
+
+
+class CancelAtFirst:
+    """A progress callback that keeps every event and cancels ``token`` at the first one; with
+    ``already``, the token is cancelled before the run starts."""
+
+    def __init__(self, already: bool) -> None:
+        self.token = CancelToken()
+        self.events: list[Event] = []
+        if already:
+            self.token.cancel()
+
+    def __call__(self, event: Event) -> None:
+        self.events.append(event)
+        self.token.cancel()
+
+    def only_began(self) -> bool:
+        return len(self.events) <= 1 and all(isinstance(e, Began) for e in self.events)
+
+
+def files_of(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (but a run's lock) and its bytes."""
+    return {str(path.relative_to(folder)): path.read_bytes() for path in folder.rglob("*")
+            if path.is_file() and not path.name.endswith(".lock")}  # fmt: skip
+
+
+def dlo(*args: str):
+    from dlocli.cli import app
+
+    return runner.invoke(app, list(args))
+
+
+def cli_with_cancelled_token(monkeypatch: pytest.MonkeyPatch, command: str, *args: str):
+    """``dlo COMMAND ARGS`` whose process-wide token was cancelled before the run (a Ctrl-C
+    at its start): the command must hand that token to its run."""
+    token = CancelToken()
+    token.cancel()
+    monkeypatch.setattr(f"dlocli.cli.{command}.signal_token", lambda: token)
+    return dlo(command, *args)
 
 
 @pytest.fixture(scope="module")
@@ -135,3 +180,117 @@ def test_only_the_commands_reach_for_the_process_wide_token():
         and any(reader in path.read_text() for reader in readers)
     ]  # fmt: skip
     assert not found, f"{found} read the process's stop signals: take a cancel token instead"
+
+
+@pytest.mark.parametrize("already", [True, False], ids=["cancelled-before", "at-first-event"])
+def test_eval_stopped_before_its_first_measurement_writes_nothing(
+    rod_model, small_dataset_dir, tmp_path, already
+):
+    out = tmp_path / "eval"
+    spec = EvalSpec(checkpoint=rod_model, data=small_dataset_dir, device="cpu", max_starts=16,
+                    out=out)  # fmt: skip
+    run_evaluation(spec)
+    earlier = files_of(out)
+    watch = CancelAtFirst(already)
+    with pytest.raises(KeyboardInterrupt):
+        run_evaluation(spec, overwrite=True, progress=watch, cancel=watch.token)
+    assert watch.only_began() and watch.token.reason is None, "stopped once, at once"
+    assert files_of(out) == earlier
+
+
+def test_dlo_eval_hands_its_token_and_exits_as_on_ctrl_c(
+    monkeypatch, rod_model, small_dataset_dir, tmp_path
+):
+    out = tmp_path / "eval"
+    args = ["--checkpoint", str(rod_model), "--data", str(small_dataset_dir), "--device", "cpu",
+            "--max-starts", "16", "--out", str(out)]  # fmt: skip
+    assert dlo("eval", *args).exit_code == 0
+    earlier = files_of(out)
+    res = cli_with_cancelled_token(monkeypatch, "eval", *args, "--overwrite")
+    assert res.exit_code == 130 and "interrupted" in res.output, res.output
+    assert files_of(out) == earlier
+
+
+@pytest.mark.parametrize("already", [True, False], ids=["cancelled-before", "at-first-event"])
+def test_track_stopped_before_its_first_episode_writes_nothing(recorded, tmp_path, already):  # noqa: F811
+    source, _ = recorded
+    spec = TrackSpec(source=source, out=tmp_path / "tracked")
+    run_track(spec)
+    earlier = files_of(tmp_path / "tracked")
+    watch = CancelAtFirst(already)
+    with pytest.raises(KeyboardInterrupt):
+        run_track(spec, overwrite=True, progress=watch, cancel=watch.token)
+    assert watch.only_began() and watch.token.reason is None
+    assert files_of(tmp_path / "tracked") == earlier
+
+
+def test_dlo_track_hands_its_token_and_exits_as_on_ctrl_c(monkeypatch, recorded, tmp_path):  # noqa: F811
+    source, _ = recorded
+    out = tmp_path / "tracked"
+    run_track(TrackSpec(source=source, out=out))
+    earlier = files_of(out)
+    res = cli_with_cancelled_token(monkeypatch, "track", "--source", str(source), "--out",
+                                   str(out), "--overwrite")  # fmt: skip
+    assert res.exit_code == 130 and "interrupted" in res.output, res.output
+    assert files_of(out) == earlier
+
+
+@pytest.mark.parametrize("already", [True, False], ids=["cancelled-before", "at-first-event"])
+def test_bench_resumed_and_stopped_at_once_keeps_its_finished_jobs(tmp_path, already):
+    out = tmp_path / "run"
+    spec = BenchSpec.model_validate({**TINY_BENCH, "agents": ["zero", "random"], "out": out})
+    watch = CancelAfter("job")
+    with pytest.raises(KeyboardInterrupt):
+        start_bench(spec, progress=watch, cancel=watch.token)
+    jobs = files_of(out / "jobs")
+    stop = CancelAtFirst(already)
+    with pytest.raises(KeyboardInterrupt):
+        resume_bench(out, {}, progress=stop, cancel=stop.token)
+    assert stop.only_began() and stop.token.reason is None
+    assert files_of(out / "jobs") == jobs and list(jobs) == ["zero-s0.json"]
+    assert not (out / "summary.json").exists() and not (out / "results.csv").exists()
+
+
+def test_dlo_bench_hands_its_token_and_exits_as_on_ctrl_c(monkeypatch, tmp_path):
+    out = tmp_path / "run"
+    spec = BenchSpec.model_validate({**TINY_BENCH, "agents": ["zero"], "out": out})
+    res = cli_with_cancelled_token(monkeypatch, "bench", "--spec", str(write_spec(spec, tmp_path)))
+    assert res.exit_code == 130 and "interrupted" in res.output, res.output
+    assert not list((out / "jobs").glob("*.json")) and not (out / "summary.json").exists()
+
+
+def write_spec(spec: BenchSpec, folder: Path) -> Path:
+    path = folder / "bench.json"
+    path.write_text(spec.model_dump_json())
+    return path
+
+
+NOT_YET = pytest.mark.xfail(strict=True, reason="issue 70 item 3: takes neither or one")
+
+
+@pytest.mark.parametrize(
+    "where",
+    [
+        "dlocli.runs.collect:collect_random",
+        "dlocli.runs.train:run_training",
+        "dlocli.runs.evaluate:run_evaluation",
+        "dlocli.runs.track:run_track",
+        "dlocli.runs.calibrate:run_calibration",
+        "dlocli.runs.adapt:run_adaptation",
+        "dlocli.runs.control:run_control",
+        "dlocli.runs.online.run:start_online",
+        "dlocli.runs.online.run:resume_online",
+        "dlocli.bench.run:start_bench",
+        "dlocli.bench.run:resume_bench",
+        pytest.param("dlocli.runs.sample:run_sample", marks=NOT_YET),
+        pytest.param("dlocli.runs.export:export_minari", marks=NOT_YET),
+        pytest.param("dlocli.markers.importing:run_import", marks=NOT_YET),
+    ],
+)
+def test_every_long_command_takes_the_one_callback_and_a_token(where: str):
+    import importlib
+    import inspect
+
+    module, name = where.split(":")
+    parameters = inspect.signature(getattr(importlib.import_module(module), name)).parameters
+    assert {"progress", "cancel"} <= set(parameters), f"{where} takes {list(parameters)}"

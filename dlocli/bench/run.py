@@ -232,6 +232,7 @@ class BenchRun:
         failed: dict[str, BaseException] = {}
         spec_json = self.spec.model_dump_json()
         calls = [(spec_json, job.agent, job.seed, job.scratch, self.cancel) for job in todo]
+        self.cancel.raise_if_cancelled()  # before any job starts, here or in a worker
         try:
             for done, (index, result) in enumerate(executor.map(run_job, calls), 1):
                 job = todo[index]

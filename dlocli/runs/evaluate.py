@@ -42,8 +42,9 @@ def run_evaluation(
     ``progress`` gets a Began of the measurements (unit "measurement": on rod data the one-step
     errors, then each horizon's; on markers the model's scores, each reference's, the timing),
     then an Event per measurement (``values``: its ``name`` and its summary entries).
-    ``cancel`` stops it between measurements: the summary of those made, marked ``stopped``,
-    is written to ``spec.out`` before the stop is raised again."""
+    ``cancel`` stops it before each measurement: the summary of those made, marked
+    ``stopped``, is written to ``spec.out`` before the stop is raised again (none made:
+    nothing is written, an earlier run's files there are left as they were)."""
     progress, cancel = progress or ignore, cancel or CancelToken()
     if spec.checkpoint is None or spec.data is None:
         raise BadInput("dlo eval needs --checkpoint (a trained model) and --data (a dataset)")
@@ -74,14 +75,22 @@ def run_evaluation(
     if spec.out is None:
         _measure(spec, net, dataset, record, summary, progress, cancel)
         return summary
+    made: list[Event] = []  # the measurements made, which a stop keeps
+
+    def report(event: Event) -> None:
+        if not isinstance(event, Began):
+            made.append(event)
+        progress(event)
+
     with owned(spec.out):  # one writer per run directory
         out = prepare_run_dir(spec.out, overwrite)
         try:
-            _measure(spec, net, dataset, record, summary, progress, cancel)
-        except KeyboardInterrupt as stop:  # the measurements made are kept
-            summary["stopped"] = type(stop).__name__
-            write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-            write_json_atomic(out / "summary.json", summary)
+            _measure(spec, net, dataset, record, summary, report, cancel)
+        except KeyboardInterrupt as stop:
+            if made:
+                summary["stopped"] = type(stop).__name__
+                write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+                write_json_atomic(out / "summary.json", summary)
             raise
         write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
         write_json_atomic(out / "summary.json", summary)
@@ -112,7 +121,7 @@ def _measure(
     progress: Callback,
     cancel: CancelToken,
 ) -> None:
-    """Fill ``summary`` measurement by measurement (``cancel`` checked between them), then
+    """Fill ``summary`` measurement by measurement (``cancel`` checked before each), then
     draw the plot and the recording."""
     summary |= {"checkpoint": str(spec.checkpoint), "data": str(spec.data)}
     if isinstance(dataset, MarkerDataset):
@@ -151,8 +160,10 @@ def _measured(
     progress: Callback,
     cancel: CancelToken,
 ) -> None:
-    """Each measurement of ``parts`` into ``summary``, reported as it is made."""
+    """Each measurement of ``parts`` into ``summary``, reported as it is made; ``cancel``
+    checked before the first and after each."""
     progress(Began("measurement", 0, total))
+    cancel.raise_if_cancelled()
     for done, (name, measured) in enumerate(parts, 1):
         summary.update(measured)
         progress(Event("measurement", done, total, {"name": name, **measured}))

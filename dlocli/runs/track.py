@@ -80,7 +80,9 @@ def track_file(
     cancel: CancelToken | None = None,
 ) -> dict:
     """One episode's tracked markers (F, M, 3), visibility and timing; ``cancel`` stops it
-    between frames."""
+    before the file is read and between frames."""
+    if cancel is not None:
+        cancel.raise_if_cancelled()
     sequence = read_episode(spec, path)
     robot = _held_positions(sequence, path, spec, int(held.sum()))
     if len(sequence.frames) < 2:
