@@ -285,7 +285,14 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
 
 
 #: the planner options every ``sweep`` row sets, at the paper's (the runs' own specs may differ)
-SWEEP_BASE = {"mpc.motion_cost": 0.0, "mpc.damping": 0.01, "mpc.settle_steps": 0}
+SWEEP_BASE = {
+    "mpc.motion_cost": 0.0,
+    "mpc.damping": 0.01,
+    "mpc.settle_steps": 0,
+    "mpc.jacobian": "full",
+    "mpc.curvature_every": 25,
+    "mpc.disturbance": "none",
+}
 
 
 def sweep_report(runs: list[Path], k: int, n: int, changes: dict[str, Any]) -> dict[str, Any]:
