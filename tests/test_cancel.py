@@ -1,9 +1,9 @@
 """A cancel token handed to a long run stops it where it is safe, its finished work saved, and
-the run reports through the one callback shape as it goes: `dlo eval`, `dlo track` and
-`dlo bench`, each a small real run whose progress callback cancels after the first unit; a
-token cancelled before the run, or at its first event, stops it before its first unit with
-nothing written (an earlier run's files left as they were); each command hands its run the
-process's token and ends as on Ctrl-C (exit 130, one line)."""
+the run reports through the one callback shape as it goes: `dlo eval`, `dlo track`,
+`dlo bench`, `dlo sample`, `dlo export` and `dlo import`, each a small real run whose progress
+callback cancels after the first unit; a token cancelled before the run, or at its first
+event, stops it before its first unit with nothing written (an earlier run's files left as they
+were); each command hands its run the process's token and ends as on Ctrl-C (exit 130, one line)."""
 
 from __future__ import annotations
 
@@ -19,13 +19,17 @@ from dlocli.bench.spec import BenchSpec
 from dlocli.cancel import CancelToken
 from dlocli.data import MarkerDataset, load_dataset
 from dlocli.events import Began, Event
+from dlocli.markers.importing import run_import
+from dlocli.markers.spec import ImportSpec
 from dlocli.models.spec import EvalSpec, TrainSpec
 from dlocli.runs.evaluate import run_evaluation
+from dlocli.runs.sample import run_sample
+from dlocli.runs.sample_spec import SampleSpec
 from dlocli.runs.track import run_track
 from dlocli.runs.train import run_training
 from dlocli.tracking.spec import TrackSpec
 
-from tiny import TINY_BENCH
+from tiny import TINY_BENCH, write_cable
 
 runner = CliRunner()
 
@@ -265,9 +269,6 @@ def write_spec(spec: BenchSpec, folder: Path) -> Path:
     return path
 
 
-NOT_YET = pytest.mark.xfail(strict=True, reason="issue 70 item 3: takes neither or one")
-
-
 @pytest.mark.parametrize(
     "where",
     [
@@ -282,9 +283,9 @@ NOT_YET = pytest.mark.xfail(strict=True, reason="issue 70 item 3: takes neither 
         "dlocli.runs.online.run:resume_online",
         "dlocli.bench.run:start_bench",
         "dlocli.bench.run:resume_bench",
-        pytest.param("dlocli.runs.sample:run_sample", marks=NOT_YET),
-        pytest.param("dlocli.runs.export:export_minari", marks=NOT_YET),
-        pytest.param("dlocli.markers.importing:run_import", marks=NOT_YET),
+        "dlocli.runs.sample:run_sample",
+        "dlocli.runs.export:export_minari",
+        "dlocli.markers.importing:run_import",
     ],
 )
 def test_every_long_command_takes_the_one_callback_and_a_token(where: str):
@@ -294,3 +295,148 @@ def test_every_long_command_takes_the_one_callback_and_a_token(where: str):
     module, name = where.split(":")
     parameters = inspect.signature(getattr(importlib.import_module(module), name)).parameters
     assert {"progress", "cancel"} <= set(parameters), f"{where} takes {list(parameters)}"
+
+
+# ----------------------------------------------------------------------------- dlo sample
+def sample_spec(out: Path) -> SampleSpec:
+    return SampleSpec(train=2, eval=1, seconds=0.2, out=out)
+
+
+def test_sample_stops_between_recordings_and_keeps_those_written(tmp_path):
+    whole = run_sample(sample_spec(tmp_path / "whole"))
+    watch = CancelAfter("recording")
+    out = tmp_path / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        run_sample(sample_spec(out), progress=watch, cancel=watch.token)
+    assert watch.done() == [0, 1] and watch.events[0].total == 3
+    assert watch.events[1].values == {"split": "train", "file": "take_000.pkl"}
+    kept = files_of(out)
+    assert sorted(kept) == [".dlo-written.json", "spec.json", "summary.json", "train/take_000.pkl"]
+    assert kept["train/take_000.pkl"] == (tmp_path / "whole/train/take_000.pkl").read_bytes()
+    spec = json.loads((tmp_path / "whole/spec.json").read_text())
+    assert json.loads(kept["spec.json"]) == {**spec, "out": str(out)}
+    summary = json.loads(kept["summary.json"].decode().replace(str(out), str(tmp_path / "whole")))
+    stopped = {"train_recordings": 1, "eval_recordings": 0, "stopped": "KeyboardInterrupt"}
+    assert summary == {**whole, **stopped}  # the same command reads the folder
+
+
+@pytest.mark.parametrize("already", [True, False], ids=["cancelled-before", "at-first-event"])
+def test_sample_stopped_before_its_first_recording_writes_nothing(tmp_path, already):
+    out = tmp_path / "cable"
+    run_sample(sample_spec(out))
+    earlier = files_of(out)
+    watch = CancelAtFirst(already)
+    with pytest.raises(KeyboardInterrupt):
+        run_sample(sample_spec(out), overwrite=True, progress=watch, cancel=watch.token)
+    assert watch.only_began() and watch.token.reason is None
+    assert files_of(out) == earlier
+
+
+def test_dlo_sample_hands_its_token_and_exits_as_on_ctrl_c(monkeypatch, tmp_path):
+    out = tmp_path / "cable"
+    run_sample(sample_spec(out))
+    earlier = files_of(out)
+    flags = ["--train", "2", "--eval", "1", "--seconds", "0.2", "--out", str(out)]
+    res = cli_with_cancelled_token(monkeypatch, "sample", *flags, "--overwrite")
+    assert res.exit_code == 130 and "interrupted" in res.output, res.output
+    assert files_of(out) == earlier
+
+
+# ----------------------------------------------------------------------------- dlo export
+@pytest.fixture(scope="module")
+def collected(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """3 random episodes of 5 steps (seed 0)."""
+    from dlocli.runs.collect import collect_random
+    from dlocli.specs import CollectSpec
+
+    out = tmp_path_factory.mktemp("collect")
+    spec = CollectSpec(episodes=3, seed=0, out=out,
+                       task={"episode_steps": 5, "shapes": "near-rest"})  # fmt: skip
+    collect_random(spec, overwrite=True)
+    return out
+
+
+def test_export_reports_each_episode_and_a_stop_leaves_the_dataset_as_it_was(collected, tmp_path):
+    pytest.importorskip("minari")
+    from dlocli.runs.export import export_minari
+
+    root = tmp_path / "minari"
+    events: list[Event] = []
+    export_minari(collected, root=root, progress=events.append)
+    assert [e.done for e in events] == [0, 1, 2, 3] and events[0].total == 3
+    assert events[1].values == {"steps": 5, "exported": True}
+    earlier = files_of(root)
+    watch = CancelAfter("episode", 2)
+    with pytest.raises(KeyboardInterrupt):
+        export_minari(collected, root=root, overwrite=True, progress=watch, cancel=watch.token)
+    assert watch.done() == [0, 1, 2]
+    assert files_of(root) == earlier and not list(root.glob(".dlo-export-*"))
+
+
+@pytest.mark.parametrize("already", [True, False], ids=["cancelled-before", "at-first-event"])
+def test_export_stopped_before_its_first_episode_writes_nothing(collected, tmp_path, already):
+    pytest.importorskip("minari")
+    from dlocli.runs.export import export_minari
+
+    root = tmp_path / "minari"
+    export_minari(collected, root=root)
+    earlier = files_of(root)
+    watch = CancelAtFirst(already)
+    with pytest.raises(KeyboardInterrupt):
+        export_minari(collected, root=root, overwrite=True, progress=watch, cancel=watch.token)
+    assert watch.only_began() and watch.token.reason is None
+    assert files_of(root) == earlier and not list(root.glob(".dlo-export-*"))
+
+
+def test_dlo_export_hands_its_token_and_exits_as_on_ctrl_c(monkeypatch, collected, tmp_path):
+    pytest.importorskip("minari")
+    root = tmp_path / "minari"
+    assert dlo("export", str(collected), "--out", str(root), "--json").exit_code == 0
+    earlier = files_of(root)
+    res = cli_with_cancelled_token(monkeypatch, "export", str(collected), "--out", str(root),
+                                   "--overwrite")  # fmt: skip
+    assert res.exit_code == 130 and "interrupted" in res.output, res.output
+    assert files_of(root) == earlier and not list(root.glob(".dlo-export-*"))
+
+
+# ----------------------------------------------------------------------------- dlo import
+def test_import_reports_each_file_and_a_stop_writes_nothing(tmp_path):
+    source = write_cable(tmp_path / "cable", n_train=2, n_eval=1)
+    spec = ImportSpec(source=source, out=tmp_path / "imported")
+    events: list[Event] = []
+    run_import(spec, progress=events.append)
+    assert [e.done for e in events] == [0, 1, 2, 3] and events[0].total == 3
+    assert events[3].values == {"split": "eval", "file": "0.pkl"}
+    earlier = files_of(tmp_path / "imported")
+    for n in (1, 3):  # between files, and after the last one before writing
+        watch = CancelAfter("recording", n)
+        with pytest.raises(KeyboardInterrupt):
+            run_import(spec, overwrite=True, progress=watch, cancel=watch.token)
+        assert watch.done()[-1] == n
+        assert files_of(tmp_path / "imported") == earlier
+
+
+@pytest.mark.parametrize("already", [True, False], ids=["cancelled-before", "at-first-event"])
+def test_import_stopped_before_its_first_file_writes_nothing(tmp_path, already):
+    source = write_cable(tmp_path / "cable", n_train=2, n_eval=1)
+    spec = ImportSpec(source=source, out=tmp_path / "imported")
+    run_import(spec)
+    earlier = files_of(tmp_path / "imported")
+    watch = CancelAtFirst(already)
+    with pytest.raises(KeyboardInterrupt):
+        run_import(spec, overwrite=True, progress=watch, cancel=watch.token)
+    assert watch.only_began() and watch.token.reason is None
+    assert files_of(tmp_path / "imported") == earlier
+
+
+def test_dlo_import_hands_its_token_and_exits_as_on_ctrl_c(monkeypatch, tmp_path):
+    source = write_cable(tmp_path / "cable", n_train=2, n_eval=1)
+    out = tmp_path / "imported"
+    run_import(ImportSpec(source=source, out=out))
+    earlier = files_of(out)
+    token = CancelToken()
+    token.cancel()
+    monkeypatch.setattr("dlocli.cli.importing.signal_token", lambda: token)  # `import`: a keyword
+    res = dlo("import", "--source", str(source), "--out", str(out), "--overwrite")
+    assert res.exit_code == 130 and "interrupted" in res.output, res.output
+    assert files_of(out) == earlier

@@ -9,7 +9,9 @@ from typing import Annotated, Any
 import typer
 
 from dlocli.cli.common import JsonFlag, emit_summary, handle_errors
+from dlocli.cli.progress import Bars
 from dlocli.errors import BadInput
+from dlocli.events import Began, Event
 from dlocli.processes import signal_token
 from dlocli.runs.export import export_minari
 
@@ -78,17 +80,19 @@ def export(
     (6 or 12), rewards as stored; the env spec is recorded, so `recover_environment()` works
     after `import dlocli`.
     """
-    summary = export_minari(
-        run_or_dataset,
-        dataset_id=_one_of(dataset_id, old_name, "--dataset-id", "--name"),
-        root=_one_of(out, old_root, "--out", "--root"),
-        overwrite=overwrite,
-        skip_diverged=skip_diverged,
-        author=author,
-        author_email=author_email,
-        code_permalink=code_permalink,
-        cancel=signal_token(),
-    )
+    with Bars(json_out, _describe) as bars:
+        summary = export_minari(
+            run_or_dataset,
+            dataset_id=_one_of(dataset_id, old_name, "--dataset-id", "--name"),
+            root=_one_of(out, old_root, "--out", "--root"),
+            overwrite=overwrite,
+            skip_diverged=skip_diverged,
+            author=author,
+            author_email=author_email,
+            code_permalink=code_permalink,
+            progress=bars,
+            cancel=signal_token(),
+        )
     emit_summary(summary, json_out, f"dlo export --format {fmt.value}")
 
 
@@ -97,3 +101,11 @@ def _one_of(value: Any, old: Any, flag: str, old_flag: str) -> Any:
     if value is not None and old is not None and value != old:
         raise BadInput(f"{flag} and {old_flag} (its earlier name) differ; pass only {flag}")
     return value if value is not None else old
+
+
+def _describe(event: Event) -> str:
+    """An episode's steps, or that it is left out."""
+    if isinstance(event, Began):
+        return ""
+    steps = event.values["steps"]
+    return f"{steps} steps" if event.values["exported"] else f"{steps} steps, left out"

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.cli.progress import Bars
 from dlocli.markers.importing import run_import
 from dlocli.markers.spec import ImportSpec
+from dlocli.processes import signal_token
 
 
 @handle_errors
@@ -18,4 +20,6 @@ def import_recordings(
     without running code, .npy/.npz/.h5 arrays, motion-capture .csv or ROS 2 bag folders)
     into OUT/dataset.h5 for `dlo train` and `dlo eval`, resampled to --control-hz; prints the
     freeze and straight-line references' scores."""
-    emit_summary(run_import(run.spec(), run.overwrite), run.json, "dlo import")
+    with Bars(run.json) as bars:
+        summary = run_import(run.spec(), run.overwrite, bars, signal_token())
+    emit_summary(summary, run.json, "dlo import")

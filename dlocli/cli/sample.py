@@ -9,6 +9,7 @@ import typer
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
+from dlocli.processes import signal_token
 from dlocli.runs.sample_spec import SampleSpec
 
 
@@ -34,5 +35,5 @@ def sample(
     if kind is not None:
         run.overrides["kind"] = kind
     with Bars(run.json) as bars:
-        summary = run_sample(run.spec(), run.overwrite, bars)
+        summary = run_sample(run.spec(), run.overwrite, bars, signal_token())
     emit_summary(summary, run.json, "dlo sample")

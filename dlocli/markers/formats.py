@@ -29,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.markers import deform
 
 #: a reader: (file, memory budget in bytes, --fill-gaps) -> trajectories
@@ -45,11 +47,21 @@ class Trajectory:
 
 
 def read_folder(
-    folder: Path, budget_bytes: int, fill_gaps: int = 0, bags: Reader | None = None
+    folder: Path,
+    budget_bytes: int,
+    fill_gaps: int = 0,
+    bags: Reader | None = None,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, list[Trajectory]]:
     """``{split: [Trajectory, ...]}`` from ``folder/train`` and ``folder/eval`` (files sorted
     by name, any suffix of :data:`READERS`; a folder in them is read by ``bags``), read within
-    ``budget_bytes`` of memory; every trajectory must have the same marker count."""
+    ``budget_bytes`` of memory; every trajectory must have the same marker count.
+
+    ``progress`` gets a Began of the files (unit "recording") once all are checked, then an
+    Event as each is read (``values``: its ``split`` and ``file``); ``cancel`` is checked
+    before each file."""
+    progress, cancel = progress or ignore, cancel or CancelToken()
     folder = Path(folder)
     if not folder.is_dir():
         raise BadInput(f"{folder} is not a folder; pass a cable folder holding train/ and eval/")
@@ -71,10 +83,12 @@ def read_folder(
             )
     out: dict[str, list[Trajectory]] = {}
     counts: dict[int, str] = {}
-    kept = 0
+    kept, done, total = 0, 0, sum(len(files) for files in found.values())
+    progress(Began("recording", 0, total))
     for split, files in found.items():
         out[split] = []
         for path in files:
+            cancel.raise_if_cancelled()
             read = bags if path.is_dir() and bags else READERS[path.suffix.lower()]
             for item in read(path, max(0, budget_bytes - kept), fill_gaps):
                 kept += deform.KEPT_PER_BYTE * item.positions.nbytes
@@ -86,6 +100,8 @@ def read_folder(
                         "cable per folder"
                     )
                 out[split].append(item)
+            done += 1
+            progress(Event("recording", done, total, {"split": split, "file": path.name}))
     return out
 
 

@@ -6,8 +6,10 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.cancel import CancelToken
 from dlocli.data import MarkerDataset, protocol, save_dataset_run
 from dlocli.errors import BadInput
+from dlocli.events import Callback, ignore
 from dlocli.markers import deform, formats, rosbag, timing
 from dlocli.markers.spec import UNITS, ImportSpec
 from dlocli.rundir import refuse_out_by_source
@@ -16,15 +18,27 @@ from dlocli.rundir import refuse_out_by_source
 CABLE_LENGTH_M = (0.02, 10.0)
 
 
-def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
+def run_import(
+    spec: ImportSpec,
+    overwrite: bool = False,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
+) -> dict[str, Any]:
     """Read ``spec.source`` (refusing anything but plain data), write OUT/dataset.h5,
-    OUT/spec.json and OUT/summary.json; return the summary."""
+    OUT/spec.json and OUT/summary.json; return the summary.
+
+    ``progress`` gets a Began of the recording files (unit "recording"), then an Event as
+    each is read (``values``: its ``split`` and ``file``). ``cancel`` stops it before each
+    file and before writing: nothing is written (an earlier run's files there are left as
+    they were)."""
+    progress, cancel = progress or ignore, cancel or CancelToken()
     if spec.source is None:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/)")
     refuse_out_by_source(spec)
     # everything is checked before --out is touched
     budget = spec.max_memory_mib * 2**20
-    read = formats.read_folder(spec.source, budget, spec.fill_gaps, rosbag.reader(spec.topic))
+    bags = rosbag.reader(spec.topic)
+    read = formats.read_folder(spec.source, budget, spec.fill_gaps, bags, progress, cancel)
     kept = sum(deform.KEPT_PER_BYTE * t.positions.nbytes for items in read.values() for t in items)
     timed, rate_hz, timing_report = timing.to_control_rate(read, spec, budget - kept)
     trajectories = in_metres(timed, spec)
@@ -36,6 +50,7 @@ def run_import(spec: ImportSpec, overwrite: bool = False) -> dict[str, Any]:
     gaps = {f"{s}/{t.name}": t.gaps for s, items in read.items() for t in items if t.gaps}
     if gaps:
         summary["gaps_filled"] = gaps
+    cancel.raise_if_cancelled()  # the last file read, before anything is written
     return save_dataset_run(spec, dataset, summary, overwrite)
 
 

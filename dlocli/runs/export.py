@@ -50,6 +50,7 @@ from dlocli.data import Dataset, Episode, load_dataset
 from dlocli.env.shape_env import DLOShapeEnv, observation_space
 from dlocli.env.tasks import make_task
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 from dlocli.extras import require
 from dlocli.migrations import completed
 from dlocli.specs import BackendSpec, EnvSpec, TaskSpec, format_validation_error
@@ -283,17 +284,21 @@ def _buffers(
     task: TaskSpec,
     env: DLOShapeEnv,
     skip_diverged: bool,
-    cancel: CancelToken | None,
+    progress: Callback,
+    cancel: CancelToken,
 ) -> tuple[list[Any], list[int]]:
-    """Minari episode buffers of the episodes exported, and their indices in ``data``."""
+    """Minari episode buffers of the episodes exported, and their indices in ``data``; each
+    episode of ``data`` reported as it is read (``cancel`` checked before each)."""
     from minari.data_collector import EpisodeBuffer
 
     buffers, kept = [], []
-    for e in range(data.n_episodes):
-        if cancel is not None:
-            cancel.raise_if_cancelled()
+    total = data.n_episodes
+    progress(Began("episode", 0, total))
+    for e in range(total):
+        cancel.raise_if_cancelled()
         episode = data.episode(e)
         if len(episode) == 0 or (skip_diverged and episode.diverged):
+            progress(Event("episode", e + 1, total, {"steps": len(episode), "exported": False}))
             continue
         observations = episode_observations(episode, task)
         check_layout(env, observations, episode)
@@ -310,6 +315,7 @@ def _buffers(
             )
         )
         kept.append(e)
+        progress(Event("episode", e + 1, total, {"steps": len(episode), "exported": True}))
     return buffers, kept
 
 
@@ -322,14 +328,19 @@ def export_minari(
     author: str | None = None,
     author_email: str | None = None,
     code_permalink: str | None = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Write the dataset at ``source`` (a run directory or dataset file) as the Minari dataset
     ``dataset_id`` (default :func:`default_dataset_id`) in ``root``; return a summary.
 
-    An existing dataset of that id is refused unless ``overwrite``; ``cancel`` stops it
-    between episodes. See the module docstring for the mapping.
+    An existing dataset of that id is refused unless ``overwrite``. ``progress`` gets a
+    Began of the dataset's episodes (unit "episode"), then an Event as each is read
+    (``values``: its ``steps`` and whether it is ``exported``); ``cancel`` stops it before
+    each episode and before writing, with nothing written (an existing dataset of that id
+    left as it was). See the module docstring for the mapping.
     """
+    progress, cancel = progress or ignore, cancel or CancelToken()
     require("minari", "--format minari")
     import gymnasium as gym
     import minari
@@ -346,7 +357,8 @@ def export_minari(
     env = gym.make(env_spec)
     staging = Path(tempfile.mkdtemp(prefix=".dlo-export-", dir=root))
     try:
-        buffers, kept = _buffers(data, spec.task, env.unwrapped, skip_diverged, cancel)
+        buffers, kept = _buffers(data, spec.task, env.unwrapped, skip_diverged, progress, cancel)
+        cancel.raise_if_cancelled()  # the last episode read, before anything is written
         if not buffers:
             raise BadInput(
                 f"dataset {source} has no episode to export (all diverged or empty); "

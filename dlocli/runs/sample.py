@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from dlocli.cancel import CancelToken
 from dlocli.data.markers import DEFAULT_RATE_HZ as IMPORT_RATE_HZ
 from dlocli.env.observation import MM, MarkerLayout
 from dlocli.env.rollout import stream_seed
@@ -67,22 +68,34 @@ def resolved(spec: SampleSpec) -> SampleSpec:
 
 
 def run_sample(
-    spec: SampleSpec, overwrite: bool = False, progress: Callback | None = None
+    spec: SampleSpec,
+    overwrite: bool = False,
+    progress: Callback | None = None,
+    cancel: CancelToken | None = None,
 ) -> dict[str, Any]:
     """Write ``spec.train`` + ``spec.eval`` simulated recordings into ``spec.out`` (module
     docstring); return the summary. ``progress`` gets a Began (unit "recording"), then an
-    Event after each recording."""
+    Event after each recording (``values``: its ``split`` and ``file``). ``cancel`` stops it
+    between frames: the recording under way is dropped, those finished are kept with the spec
+    and a summary of them marked ``stopped``, before the stop is raised again (none finished:
+    nothing is written, an earlier run's files there are left as they were)."""
     check_registered(spec)
     spec = resolved(spec)
-    progress = progress or ignore
+    progress, cancel = progress or ignore, cancel or CancelToken()
     env = make_env(spec.backend, spec.task, goal="random", seed=spec.seed, render_mode=None)
     try:
         layout = env_layout(env, _recorded(spec))  # a bad layout is refused before writing
         with owned(spec.out):
             out = prepare_run_dir(spec.out, overwrite)
-            write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
-            _write_recordings(env, spec, layout, out, progress)
-            summary = _summary(spec, layout.held)
+            made = {"train": 0, "eval": 0}
+            try:
+                _write_recordings(env, spec, layout, out, made, progress, cancel)
+            except KeyboardInterrupt as stop:  # the recordings finished are kept
+                if any(made.values()):
+                    summary = _summary(spec, layout.held, made, type(stop).__name__)
+                    write_json_atomic(out / "summary.json", summary)
+                raise
+            summary = _summary(spec, layout.held, made)
             write_json_atomic(out / "summary.json", summary)
     finally:
         env.close()
@@ -101,32 +114,56 @@ def _recorded(spec: SampleSpec) -> ObservationSpec:
 
 
 def _write_recordings(
-    env: DLOShapeEnv, spec: SampleSpec, layout: MarkerLayout, out: Path, progress: Callback
+    env: DLOShapeEnv,
+    spec: SampleSpec,
+    layout: MarkerLayout,
+    out: Path,
+    made: dict[str, int],
+    progress: Callback,
+    cancel: CancelToken,
 ) -> None:
+    """Each recording into ``out`` (``made`` counts them per split), the spec before the
+    first; ``cancel`` checked before the first and at every frame."""
     total = spec.train + spec.eval
     progress(Began("recording", 0, total))
+    cancel.raise_if_cancelled()
+    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
     write = _write_cable if spec.kind == "cable" else _write_clouds
     for index in range(total):
         split = "train" if index < spec.train else "eval"
-        write(env, spec, layout, index, out / split / f"take_{index:03d}")
-        progress(Event("recording", index + 1, total))
+        path = write(env, spec, layout, index, out / split / f"take_{index:03d}", cancel)
+        made[split] += 1
+        progress(Event("recording", index + 1, total, {"split": split, "file": path.name}))
 
 
-def _episode(env: DLOShapeEnv, spec: SampleSpec, index: int, record: Callable[[int], None]) -> None:
-    """Run recording ``index``'s episode, calling ``record(step)`` at every frame."""
+def _episode(
+    env: DLOShapeEnv,
+    spec: SampleSpec,
+    index: int,
+    record: Callable[[int], None],
+    cancel: CancelToken,
+) -> None:
+    """Run recording ``index``'s episode, calling ``record(step)`` at every frame
+    (``cancel`` checked before each)."""
     env.reset(seed=stream_seed(spec.seed, index))
     rng = np.random.default_rng([spec.seed, index, 7])
     for step in range(spec.task.episode_steps + 1):
+        cancel.raise_if_cancelled()
         record(step)
         if step < spec.task.episode_steps:
             env.step(policy_action(env, "oracle", rng))
 
 
 def _write_cable(
-    env: DLOShapeEnv, spec: SampleSpec, layout: MarkerLayout, index: int, path: Path
+    env: DLOShapeEnv,
+    spec: SampleSpec,
+    layout: MarkerLayout,
+    index: int,
+    path: Path,
+    cancel: CancelToken,
 ) -> Path:
     frames: list[np.ndarray] = []
-    _episode(env, spec, index, lambda step: frames.append(true_markers(env, layout)))
+    _episode(env, spec, index, lambda step: frames.append(true_markers(env, layout)), cancel)
     markers = np.stack(frames)
     noise = np.random.default_rng([spec.seed, index, 11]).standard_normal(markers.shape)
     markers = (markers + spec.noise_mm * MM * noise) / UNITS[spec.units]
@@ -151,7 +188,12 @@ def _write_cable(
 
 
 def _write_clouds(
-    env: DLOShapeEnv, spec: SampleSpec, layout: MarkerLayout, index: int, path: Path
+    env: DLOShapeEnv,
+    spec: SampleSpec,
+    layout: MarkerLayout,
+    index: int,
+    path: Path,
+    cancel: CancelToken,
 ) -> Path:
     camera_spec = spec.task.observation.camera
     assert camera_spec is not None  # resolved() sets it
@@ -163,7 +205,7 @@ def _write_clouds(
         frames.append(camera.capture(env.backend, rng, time=step * spec.task.control_dt))
         held.append(robot_held(env, layout))
 
-    _episode(env, spec, index, record)
+    _episode(env, spec, index, record, cancel)
     if len(frames[0].points) == 0:
         raise BadInput(
             f"the camera sees none of the cable in recording {index}; point it at the rod "
@@ -174,9 +216,12 @@ def _write_clouds(
     return path
 
 
-def _summary(spec: SampleSpec, held: np.ndarray) -> dict[str, Any]:
-    """Counts, and the command that reads the folder as it was written (``held``: the
-    recorded markers the grippers hold)."""
+def _summary(
+    spec: SampleSpec, held: np.ndarray, made: dict[str, int], stopped: str | None = None
+) -> dict[str, Any]:
+    """Counts (``made``: the recordings written per split), and the command that reads the
+    folder as it was written (``held``: the recorded markers the grippers hold; ``stopped``:
+    what ended the run before every recording was written)."""
     out = str(spec.out)
     markers: int | None = None
     if spec.kind == "cable":
@@ -197,14 +242,18 @@ def _summary(spec: SampleSpec, held: np.ndarray) -> dict[str, Any]:
             reads += ["--gripper-markers", f"{behind:g}"]
         if spec.backend.rod.length != TrackSpec.model_fields["length"].default:
             reads += ["--length", f"{spec.backend.rod.length:g}"]
-    summary = {
+    summary: dict[str, Any] = {
         "kind": spec.kind,
-        "train_recordings": spec.train,
-        "eval_recordings": spec.eval,
+        "train_recordings": made["train"],
+        "eval_recordings": made["eval"],
         "frames_per_recording": spec.task.episode_steps + 1,
         "rate_hz": spec.rate_hz,
         "backend": spec.backend.name,
         "next": shlex.join([*reads, "--out", "runs/NAME"]),
         "out": out,
     }
-    return summary if markers is None else {**summary, "markers": markers}
+    if markers is not None:
+        summary["markers"] = markers
+    if stopped is not None:
+        summary["stopped"] = stopped
+    return summary
