@@ -542,3 +542,20 @@ def test_disturbance_adds_the_one_step_prediction_error(envs, tiny_model, mode):
         theirs = plain.predicted(state, plan, corrected._previous)
     steps = torch.ones(5) if mode == "offset" else torch.arange(1.0, 6.0)
     torch.testing.assert_close(ours - theirs, steps[None, :, None, None] * error, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize(
+    "option,needle",
+    [("disturbance_gain: .nan", "disturbance_gain"), ("disturbance_gain: 0", "disturbance_gain"),
+     ("disturbance_gain: 1.5", "disturbance_gain"), ("disturbance: always", "disturbance"),
+     ("jacobian: half", "jacobian")],
+)  # fmt: skip
+def test_bad_jacobian_or_disturbance_exit_2_and_write_nothing(tmp_path, capsys, option, needle):
+    """The planner's jacobian and disturbance options take their named values and a gain in
+    (0, 1]: anything else in a run's spec is one line, exit 2, no run directory."""
+    spec, out = tmp_path / "spec.yaml", tmp_path / "run"
+    spec.write_text(f"mpc:\n  {option}\n")
+    assert run_dlo(["online", "--spec", str(spec), "--out", str(out)]) == 2
+    said = capsys.readouterr().err.strip()
+    assert needle in said and len(said.splitlines()) == 1, said
+    assert not out.exists()
