@@ -293,8 +293,12 @@ def _step(
 def _validated(record: FitRecord, total: int) -> Validated:
     """The event of a validation: a :class:`RolloutValidated` for a fit through rollout
     windows (its record has ``k``)."""
-    values: dict[str, Any] = {"val_loss": record.val_loss, "stopped_early": False}
+    values: dict[str, Any] = {
+        "val_loss": record.val_loss,
+        "train_loss": record.train_loss,
+        "stopped_early": False,
+    }
     if record.k is None:
         return Validated(record.unit, record.count, total, values)
-    values.update(k=record.k, train_loss=record.train_loss)
+    values["k"] = record.k
     return RolloutValidated(record.unit, record.count, total, values)

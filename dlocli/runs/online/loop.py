@@ -99,7 +99,6 @@ class OnlineRun:
 
         from dlocli.models.base import build_model, resolve_device
         from dlocli.models.checkpoints import load_model, read_checkpoint, save_checkpoint
-        from dlocli.models.fitting import FitRecord
         from dlocli.models.update_steps import update_model
 
         if self.paths.checkpoint(k).is_file():
@@ -119,11 +118,6 @@ class OnlineRun:
             update={"seed": stream_seed(self.spec.seed, TRAIN, k) % 2**31}
         )
         start = time.perf_counter()
-
-        def log(record: FitRecord, *_: Any) -> None:
-            at = (k - 1) * fit.length + record.count  # over the run
-            self.scalars.add(at, "loss", train=record.train_loss, val=record.val_loss)
-
         first_new = 0 if k == 1 else max(data.n_episodes - self.spec.trials, 0)
         with update_threads(self.spec):
             result = update_model(
@@ -132,8 +126,7 @@ class OnlineRun:
                 fit,
                 recent_episodes=np.arange(first_new, data.n_episodes),
                 optimizer_state=opt_state,
-                progress=self._validations(),
-                on_validation=log,
+                progress=self._validations(at=(k - 1) * fit.length),
                 cancel=self.cancel,
             )
             threads = torch.get_num_threads()
@@ -193,14 +186,20 @@ class OnlineRun:
             "control_dt": self.spec.task.control_dt,
         })  # fmt: skip
 
-    def _validations(self) -> Callback:
+    def _validations(self, at: int | None = None) -> Callback:
         """A fit's progress callback that passes on its start and validations (not its
-        batches)."""
+        batches); from an update whose count starts ``at`` over the run, it also logs each
+        validation's losses."""
         from dlocli.models.fitting import Validated
 
         def report(event: Event) -> None:
             if isinstance(event, Began | Validated):
                 self.progress(event)
+            # a step fit's validations (a rollout fit's carry k; the stop repeats the last)
+            if at is not None and type(event) is Validated and not event.values["stopped_early"]:
+                values = event.values
+                self.scalars.add(at + event.done, "loss", train=values["train_loss"],
+                                 val=values["val_loss"])  # fmt: skip
 
         return report
 
