@@ -23,7 +23,8 @@ Update rules (``optimizer``):
   batched forward rollout) every ``curvature_every`` re-plans and reused in between, where
   one forward rollout gives r and J_r^T r the (lagged) gradient: no back-propagation. Steps
   are clipped to ``max_step`` per action coordinate. ``refresh="background"`` computes the
-  refresh in a second thread, off the control step.
+  refresh in a second thread, off the control step. ``jacobian="shifted"`` nudges the first
+  action alone (A+1 plans) and delays its effect for the later actions.
 
 Why gauss-newton by default (measured by ``benchmarks/control_goals.py``): with one iteration
 per control step, Adam's first step is a sign step of ``step_size`` in every coordinate, so
@@ -225,7 +226,7 @@ def full_jacobian(
 
 def shifted_jacobian(
     planner: ModelPlanner, state: torch.Tensor, plan: torch.Tensor, previous: torch.Tensor | None
-) -> torch.Tensor:
+) -> tuple[torch.Tensor, torch.Tensor]:
     """J^T (H*A, residuals) at ``plan`` (H, A) from the first action's nudges alone (A+1
     rollouts): the predicted positions' change under action j's coordinate i is taken as
     under the first action's, delayed by j steps; the residuals are affine in the
