@@ -67,6 +67,12 @@ class Registry:
         if facts is not None:
             self._facts[name] = facts
 
+    def unregister(self, name: str) -> None:
+        """Remove ``name`` and its stand-ins (:class:`UnknownName` if it is not registered)."""
+        self.check(name)
+        for table in (self._targets, self._summaries, self._specs, self._facts):
+            table.pop(name, None)
+
     def decorator(self, name: str, summary: str = "") -> Callable[[Any], Any]:
         """``@registry.decorator("name")`` registers a class or function where it is defined."""
 

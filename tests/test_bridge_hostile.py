@@ -386,7 +386,7 @@ def test_a_robot_whose_own_code_fails_answers_cell_fault_and_serves_on():
     the serving loop (the one the example and `dlo serve` share) goes on."""
     import runpy
 
-    from dlocli.bridge.server import CellServer
+    from dlocli.bridge.server import CellServer, Logged
 
     robot_cell = runpy.run_path(str(EXAMPLE))["RobotCell"]
 
@@ -399,7 +399,8 @@ def test_a_robot_whose_own_code_fails_answers_cell_fault_and_serves_on():
             super().move(velocities)
 
     robot = Jammed()
-    server = CellServer(robot, log=lambda line: None)
+    events = []
+    server = CellServer(robot, progress=events.append)
 
     def ask(kind: str, **fields) -> dict:
         return json.loads(server.answer([json.dumps({"type": kind, **fields}).encode()]))
@@ -411,6 +412,8 @@ def test_a_robot_whose_own_code_fails_answers_cell_fault_and_serves_on():
     assert ask("reset", session=token, seed=0)["step"] == 0
     fault = ask("step", session=token, velocities=STILL)
     assert fault["code"] == "cell_fault" and "joint 3 over torque" in fault["message"], fault
+    faults = [e.line for e in events if isinstance(e, Logged) and "failed on a Step" in e.line]
+    assert len(faults) == 1 and "joint 3 over torque" in faults[0], events  # the log says it
     robot.jam = False
     assert ask("step", session=token, velocities=STILL)["step"] == 1
     assert ask("set_state", session=token, state=[0.0])["code"] == "refused"

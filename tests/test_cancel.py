@@ -286,6 +286,8 @@ def write_spec(spec: BenchSpec, folder: Path) -> Path:
         "dlocli.runs.sample:run_sample",
         "dlocli.runs.export:export_minari",
         "dlocli.markers.importing:run_import",
+        "dlocli.bridge.cell:serve",
+        "dlocli.bridge.server:serve",
     ],
 )
 def test_every_long_command_takes_the_one_callback_and_a_token(where: str):

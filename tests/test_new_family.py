@@ -15,7 +15,7 @@ import torch
 from typer.testing import CliRunner
 
 from dlocli.data import MarkerDataset, load_dataset
-from dlocli.errors import BadInput
+from dlocli.errors import BadInput, UnknownName
 from dlocli.markers.deform import held_markers
 from dlocli.models.base import NO_CABLE_CODES, build_model
 from dlocli.models.checkpoints import load_marker_model, load_model, load_planning_model
@@ -42,9 +42,19 @@ def family():
     import tiny_family
 
     yield tiny_family.NAME
-    for table in (models._targets, models._summaries, models._specs):
-        table.pop(tiny_family.NAME, None)
+    models.unregister(tiny_family.NAME)
     sys.modules.pop("tiny_family", None)
+
+
+def test_a_registration_is_removed_whole_and_an_unknown_name_is_refused():
+    models.register("scratch", "dlocli.models.network:Network", "a stand-in",
+                    spec="dlocli.models.spec:ModelSpec")  # fmt: skip
+    models.unregister("scratch")
+    assert "scratch" not in models and models.summary("scratch") == ""
+    with pytest.raises(UnknownName, match="unknown model 'scratch'; valid models: "):
+        models.spec_cls("scratch")  # its spec went with it
+    with pytest.raises(UnknownName, match="unknown model 'scratch'"):
+        models.unregister("scratch")
 
 
 def train(out, data, seed: int, **options) -> dict:

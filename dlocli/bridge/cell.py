@@ -15,7 +15,6 @@ acts instead).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,12 +23,13 @@ from dlocli.backends import make_backend
 from dlocli.backends.base import Backend
 from dlocli.bridge import messages
 from dlocli.bridge.keys import require_keys_off_loopback
-from dlocli.bridge.server import CellHandler, Log
+from dlocli.bridge.server import CellHandler
 from dlocli.bridge.server import serve as serve_handler
 from dlocli.bridge.spec import ServeSpec
 from dlocli.camera_spec import CameraSpec
 from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput
+from dlocli.events import Callback
 from dlocli.tracking.camera import DepthCamera
 
 #: a simulated reset settles the rod in well under a second; this leaves room on a busy CPU
@@ -208,17 +208,17 @@ def _sleep_until(moment: float) -> None:
 
 def serve(
     spec: ServeSpec,
-    ready: Callable[[str], None] | None = None,
-    log: Log | None = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
 ) -> None:
     """Serve ``spec.backend`` at ``spec.address`` until stopped (KeyboardInterrupt, or
-    ``cancel``: the command hands it SIGINT and SIGTERM); ``ready(address)`` is called once
-    the socket listens, ``log`` with each session event."""
+    ``cancel``: the command hands it SIGINT and SIGTERM); ``progress`` gets a
+    :class:`~dlocli.bridge.server.Listening` once the socket listens, then a
+    :class:`~dlocli.bridge.server.Logged` per line for the log (sessions, refusals)."""
     require_keys_off_loopback(spec.address, spec.keys, "--address", "--keys")  # before the rod
     backend = make_backend(spec.backend, spec.control_dt)
     try:
         cell = Cell(backend, spec)
-        serve_handler(cell, spec.address, spec.keys, spec.session_idle_s, ready, log, cancel)
+        serve_handler(cell, spec.address, spec.keys, spec.session_idle_s, progress, cancel)
     finally:
         backend.close()

@@ -7,9 +7,11 @@ dropped unread), one frame, a JSON object of one of the protocol's types whose e
 its type, range and shape (:mod:`dlocli.bridge.messages`), and the session: a cell belongs to
 the controller that said ``hello`` until its ``bye`` or until it stayed silent for
 ``session_idle_s`` (the grippers are then stopped). A refused request gets ``error`` and
-changes nothing; the cell serves on, whatever it was sent. The log gets a line for each
-session opened and ended, each request refused as ``busy`` and each failed handshake (a
-client without the cell's keys, or of another protocol).
+changes nothing; the cell serves on, whatever it was sent. The serving reports to one
+``progress`` (:data:`dlocli.events.Callback`): :class:`Listening` once the socket is bound, then
+a :class:`Logged` line for each session opened and ended, each request refused as ``busy``,
+each fault of the cell and each failed handshake (a client without the cell's keys, or of
+another protocol).
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ from __future__ import annotations
 import secrets
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from dlocli.bridge import messages, protocol
 from dlocli.bridge.keys import require_keys_off_loopback, secure_cell
 from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput
+from dlocli.events import Began, Callback, Event, ignore
 
 #: how often the loop looks for a stop signal and an idle session while no request comes (ms)
 POLL_MS = 100
@@ -32,7 +34,24 @@ POLL_MS = 100
 SESSION_IDLE_S = 30.0
 
 Reply = dict[str, Any]
-Log = Callable[[str], None]
+
+
+class Listening(Began):
+    """The cell's socket is bound: serving (unit "request") begins at ``address``, which
+    names the port a ``tcp://HOST:*`` address was given only now."""
+
+    @property
+    def address(self) -> str:
+        return self.values["address"]
+
+
+class Logged(Event):
+    """A line for the cell's log (a session opened or ended, a request refused as busy, a
+    fault of the cell, a failed handshake), ``done`` requests received so far."""
+
+    @property
+    def line(self) -> str:
+        return self.values["line"]
 
 
 class Refused(BadInput):
@@ -90,16 +109,24 @@ class CellServer:
     """Requests in, replies out, for one :class:`CellHandler`: the checks and the session."""
 
     def __init__(
-        self, handler: CellHandler, idle_s: float = SESSION_IDLE_S, log: Log | None = None
+        self,
+        handler: CellHandler,
+        idle_s: float = SESSION_IDLE_S,
+        progress: Callback | None = None,
     ) -> None:
-        self.handler, self.idle_s = handler, idle_s
-        self.log = log or (lambda line: None)
+        self.handler, self.idle_s, self.progress = handler, idle_s, progress or ignore
         self.session: str | None = None
         self.last_request = 0.0
+        self.received = 0  # requests, each log line's ``done``
+
+    def log(self, line: str) -> None:
+        """Report ``line`` for the cell's log."""
+        self.progress(Logged("request", self.received, values={"line": line}))
 
     def answer(self, frames: list[bytes]) -> bytes:
         """The reply to one received message (its ZeroMQ frames)."""
         self.expire_idle()
+        self.received += 1
         if len(frames) != 1:
             return _error("bad_request", f"a request is one ZeroMQ frame, not {len(frames)}")
         request: messages.Request | None = None
@@ -213,13 +240,13 @@ def serve(
     address: str,
     keys: Path | None = None,
     idle_s: float = SESSION_IDLE_S,
-    ready: Callable[[str], None] | None = None,
-    log: Log | None = None,
+    progress: Callback | None = None,
     cancel: CancelToken | None = None,
 ) -> None:
     """Serve ``handler`` at ``address`` until stopped (KeyboardInterrupt, or ``cancel``
-    between requests: the command hands it Ctrl-C and SIGTERM); ``ready(address)`` once the
-    socket listens. Off loopback ``keys`` (a `dlo keys` folder) are required."""
+    between requests: the command hands it Ctrl-C and SIGTERM); ``progress`` gets a
+    :class:`Listening` once the socket listens, then a :class:`Logged` per line for the log.
+    Off loopback ``keys`` (a `dlo keys` folder) are required."""
     import zmq
 
     require_keys_off_loopback(address, keys, "--address", "--keys")
@@ -227,6 +254,7 @@ def serve(
     socket = context.socket(zmq.REP)
     socket.setsockopt(zmq.LINGER, 0)
     socket.setsockopt(zmq.MAXMSGSIZE, protocol.MAX_MESSAGE_BYTES)
+    progress = progress or ignore
     authenticator = monitor = None
     try:
         if keys is not None:
@@ -236,9 +264,9 @@ def serve(
         except zmq.ZMQError as exc:
             raise BadInput(f"--address {address}: cannot listen there ({exc})") from None
         monitor = socket.get_monitor_socket(HANDSHAKE_FAILURES)
-        if ready is not None:
-            ready(socket.getsockopt_string(zmq.LAST_ENDPOINT))
-        _loop(CellServer(handler, idle_s, log), socket, monitor, cancel or CancelToken())
+        bound = socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        progress(Listening("request", 0, values={"address": bound}))
+        _loop(CellServer(handler, idle_s, progress), socket, monitor, cancel or CancelToken())
     finally:
         if monitor is not None:
             socket.disable_monitor()
@@ -255,12 +283,12 @@ def _loop(server: CellServer, socket: Any, monitor: Any, cancel: CancelToken) ->
     poller = zmq.Poller()
     poller.register(socket, zmq.POLLIN)
     poller.register(monitor, zmq.POLLIN)
-    handshakes = _HandshakeLog(server.log)
+    handshakes = _HandshakeLog()
     while True:
         cancel.raise_if_cancelled()
         ready = dict(poller.poll(POLL_MS))
-        if monitor in ready:
-            handshakes.failed(monitor)
+        if monitor in ready and (line := handshakes.failed(monitor)) is not None:
+            server.log(line)
         if socket not in ready:
             server.expire_idle()
             continue
@@ -282,10 +310,11 @@ class _HandshakeLog:
     """One log line per failed handshake the monitor reports; the same failure again within
     :data:`REPEATS_QUIET_S` is counted, and the next line says how many."""
 
-    def __init__(self, log: Log) -> None:
-        self.log, self.last, self.quiet_until, self.repeats = log, "", 0.0, 0
+    def __init__(self) -> None:
+        self.last, self.quiet_until, self.repeats = "", 0.0, 0
 
-    def failed(self, monitor: Any) -> None:
+    def failed(self, monitor: Any) -> str | None:
+        """The log line of the failure the monitor holds; None for a repeat kept quiet."""
         from zmq.utils.monitor import recv_monitor_message
 
         event = recv_monitor_message(monitor)
@@ -293,7 +322,7 @@ class _HandshakeLog:
         now = time.monotonic()
         if why == self.last and now < self.quiet_until:
             self.repeats += 1
-            return
+            return None
         more = f" (the failure before repeated {self.repeats} times)" if self.repeats else ""
-        self.log(f"a handshake failed: {why}{more}")
         self.last, self.quiet_until, self.repeats = why, now + REPEATS_QUIET_S, 0
+        return f"a handshake failed: {why}{more}"

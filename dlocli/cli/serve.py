@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from dlocli.bridge.cell import serve as serve_cell
+from dlocli.bridge.server import Listening, Logged
 from dlocli.bridge.spec import ServeSpec
 from dlocli.camera_spec import CameraSpec
 from dlocli.cli.common import handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
+from dlocli.events import Event
 from dlocli.extras import require
 from dlocli.processes import signal_token, stop_handled
 
@@ -41,15 +43,15 @@ def serve(
 
     bound = [spec.address]
 
-    def ready(address: str) -> None:
-        bound[0] = address  # tcp://HOST:* names its port only once bound
-        typer.echo(banner(spec, address), err=True)
-
-    def log(line: str) -> None:
-        typer.echo(f"dlo serve: {line}", err=True)
+    def report(event: Event) -> None:
+        if isinstance(event, Listening):
+            bound[0] = event.address  # tcp://HOST:* names its port only once bound
+            typer.echo(banner(spec, event.address), err=True)
+        elif isinstance(event, Logged):
+            typer.echo(f"dlo serve: {event.line}", err=True)
 
     try:
-        serve_cell(spec, ready, log, signal_token())
+        serve_cell(spec, report, signal_token())
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: how a server is meant to end
         stop_handled()
         typer.echo(f"dlo serve: stopped serving at {bound[0]}", err=True)

@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from dlocli.bridge.robot import Robot
-from dlocli.bridge.server import serve
+from dlocli.bridge.server import Listening, Logged, serve
 from dlocli.errors import BadInput
+from dlocli.events import Event
 
 
 class RobotCell(Robot):
@@ -81,9 +82,14 @@ def main() -> None:
     def say(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
 
+    def report(event: Event) -> None:  # what the server does: where it listens, then its log
+        if isinstance(event, Listening):
+            say(f"serving at {event.address}; Ctrl-C stops")
+        elif isinstance(event, Logged):
+            say(event.line)
+
     try:
-        serve(robot, args.address, args.keys, ready=lambda at: say(f"serving at {at}; Ctrl-C "
-              "stops"), log=say)  # fmt: skip
+        serve(robot, args.address, args.keys, progress=report)
     except BadInput as exc:  # an address off loopback without keys, keys that do not load
         say(f"error: {exc}")
         sys.exit(2)
