@@ -22,6 +22,8 @@ load a trained one with :func:`dlocli.models.checkpoints.load_model`.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -33,7 +35,7 @@ from dlocli.backends.rotations import state_change
 from dlocli.data.format import ROD
 from dlocli.errors import BadInput
 from dlocli.limits import refuse_unless_fits
-from dlocli.models import fast_rollout
+from dlocli.models import fast_rollout, rollouts
 from dlocli.models.ensemble import build_network
 from dlocli.models.network import Nodes
 from dlocli.models.spec import ModelSpec, model_spec
@@ -179,14 +181,27 @@ class DynamicsModel(torch.nn.Module):
         """
         if actions.dim() != 4:
             raise BadInput(f"actions must be (B, H, 2, 6), got {tuple(actions.shape)}")
-        if fast_rollout.usable(self, state, actions, previous):  # the planners' small batches
-            self._check(state, actions[:, 0], previous)
-            return fast_rollout.rollout(self, state, actions, previous)
-        states = []
-        for t in range(actions.shape[1]):
-            previous, state = state, self(state, actions[:, t], previous)
-            states.append(state)
-        return torch.stack(states, 1)
+        return rollouts.rollout(self, (state, actions, previous), self._rollout_by_steps)
+
+    def _rollout_by_steps(self, state: Tensor, actions: Tensor, previous: Tensor | None) -> Tensor:
+        """The plain rollout: :meth:`forward` step by step."""
+
+        def step(state: Tensor, previous: Tensor | None, action: Tensor) -> Tensor:
+            return self(state, action, previous)
+
+        return rollouts.open_loop(step, state, previous, actions)
+
+    def _offer_fast_rollout(
+        self, state: Tensor, actions: Tensor, previous: Tensor | None
+    ) -> Callable[[], Tensor] | None:
+        """:mod:`~dlocli.models.fast_rollout` (the planners' small batches) where it applies."""
+        if not fast_rollout.usable(self, state, actions, previous):
+            return None
+        self._check(state, actions[:, 0], previous)  # as forward checks every step's
+        return functools.partial(fast_rollout.rollout, self, state, actions, previous)
+
+    #: tried by :func:`dlocli.models.rollouts.rollout`, before the plain rollout
+    fused_rollouts: tuple[rollouts.Offer, ...] = (_offer_fast_rollout,)
 
     def loss(
         self,

@@ -19,8 +19,9 @@ the same mathematics runs as:
 
 Results equal the rod view's plain PyTorch rollout to float32 rounding (tested against
 float64). Its speed against PyTorch's: ``benchmarks/mpc_latency.py`` and docs/benchmarks.md.
-Used when no gradient is wanted, on CPU, up to :data:`MAX_BATCH`; otherwise the PyTorch path
-runs. The first call compiles the loops (cached on disk, so later processes only load them).
+The rod view offers it (:mod:`dlocli.models.rollouts`) when no gradient is wanted, on CPU, up
+to :data:`MAX_BATCH`; otherwise its plain PyTorch rollout runs. The first call compiles the
+loops (cached on disk, so later processes only load them).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from torch import Tensor
 
 from dlocli.models.in_bilstm import INBiLSTM
 from dlocli.models.rnn import layer_params
+from dlocli.models.rollouts import dense_layers, loops_take, wants_gradient
 
 #: batch sizes up to which this path is faster than oneDNN (benchmarks/model_throughput.py):
 #: its recurrences run per sample, oneDNN batches them into matrix products
@@ -354,18 +356,9 @@ def usable(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None) 
     if type(model.network) is not INBiLSTM:  # these loops compute the paper's model only
         return False
     tensors = [state, actions] + ([] if previous is None else [previous])
-    if any(t.is_cuda or t.dtype != torch.float32 for t in tensors) or model.reference:
+    if model.reference or len(state) > MAX_BATCH or not loops_take(*tensors, model.state_mean):
         return False
-    if (
-        len(state) > MAX_BATCH
-        or model.state_mean.is_cuda
-        or model.state_mean.dtype != torch.float32
-    ):
-        return False
-    wants_grad = torch.is_grad_enabled() and (
-        any(t.requires_grad for t in tensors) or any(p.requires_grad for p in model.parameters())
-    )
-    return not wants_grad
+    return not wants_gradient([*tensors, *model.parameters()])
 
 
 def rollout(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None) -> Tensor:
@@ -389,20 +382,14 @@ def rollout(model: Any, state: Tensor, actions: Tensor, previous: Tensor | None)
         prepare(state_np, prev_np, has_previous, actions_np[t], w.norm, w.action_scale,
                 spec.velocity_input, spec.absolute_position, ws.features, edge_in,
                 node_in)  # fmt: skip
-        x = ws.edge_in
-        for (bias, weight), out in zip(w.edge, ws.edge_out, strict=True):
-            x = torch.addmm(bias, x, weight, out=out).relu_()
+        x = dense_layers(ws.edge_in, w.edge, ws.edge_out, relu_last=True)
         sum_per_receiver(x.numpy(), n, summed)
         torch.addmm(ws.folded_bias, ws.summed, w.folded, out=ws.gates)
         recurrence(gates, w.w_hh_t[0], n, outputs[0], columns[0])
         for k, (bias, weight) in enumerate(w.lstm_in):
             torch.addmm(bias, ws.hs[k], weight, out=ws.gates)
             recurrence(gates, w.w_hh_t[k + 1], n, outputs[k + 1], columns[k + 1])
-        x = ws.node_in
-        for k, ((bias, weight), out) in enumerate(zip(w.node, ws.node_out, strict=True)):
-            x = torch.addmm(bias, x, weight, out=out)
-            if k < len(w.node) - 1:
-                x.relu_()
+        x = dense_layers(ws.node_in, w.node, ws.node_out, relu_last=False)
         apply_delta(state_np, x.numpy(), w.norm, predicted[t])
         prev_np, state_np, has_previous = state_np, predicted[t], True
     return torch.from_numpy(predicted).transpose(0, 1).contiguous()

@@ -34,13 +34,13 @@ from dlocli.models.marker_steps import (
     features_backward,
     features_forward,
 )
+from dlocli.models.rollouts import dense_layers, wants_gradient
 
 
 def usable(x: Tensor, x_prev: Tensor, held_future: Tensor) -> bool:
     """Whether :func:`rollout` applies where the fused steps do: no gradient is wanted for
     the rollout's inputs."""
-    wants = torch.is_grad_enabled() and any(t.requires_grad for t in (x, x_prev, held_future))
-    return not wants
+    return not wants_gradient([x, x_prev, held_future])
 
 
 def rollout(
@@ -76,17 +76,14 @@ class MLPRollout(torch.autograd.Function):
         future = held_future.detach().transpose(0, 1).contiguous().numpy()
         lengths = lengths.detach().contiguous().numpy()
         cur, prev = x.detach().contiguous().numpy(), x_prev.detach().contiguous().numpy()
-        last = len(weights) - 1
         steps = [buffer.unbind(0) for buffer in inputs]  # per-step views, made at once
-        transposed = [w.t() for w in weights]
+        layers = list(zip(biases, [w.t() for w in weights], strict=True))
         for t in range(horizon):
             features_forward(cur, prev, future[t], k.held, k.position_scale,
                              k.velocity_scale, steps[0][t].view(batch, n, 10).numpy())  # fmt: skip
-            for i, (w, b) in enumerate(zip(transposed, biases, strict=True)):
-                dest = acc if i == last else steps[i + 1][t]
-                torch.addmm(b, steps[i][t], w, out=dest)
-                if i < last:
-                    dest.relu_()
+            # each layer's output is the next one's input, kept for the backward
+            outs = [*(s[t] for s in steps[1:]), acc]
+            dense_layers(steps[0][t], layers, outs, relu_last=False)
             advance_forward(cur, prev, future[t], acc.view(batch, n, 3).numpy(), k.held,
                             k.acceleration_scale, lengths, k.sweeps, before[t].numpy(),
                             out[t].numpy())  # fmt: skip

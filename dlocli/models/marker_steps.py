@@ -29,6 +29,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from dlocli.models.rollouts import loops_take
+
 jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 _F = np.float32
@@ -223,8 +225,7 @@ def usable(model: Any, x: Tensor) -> bool:
     """Whether the fused steps apply: CPU float32 (the loops' layout), not the reference."""
     return (
         not getattr(model, "reference", False)
-        and x.device.type == "cpu"
-        and x.dtype == torch.float32
+        and loops_take(x)
         and model.position_scale.device.type == "cpu"
     )
 

@@ -24,6 +24,7 @@ normalised acceleration. Build one with :func:`build_marker_model`, load a train
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -33,7 +34,7 @@ from torch import Tensor
 from dlocli.data.format import MARKERS
 from dlocli.errors import BadInput
 from dlocli.limits import refuse_unless_fits
-from dlocli.models import cable_codes, marker_mlp_rollout, marker_steps
+from dlocli.models import cable_codes, marker_mlp_rollout, marker_steps, rollouts
 from dlocli.models.base import valid_model_spec
 from dlocli.models.ensemble import build_network, side_by_side
 from dlocli.models.network import Nodes
@@ -196,23 +197,41 @@ class MarkerModel(torch.nn.Module):
     ) -> Tensor:
         """Open loop: (B, V, 3) x_t, x_{t-1} and (B, H, V, 3) frames t+1..t+H of which only
         the held markers are read -> predicted frames (B, H, V, 3)."""
-        lengths = neighbour_distances(x)
+        held = self.held if held is None else held
+        inputs = (x, x_prev, held_future, held, neighbour_distances(x))
+        return rollouts.rollout(self, inputs, self._rollout_by_steps)
+
+    def _rollout_by_steps(
+        self, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor, lengths: Tensor
+    ) -> Tensor:
+        """The plain rollout: :meth:`forward` step by step, ``lengths`` (B, V-1) kept."""
+        step = functools.partial(self, lengths=lengths, held=held)
+        return rollouts.open_loop(step, x, x_prev, held_future)
+
+    def _offer_whole_rollout(
+        self, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor, lengths: Tensor
+    ) -> Callable[[], Tensor] | None:
+        """The rollout as one operation (:mod:`~dlocli.models.marker_mlp_rollout`) where
+        :meth:`_whole_rollout_layers` has the layers for it."""
         layers = self._whole_rollout_layers(x, x_prev, held_future)
-        if layers is not None:
-            held = self.held if held is None else held
-            return marker_mlp_rollout.rollout(self, layers, x, x_prev, held_future, held, lengths)
-        out = []
-        if self._fusable(x, lengths):  # the step's constants prepared once
-            held = self.held if held is None else held
-            constants = marker_steps.step_constants(self, held, self.spec.length_projection)
-            for k in range(held_future.shape[1]):
-                x_prev, x = x, self._fused_step(x, x_prev, held_future[:, k], lengths, constants)
-                out.append(x)
-            return torch.stack(out, 1)
-        for k in range(held_future.shape[1]):
-            x_prev, x = x, self(x, x_prev, held_future[:, k], lengths, held)
-            out.append(x)
-        return torch.stack(out, 1)
+        if layers is None:
+            return None
+        return functools.partial(marker_mlp_rollout.rollout, self, layers, x, x_prev,
+                                 held_future, held, lengths)  # fmt: skip
+
+    def _offer_fused_steps(
+        self, x: Tensor, x_prev: Tensor, held_future: Tensor, held: Tensor, lengths: Tensor
+    ) -> Callable[[], Tensor] | None:
+        """The rollout through :meth:`_fused_step`, its constants prepared once, where it
+        applies (:meth:`_fusable`)."""
+        if not self._fusable(x, lengths):
+            return None
+        constants = marker_steps.step_constants(self, held, self.spec.length_projection)
+        step = functools.partial(self._fused_step, lengths=lengths, constants=constants)
+        return functools.partial(rollouts.open_loop, step, x, x_prev, held_future)
+
+    #: tried in order by :func:`dlocli.models.rollouts.rollout`, before the plain rollout
+    fused_rollouts: tuple[rollouts.Offer, ...] = (_offer_whole_rollout, _offer_fused_steps)
 
     def _fusable(self, x: Tensor, lengths: Tensor | None) -> bool:
         """Whether :meth:`_fused_step` applies: the distances it aims at take no gradient,
