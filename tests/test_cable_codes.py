@@ -7,6 +7,7 @@ line and exit 2."""
 from __future__ import annotations
 
 import copy
+import csv
 import json
 from pathlib import Path
 
@@ -392,3 +393,136 @@ def test_control_plans_with_the_code_of_the_cable_it_is_given(
     said = capsys.readouterr().err.strip()
     assert "pass --checkpoint" in said and len(said.splitlines()) == 1, said
     assert not (tmp_path / "refused").exists()
+
+
+def test_control_infers_the_code_while_it_runs_and_records_each_pick(
+    marker_run, near_rest_goal, small_dataset_dir, tmp_path, capsys, one_thread
+) -> None:
+    """`dlo control --adapt-code` starts from the mean code and re-picks every --adapt-every
+    steps; metrics.csv says which code each step planned with, summary.json every pick. With
+    --cable, without a model, with a rod model or a model without codes: one line, exit 2,
+    no run directory."""
+    from dlocli.models.base import build_model
+    from dlocli.models.checkpoints import save_checkpoint
+
+    first = str(marker_run[0])
+    second = _moved(first, tmp_path / "second.h5", scale=1.01)
+    run = tmp_path / "run"
+    train = ["train", "--data", first, "--data", str(second), "--model", "mlp", "--hidden", "16",
+             "--cable-code", "2", "--update-steps", "4", "--rollout-steps", "4",
+             "--eval-every", "2", "--out", str(run)]  # fmt: skip
+    assert run_dlo(train) == 0
+    control = ["control", "--goal", str(near_rest_goal), "--checkpoint", str(run),
+               "--observation", "markers", "--markers", "4", "--steps", "20",
+               "--control-dt", "0.01", "-o", "iterations=2", "--out"]  # fmt: skip
+    out = tmp_path / "control"
+    capsys.readouterr()
+    assert run_dlo([*control, str(out), "--adapt-code", "--adapt-every", "2",
+                    "--adapt-window", "16"]) == 0  # fmt: skip
+    summary = json.loads((out / "summary.json").read_text())
+    names = {"mean code", f"{Path(first).parent.name}'s code", "second's code"}
+    assert summary["adapt_code"] and summary["cable"] is None
+    picks = summary["code_picks"]
+    assert [p["step"] for p in picks] == [16, 18] and {p["code"] for p in picks} <= names
+    assert all(set(p["scores_cm"]) == names and p["frames"] == 16 for p in picks)
+    assert summary["code_final"] == picks[-1]["code"]
+    printed = capsys.readouterr().out  # the table: each re-pick's step and code
+    assert "code_picks" in printed and "16:" in printed and "scores_cm" not in printed
+    with open(out / "metrics.csv") as f:
+        codes = [row["code"] for row in csv.DictReader(f)]
+    assert codes[:16] == ["mean code"] * 16 and codes[16] == picks[0]["code"]
+
+    rod = save_checkpoint(build_model({"name": "mlp", "hidden": 8}, 20), tmp_path / "rod.pt")
+    refused = [
+        ([str(run), "--cable", str(second)], "drop one"),
+        ([str(marker_run[1])], "learned no cable codes"),
+        ([str(rod)], "is a rod model"),
+        ([str(run), "--adapt-window", "8"], "adapt-window"),
+    ]
+    for (checkpoint, *rest), needle in refused:
+        argv = [*control, str(tmp_path / "refused"), "--adapt-code", *rest]
+        argv[argv.index("--checkpoint") + 1] = checkpoint
+        capsys.readouterr()
+        assert run_dlo(argv) == 2
+        said = capsys.readouterr().err.strip()
+        assert needle in said and len(said.splitlines()) == 1, said
+        assert not (tmp_path / "refused").exists()
+    no_model = [a for a in control if a not in ("--checkpoint", str(run))]
+    assert run_dlo([*no_model, str(tmp_path / "refused"), "--adapt-code"]) == 2
+    said = capsys.readouterr().err.strip()
+    assert "pass --checkpoint" in said and len(said.splitlines()) == 1, said
+    assert not (tmp_path / "refused").exists()
+
+
+def test_the_follower_picks_the_code_that_made_the_motion(marker_run, one_thread) -> None:
+    """Frames a coded model rolled out with one cable's code (noisy as a tracker's): the
+    follower starts at the mean code and, at its first re-pick, takes that cable's."""
+    from dlocli.models.code_follow import MIN_WINDOW, CodeFollower, smoothed_start
+    from dlocli.runs.control import ControlSpec
+
+    assert ControlSpec.model_fields["adapt_window"].metadata[0].ge == MIN_WINDOW
+    torch.manual_seed(0)
+    held = held_markers(6)
+    model = build_marker_model({"name": "mlp", "hidden": 16, "cable_code": 3}, 6, held)
+    episodes = load_dataset(marker_run[0]).episodes("train")
+    model.fit_normalization([(e, held) for e in episodes])
+    model.add_cables(["a", "b", "c"])
+    torch.nn.init.normal_(model.codes, std=3.0)
+    rng = np.random.default_rng(0)
+    start = np.repeat(episodes[0][:1], 40, 0)
+    start[:, held] += np.linspace(0, 0.05, 40)[:, None, None]  # the grippers move apart
+    model.cable = 1
+    with torch.no_grad():
+        made = torch.as_tensor(start, dtype=torch.float32)
+        rolled = model.rollout(made[1:2], made[0:1], made[None, 2:])[0].double().numpy()
+    frames = np.concatenate([start[:2], rolled])
+    frames[:, ~held] += rng.normal(0, 2e-4, frames[:, ~held].shape)
+    follower = CodeFollower(model, ["a's code", "b's code", "c's code"], every=20, window=32)
+    assert model.cable is None and follower.current == "mean code"
+    picks = [follower.observe(step, frame) for step, frame in enumerate(frames)]
+    made_picks = [p for p in picks if p is not None]
+    assert [p.step for p in made_picks] == [20]
+    assert made_picks[0].name == "b's code" and model.cable == 1
+    assert made_picks[0].scores_cm["b's code"] == min(made_picks[0].scores_cm.values())
+    follower.reset()
+    assert model.cable is None and follower.current == "mean code" and not follower.picks
+    # the fit's start: a line through noise-free linear motion is that motion
+    line = np.arange(10)[:, None, None] * np.ones((1, 6, 3)) * 1e-3
+    np.testing.assert_allclose(smoothed_start(line, held)[:2], line[6:8], atol=1e-12)
+    with pytest.raises(ValueError, match="window"):
+        CodeFollower(model, [], every=1, window=MIN_WINDOW - 1)
+
+
+def test_a_model_for_any_marker_count_plans_with_the_markers_observed(one_thread) -> None:
+    """A model with the codes of several cables holds its first cable's held mask; one whose
+    network serves any marker count takes the mask of the markers the task observes (DLO1
+    has 13 markers, DLO2-4 12), so the marker view plans with it; a model of one cable, or
+    of a fixed count, is left to the view."""
+    from dlocli.controllers.views import MarkerView
+    from dlocli.env.shape_env import make_env
+    from dlocli.runs.control_code import observe_with
+
+    from tiny import MUJOCO_ROD
+
+    env = make_env(MUJOCO_ROD, "single", seed=0, render_mode=None, shapes="near-rest",
+                   observation={"kind": "markers", "markers": 8})  # fmt: skip
+    try:
+        observed = env.marker_layout.held
+        arc = build_marker_model({"name": "arc-mlp", "hidden": 8, "cable_code": 2}, 11,
+                                 held_markers(11))  # fmt: skip
+        arc.add_cables(["a"])
+        observe_with(arc, env)  # one cable: its layout
+        assert len(arc.held) == 11
+        arc.add_cables(["b"])
+        observe_with(arc, env)
+        assert np.array_equal(arc.held.numpy(), observed)
+        MarkerView(env, arc, arc.device)  # plans with it
+        mlp = build_marker_model({"name": "mlp", "hidden": 8, "cable_code": 2}, 11,
+                                 held_markers(11))  # fmt: skip
+        mlp.add_cables(["a", "b"])
+        observe_with(mlp, env)
+        assert len(mlp.held) == 11
+        with pytest.raises(BadInput, match="observe the markers it was trained on"):
+            MarkerView(env, mlp, mlp.device)
+    finally:
+        env.close()

@@ -71,6 +71,7 @@ def test_import_dlocli_and_every_help_load_no_heavy_library():
 
 # ------------------------------------------------------------------ imports inside functions
 _CLI_RUNNER = "the command's runner imports torch; `dlo COMMAND --help` must not"
+_CONTROL = "torch; on the `dlo control --help` path"
 _TORCH = "imports torch, and this module is on the `dlo online --help` path (dlocli.runs.online)"
 
 #: (module, dlocli module it imports inside a function) -> why the import waits for the call;
@@ -93,6 +94,8 @@ LAZY_IMPORTS = {
     # `dlo online --help` and `dlo control --help` load these modules' specs
     ("dlocli.runs.control", "dlocli.models.base"): "torch; on the `dlo control --help` path",
     ("dlocli.runs.control", "dlocli.models.checkpoints"): "torch; on the `dlo control --help` path",
+    ("dlocli.runs.control_code", "dlocli.models.code_follow"): _CONTROL,
+    ("dlocli.runs.control_code", "dlocli.models.code_pick"): _CONTROL,
     ("dlocli.runs.online.loop", "dlocli.models.base"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.fitting"): _TORCH,
     ("dlocli.runs.online.loop", "dlocli.models.update_steps"): _TORCH,

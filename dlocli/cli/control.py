@@ -44,6 +44,9 @@ def control(
     with Bars(run.json, _describe, every={"step": max(spec.task.episode_steps // 10, 1)}) as bars:
         summary = run_control(spec, bars, overwrite=run.overwrite, cancel=signal_token())
     summary.pop("versions", None)
+    if "code_picks" in summary and not run.json:  # the table: each re-pick's step and code
+        picks = summary["code_picks"]
+        summary["code_picks"] = ", ".join(f"{p['step']}: {p['code']}" for p in picks)
     emit_summary(summary, run.json, "dlo control")
 
 

@@ -10,17 +10,25 @@ pick. No gradient step: a candidate costs one batched open-loop rollout per reco
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from dlocli.data import MarkerDataset, load_dataset
 from dlocli.data.protocol import deform_score_cm, freeze
+from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event
+from dlocli.models.cable_codes import cable_key
 from dlocli.models.marker_training import predict_episodes
 from dlocli.models.markers import MarkerModel
+from dlocli.specs import MAX_SPEC_BYTES
 
 #: the candidate that is no training cable's code: their mean
 MEAN_CODE = "mean code"
+#: how many runs back a checkpoint's training cables are looked for (fine-tunes of fine-tunes)
+NAME_DEPTH = 4
 
 
 @dataclass
@@ -76,3 +84,40 @@ def best(candidates: list[Candidate]) -> Candidate:
 def freeze_cm(episodes: list[np.ndarray], held: np.ndarray) -> list[float]:
     """The reference: each recording's score with its free markers frozen at frame 1."""
     return [deform_score_cm(freeze(e, held), e) for e in episodes]
+
+
+def cable_names(checkpoint: Path, keys: list[str]) -> list[str]:
+    """A name per code row: "NAME's code" where the checkpoint's run (or a run it was
+    fine-tuned from) names a dataset, still readable, whose train recordings have that row's
+    key (NAME: its folder or file name), else "cable i's code"."""
+    found: dict[str, str] = {}
+    for path in _run_datasets(Path(checkpoint), NAME_DEPTH):
+        try:
+            data = load_dataset(path)
+        except (BadInput, OSError):
+            continue
+        if isinstance(data, MarkerDataset):
+            label = path.parent.name if path.name == "dataset.h5" else path.stem
+            found.setdefault(cable_key(data.held, data.episodes("train")), label or str(path))
+    return [f"{found.get(k, f'cable {i}')}'s code" for i, k in enumerate(keys)]
+
+
+def _run_datasets(checkpoint: Path, depth: int) -> list[Path]:
+    """The datasets the run of ``checkpoint`` (a run directory, or its checkpoints/*.pt)
+    names in its spec.json (``data``), then those of the run it started from (``init_from``
+    or ``checkpoint``), ``depth`` runs back at most."""
+    run = checkpoint if checkpoint.is_dir() else checkpoint.parent.parent
+    try:
+        if (run / "spec.json").stat().st_size > MAX_SPEC_BYTES:
+            return []
+        saved = json.loads((run / "spec.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    if not isinstance(saved, dict):
+        return []
+    data = saved.get("data")
+    paths = [Path(p) for p in (data if isinstance(data, list) else [data]) if isinstance(p, str)]
+    source = saved.get("init_from") or saved.get("checkpoint")
+    if depth > 1 and isinstance(source, str):
+        paths += _run_datasets(Path(source), depth - 1)
+    return paths

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import time
 from pathlib import Path
@@ -34,19 +33,16 @@ from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.models.base import check_control_rate
 from dlocli.models.cable_codes import cable_key, chosen_code
 from dlocli.models.checkpoints import CABLE_KEYS, FINAL_CHECKPOINT, load_model, save_checkpoint
-from dlocli.models.code_pick import Candidate, best, freeze_cm, score_candidates
+from dlocli.models.code_pick import Candidate, best, cable_names, freeze_cm, score_candidates
 from dlocli.models.fit import fit
 from dlocli.models.marker_training import Cable, Cables, scores_cm
 from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import AdaptSpec
 from dlocli.rundir import owned
 from dlocli.runs.train import recorded_rate
-from dlocli.specs import MAX_SPEC_BYTES
 
 #: what the fine-tune of each kind is called in the scores
 ADAPTED = {"code": "code learned", "all": "fine-tuned"}
-#: how many runs back a checkpoint's training cables are looked for (fine-tunes of fine-tunes)
-NAME_DEPTH = 4
 
 
 def run_adaptation(
@@ -187,43 +183,6 @@ def coded_model(path: Path, dataset: MarkerDataset, data: Path) -> MarkerModel:
             "(arc-mlp, attention, in-bilstm)"
         )
     return model
-
-
-def cable_names(checkpoint: Path, keys: list[str]) -> list[str]:
-    """A name per code row: "NAME's code" where the checkpoint's run (or a run it was
-    fine-tuned from) names a dataset, still readable, whose train recordings have that row's
-    key (NAME: its folder or file name), else "cable i's code"."""
-    found: dict[str, str] = {}
-    for path in _run_datasets(Path(checkpoint), NAME_DEPTH):
-        try:
-            data = load_dataset(path)
-        except (BadInput, OSError):
-            continue
-        if isinstance(data, MarkerDataset):
-            label = path.parent.name if path.name == "dataset.h5" else path.stem
-            found.setdefault(cable_key(data.held, data.episodes("train")), label or str(path))
-    return [f"{found.get(k, f'cable {i}')}'s code" for i, k in enumerate(keys)]
-
-
-def _run_datasets(checkpoint: Path, depth: int) -> list[Path]:
-    """The datasets the run of ``checkpoint`` (a run directory, or its checkpoints/*.pt)
-    names in its spec.json (``data``), then those of the run it started from (``init_from``
-    or ``checkpoint``), ``depth`` runs back at most."""
-    run = checkpoint if checkpoint.is_dir() else checkpoint.parent.parent
-    try:
-        if (run / "spec.json").stat().st_size > MAX_SPEC_BYTES:
-            return []
-        saved = json.loads((run / "spec.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return []
-    if not isinstance(saved, dict):
-        return []
-    data = saved.get("data")
-    paths = [Path(p) for p in (data if isinstance(data, list) else [data]) if isinstance(p, str)]
-    source = saved.get("init_from") or saved.get("checkpoint")
-    if depth > 1 and isinstance(source, str):
-        paths += _run_datasets(Path(source), depth - 1)
-    return paths
 
 
 # ---------------------------------------------------------------------- outputs

@@ -9,18 +9,21 @@ metrics.csv            per step: shape error (mm), reward, latency (ms), control
 summary.json           ``initial_error_mm``, ``final_error_mm``, ``score`` (1 - final/initial:
                        the reference of doing nothing), ``best_error_mm``,
                        ``cumulative_reward``, ``latency_ms_median``, ``latency_ms_p95``,
-                       ``steps`` and the run's context
+                       ``steps`` and the run's context; with ``adapt_code``, ``code_picks``
+                       (each re-pick's step, code and every candidate's score) and
+                       ``code_final``
 plots/error.png        shape error and controller latency over the steps
 =====================  ==========================================================
 
-plus, with ``video``, frames of the rod and the goal from the backend's renderer, and with
-``record``, a 3D recording of every step for the Rerun viewer (:mod:`dlocli.runs.recording`).
+With ``adapt_code`` (:class:`CodeAdapting`), metrics.csv's ``code`` column is the code each
+step planned with (``code_pick_ms``: a re-pick's time). Plus, with ``video``, frames of the
+rod and the goal from the backend's renderer, and with ``record``, a 3D recording of every
+step for the Rerun viewer (:mod:`dlocli.runs.recording`).
 """
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,23 +41,28 @@ from dlocli.controllers.base import (
     controller_spec,
     make_controller,
 )
-from dlocli.data import load_dataset
 from dlocli.env.metrics import episode_result, shape_error_mm
 from dlocli.env.observation import markers_of_state
 from dlocli.env.rollout import rollout
 from dlocli.env.shape_env import DLOShapeEnv, load_goal, make_env
 from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event
-from dlocli.io import atomic_path, check_writable, prepare_run_dir, versions, write_json_atomic
+from dlocli.io import atomic_path, prepare_run_dir, versions, write_json_atomic
 from dlocli.limits import MAX_COUNT, MAX_PROCESSES
 from dlocli.plots import plot_errors
 from dlocli.registry import controllers
 from dlocli.rundir import owned
+from dlocli.runs.checks import check_apart_from_run_dir, check_video_path
+from dlocli.runs.control_code import (
+    CodeAdapting,
+    check_adapt_code,
+    code_follower,
+    observe_with,
+    use_cable_code,
+)
 from dlocli.runs.recording import check_record_path, open_recording
 from dlocli.specs import Device, EnvSpec
 from dlocli.threads import torch_threads, warn_if_oversubscribed
-
-VIDEO_SUFFIXES = (".gif", ".mp4")
 
 
 class ControlSpec(EnvSpec, CellChoice):
@@ -71,7 +79,8 @@ class ControlSpec(EnvSpec, CellChoice):
         "task.observation.kind", "task.observation.markers", "task.observation.noise_mm",
         "task.observation.latency_steps", "task.observation.dropout",
         "task.observation.occlusion_probability", "task.observation.gripper_markers",
-        "task.observation.marker_arc_lengths", "task.control_dt", "cable",
+        "task.observation.marker_arc_lengths", "task.control_dt", "cable", "adapt_code",
+        "adapt_every", "adapt_window",
     )  # fmt: skip
     cli_required: ClassVar[tuple[str, ...]] = ("task.goal_file",)
 
@@ -82,6 +91,22 @@ class ControlSpec(EnvSpec, CellChoice):
         None,
         description="The recorded cable (its marker dataset from `dlo import`) whose learned "
         "code a model with cable codes plans with; without it, the mean of its codes.",
+    )
+    adapt_code: bool = Field(
+        False,
+        description="Infer the cable's code while it runs (a model with cable codes, a cable "
+        "it may never have seen): start from the mean code, and every --adapt-every steps plan "
+        "with the trained cable's code, or their mean, that best predicts the last "
+        "--adapt-window observed frames (the pick of `dlo adapt`). Not with --cable.",
+    )
+    adapt_every: int = Field(
+        50, gt=0, le=MAX_COUNT, description="--adapt-code: control steps between re-picks."
+    )
+    adapt_window: int = Field(
+        100,
+        ge=16,  # dlocli.models.code_follow.MIN_WINDOW (that module imports torch)
+        le=MAX_COUNT,
+        description="--adapt-code: the most recent observed frames a re-pick is scored on.",
     )
     policy: Path | None = Field(
         None,
@@ -117,33 +142,6 @@ class ControlSpec(EnvSpec, CellChoice):
 
 
 # --------------------------------------------------------------------------- input checks
-def check_video_path(path: Path | None, overwrite: bool) -> None:
-    """BadInput unless ``path`` is None, a .gif, or a .mp4 with an mp4 writer installed, and
-    new unless ``overwrite``."""
-    if path is None:
-        return
-    if path.suffix not in VIDEO_SUFFIXES:
-        raise BadInput(f"--video {path} must end in .gif or .mp4")
-    if path.suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
-        raise BadInput(
-            f"--video {path}: writing .mp4 needs `pip install imageio-ffmpeg`; or use a .gif"
-        )
-    check_writable(path, "--video", overwrite)
-
-
-def check_apart_from_run_dir(path: Path | None, flag: str, out: Path) -> None:
-    """BadInput if the file ``path`` is the run directory ``out`` or holds it: the run would
-    make that directory first and fail only after its last step, when the file is written."""
-    if path is None:
-        return
-    file, run_dir = Path(path).resolve(), Path(out).resolve()
-    if file == run_dir or file in run_dir.parents:
-        raise BadInput(
-            f"{flag} {path} is where --out {out} makes the run directory; "
-            f"pass another {flag} path, e.g. {Path(out) / Path(path).name}"
-        )
-
-
 def check_inputs_used(spec: ControlSpec) -> None:
     """BadInput if the controller would ignore a given model or policy, or needs a policy
     it was not given (a learning agent never runs untrained here)."""
@@ -158,6 +156,14 @@ def check_inputs_used(spec: ControlSpec) -> None:
         raise BadInput(f"--policy is for sac and td3, not '{spec.controller}'; drop it")
     if spec.cable is not None and spec.checkpoint is None:
         raise BadInput("--cable picks a learned model's cable code: pass --checkpoint or drop it")
+    if spec.adapt_code and spec.cable is not None:
+        raise BadInput(
+            "--adapt-code infers the cable's code while it runs, --cable gives it: drop one"
+        )
+    if spec.adapt_code and spec.checkpoint is None:
+        raise BadInput(
+            "--adapt-code infers a learned model's cable code: pass --checkpoint or drop it"
+        )
     if spec.checkpoint is not None and "model" not in cls.needs:
         raise BadInput(
             f"controller '{spec.controller}' uses no dynamics model; drop --checkpoint "
@@ -178,25 +184,8 @@ def load_control_model(spec: ControlSpec) -> Any:
                        "re-train it on data at {used_hz} Hz, or pass --control-dt {dt} (task."
                        "control_dt) to control at the model's rate")  # fmt: skip
     use_cable_code(model, spec)
+    check_adapt_code(model, spec)
     return model
-
-
-def use_cable_code(model: Any, spec: ControlSpec) -> None:
-    """Plan with the code ``model`` learned for ``spec.cable``; BadInput where it has no
-    codes, the file is no marker dataset, or it never trained on that cable."""
-    if spec.cable is None:
-        return
-    if not getattr(model.spec, "cable_code", 0):
-        raise BadInput(f"model {spec.checkpoint} learned no cable codes: drop --cable")
-    dataset = load_dataset(spec.cable)
-    if dataset.form != "markers":
-        raise BadInput(f"--cable {spec.cable} is not a marker dataset: pass one from `dlo import`")
-    if model.use_recorded_cable(dataset.held, dataset.episodes("train")) is None:
-        raise BadInput(
-            f"model {spec.checkpoint} never trained on --cable {spec.cable}: give it a code "
-            f"with `dlo adapt --checkpoint {spec.checkpoint} --data {spec.cable}`, or drop "
-            "--cable to plan with the mean code"
-        )
 
 
 def check_model_segments(model: Any, spec: ControlSpec, n_segments: int) -> None:
@@ -236,11 +225,14 @@ def prepare(
                    cancel=cancel)  # fmt: skip
     try:
         check_model_segments(model, spec, env.n_segments)
+        observe_with(model, env)
         controller = make_controller(
             spec.controller, env, options=options, seed=spec.seed, model=model
         )
         if spec.policy is not None:
             controller.load_policy(spec.policy)
+        if spec.adapt_code:
+            controller = CodeAdapting(controller, env, code_follower(model, spec))
     except BaseException:
         env.close()
         raise
@@ -300,6 +292,8 @@ def _run_closed_loop(
         summary["recording"] = str(spec.record)
     if loop.lost is not None:
         summary["stopped"] = str(loop.lost)
+    if isinstance(controller, CodeAdapting):
+        summary |= controller.summary()
     write_json_atomic(out / "summary.json", summary)
     if loop.lost is not None:
         raise loop.lost
@@ -472,6 +466,7 @@ def summarise(
         "goal": str(spec.task.goal_file),
         "checkpoint": None if spec.checkpoint is None else str(spec.checkpoint),
         "cable": None if spec.cable is None else str(spec.cable),
+        "adapt_code": spec.adapt_code,
         "seed": spec.seed,
         # the closed loop: reset and settling, the controller's reset, every step (planning)
         "wall_s": round(wall_s, 2),
