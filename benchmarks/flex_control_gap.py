@@ -12,6 +12,7 @@ each command in the environment of the run's backend).
     python benchmarks/flex_control_gap.py pose RUN [--iteration K] [--trials N]
                                                [--offset-mm D] [--turn-deg A]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
+                                                  [--from-step S]
     python benchmarks/flex_control_gap.py retrain RUN K OUT
     python benchmarks/flex_control_gap.py swing BACKEND [--rod JSON]
 
@@ -30,11 +31,11 @@ over all trials and per run. ``latency``: the MPC's milliseconds per control ste
 paper's cost and of the options that damp the swing, through one model, taking turns
 (:func:`latency_report`). ``pose``: no model, the grippers driven straight to the goal's own gripper
 poses from the same starts (:func:`pose_report`). ``horizon``:
-iteration K's model open loop on the trials it drove, its position error after 1, 5, 10, 20
-steps beside the recorded motion over as many steps. ``retrain``: iteration 3's model
-retrained through K-step rollouts (:func:`retrain`), into a copy of the run at OUT.
-``swing``: the sideways swing decay of the task's rod (examples/calibration/swing_decay.py's
-measurement). Each prints one JSON object.
+iteration K's model open loop on the trials it drove (from step S on), its position error
+after 1, 5, 10, 20 steps beside the recorded motion over as many steps. ``retrain``:
+iteration 3's model retrained through K-step rollouts (:func:`retrain`), into a copy of the
+run at OUT. ``swing``: the sideways swing decay of the task's rod
+(examples/calibration/swing_decay.py's measurement). Each prints one JSON object.
 """
 
 from __future__ import annotations
@@ -122,10 +123,13 @@ def one_step_loss(model: Any, data: Any, episodes: np.ndarray | None = None) -> 
     }
 
 
-def open_loop_error(model: Any, data: Any, steps: tuple[int, ...]) -> dict[str, Any]:
+def open_loop_error(
+    model: Any, data: Any, steps: tuple[int, ...], first: int = 1
+) -> dict[str, Any]:
     """The model's open-loop position error (mm, mean over segments and starts) after each
-    of ``steps`` steps of the recorded actions, from every 5th step of every episode, beside
-    the recorded motion over as many steps (what predicting no change would miss)."""
+    of ``steps`` steps of the recorded actions, from every 5th step of every episode from
+    step ``first`` on, beside the recorded motion over as many steps (what predicting no
+    change would miss)."""
     import torch
 
     found: dict[str, Any] = {}
@@ -134,7 +138,7 @@ def open_loop_error(model: Any, data: Any, steps: tuple[int, ...]) -> dict[str, 
         for e in range(data.n_episodes):
             episode = data.episode(e)
             states = np.concatenate([episode.positions, episode.quaternions], -1)
-            starts = np.arange(1, len(episode.actions) - h + 1, 5)
+            starts = np.arange(max(first, 1), len(episode.actions) - h + 1, 5)
             if len(starts) == 0:
                 continue
             t = torch.as_tensor(states, dtype=torch.float32)
@@ -152,13 +156,14 @@ def open_loop_error(model: Any, data: Any, steps: tuple[int, ...]) -> dict[str, 
     return found
 
 
-def horizon_report(run: Path, k: int, steps: tuple[int, ...]) -> dict[str, Any]:
-    """Iteration k's model, open loop on the trials it drove (:func:`open_loop_error`)."""
+def horizon_report(run: Path, k: int, steps: tuple[int, ...], first: int = 1) -> dict[str, Any]:
+    """Iteration k's model, open loop on the trials it drove from step ``first`` on
+    (:func:`open_loop_error`; 100: the second half, where a trial ends near its goal)."""
     from dlocli.models.checkpoints import load_model
 
     model = load_model(run / "checkpoints" / f"iter_{k:02d}.pt").eval()
-    return {"run": str(run), "iteration": k,
-            "its_trials": open_loop_error(model, _datasets(run)[k], steps)}  # fmt: skip
+    return {"run": str(run), "iteration": k, "from_step": first,
+            "its_trials": open_loop_error(model, _datasets(run)[k], steps, first)}  # fmt: skip
 
 
 def retrain(run: Path, k: int, out: Path, epochs: int = 10) -> dict[str, Any]:
@@ -514,6 +519,7 @@ def main(argv: list[str] | None = None) -> None:
     horizon.add_argument("run", type=Path)
     horizon.add_argument("--iteration", type=int, default=3)
     horizon.add_argument("--steps", default="1,5,10,20")
+    horizon.add_argument("--from-step", type=int, default=1)
     again = sub.add_parser("retrain")
     again.add_argument("run", type=Path)
     again.add_argument("k", type=int)
@@ -545,7 +551,7 @@ def main(argv: list[str] | None = None) -> None:
         report = pose_report(args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg)
     elif args.what == "horizon":
         steps = tuple(int(h) for h in args.steps.split(","))
-        report = horizon_report(args.run, args.iteration, steps)
+        report = horizon_report(args.run, args.iteration, steps, args.from_step)
     elif args.what == "retrain":
         report = retrain(args.run, args.k, args.out)
     else:
