@@ -100,6 +100,76 @@ def test_train_and_evaluate_by_the_protocol(imported: Path, tmp_path: Path) -> N
     assert len(curves["abs_error_cm"]["model"]) == FRAMES
 
 
+def _trained(run: Path) -> tuple[dict, list[list[str]], dict]:
+    """A marker run's final weights, metrics rows without their seconds, and summary without
+    its seconds and run directory."""
+    from dlocli.models.checkpoints import read_checkpoint
+
+    weights = read_checkpoint(run / "checkpoints" / "final.pt")["state_dict"]
+    rows = [line.split(",")[:-1] for line in (run / "metrics.csv").read_text().splitlines()]
+    summary = json.loads((run / "summary.json").read_text())
+    return weights, rows, {k: v for k, v in summary.items() if k not in ("seconds", "out")}
+
+
+@pytest.mark.parametrize("fine_tune", [None, "all"])
+def test_a_stopped_marker_run_resumes_to_the_same_bits(
+    imported: Path, tmp_path: Path, fine_tune: str | None
+) -> None:
+    """`dlo train` on a marker dataset, cancelled after its second validation (of three) and
+    resumed from checkpoints/last.pt, ends bit-identical to the run never stopped: every
+    weight, every metrics value but the seconds, the summary; fresh and fine-tuning alike. An
+    ensemble's run refuses to resume, in one line."""
+    import torch
+
+    from dlocli.cancel import CancelToken
+    from dlocli.errors import BadInput
+    from dlocli.models.checkpoints import read_checkpoint
+    from dlocli.models.fit import ENSEMBLE_DOES_NOT_RESUME
+    from dlocli.models.fitting import RolloutValidated
+    from dlocli.models.spec import TrainSpec
+    from dlocli.runs.train import resumed_spec, run_training
+
+    spec = TrainSpec(data=[imported], model={"name": "mlp", "hidden": 16}, update_steps=9,
+                     eval_every=3, rollout_steps=4, lr=3e-3, batch_size=8, device="cpu",
+                     val_fraction=0.25)  # fmt: skip
+    if fine_tune is not None:
+        run_training(spec.model_copy(update={"out": tmp_path / "start", "update_steps": 3}))
+        spec = spec.model_copy(update={"init_from": tmp_path / "start", "fine_tune": fine_tune,
+                                       "seed": 1})  # fmt: skip
+    run_training(spec.model_copy(update={"out": tmp_path / "whole"}))
+
+    token, seen = CancelToken(), []
+
+    def stop_after_step_6(event) -> None:
+        seen.append(event.values.get("step"))
+        if isinstance(event, RolloutValidated) and event.done == 6:
+            token.cancel()
+
+    stopped = tmp_path / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        run_training(spec.model_copy(update={"out": stopped}), progress=stop_after_step_6,
+                     cancel=token)  # fmt: skip
+    assert max(s for s in seen if s is not None) == 6, "a step after the stop was taken"
+    assert not (stopped / "checkpoints" / "final.pt").exists()
+    last = read_checkpoint(stopped / "checkpoints" / "last.pt")
+    assert last["step"] == 6 and len(last["history"]) == 2 + (fine_tune is not None)
+    went_on: list = []
+    resumed = run_training(resumed_spec(stopped, {}), resume=True, progress=went_on.append)
+    assert went_on[0].done == 6 and min(e.values.get("step", 9) for e in went_on) == 7
+    assert resumed["update_steps"] == 9
+
+    whole, again = _trained(tmp_path / "whole"), _trained(stopped)
+    assert whole[0].keys() == again[0].keys()
+    assert all(torch.equal(v, again[0][k]) for k, v in whole[0].items())
+    assert whole[1] == again[1] and len(whole[1]) == 1 + 3 + (fine_tune is not None)
+    assert whole[2] == again[2]
+
+    members = spec.model.model_copy(update={"members": 2})
+    with pytest.raises(BadInput) as refused:
+        run_training(spec.model_copy(update={"out": stopped, "model": members}), resume=True)
+    assert str(refused.value) == ENSEMBLE_DOES_NOT_RESUME
+
+
 @pytest.mark.parametrize("name", models.names())
 def test_every_registered_model_works_in_the_marker_view(name: str) -> None:
     import torch

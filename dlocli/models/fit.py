@@ -42,10 +42,10 @@ from dlocli.models.spec import FitSpec, UpdateSpec
 from dlocli.models.splits import split_episodes
 from dlocli.models.step_schedule import _train_steps
 
-#: why a rod ensemble's run does not resume after an epoch
+#: why an ensemble's run (either view's) does not resume after an epoch or a validation
 ENSEMBLE_DOES_NOT_RESUME = (
     "an ensemble's members train apart and it is saved once all are done, so its run does "
-    "not resume after an epoch: train it again with --overwrite"
+    "not resume after an epoch or a validation: train it again with --overwrite"
 )
 
 
@@ -65,7 +65,9 @@ def fit(
     ``recent_episodes`` (those added since the previous update) in; the others train on all
     episodes alike. ``state`` is what the schedule continues from: epochs take
     ``optimizer_state``, ``on_validation``, ``start_epoch``, ``generator_state`` and ``best``;
-    steps ``optimizer_state`` and ``on_validation``; rollout windows none."""
+    steps ``optimizer_state`` and ``on_validation``; rollout windows ``on_validation`` (each
+    validation's record and :class:`~dlocli.models.marker_training.RolloutPoint`) and
+    ``resume_from`` (such a point; one network only)."""
     if isinstance(model, MarkerModel):
         return _fit_windows(model, data, schedule, progress, cancel, **state)
     if isinstance(model.network, Ensemble):
@@ -82,10 +84,12 @@ def _fit_windows(
     schedule: FitSpec,
     progress: Callback | None,
     cancel: CancelToken | None,
+    **state: Any,
 ) -> TrainResult:
     """Rollout windows on the train split of the marker dataset ``data``, ``val_fraction`` of
     its trajectories held out for validation (its eval split is never seen); on
-    :class:`Cables` as they were split (the result then names no episodes)."""
+    :class:`Cables` as they were split (the result then names no episodes). ``state``: see
+    :func:`fit`; an ensemble takes none (BadInput)."""
     if isinstance(data, Cables):
         cables = data
         train_idx = val_idx = np.zeros(0, np.int64)
@@ -97,8 +101,13 @@ def _fit_windows(
         train = Cable([episodes[i] for i in train_idx], data.held, key)
         val = [Cable([episodes[i] for i in val_idx], data.held, key)] if len(val_idx) else []
         cables = Cables([train], val)
-    fit_all = fit_members if isinstance(model.network, Ensemble) else _fit_markers
-    history = fit_all(model, cables.train, cables.val, schedule, progress, cancel)
+    if isinstance(model.network, Ensemble):
+        if state.get("resume_from") is not None:
+            raise BadInput(ENSEMBLE_DOES_NOT_RESUME)
+        history = fit_members(model, cables.train, cables.val, schedule, progress, cancel)
+    else:
+        history = _fit_markers(model, cables.train, cables.val, schedule, progress, cancel,
+                               **state)  # fmt: skip
     return TrainResult(
         history=history,
         train_episodes=train_idx,

@@ -57,7 +57,9 @@ class FitRecord:
     @classmethod
     def from_row(cls, row: dict[str, Any]) -> FitRecord:
         unit: Unit = "step" if "step" in row else "epoch"
-        return cls(unit, int(row[unit]), row["train_loss"], row["val_loss"], row["seconds"])
+        k = row.get("k")  # a fit through rollout windows records it
+        return cls(unit, int(row[unit]), row["train_loss"], row["val_loss"], row["seconds"],
+                   None if k is None else int(k))  # fmt: skip
 
 
 class BatchDone(Event):
@@ -76,8 +78,11 @@ class RolloutValidated(Validated):
     ``train_loss``, the mean k-step rollout loss (cm) since the previous validation."""
 
 
+#: the random generator a plan draws from: torch's (the rod view's) or numpy's (rollout windows)
+Generator = torch.Generator | np.random.Generator
+
 #: called after each validation with its record, the optimizer and the random generator
-OnValidation = Callable[[FitRecord, torch.optim.Optimizer, torch.Generator], None]
+OnValidation = Callable[[FitRecord, torch.optim.Optimizer, Generator], None]
 
 
 @dataclass
@@ -190,7 +195,7 @@ class Plan(Protocol):
     total: int
     start: int
     kept: str
-    gen: torch.Generator | None
+    gen: Generator | None
 
     def rounds(self) -> Iterator[Round]: ...
 

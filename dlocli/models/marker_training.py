@@ -9,7 +9,9 @@ geometrically from ``fit.rollout_start`` to ``fit.rollout_steps`` over the first
 augmented by the cable's end-to-end mirror (marker order reversed, ``fit.mirror``) and a
 random rotation about the vertical axis (gravity keeps its direction). Validation rolls the
 held-out training trajectories out whole, by the benchmark's score, every ``eval_every``
-steps; the best weights are kept.
+steps; the best weights are kept. After each validation the fit can hand out a
+:class:`RolloutPoint`, all it needs to go on from there as if never stopped (`dlo train
+--resume`).
 
 On CPU the rollouts run through the fused operations of :mod:`dlocli.models.marker_steps`
 (and the MLP's whole rollout as one, :mod:`dlocli.models.marker_mlp_rollout`): the same
@@ -22,8 +24,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -186,7 +189,7 @@ class WindowPlan:
     unit: Unit = "step"
     start: int = 0
     kept: str = "nothing is saved"
-    gen: torch.Generator | None = None
+    gen: np.random.Generator | None = None
     step: int = 0
     ended: bool = False
 
@@ -246,6 +249,45 @@ class RolloutObjective:
         return float(np.mean([loss.item() for loss in losses]))
 
 
+@dataclass
+class RolloutPoint:
+    """Where a rollout fit stands after a validation: the gradient steps done, Adam's state,
+    the random states its windows (numpy's, the sampler's) and torch draw from, the best
+    validation so far (its loss, step, the validations since, and the weights and Adam state
+    that had it) and the validation records so far (a fine-tune's starting point first). A
+    fit resumed from it trains on as the uninterrupted one would, to the same bits."""
+
+    step: int
+    optimizer: dict[str, Any]
+    sampler: dict[str, Any]
+    torch_rng: torch.Tensor
+    best: dict[str, Any]
+    history: list[FitRecord] = field(default_factory=list)
+
+    def as_payload(self) -> dict[str, Any]:
+        """The checkpoint entries that hold it (what ``torch.load(weights_only=True)`` reads)."""
+        rows = [{**r.as_row(), "k": r.k} for r in self.history]
+        return {"step": self.step, "optimizer": self.optimizer, "sampler_rng": self.sampler,
+                "torch_rng": self.torch_rng, "best": self.best, "history": rows}  # fmt: skip
+
+    @classmethod
+    def from_payload(cls, payload: dict[str, Any]) -> RolloutPoint | None:
+        """The point a checkpoint's payload holds (None: it holds none)."""
+        step, rows, best = payload.get("step"), payload.get("history"), payload.get("best")
+        rng, sampler = payload.get("torch_rng"), payload.get("sampler_rng")
+        optimizer = payload.get("optimizer")
+        if not (isinstance(step, int) and isinstance(rows, list) and isinstance(best, dict)
+                and torch.is_tensor(rng) and isinstance(sampler, dict)
+                and isinstance(optimizer, dict)):  # fmt: skip
+            return None
+        history = [FitRecord.from_row(row) for row in rows]
+        return cls(step, optimizer, sampler, rng, best, history)
+
+
+#: called after each validation of a rollout fit with its record and where the fit stands
+OnRolloutValidation = Callable[[FitRecord, RolloutPoint], None]
+
+
 def _fit_markers(
     model: MarkerModel,
     train: list[Cable],
@@ -253,6 +295,9 @@ def _fit_markers(
     fit: FitSpec,
     progress: Callback | None = None,
     cancel: CancelToken | None = None,
+    *,
+    on_validation: OnRolloutValidation | None = None,
+    resume_from: RolloutPoint | None = None,
 ) -> list[FitRecord]:
     """Train ``model`` in place on one or more cables (see the module docstring) through
     :mod:`dlocli.models.fitting`'s loop; returns the validation history (a fine-tune's
@@ -260,7 +305,10 @@ def _fit_markers(
     weights. ``progress`` gets a Began, then batches and a
     :class:`~dlocli.models.fitting.RolloutValidated` after each validation; ``cancel`` stops
     the fit before the next gradient step once cancelled. A spec with ``seconds`` (`dlo
-    adapt`'s) also ends the fit, validated, once that many seconds have passed."""
+    adapt`'s) also ends the fit, validated, once that many seconds have passed.
+    ``on_validation`` gets each validation's record and the :class:`RolloutPoint` after it;
+    ``resume_from`` such a point (with the model as it was then) continues the fit from there
+    (its history then holds the records before it too)."""
     device = resolve_device(fit.device)
     torch.manual_seed(fit.seed)
     if not bool(model.fitted):
@@ -274,19 +322,44 @@ def _fit_markers(
         model.requires_grad_(False)
         model.codes.requires_grad_(True)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=fit.lr)
+    done = 0 if resume_from is None else resume_from.step
+    if resume_from is not None:
+        optimizer.load_state_dict(resume_from.optimizer)
+        sampler.rng.bit_generator.state = resume_from.sampler
     total = fit.update_steps
-    schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
+    schedule = torch.optim.lr_scheduler.LambdaLR(  # resumed: the rate at step ``done``
+        optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, total) / total)), done - 1
     )
-    history: list[FitRecord] = []
+    history: list[FitRecord] = [] if resume_from is None else list(resume_from.history)
     best = KeepBest(keep=True, nan_is_worst=bool(val))
     start = time.perf_counter()
-    if getattr(fit, "init_from", None) is not None and val:  # `dlo train --init-from`
+    if resume_from is not None:
+        _resume_best(best, resume_from.best)
+        torch.set_rng_state(resume_from.torch_rng)
+    elif getattr(fit, "init_from", None) is not None and val:  # `dlo train --init-from`
         history.append(_starting_point(model, val, best))  # fine-tuning keeps it if no better
-    plan = WindowPlan(fit, sampler, start, getattr(fit, "seconds", None))  # `dlo adapt --seconds`
+    plan = WindowPlan(fit, sampler, start, getattr(fit, "seconds", None),  # `dlo adapt --seconds`
+                      start=done, gen=sampler.rng, step=done)  # fmt: skip
     objective = RolloutObjective(model, val, rows, schedule)
-    rounds, _ = fit_loop(model, objective, plan, optimizer, best, progress, cancel=cancel)
+    records = list(history)
+
+    def point_after(record: FitRecord, optimizer: torch.optim.Optimizer, gen: Any) -> None:
+        records.append(record)
+        if on_validation is not None:  # Adam's live state: the hook saves it at once
+            on_validation(record, RolloutPoint(
+                record.count, optimizer.state_dict(), gen.bit_generator.state,
+                torch.get_rng_state(), {"val_loss": best.val_loss, "count": best.count,
+                "stale": best.stale, "saved": best.saved}, list(records)))  # fmt: skip
+
+    hook = point_after if on_validation is not None else None
+    rounds, _ = fit_loop(model, objective, plan, optimizer, best, progress, hook, cancel)
     return history + rounds
+
+
+def _resume_best(best: KeepBest, held: dict[str, Any]) -> None:
+    """``best`` as a :class:`RolloutPoint` holds it."""
+    best.val_loss, best.count = float(held["val_loss"]), int(held["count"])
+    best.stale, best.saved = int(held["stale"]), held["saved"]
 
 
 def _starting_point(model: MarkerModel, val: list[Cable], best: KeepBest) -> FitRecord:

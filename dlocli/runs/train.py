@@ -1,9 +1,11 @@
 """`dlo train`: fit a dynamics model to a dataset and write a run directory: the data, the
 model (fresh, or continued from ``init_from``), training (:func:`dlocli.models.fit.fit`:
 epochs on a rod dataset, rollout windows on a marker dataset), checkpoints, metrics,
-evaluation and plots; a rod run of one network resumes after any finished epoch. An ensemble
-(``members`` > 1) trains its members apart in either view, member i as the network alone
-would from seed ``seed + i``, and is saved once all are done (checkpoints/final.pt).
+evaluation and plots; a run of one network resumes (``--resume``) after any finished epoch
+of a rod dataset or any validation of a marker dataset, and ends as it would have
+uninterrupted (checkpoints/last.pt holds what it continues from). An ensemble (``members``
+> 1) trains its members apart in either view, member i as the network alone would from seed
+``seed + i``, and is saved once all are done (checkpoints/final.pt), so it does not resume.
 
 On recorded cables the model is seen through the marker view and trained through open-loop
 rollout windows on one cable or several at once (any marker counts, for a network that serves
@@ -11,7 +13,7 @@ any), or fine-tuned from ``init_from`` on a new one. Each cable's train recordin
 by trajectory, ``val_fraction`` of them held out for validation (its eval split is never
 seen); a batch of windows comes from one cable, drawn in proportion to its recordings. The
 run directory then holds spec.json, metrics.csv, summary.json (with each cable's validation
-score against freezing it), checkpoints/final.pt and plots/loss.png.
+score against freezing it), checkpoints/{final,last}.pt and plots/loss.png.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from dlocli.models.checkpoints import (
 from dlocli.models.evaluation import evaluate_model
 from dlocli.models.fit import ENSEMBLE_DOES_NOT_RESUME, fit
 from dlocli.models.fitting import FitRecord, KeepBest
-from dlocli.models.marker_training import Cable, Cables, validation_score
+from dlocli.models.marker_training import Cable, Cables, RolloutPoint, validation_score
 from dlocli.models.markers import FORM, MarkerModel, build_marker_model
 from dlocli.models.spec import ModelSpec, TrainSpec
 from dlocli.models.splits import split_episodes
@@ -53,7 +55,7 @@ from dlocli.resume import resumed_run_spec
 from dlocli.rundir import check_fingerprints, owned, record_fingerprints
 from dlocli.tensorboard import Scalars
 
-LAST_CHECKPOINT = Path("checkpoints") / "last.pt"  # after every epoch, for --resume
+LAST_CHECKPOINT = Path("checkpoints") / "last.pt"  # after every epoch/validation, for --resume
 
 
 def prepare_model(spec: TrainSpec, dataset: Dataset) -> tuple[DynamicsModel, dict[str, Any] | None]:
@@ -118,13 +120,12 @@ def run_training(
             "--fine-tune code learns a recorded cable's code from a model with cable codes: "
             "pass --init-from that model and a marker dataset, or drop --fine-tune"
         )
-    if isinstance(dataset, list):  # recorded cables
-        if resume:
-            raise BadInput("--resume is not supported for marker datasets yet; train again")
-        with owned(spec.out):
-            return run_marker_training(spec, dataset, overwrite, progress, cancel)
     if resume and spec.model.members > 1:
         raise BadInput(ENSEMBLE_DOES_NOT_RESUME)
+    if isinstance(dataset, list):  # recorded cables
+        with owned(spec.out):
+            return run_marker_training(spec, dataset, overwrite, progress, cancel, resume,
+                                       accept_changes)  # fmt: skip
     if spec.rollout_steps > 1:
         raise BadInput(
             "--rollout-steps > 1 trains marker datasets (`dlo import`); rod datasets train "
@@ -231,12 +232,7 @@ def _resume_point(
     path: Path, spec: TrainSpec, dataset: Dataset
 ) -> tuple[DynamicsModel, dict[str, Any], ResumePoint]:
     """The model, Adam's state and what was done at the end of the last finished epoch."""
-    if not path.is_file():
-        raise BadInput(
-            f"--resume: {path} does not exist (no epoch finished, or the run predates "
-            "resuming); start the run again with --overwrite"
-        )
-    payload = read_checkpoint(path)
+    payload = _resumable(path)
     model = load_model(path, spec.device, expect=spec.model)
     if model.n_segments != dataset.n_segments:
         raise BadInput(f"--resume: {path} has {model.n_segments} segments, the dataset "
@@ -250,6 +246,16 @@ def _resume_point(
     done = ResumePoint(epoch, payload.get("generator"), records,
                        best if isinstance(best, float) else math.inf)  # fmt: skip
     return model, payload.get("optimizer") or {}, done
+
+
+def _resumable(path: Path) -> dict[str, Any]:
+    """The payload of the run's last checkpoint; BadInput if there is none."""
+    if not path.is_file():
+        raise BadInput(
+            f"--resume: {path} does not exist (no epoch or validation finished, or the run "
+            "predates resuming); start the run again with --overwrite"
+        )
+    return read_checkpoint(path)
 
 
 def _write_metrics(path: Path, history: list[FitRecord]) -> None:
@@ -305,28 +311,48 @@ def run_marker_training(
     overwrite: bool,
     progress: Callback | None,
     cancel: CancelToken | None = None,
+    resume: bool = False,
+    accept_changes: bool = False,
 ) -> dict[str, Any]:
-    """Train (see the module docstring); the summary of the run."""
+    """Train (see the module docstring); the summary of the run. After each validation
+    checkpoints/last.pt holds the model and its :class:`RolloutPoint`; ``resume`` continues
+    the run in ``spec.out`` from there."""
     paths = list(spec.data or [])
     check_same_rate(datasets, paths)
-    torch.manual_seed(spec.seed)
-    model = starting_model(spec, datasets, paths)
-    if spec.init_from is not None:
-        spec = fine_tuned_spec(spec, model.spec)
+    point = None
+    if resume:
+        out = Path(spec.out)
+        check_fingerprints(out, spec, accept_changes)
+        point = RolloutPoint.from_payload(_resumable(last := out / LAST_CHECKPOINT))
+        if point is None:
+            raise BadInput(f"--resume: {last} is not a resumable checkpoint; start again with "
+                           "--overwrite")  # fmt: skip
+        model = load_model(last, "cpu", expect=spec.model, form=FORM)
+        check_layout(model, datasets, paths, f"--resume {out}")
+    else:
+        torch.manual_seed(spec.seed)
+        model = starting_model(spec, datasets, paths)
+        if spec.init_from is not None:
+            spec = fine_tuned_spec(spec, model.spec)
+        out = prepare_run_dir(spec.out, overwrite)
+        (out / LAST_CHECKPOINT).unlink(missing_ok=True)  # an overwritten run's: not ours to resume
+        write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+        record_fingerprints(out, spec)
     train, val = split_cables(datasets, spec.val_fraction)
-    out = prepare_run_dir(spec.out, overwrite)
-    write_json_atomic(out / "spec.json", spec.model_dump(mode="json"))
+    rate = recorded_rate(datasets[0])
+
+    def on_validation(record: FitRecord, now: RolloutPoint) -> None:
+        _write_marker_metrics(out / "metrics.csv", now.history)
+        extra = {**rate, CABLE_KEYS: model.cable_keys, **now.as_payload()}
+        save_checkpoint(model, out / LAST_CHECKPOINT, extra)
 
     result = fit(model, Cables(train, [c for c in val if c.episodes]), spec,
-                 progress=progress, cancel=cancel)  # fmt: skip
+                 progress=progress, cancel=cancel, on_validation=on_validation,
+                 resume_from=point)  # fmt: skip
     history = result.history
-    seconds = list(accumulate(r.seconds for r in history))  # since the fit started
     save_checkpoint(model, out / "checkpoints" / "final.pt",
-                    {**recorded_rate(datasets[0]), CABLE_KEYS: model.cable_keys})  # fmt: skip
-    lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
-    lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
-              for r, s in zip(history, seconds, strict=True)]  # fmt: skip
-    write_text_atomic(out / "metrics.csv", "\n".join(lines) + "\n")
+                    {**rate, CABLE_KEYS: model.cable_keys})  # fmt: skip
+    seconds = _write_marker_metrics(out / "metrics.csv", history)
     best = min((r.val_loss for r in history), default=math.nan)
     cables = [cable_summary(model, str(p), d, t, v)
               for p, d, t, v in zip(paths, datasets, train, val, strict=True)]  # fmt: skip
@@ -343,12 +369,22 @@ def run_marker_training(
         "val_score_cm": None if math.isnan(best) else round(best, 4),
         "val_freeze_cm": _weighted(val_freeze, cables),
         "cables": cables,
-        "seconds": round(seconds[-1], 1) if history else 0.0,
+        "seconds": round(seconds, 1),
         "out": str(out),
     }
     _plot_history(history, out / "plots" / "loss.png")
     write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+def _write_marker_metrics(path: Path, history: list[FitRecord]) -> float:
+    """metrics.csv of a rollout fit (its seconds counted since the fit started); the seconds."""
+    seconds = list(accumulate(r.seconds for r in history))
+    lines = ["step,k,train_loss_cm,val_score_cm,seconds"]
+    lines += [f"{r.count},{r.k},{r.train_loss:.6g},{r.val_loss:.6g},{s:.2f}"
+              for r, s in zip(history, seconds, strict=True)]  # fmt: skip
+    write_text_atomic(path, "\n".join(lines) + "\n")
+    return seconds[-1] if seconds else 0.0
 
 
 def check_same_rate(datasets: list[MarkerDataset], paths: list[Path]) -> None:
@@ -382,8 +418,16 @@ def starting_model(
     else:
         model = build_marker_model(spec.model, datasets[0].n_markers, datasets[0].held)
         source = f"model {spec.model.name}"
+    check_layout(model, datasets, paths, source)
+    return model
+
+
+def check_layout(
+    model: MarkerModel, datasets: list[MarkerDataset], paths: list[Path], source: str
+) -> None:
+    """BadInput where ``model`` (``source``) of one marker count meets a cable of another."""
     if model.network.any_count:
-        return model
+        return
     for path, dataset in zip(paths, datasets, strict=True):
         if not np.array_equal(model.held.cpu().numpy(), dataset.held):
             raise BadInput(
@@ -392,7 +436,6 @@ def starting_model(
                 "held); train a model that serves any marker count (attention, in-bilstm) "
                 "or give cables of one layout"
             )
-    return model
 
 
 def split_cables(
