@@ -19,9 +19,9 @@ import numpy as np
 import torch
 import yaml
 
-from dlocli.markers.deform import held_markers
-from dlocli.models.markers import build_marker_model
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.spec import TrainSpec
+from dlocli.recorded_cables.deform import held_markers
 
 RECIPES = Path(__file__).parents[1] / "examples" / "real_cables"
 

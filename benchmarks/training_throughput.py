@@ -39,11 +39,11 @@ import numpy as np
 import torch
 import yaml
 
-from dlocli.markers.deform import held_markers
 from dlocli.models.base import resolve_device
+from dlocli.models.marker_model import MarkerModel, build_marker_model
 from dlocli.models.marker_training import Cable, WindowSampler, rollout_loss
-from dlocli.models.markers import MarkerModel, build_marker_model
 from dlocli.models.spec import TrainSpec
+from dlocli.recorded_cables.deform import held_markers
 
 RECIPES = Path(__file__).parents[1] / "examples" / "real_cables"
 

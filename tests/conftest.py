@@ -80,9 +80,9 @@ def marker_run(tmp_path_factory: pytest.TempPathFactory):
     import numpy as np
 
     from dlocli.data import MarkerDataset
-    from dlocli.markers.deform import held_markers
     from dlocli.models.checkpoints import save_checkpoint
-    from dlocli.models.markers import build_marker_model
+    from dlocli.models.marker_model import build_marker_model
+    from dlocli.recorded_cables.deform import held_markers
 
     rng = np.random.default_rng(0)
     line = np.stack([np.linspace(0, 0.8, 6), np.zeros(6), np.full(6, 0.5)], -1)

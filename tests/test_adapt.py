@@ -13,11 +13,11 @@ import pytest
 import torch
 
 from dlocli.data import MarkerDataset, load_dataset
-from dlocli.markers.deform import held_markers
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.checkpoints import load_marker_model, save_checkpoint
 from dlocli.models.code_pick import MEAN_CODE, best, score_candidates
 from dlocli.models.marker_training import Cable, scores_cm
+from dlocli.recorded_cables.deform import held_markers
 
 from tiny import run_dlo, swinging_cable
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dlocli.markers import deform
 from dlocli.models.arc_mlp import ArcMLP, interpolation
-from dlocli.models.markers import build_marker_model
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.mlp import MLP
 from dlocli.models.network import Nodes
 from dlocli.models.spec import ArcMLPSpec, MLPSpec
+from dlocli.recorded_cables import deform
 
 SPEC = {"name": "arc-mlp", "hidden": 32, "layers": 2, "points": 16, "length_projection": 3}
 

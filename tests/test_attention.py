@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from dlocli.markers import deform
 from dlocli.models.fit import fit as fit_model
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.marker_training import Cable, Cables, validation_score
-from dlocli.models.markers import build_marker_model
 from dlocli.models.spec import FitSpec
+from dlocli.recorded_cables import deform
 
 from tiny import swinging_cable
 

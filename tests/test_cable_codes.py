@@ -18,12 +18,12 @@ from typer.testing import CliRunner
 
 from dlocli.data import MarkerDataset, load_dataset
 from dlocli.errors import BadInput
-from dlocli.markers.deform import held_markers
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.checkpoints import load_marker_model
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.marker_training import Cable, scores_cm
-from dlocli.models.markers import build_marker_model
 from dlocli.models.member_fits import joined
+from dlocli.recorded_cables.deform import held_markers
 
 from tiny import pair_and_singles, run_dlo
 

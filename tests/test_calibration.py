@@ -29,7 +29,7 @@ from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.events import Event
 from dlocli.io import written_by_dlo
-from dlocli.markers import deform
+from dlocli.recorded_cables import deform
 from dlocli.registry import backends
 from dlocli.runs.calibrate import run_calibration
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec

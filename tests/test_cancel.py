@@ -19,9 +19,9 @@ from dlocli.bench.spec import BenchSpec
 from dlocli.cancel import CancelToken
 from dlocli.data import MarkerDataset, load_dataset
 from dlocli.events import Began, Event
-from dlocli.markers.importing import run_import
-from dlocli.markers.spec import ImportSpec
 from dlocli.models.spec import EvalSpec, TrainSpec
+from dlocli.recorded_cables.importing import run_import
+from dlocli.recorded_cables.spec import ImportSpec
 from dlocli.runs.evaluate import run_evaluation
 from dlocli.runs.sample import run_sample
 from dlocli.runs.sample_spec import SampleSpec
@@ -285,7 +285,7 @@ def write_spec(spec: BenchSpec, folder: Path) -> Path:
         "dlocli.bench.run:resume_bench",
         "dlocli.runs.sample:run_sample",
         "dlocli.runs.export:export_minari",
-        "dlocli.markers.importing:run_import",
+        "dlocli.recorded_cables.importing:run_import",
         "dlocli.bridge.cell:serve",
         "dlocli.bridge.server:serve",
     ],

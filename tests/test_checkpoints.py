@@ -14,7 +14,6 @@ import torch
 
 import dlocli
 from dlocli.errors import BadInput
-from dlocli.markers.deform import held_markers
 from dlocli.models.base import build_model
 from dlocli.models.checkpoints import (
     CONTROL_DT,
@@ -24,7 +23,8 @@ from dlocli.models.checkpoints import (
     read_checkpoint,
     save_checkpoint,
 )
-from dlocli.models.markers import build_marker_model
+from dlocli.models.marker_model import build_marker_model
+from dlocli.recorded_cables.deform import held_markers
 
 REPO = Path(dlocli.__file__).resolve().parents[1]
 TINY = {"hidden": 8}

@@ -13,14 +13,14 @@ from typer.testing import CliRunner
 
 from dlocli.data import load_dataset
 from dlocli.errors import BadInput
-from dlocli.markers import deform
 from dlocli.models.checkpoints import load_marker_model, load_model
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.fit import fit
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.marker_training import Cable, scores_cm
-from dlocli.models.markers import build_marker_model
 from dlocli.models.network import Nodes
 from dlocli.models.spec import UpdateSpec, model_spec
+from dlocli.recorded_cables import deform
 
 from tiny import pair_and_singles, run_dlo
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from dlocli.markers import deform
+from dlocli.models.marker_model import MarkerModel, build_marker_model
 from dlocli.models.marker_training import Cable, WindowSampler, rollout_loss
-from dlocli.models.markers import MarkerModel, build_marker_model
 from dlocli.models.network import Network, Nodes
 from dlocli.models.spec import FitSpec
+from dlocli.recorded_cables import deform
 
 from tiny import swinging_cable
 

@@ -261,7 +261,7 @@ _PEAK = """
 import json, resource, sys, time
 resource.setrlimit(resource.RLIMIT_AS, (2**30, 2**30))  # a regression fails, not swaps
 from dlocli.errors import BadInput
-from dlocli.markers.plain_pickle import load_plain
+from dlocli.recorded_cables.plain_pickle import load_plain
 data = sys.stdin.buffer.read()
 before, start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, time.perf_counter()
 try:

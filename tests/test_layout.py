@@ -109,7 +109,7 @@ LAYERS = [
     "specs", "cell_spec", "resume", "executors",
     # data, simulators, the task (and the package's namespace over it), learned models,
     # recordings, the depth camera and tracker
-    "data", "backends", "env", "dlocli", "models", "markers", "tracking",
+    "data", "backends", "env", "dlocli", "models", "recorded_cables", "tracking",
     # what acts on the rod, its figures, the calibration, the served cell
     "controllers", "plots", "calibration", "bridge",
     # the commands' runs, the bench over them, the CLI
@@ -318,10 +318,10 @@ def test_no_module_over_500_lines():
 
 
 def test_data_and_models_do_not_import_the_recordings_room():
-    """Datasets and models sit below `dlocli/markers/` (importing recordings): what both need
-    of recorded cables (the marker dataset, the DEFORM protocol) lives in `dlocli/data/`."""
+    """Datasets and models sit below `dlocli/recorded_cables/` (importing recordings): what both
+    need of recorded cables (the marker dataset, the DEFORM protocol) lives in `dlocli/data/`."""
     graph = import_graph()
     low = [m for m in graph if m.startswith(("dlocli.data", "dlocli.models"))]
     assert len(low) > 20, "the check would be vacuous: no data or models modules found"
-    upward = {m: sorted(i for i in graph[m] if i.startswith("dlocli.markers")) for m in low}
+    upward = {m: sorted(i for i in graph[m] if i.startswith("dlocli.recorded_cables")) for m in low}
     assert not {m: i for m, i in upward.items() if i}, upward

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dlocli.data import MarkerDataset
-from dlocli.markers.deform import held_markers
+from dlocli.recorded_cables.deform import held_markers
 
 from tiny import FRAMES, run_dlo, swinging_cable
 

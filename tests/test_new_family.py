@@ -16,13 +16,13 @@ from typer.testing import CliRunner
 
 from dlocli.data import MarkerDataset, load_dataset
 from dlocli.errors import BadInput, UnknownName
-from dlocli.markers.deform import held_markers
 from dlocli.models.base import NO_CABLE_CODES, build_model
 from dlocli.models.checkpoints import load_marker_model, load_model, load_planning_model
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.fit import ENSEMBLE_DOES_NOT_RESUME
 from dlocli.models.member_fits import member_state
 from dlocli.models.spec import TrainSpec
+from dlocli.recorded_cables.deform import held_markers
 from dlocli.registry import models
 from dlocli.runs.train import run_training
 

@@ -16,7 +16,7 @@ from dlocli.env.rollout import ActionSequence, random_actions, random_episode, r
 from dlocli.env.shape_env import make_env
 from dlocli.errors import BadInput
 from dlocli.models.base import valid_model_spec
-from dlocli.models.markers import build_marker_model
+from dlocli.models.marker_model import build_marker_model
 from dlocli.specs import ObservationSpec
 
 from tiny import MUJOCO_ROD

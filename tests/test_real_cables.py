@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from dlocli.data import Dataset, MarkerDataset, load_dataset, protocol
-from dlocli.markers import deform
+from dlocli.recorded_cables import deform
 from dlocli.registry import models
 
 from tiny import FRAMES, MARKERS, run_dlo, swinging_cable, write_cable
@@ -174,7 +174,7 @@ def test_a_stopped_marker_run_resumes_to_the_same_bits(
 def test_every_registered_model_works_in_the_marker_view(name: str) -> None:
     import torch
 
-    from dlocli.models.markers import build_marker_model
+    from dlocli.models.marker_model import build_marker_model
 
     held = deform.held_markers(MARKERS)
     model = build_marker_model({"name": name, "hidden": 8}, MARKERS, held)
@@ -250,7 +250,7 @@ def test_the_length_projection_keeps_held_markers_and_restores_lengths() -> None
     markers stay; the neighbour distances come back to the requested ones."""
     import torch
 
-    from dlocli.models.markers import neighbour_distances, project_lengths
+    from dlocli.models.marker_model import neighbour_distances, project_lengths
 
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(3, 12, 3, generator=gen)

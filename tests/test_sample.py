@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dlocli.data import MarkerDataset, load_dataset
-from dlocli.markers.deform import read_trajectory
+from dlocli.recorded_cables.deform import read_trajectory
 from dlocli.runs.sample_spec import SampleSpec
 
 from tiny import file_digests, run_dlo

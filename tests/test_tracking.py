@@ -11,7 +11,7 @@ import pytest
 from dlocli.env.shape_env import make_env
 from dlocli.errors import BadInput
 from dlocli.models.base import valid_model_spec
-from dlocli.models.markers import build_marker_model
+from dlocli.models.marker_model import build_marker_model
 from dlocli.specs import TaskSpec
 from dlocli.tracking.camera import CloudFrame, DepthCamera
 from dlocli.tracking.frames import load_frames, save_frames

@@ -15,9 +15,9 @@ from dlocli.controllers.views import MarkerView
 from dlocli.env.rollout import ActionSequence, rollout
 from dlocli.env.shape_env import make_env
 from dlocli.errors import BadInput, BadOption
-from dlocli.markers import deform
 from dlocli.models.base import valid_model_spec
-from dlocli.models.markers import build_marker_model
+from dlocli.models.marker_model import build_marker_model
+from dlocli.recorded_cables import deform
 from dlocli.specs import BackendSpec, EnvSpec, RodSpec, TaskSpec
 
 from tiny import MUJOCO_ROD

@@ -36,7 +36,7 @@ from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.events import Callback, Event
-from dlocli.markers import deform
+from dlocli.recorded_cables import deform
 from dlocli.registry import backends
 from dlocli.specs import BackendSpec, ObservationSpec, RodSpec, format_validation_error
 

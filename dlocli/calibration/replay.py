@@ -35,7 +35,7 @@ from dlocli.backends.base import Backend, GripperLimits
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize, quat_rotate
 from dlocli.data import protocol
 from dlocli.errors import BadInput
-from dlocli.markers.deform import held_markers
+from dlocli.recorded_cables.deform import held_markers
 
 WORKSPACE_MARGIN = 0.1  # m around the recorded gripper positions
 #: closest two held markers at one end may be (m): the gripper's axis runs through them

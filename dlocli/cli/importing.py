@@ -6,9 +6,9 @@ from __future__ import annotations
 from dlocli.cli.common import emit_summary, handle_errors
 from dlocli.cli.flags import RunFlags, spec_flags
 from dlocli.cli.progress import Bars
-from dlocli.markers.importing import run_import
-from dlocli.markers.spec import ImportSpec
 from dlocli.processes import signal_token
+from dlocli.recorded_cables.importing import run_import
+from dlocli.recorded_cables.spec import ImportSpec
 
 
 @handle_errors

@@ -1,7 +1,7 @@
 """Learned dynamics models: one network per architecture, one module each, all implementing
 :class:`~dlocli.models.network.Network` and registered here in :data:`dlocli.registry.models`,
 seen through the rod view (:class:`~dlocli.models.base.DynamicsModel`) or the marker view
-(:class:`~dlocli.models.markers.MarkerModel`); each declares its options as a
+(:class:`~dlocli.models.marker_model.MarkerModel`); each declares its options as a
 :class:`~dlocli.models.spec.ModelSpec` subclass, ``spec_cls`` (registered beside it, so
 ``--help`` lists them without importing torch).
 
@@ -43,7 +43,7 @@ _EXPORTS = {
     "ModelSpec": "dlocli.models.spec",
     "model_spec": "dlocli.models.spec",
     "DynamicsModel": "dlocli.models.base",
-    "MarkerModel": "dlocli.models.markers",
+    "MarkerModel": "dlocli.models.marker_model",
     "Network": "dlocli.models.network",
     "Nodes": "dlocli.models.network",
     "build_model": "dlocli.models.base",

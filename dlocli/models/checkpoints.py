@@ -9,7 +9,7 @@ period of its training data (``control_dt``, absent in older ones) and what its 
 (an optimizer's state, an epoch, ...). Its ``form`` (:mod:`dlocli.data.format`) says which
 view it holds its network in: ``"rod"`` (a :class:`~dlocli.models.base.DynamicsModel`;
 checkpoints without the tag hold one) or ``"markers"`` (a
-:class:`~dlocli.models.markers.MarkerModel`); it is written from the model and read in
+:class:`~dlocli.models.marker_model.MarkerModel`); it is written from the model and read in
 :func:`checkpoint_form` only. Checkpoints written before the views held one network (format
 version 3 and older) have their weights renamed and laid out for it where they are read
 (:func:`current_weights`).
@@ -35,7 +35,7 @@ from dlocli.io import versions, write_bytes_atomic
 from dlocli.migrations import completed
 from dlocli.models.base import ACTION_DIM, STATE_DIM, build_model, resolve_device, valid_model_spec
 from dlocli.models.cable_codes import no_codes
-from dlocli.models.markers import SCALES, build_marker_model
+from dlocli.models.marker_model import SCALES, build_marker_model
 from dlocli.models.spec import ModelSpec
 
 CHECKPOINT_FORMAT = "dlocli-checkpoint"

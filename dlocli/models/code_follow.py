@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dlocli.models.code_pick import MEAN_CODE, best, score_candidates
-from dlocli.models.markers import MarkerModel
+from dlocli.models.marker_model import MarkerModel
 
 #: frames at the window's start fitted by a line, the rollout's start (0.08 s at 100 Hz)
 START_FRAMES = 8

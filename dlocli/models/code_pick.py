@@ -21,8 +21,8 @@ from dlocli.data.protocol import deform_score_cm, freeze
 from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event
 from dlocli.models.cable_codes import cable_key
+from dlocli.models.marker_model import MarkerModel
 from dlocli.models.marker_training import predict_episodes
-from dlocli.models.markers import MarkerModel
 from dlocli.specs import MAX_SPEC_BYTES
 
 #: the candidate that is no training cable's code: their mean

@@ -34,8 +34,8 @@ from dlocli.models.base import ONE_NETWORK_ONLINE, DynamicsModel
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.fitting import TrainResult
+from dlocli.models.marker_model import MarkerModel
 from dlocli.models.marker_training import Cable, Cables, _fit_markers
-from dlocli.models.markers import MarkerModel
 from dlocli.models.member_fits import fit_members, fit_rod_members
 from dlocli.models.rod_training import _train_model
 from dlocli.models.spec import FitSpec, UpdateSpec

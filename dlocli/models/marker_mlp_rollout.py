@@ -15,7 +15,7 @@ whose fixed costs were most of the step's time even with the fixed arithmetic fu
   products of B rows (the same sum, faster to compute in one go).
 
 The rollout's inputs (starts, held markers' futures) take no gradient here; where they want
-one the per-step path of :class:`~dlocli.models.markers.MarkerModel` runs.
+one the per-step path of :class:`~dlocli.models.marker_model.MarkerModel` runs.
 """
 
 from __future__ import annotations

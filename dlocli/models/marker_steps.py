@@ -1,6 +1,6 @@
 """The marker models' fixed arithmetic around the network, fused for CPU training.
 
-One open-loop step of a marker model (:mod:`dlocli.models.markers`) is the network between
+One open-loop step of a marker model (:mod:`dlocli.models.marker_model`) is the network between
 two pieces of fixed arithmetic: the features before it (centroid-relative positions,
 velocities, held displacements, all scaled) and the advance after it (the Verlet update, the
 held markers set, then ``length_projection`` sweeps of the neighbour-distance projection).

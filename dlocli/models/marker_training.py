@@ -38,7 +38,7 @@ from dlocli.events import Callback
 from dlocli.models.base import resolve_device
 from dlocli.models.cable_codes import cable_key
 from dlocli.models.fitting import FitRecord, KeepBest, Round, Unit, fit_loop
-from dlocli.models.markers import MarkerModel
+from dlocli.models.marker_model import MarkerModel
 from dlocli.models.spec import FitSpec
 
 CM = 0.01

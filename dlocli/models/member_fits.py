@@ -38,8 +38,8 @@ from dlocli.executors import LocalExecutor
 from dlocli.models.base import DynamicsModel, build_model, resolve_device
 from dlocli.models.ensemble import Ensemble
 from dlocli.models.fitting import FitRecord, TrainResult
+from dlocli.models.marker_model import SCALES, MarkerModel
 from dlocli.models.marker_training import Cable, _fit_markers, validation_score
-from dlocli.models.markers import SCALES, MarkerModel
 from dlocli.models.rod_training import _train_model, set_up, validation_loss
 from dlocli.models.spec import FitSpec
 from dlocli.threads import machine_cpus

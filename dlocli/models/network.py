@@ -1,7 +1,7 @@
 """The network contract: one network per architecture, over the nodes along a cable.
 
 A network maps per-node inputs to per-node outputs and knows nothing of what the nodes are.
-A view (:mod:`dlocli.models.base`, the rod's segments; :mod:`dlocli.models.markers`, tracked
+A view (:mod:`dlocli.models.base`, the rod's segments; :mod:`dlocli.models.marker_model`, tracked
 markers) turns what it observes into the inputs, normalised, and the outputs back into the
 next state; it tells the network the layout of its inputs in a :class:`Nodes`. So a network
 written once works in both views: `dlo train` and `dlo eval` on rod or marker datasets,

@@ -35,8 +35,8 @@ from dlocli.models.cable_codes import cable_key, chosen_code
 from dlocli.models.checkpoints import CABLE_KEYS, FINAL_CHECKPOINT, load_model, save_checkpoint
 from dlocli.models.code_pick import Candidate, best, cable_names, freeze_cm, score_candidates
 from dlocli.models.fit import fit
+from dlocli.models.marker_model import MarkerModel
 from dlocli.models.marker_training import Cable, Cables, scores_cm
-from dlocli.models.markers import MarkerModel
 from dlocli.models.spec import AdaptSpec
 from dlocli.rundir import owned
 from dlocli.runs.train import recorded_rate

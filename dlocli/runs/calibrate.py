@@ -38,7 +38,7 @@ from dlocli.io import (
     write_json_atomic,
     write_text_atomic,
 )
-from dlocli.markers import deform
+from dlocli.recorded_cables import deform
 from dlocli.registry import backends
 from dlocli.resume import resumed_run_spec
 from dlocli.rundir import owned, refuse_out_by_source

@@ -1,6 +1,6 @@
 """`dlo eval`: a trained model's one-step and open-loop errors on a dataset, next to
 persistence's (:mod:`dlocli.models.evaluation`); on recorded cables, the data set's published
-protocol (:mod:`dlocli.markers.evaluation`)."""
+protocol (:mod:`dlocli.recorded_cables.evaluation`)."""
 
 from __future__ import annotations
 
@@ -13,17 +13,17 @@ from dlocli.data import Dataset, MarkerDataset, load_dataset
 from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event, ignore
 from dlocli.io import check_writable, prepare_run_dir, write_json_atomic
-from dlocli.markers.evaluation import (
-    MARKER_PARTS,
-    marker_evaluation_parts,
-    plot_error_by_horizon,
-)
 from dlocli.models.base import check_control_rate
 from dlocli.models.checkpoints import load_model
 from dlocli.models.evaluation import HORIZONS, evaluation_parts
 from dlocli.models.marker_training import predict_episodes
 from dlocli.models.spec import EvalSpec
 from dlocli.plots import plot_rollout
+from dlocli.recorded_cables.evaluation import (
+    MARKER_PARTS,
+    marker_evaluation_parts,
+    plot_error_by_horizon,
+)
 from dlocli.rundir import owned
 from dlocli.runs.recording import RunRecording, check_record_path
 

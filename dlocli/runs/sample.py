@@ -40,7 +40,7 @@ from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event, ignore
 from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
 from dlocli.limits import refuse_unless_fits
-from dlocli.markers.spec import UNITS
+from dlocli.recorded_cables.spec import UNITS
 from dlocli.rundir import owned
 from dlocli.runs.checks import check_registered
 from dlocli.runs.sample_spec import DEFAULT_RATE_HZ, SampleSpec

@@ -46,8 +46,8 @@ from dlocli.models.checkpoints import (
 from dlocli.models.evaluation import evaluate_model
 from dlocli.models.fit import ENSEMBLE_DOES_NOT_RESUME, fit
 from dlocli.models.fitting import FitRecord, KeepBest
+from dlocli.models.marker_model import FORM, MarkerModel, build_marker_model
 from dlocli.models.marker_training import Cable, Cables, RolloutPoint, validation_score
-from dlocli.models.markers import FORM, MarkerModel, build_marker_model
 from dlocli.models.spec import ModelSpec, TrainSpec
 from dlocli.models.splits import split_episodes
 from dlocli.plots import plot_losses, plot_rollout

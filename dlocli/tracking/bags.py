@@ -17,7 +17,7 @@ import numpy as np
 
 from dlocli.errors import BadInput
 from dlocli.extras import require
-from dlocli.markers.rosbag import POINT_CLOUD, read_topic
+from dlocli.recorded_cables.rosbag import POINT_CLOUD, read_topic
 from dlocli.tracking.camera import CloudFrame
 from dlocli.tracking.frames import FrameSequence
 

@@ -25,7 +25,7 @@ import numpy as np
 from dlocli.errors import BadInput
 from dlocli.io import atomic_path
 from dlocli.limits import refuse_unless_fits
-from dlocli.markers.formats import require_regular_file
+from dlocli.recorded_cables.formats import require_regular_file
 from dlocli.tracking.camera import CloudFrame
 
 REQUIRED = ("points", "counts", "times", "extrinsics")

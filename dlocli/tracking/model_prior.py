@@ -1,5 +1,5 @@
 """The learned dynamics as the tracker's prior: one step of a marker model
-(:mod:`dlocli.models.markers`), the held nodes' next positions as its input.
+(:mod:`dlocli.models.marker_model`), the held nodes' next positions as its input.
 
 Kept thin and apart so that it can follow the model to its marker view: only
 :meth:`MarkerModelPrior.predict` knows how the model is called.
@@ -14,7 +14,7 @@ import torch
 
 from dlocli.errors import BadInput
 from dlocli.models.checkpoints import load_marker_model
-from dlocli.models.markers import MarkerModel, neighbour_distances
+from dlocli.models.marker_model import MarkerModel, neighbour_distances
 from dlocli.tracking.priors import check_history
 
 

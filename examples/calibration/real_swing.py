@@ -312,7 +312,7 @@ def rest_stretches(markers: list[np.ndarray], held: np.ndarray) -> dict[str, obj
 
 
 def analyse(deform: Path, replays: Path, out: Path, cables: list[str]) -> None:
-    from dlocli.markers import deform as deform_format
+    from dlocli.recorded_cables import deform as deform_format
 
     found: dict[str, object] = {}
     for cable in cables or sorted(p.name for p in deform.iterdir() if p.name.startswith("DLO")):

@@ -24,12 +24,12 @@ from pathlib import Path
 import torch
 import yaml
 
-from dlocli.markers import deform
 from dlocli.models.fit import fit
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.marker_training import Cable, Cables, validation_score
-from dlocli.models.markers import build_marker_model
 from dlocli.models.spec import TrainSpec
 from dlocli.models.splits import split_episodes
+from dlocli.recorded_cables import deform
 
 HERE = Path(__file__).parent
 CABLES = ("DLO1", "DLO2", "DLO3", "DLO4")

@@ -1,5 +1,5 @@
 """The online loop's model update with the markers observation: the marker form of the model
-(:mod:`dlocli.models.markers`) learns from what the tracker reported, as it would on a real
+(:mod:`dlocli.models.marker_model`) learns from what the tracker reported, as it would on a real
 cell, never from the simulator's exact state.
 
 Each episode of D gives the tracker's reports with the held markers placed by the gripper
@@ -23,8 +23,8 @@ from dlocli.errors import BadInput
 from dlocli.events import Callback
 from dlocli.models.fit import fit as fit_model
 from dlocli.models.fitting import TrainResult
+from dlocli.models.marker_model import build_marker_model
 from dlocli.models.marker_training import Cable, Cables
-from dlocli.models.markers import build_marker_model
 from dlocli.models.splits import split_episodes
 from dlocli.specs import EnvSpec
 

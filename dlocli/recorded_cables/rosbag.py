@@ -22,7 +22,7 @@ import numpy as np
 
 from dlocli.errors import BadInput
 from dlocli.extras import require
-from dlocli.markers.formats import Reader, Trajectory, filled, from_array
+from dlocli.recorded_cables.formats import Reader, Trajectory, filled, from_array
 
 POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"

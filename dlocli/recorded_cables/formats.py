@@ -3,14 +3,14 @@
 A cable folder holds ``train/`` and ``eval/``; each file in them is read by the reader of its
 suffix and gives one or more trajectories, (frames, V, 3) float64 in the recording's units:
 
-- ``.pkl``: DEFORM's pickled (frames, 3, V) lists (:mod:`~dlocli.markers.deform`).
+- ``.pkl``: DEFORM's pickled (frames, 3, V) lists (:mod:`~dlocli.recorded_cables.deform`).
 - ``.npy``: one array, (frames, 3, V) as DEFORM stores it or (frames, V, 3); with V >= 4 the
   two never look alike. Loaded memory-mapped with ``allow_pickle=False``.
 - ``.npz``: one such array per key; a file of one key is named by its stem, otherwise each
   trajectory is ``stem.key``.
 - ``.h5`` / ``.hdf5``: one such array per dataset (every group visited), named likewise.
 - ``.csv``: motion capture, one trajectory per file (:func:`read_csv`), at its frame times.
-- a folder: a ROS 2 bag, one trajectory (:mod:`~dlocli.markers.rosbag`), at its stamps.
+- a folder: a ROS 2 bag, one trajectory (:mod:`~dlocli.recorded_cables.rosbag`), at its stamps.
 
 Each array's shape and type are read before its numbers, and refused past the memory budget.
 """
@@ -32,7 +32,7 @@ import numpy as np
 from dlocli.cancel import CancelToken
 from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event, ignore
-from dlocli.markers import deform
+from dlocli.recorded_cables import deform
 
 #: a reader: (file, memory budget in bytes, --fill-gaps) -> trajectories
 Reader = Callable[[Path, int, int], list["Trajectory"]]

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from dlocli.errors import BadInput
-from dlocli.markers import deform
-from dlocli.markers.spec import DEFAULT_RATE_HZ, ImportSpec
+from dlocli.recorded_cables import deform
+from dlocli.recorded_cables.spec import DEFAULT_RATE_HZ, ImportSpec
 
 #: how far (a fraction of the median interval) an interval may be from it and be on time
 ON_TIME = 0.01
@@ -86,7 +86,7 @@ def to_control_rate(
     read: dict[str, list[Any]], spec: ImportSpec, budget_bytes: int
 ) -> tuple[dict[str, list[tuple[str, np.ndarray]]], float, dict[str, Any]]:
     """``{split: [(name, (frames, V, 3)), ...]}`` at the control rate from the recordings
-    ``read`` (:class:`~dlocli.markers.formats.Trajectory`), that rate, and the report for
+    ``read`` (:class:`~dlocli.recorded_cables.formats.Trajectory`), that rate, and the report for
     the summary; BadInput for bad times, gaps past ``spec.fill_gaps`` or rates that differ
     without ``spec.control_hz``."""
     clocks = {}

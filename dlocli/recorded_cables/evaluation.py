@@ -13,8 +13,8 @@ import torch
 
 from dlocli.data import MarkerDataset, protocol
 from dlocli.io import atomic_path
+from dlocli.models.marker_model import MarkerModel
 from dlocli.models.marker_training import predict_episodes
-from dlocli.models.markers import MarkerModel
 from dlocli.threads import torch_threads
 
 TIMING_STEPS = 200

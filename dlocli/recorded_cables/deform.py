@@ -2,7 +2,7 @@
 
 Each ``.pkl`` is a pickled nested list of floats, shape (frames, 3, V): x/y/z in metres of V
 markers along the cable. Pickles can run code when loaded, so they are read by
-:mod:`~dlocli.markers.plain_pickle`: a plain list of numbers loads, anything that names a
+:mod:`~dlocli.recorded_cables.plain_pickle`: a plain list of numbers loads, anything that names a
 class or function, reuses an object or does not fit the memory budget is refused before it
 is built. Only regular files are opened (a FIFO named ``x.pkl`` would block the read).
 """
@@ -17,8 +17,8 @@ import numpy as np
 
 from dlocli.data import DATASET_FILE, MarkerDataset, load_dataset
 from dlocli.errors import BadInput
-from dlocli.markers.plain_pickle import load_plain
-from dlocli.markers.spec import DEFAULT_MEMORY_MIB
+from dlocli.recorded_cables.plain_pickle import load_plain
+from dlocli.recorded_cables.spec import DEFAULT_MEMORY_MIB
 
 SPLITS = ("train", "eval")
 MIN_MARKERS = 4  # two held at each end

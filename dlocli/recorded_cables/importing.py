@@ -10,8 +10,8 @@ from dlocli.cancel import CancelToken
 from dlocli.data import MarkerDataset, protocol, save_dataset_run
 from dlocli.errors import BadInput
 from dlocli.events import Callback, ignore
-from dlocli.markers import deform, formats, rosbag, timing
-from dlocli.markers.spec import UNITS, ImportSpec
+from dlocli.recorded_cables import deform, formats, rosbag, timing
+from dlocli.recorded_cables.spec import UNITS, ImportSpec
 from dlocli.rundir import refuse_out_by_source
 
 #: plausible length (m) of a recorded cable along its markers; outside it, a unit error
