@@ -2,11 +2,14 @@
 the installed MuJoCo (4: the flex rod, 3.17: the composite cable).
 
     python benchmarks/main_job_seeds.py run OUT --label LABEL [--spec FILE] [--seeds 0,1,2,3,4]
+                                            [--count FLAG=N ...]
     python benchmarks/main_job_seeds.py report OUT [OUT ...] [--write STEM]
 
 ``run``: the README's main command (read from the README, its counts as they are) once per
 seed into OUT/<backend>-<LABEL>-s<seed>, with ``--spec FILE`` added when given (e.g.
-examples/flex_planner.yaml). A finished run is kept (delete it to measure again). ``report``:
+examples/flex_planner.yaml), and each ``--count`` replacing one of the command's counts (e.g.
+``--count trials=8``: the job's own counts, which a spec file cannot change since the
+command's flags override it). A finished run is kept (delete it to measure again). ``report``:
 per rod and label, each seed's score (1 - final / initial, the summary's), the final error,
 doing nothing and random actions from the same starts, MPC milliseconds per control step and
 wall seconds as the run measured them; the mean and the worst score. The label ``default`` is
@@ -32,17 +35,29 @@ from dlocli.backend_spec import default_backend
 REFERENCE = "default"  # the label of the README's command as it is
 
 
-def run(out: Path, seeds: list[int], label: str, spec: Path | None) -> None:
+def run(out: Path, seeds: list[int], label: str, spec: Path | None, counts: dict[str, str]) -> None:
     backend = default_backend()  # the command's own rod: the installed MuJoCo's
     extra = [] if spec is None else ["--spec", str(spec)]
+    command = with_counts(readme_command(), counts)
     for seed in seeds:
         folder = out / f"{backend}-{label}-s{seed}"
         if finished(folder):
             continue
-        command = [sys.executable, "-m", "dlocli", *readme_command(), *extra,
-                   "--seed", str(seed), "--out", str(folder), "--json"]  # fmt: skip
-        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+        call = [sys.executable, "-m", "dlocli", *command, *extra,
+                "--seed", str(seed), "--out", str(folder), "--json"]  # fmt: skip
+        subprocess.run(call, check=True, stdout=subprocess.DEVNULL)
         print(f"{folder.name}: {row(folder)}", flush=True)
+
+
+def with_counts(command: list[str], counts: dict[str, str]) -> list[str]:
+    """``command`` with the value after each ``--FLAG`` of ``counts`` replaced (SystemExit
+    naming a flag the command does not have)."""
+    command = list(command)
+    for flag, value in counts.items():
+        if f"--{flag}" not in command:
+            raise SystemExit(f"--count {flag}: the README's command has no --{flag}")
+        command[command.index(f"--{flag}") + 1] = value
+    return command
 
 
 def finished(folder: Path) -> bool:
@@ -62,6 +77,7 @@ def row(folder: Path) -> dict[str, Any]:
         "backend": spec["backend"]["name"],
         "label": folder.name.removeprefix(spec["backend"]["name"] + "-").rsplit("-s", 1)[0],
         "seed": spec["seed"],
+        "counts": f"{spec['iters']} x {spec['trials']}, {spec['initial_episodes']} random",
         "score": round(summary["score"], 3),
         "initial_mm": round(summary["initial_error_mm"], 1),
         "final_mm": round(summary["final_error_mm"], 1),
@@ -77,22 +93,22 @@ def row(folder: Path) -> dict[str, Any]:
 def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
     found = [f for out in outs for f in out.iterdir() if finished(f)]
     rows = sorted(map(row, found), key=lambda r: (r["backend"], r["label"], r["seed"]))
-    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault((r["backend"], r["label"]), []).append(r)
+        groups.setdefault((r["backend"], r["label"], r["counts"]), []).append(r)
     lines = [
-        "| rod | planner | seeds | scores | mean | worst | final mm (mean) | doing nothing mm "
-        "| random mm | MPC ms/step | wall s (max) |",
-        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| rod | variant | iterations x trials, initial | seeds | scores | mean | worst | final "
+        "mm (mean) | doing nothing mm | random mm | MPC ms/step | wall s (max) |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     summary: dict[str, Any] = {"rows": rows, "groups": {}}
-    for (backend, label), members in groups.items():
+    for (backend, label, counts), members in groups.items():
         scores = [m["score"] for m in members]
 
         def mean(key: str, members: list[dict[str, Any]] = members) -> float:
             return sum(m[key] for m in members) / len(members)
 
-        group = {"seeds": [m["seed"] for m in members], "scores": scores,
+        group = {"counts": counts, "seeds": [m["seed"] for m in members], "scores": scores,
                  "mean_score": round(sum(scores) / len(scores), 3), "worst_score": min(scores),
                  "final_mm": round(mean("final_mm"), 1), "zero_mm": round(mean("zero_mm"), 1),
                  "random_mm": round(mean("random_mm"), 1),
@@ -100,7 +116,7 @@ def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
                  "wall_s_max": max(m["wall_s"] for m in members)}  # fmt: skip
         summary["groups"][f"{backend}/{label}"] = group
         lines.append(
-            f"| {backend} | {label} | {', '.join(map(str, group['seeds']))} | "
+            f"| {backend} | {label} | {counts} | {', '.join(map(str, group['seeds']))} | "
             f"{' / '.join(f'{s:.3f}' for s in scores)} | {group['mean_score']:.3f} | "
             f"{group['worst_score']:.3f} | {group['final_mm']} | {group['zero_mm']} | "
             f"{group['random_mm']} | {group['mpc_ms_per_step']} | {group['wall_s_max']} |"
@@ -121,12 +137,20 @@ def main() -> None:
     go.add_argument("--seeds", default="0,1,2,3,4")
     go.add_argument("--label", default=REFERENCE, help="names the runs' folders")
     go.add_argument("--spec", type=Path, default=None, help="a spec file added to the command")
+    go.add_argument(
+        "--count",
+        action="append",
+        default=[],
+        metavar="FLAG=N",
+        help="replace one of the command's counts, e.g. trials=8; repeatable",
+    )
     show = sub.add_parser("report")
     show.add_argument("outs", type=Path, nargs="+")
     show.add_argument("--write", type=Path, default=None, help="stem of the .md and .json")
     args = parser.parse_args()
     if args.what == "run":
-        run(args.out, [int(s) for s in args.seeds.split(",")], args.label, args.spec)
+        counts = dict(item.split("=", 1) for item in args.count)
+        run(args.out, [int(s) for s in args.seeds.split(",")], args.label, args.spec, counts)
         return
     table, summary = report(args.outs)
     print(table)
