@@ -13,7 +13,8 @@ each command in the environment of the run's backend).
                                                [--offset-mm D] [--turn-deg A]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
                                                   [--from-step S]
-    python benchmarks/flex_control_gap.py retrain RUN K OUT
+    python benchmarks/flex_control_gap.py retrain RUN K OUT [--seed S]
+    python benchmarks/flex_control_gap.py ensemble OUT COPY [COPY ...]
     python benchmarks/flex_control_gap.py swing BACKEND [--rod JSON]
 
 ``model``: per iteration k, the one-step loss of iteration k's model (normalised change of each
@@ -34,7 +35,9 @@ poses from the same starts (:func:`pose_report`). ``horizon``:
 iteration K's model open loop on the trials it drove (from step S on), its position error
 after 1, 5, 10, 20 steps beside the recorded motion over as many steps. ``retrain``:
 iteration 3's model retrained through K-step rollouts (:func:`retrain`), into a copy of the
-run at OUT. ``swing``: the sideways swing decay of the task's rod
+run at OUT (``--seed``: its batches and input noise). ``ensemble``: retrained copies'
+iteration-3 models averaged as one ensemble (:func:`ensemble`), into a copy of the first at
+OUT. ``swing``: the sideways swing decay of the task's rod
 (examples/calibration/swing_decay.py's measurement). Each prints one JSON object.
 """
 
@@ -166,11 +169,12 @@ def horizon_report(run: Path, k: int, steps: tuple[int, ...], first: int = 1) ->
             "its_trials": open_loop_error(model, _datasets(run)[k], steps, first)}  # fmt: skip
 
 
-def retrain(run: Path, k: int, out: Path, epochs: int = 10) -> dict[str, Any]:
+def retrain(run: Path, k: int, out: Path, epochs: int = 10, seed: int = 0) -> dict[str, Any]:
     """Iteration 3's model retrained from iteration 2's weights on the same data (initial and
     iterations 1-2; lr 1e-3, batch 64, input noise 0.1, no mirror) through k-step open-loop
     rollouts of the recorded actions (k = 1: the one-step loss), as many gradient steps for
-    every k; written into ``out``, a copy of the run, for ``trials`` and ``horizon``."""
+    every k; written into ``out``, a copy of the run, for ``trials`` and ``horizon``. ``seed``
+    draws the batches and the input noise."""
     import shutil
     import time
 
@@ -179,7 +183,7 @@ def retrain(run: Path, k: int, out: Path, epochs: int = 10) -> dict[str, Any]:
     from dlocli.models.base import apply_delta, target_delta
     from dlocli.models.checkpoints import load_model, save_checkpoint
 
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     torch.set_num_threads(1)
     data = _datasets(run)
     seen = data[0].concat(data[1], data[2])
@@ -190,7 +194,7 @@ def retrain(run: Path, k: int, out: Path, epochs: int = 10) -> dict[str, Any]:
     starts = np.flatnonzero((np.arange(n) + k - 1 < n) & (rows_of[last] == rows_of + k - 1))
     model = load_model(run / "checkpoints" / "iter_02.pt").train().requires_grad_(True)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator().manual_seed(seed)
     began = time.perf_counter()
     for _ in range(epochs * (n // 64)):
         idx = torch.as_tensor(starts)[torch.randint(len(starts), (64,), generator=gen)]
@@ -213,6 +217,29 @@ def retrain(run: Path, k: int, out: Path, epochs: int = 10) -> dict[str, Any]:
     save_checkpoint(model.eval(), out / "checkpoints" / "iter_03.pt")
     return {"run": str(run), "k": k, "out": str(out), "train_seconds": round(seconds),
             "its_trials": open_loop_error(model, data[3], (1, 5, 10, 20))}  # fmt: skip
+
+
+def ensemble(out: Path, copies: list[Path]) -> dict[str, Any]:
+    """The iteration-3 models of ``copies`` (``retrain`` outputs of one run) as one ensemble
+    (their predicted changes averaged every step, :mod:`dlocli.models.ensemble`; the first
+    copy's normalisation), written into ``out``, a copy of the first, for ``trials`` and
+    ``sweep``."""
+    import shutil
+
+    from dlocli.models.base import DynamicsModel
+    from dlocli.models.checkpoints import load_model, save_checkpoint
+
+    members = [load_model(c / "checkpoints" / "iter_03.pt") for c in copies]
+    spec = members[0].spec.model_copy(update={"members": len(members)})
+    model = DynamicsModel(spec, members[0].n_segments)
+    buffers = {k: v for k, v in members[0].state_dict().items() if not k.startswith("network.")}
+    model.load_state_dict(buffers, strict=False)
+    for slot, member in zip(model.network.members, members, strict=True):
+        slot.load_state_dict(member.network.state_dict())
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.copytree(copies[0], out)
+    save_checkpoint(model.eval(), out / "checkpoints" / "iter_03.pt")
+    return {"out": str(out), "members": [str(c) for c in copies]}
 
 
 def model_report(run: Path) -> dict[str, Any]:
@@ -271,7 +298,7 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
             policy = NoisyPolicy(planner, noise, spec.noise_probability, spec.noise_std)
             episode = rollout(env, policy, seed)
             error = shape_error_mm(episode.positions, episode.goal)
-            off_mm, off_deg = gripper_offset(env)
+            off_mm, off_deg, roll_deg, tilt_deg = gripper_offset(env)
             for _ in range(HOLD):
                 env.step(np.zeros(env.action_space.shape))
             held = float(shape_error_mm(env.state_parts()["positions"], episode.goal))
@@ -281,6 +308,7 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
                 "last40_least_mm": float(error[-LAST:].min()), "held_mm": held,
                 "score": 1.0 - float(error[-1]) / float(error[0]),
                 "gripper_off_mm": off_mm, "gripper_off_deg": off_deg,
+                "gripper_roll_deg": roll_deg, "gripper_tilt_deg": tilt_deg,
             })  # fmt: skip
     finally:
         env.close()
@@ -396,16 +424,24 @@ def latency_report(run: Path, k: int, steps: int, rounds: int) -> dict[str, Any]
     return {"run": str(run), "iteration": k, "steps": steps, "rounds": rounds, "ms": report}
 
 
-def gripper_offset(env: Any) -> tuple[float, float]:
+def gripper_offset(env: Any) -> tuple[float, float, float, float]:
     """How far the moving grippers stand from the goal's own gripper poses at the episode's end:
-    the largest position offset (mm) and turn (degrees)."""
+    the largest position offset (mm) and turn (degrees), and the largest turn's parts about
+    the gripper's own x axis (the rod's axis where it holds the rod: roll, a turn the shape
+    barely shows) and about the axes across it (tilt), degrees."""
+    from dlocli.backends.rotations import quat_rotate
     from dlocli.env.shapes import rotation_between
 
     moving = env.backend.moving
     poses, goal = env.backend.gripper_poses()[moving], env.goal_gripper_poses[moving]
     offset = np.linalg.norm(poses[:, :3] - goal[:, :3], axis=1).max() * 1000.0
-    turn = np.linalg.norm(rotation_between(poses[:, 3:], goal[:, 3:]), axis=1).max()
-    return float(offset), float(np.degrees(turn))
+    turns = rotation_between(poses[:, 3:], goal[:, 3:])  # (G, 3) world frame
+    axes = quat_rotate(poses[:, 3:], np.array([1.0, 0.0, 0.0]))
+    roll = np.abs(np.sum(turns * axes, axis=1))
+    tilt = np.linalg.norm(turns - (turns * axes).sum(1, keepdims=True) * axes, axis=1)
+    largest = int(np.argmax(np.linalg.norm(turns, axis=1)))
+    turn = np.linalg.norm(turns[largest])
+    return tuple(float(v) for v in (offset, *np.degrees([turn, roll[largest], tilt[largest]])))
 
 
 def pose_report(
@@ -524,6 +560,10 @@ def main(argv: list[str] | None = None) -> None:
     again.add_argument("run", type=Path)
     again.add_argument("k", type=int)
     again.add_argument("out", type=Path)
+    again.add_argument("--seed", type=int, default=0)
+    together = sub.add_parser("ensemble")
+    together.add_argument("out", type=Path)
+    together.add_argument("copies", type=Path, nargs="+")
     swing = sub.add_parser("swing")
     swing.add_argument("backend")
     swing.add_argument("--rod", type=json.loads, default={}, help="rod fields, JSON")
@@ -553,7 +593,9 @@ def main(argv: list[str] | None = None) -> None:
         steps = tuple(int(h) for h in args.steps.split(","))
         report = horizon_report(args.run, args.iteration, steps, args.from_step)
     elif args.what == "retrain":
-        report = retrain(args.run, args.k, args.out)
+        report = retrain(args.run, args.k, args.out, seed=args.seed)
+    elif args.what == "ensemble":
+        report = ensemble(args.out, args.copies)
     else:
         report = swing_report(args.backend, args.rod)
     json.dump(report, sys.stdout)
