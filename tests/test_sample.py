@@ -109,6 +109,19 @@ def test_a_full_folder_needs_overwrite_and_keeps_its_files(tmp_path, capsys) -> 
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["mine.txt"]
 
 
+def test_overwrite_leaves_only_the_new_runs_recordings(tmp_path: Path) -> None:
+    """Fewer recordings, or another format, over an earlier sample: `dlo import` then reads
+    the new ones alone."""
+    out = tmp_path / "cable"
+    _sample(out)
+    flags = ["--train", "1", "--eval", "0", "--seconds", "0.2", "--format", "csv"]
+    assert run_dlo(["sample", *flags, "--out", str(out), "--overwrite", "--json"]) == 0
+    takes = sorted(p.relative_to(out).as_posix() for p in out.rglob("take_*"))
+    assert takes == ["train/take_000.csv"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["train_recordings"], summary["eval_recordings"]) == (1, 0)
+
+
 def test_a_task_given_in_part_keeps_both_grippers_moving() -> None:
     """A calibrated.yaml names the task's control period and markers, not its name."""
     given = SampleSpec.model_validate({"task": {"control_dt": 0.01}})

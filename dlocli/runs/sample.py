@@ -19,6 +19,9 @@ Folder (every file written atomically)::
     train/take_NNN.npz        clouds: :mod:`dlocli.tracking.frames` sequences
     eval/...                  the same, for evaluation
     summary.json              counts, and the command that reads the folder
+
+Over an earlier sample (``--overwrite``) the recordings it left and this run did not replace
+are deleted once this run's are written, so `dlo import` reads this run's alone.
 """
 
 from __future__ import annotations
@@ -87,14 +90,16 @@ def run_sample(
         layout = env_layout(env, _recorded(spec))  # a bad layout is refused before writing
         with owned(spec.out):
             out = prepare_run_dir(spec.out, overwrite)
-            made = {"train": 0, "eval": 0}
+            made: dict[str, list[Path]] = {"train": [], "eval": []}
             try:
                 _write_recordings(env, spec, layout, out, made, progress, cancel)
             except KeyboardInterrupt as stop:  # the recordings finished are kept
                 if any(made.values()):
+                    _remove_earlier_takes(out, made)
                     summary = _summary(spec, layout.held, made, type(stop).__name__)
                     write_json_atomic(out / "summary.json", summary)
                 raise
+            _remove_earlier_takes(out, made)
             summary = _summary(spec, layout.held, made)
             write_json_atomic(out / "summary.json", summary)
     finally:
@@ -118,11 +123,11 @@ def _write_recordings(
     spec: SampleSpec,
     layout: MarkerLayout,
     out: Path,
-    made: dict[str, int],
+    made: dict[str, list[Path]],
     progress: Callback,
     cancel: CancelToken,
 ) -> None:
-    """Each recording into ``out`` (``made`` counts them per split), the spec before the
+    """Each recording into ``out`` (``made`` lists them per split), the spec before the
     first; ``cancel`` checked before the first and at every frame."""
     total = spec.train + spec.eval
     progress(Began("recording", 0, total))
@@ -132,8 +137,18 @@ def _write_recordings(
     for index in range(total):
         split = "train" if index < spec.train else "eval"
         path = write(env, spec, layout, index, out / split / f"take_{index:03d}", cancel)
-        made[split] += 1
+        made[split].append(path)
         progress(Event("recording", index + 1, total, {"split": split, "file": path.name}))
+
+
+def _remove_earlier_takes(out: Path, made: dict[str, list[Path]]) -> None:
+    """Delete the recordings an earlier run left in ``out`` (``--overwrite``; everything there
+    is dlo's) that this one did not replace, so the folder holds this run's recordings only."""
+    kept = {path for paths in made.values() for path in paths}
+    for split in made:
+        for path in sorted((out / split).glob("take_*")) if (out / split).is_dir() else ():
+            if path not in kept and path.is_file():
+                path.unlink()
 
 
 def _episode(
@@ -217,7 +232,7 @@ def _write_clouds(
 
 
 def _summary(
-    spec: SampleSpec, held: np.ndarray, made: dict[str, int], stopped: str | None = None
+    spec: SampleSpec, held: np.ndarray, made: dict[str, list[Path]], stopped: str | None = None
 ) -> dict[str, Any]:
     """Counts (``made``: the recordings written per split), and the command that reads the
     folder as it was written (``held``: the recorded markers the grippers hold; ``stopped``:
@@ -244,8 +259,8 @@ def _summary(
             reads += ["--length", f"{spec.backend.rod.length:g}"]
     summary: dict[str, Any] = {
         "kind": spec.kind,
-        "train_recordings": made["train"],
-        "eval_recordings": made["eval"],
+        "train_recordings": len(made["train"]),
+        "eval_recordings": len(made["eval"]),
         "frames_per_recording": spec.task.episode_steps + 1,
         "rate_hz": spec.rate_hz,
         "backend": spec.backend.name,
