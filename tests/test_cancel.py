@@ -277,6 +277,7 @@ def write_spec(spec: BenchSpec, folder: Path) -> Path:
         "dlocli.runs.evaluate:run_evaluation",
         "dlocli.runs.track:run_track",
         "dlocli.runs.calibrate:run_calibration",
+        "dlocli.calibration.family:run_family",
         "dlocli.runs.adapt:run_adaptation",
         "dlocli.runs.control:run_control",
         "dlocli.runs.online.run:start_online",

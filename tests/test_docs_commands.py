@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from tiny import run_dlo
+from tiny import MUJOCO_ROD, run_dlo
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -29,7 +29,8 @@ DOCS = ROOT / "docs"
 RUN_ELSEWHERE = {"own_cable.md": "test_own_cable.py"}
 #: a page's count flags and the value they run at here
 COUNTS = {"--episodes": "2", "--iters": "1", "--workers": "1", "--num-cpus": "2",
-          "--update-steps": "20", "--train": "2", "--eval": "1", "--seconds": "0.4"}  # fmt: skip
+          "--update-steps": "20", "--train": "2", "--eval": "1", "--seconds": "0.4",
+          "--cables": "2"}  # fmt: skip
 #: numeric flags of the pages that are not counts: kept as written
 NOT_COUNTS = {"--seed", "--delay-ms", "--control-hz", "--fill-gaps", "--noise-mm",
               "--latency-steps", "--markers", "--lr", "--rate-hz", "--gripper-markers",
@@ -149,8 +150,12 @@ def run_lines(
 
 def _placeholders() -> dict[str, str]:
     """The pages' placeholders: a free address for the page's cell (no data: the pages make
-    their own)."""
-    return {"tcp://127.0.0.1:5555": _free_address()}
+    their own), and on MuJoCo 3 the composite cable's calibrated rods for the flex rod's (the
+    pages name both)."""
+    places = {"tcp://127.0.0.1:5555": _free_address()}
+    if MUJOCO_ROD == "mujoco":
+        places["-mujoco-flex/calibrated.yaml"] = "-mujoco/calibrated.yaml"
+    return places
 
 
 @pytest.fixture(scope="module")

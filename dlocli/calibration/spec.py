@@ -9,8 +9,8 @@ from pydantic import Field, field_validator
 
 from dlocli.calibration.parameters import PARAMETERS
 from dlocli.executors import ExecutorChoice
-from dlocli.limits import MAX_CLUSTER_WORKERS, MAX_SEED
-from dlocli.specs import BackendSpec, RodSpec
+from dlocli.limits import MAX_CLUSTER_WORKERS, MAX_COUNT, MAX_SEED
+from dlocli.specs import BackendSpec, RodSpec, Spec
 
 
 class CableRodSpec(RodSpec):
@@ -120,4 +120,83 @@ class CalibrateSpec(ExecutorChoice):
             )
         if len(set(value)) != len(value):
             raise ValueError("a parameter is listed twice; list each once")
+        return value
+
+
+class FamilySpec(Spec):
+    """`dlo family`: many simulated cables whose materials span and exceed calibrated rods',
+    each driven by a recorded cable's held-marker motion, written as marker datasets."""
+
+    cli_flags: ClassVar[tuple[str, ...]] = (
+        "calibrated", "source", "cables", "widen", "length_scale", "train", "eval",
+        "rod_length", "rate_hz", "roll", "seed", "out",
+    )  # fmt: skip
+    cli_required: ClassVar[tuple[str, ...]] = ("calibrated", "source")
+
+    calibrated: list[Path] = Field(
+        [],
+        description="A calibrated rod (a `dlo calibrate` run's calibrated.yaml, or the run "
+        "directory); repeat the flag, one per rod. Their materials set the span drawn from; "
+        "the first sets everything not drawn (backend, segments, radius, clamps).",
+    )
+    source: Path | None = Field(
+        None,
+        description="The cable whose recordings drive every simulated one: a folder in the "
+        "DEFORM layout (train/ and eval/) or a `dlo import` run directory. Its held markers' "
+        "motion, marker layout and frame rate are the simulated cables'.",
+    )
+    cables: int = Field(8, ge=1, le=10_000, description="Simulated cables to draw.")
+    widen: float = Field(
+        2.0,
+        ge=1.0,
+        le=1000.0,
+        description="How far the draw reaches past the calibrated rods: each material field "
+        "(young_bending, density, bending_damping, air_damping) is drawn log-uniformly between "
+        "the smallest calibrated value / widen and the largest * widen (within the range the "
+        "simulator takes; 1: between the calibrated values).",
+    )
+    length_scale: tuple[float, float] = Field(
+        (0.8, 1.2),
+        description="Range of the factor (drawn uniformly) on the source cable's rod length; "
+        "the recorded motion is scaled about its centre by the same factor.",
+    )
+    train: int = Field(
+        16, ge=1, le=MAX_COUNT, description="Simulated train trajectories per cable."
+    )  # fmt: skip
+    eval: int = Field(
+        4, ge=0, le=MAX_COUNT, description="Simulated eval trajectories per cable (driven by "
+        "the source's eval recordings)."
+    )  # fmt: skip
+    rod_length: float | None = Field(
+        None,
+        gt=0,
+        le=3,
+        description="Length (m) of the source cable's rod, the cable between its grip markers; "
+        "None = the markers' mean polyline length between them over the train recordings.",
+    )
+    rate_hz: float | None = Field(
+        None, ge=1.0, le=1000.0,
+        description="Frames per second of the source's recordings; unless given, a `dlo "
+        "import` run's own rate, else 100 (DEFORM's).",
+    )  # fmt: skip
+    roll: Literal["transported", "level"] = Field(
+        "transported",
+        description="How the grippers' unrecorded roll about the cable axis is chosen (as in "
+        "`dlo calibrate`).",
+    )
+    approach_s: float = Field(
+        1.0, gt=0, le=10, description="Seconds to move the grippers from rest to frame 0."
+    )
+    settle_s: float = Field(
+        1.0, ge=0, le=10, description="Seconds the rod settles at frame 0 before the motion."
+    )
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of the materials and motions.")
+    out: Path = Field(Path("runs/family"), description="Run directory.")
+
+    @field_validator("length_scale")
+    @classmethod
+    def _ordered(cls, value: tuple[float, float]) -> tuple[float, float]:
+        low, high = value
+        if not 0.25 <= low <= high <= 4.0:
+            raise ValueError("give two factors LOW,HIGH with 0.25 <= LOW <= HIGH <= 4")
         return value

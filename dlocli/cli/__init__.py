@@ -65,6 +65,7 @@ COMMANDS = [
     ("import", "dlocli.cli.importing:import_recordings"),
     ("track", "dlocli.cli.track:track"),
     ("calibrate", "dlocli.cli.calibrate:calibrate"),
+    ("family", "dlocli.cli.family:family"),
     ("train", "dlocli.cli.train:train"),
     ("eval", "dlocli.cli.eval:evaluate"),
     ("adapt", "dlocli.cli.adapt:adapt"),
