@@ -1,0 +1,57 @@
+"""Gather family_leave_one_out.sh's runs into examples/real_cables/family_leave_one_out.json:
+per left-out cable, trained without and with the simulated family, the eval score (cm) of
+the mean code, the code picked from one recording (no gradient) and the code fitted to it
+alone, beside freezing the cable; with the family, how many simulated cables it held.
+
+    python examples/real_cables/family_report.py OUT SPEC SEED
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+TARGET = Path(__file__).resolve().parent / "family_leave_one_out.json"
+
+
+def read(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def run_row(run: Path) -> dict:
+    mean = read(run / "mean-eval.json")
+    picked, code = read(run / "pick.json"), read(run / "code.json")
+    row = {
+        "mean_code_cm": mean["model_score_cm"],
+        "picked_cm": read(run / "pick-eval.json")["model_score_cm"],
+        "picked": picked["picked"],
+        "pick_seconds": picked["pick_seconds"],
+        "code_fitted_cm": read(run / "code-eval.json")["model_score_cm"],
+        "code_fit_seconds": code["fit_seconds"],
+        "train_seconds": read(run / "train.json").get("seconds"),
+    }
+    if (run / "family" / "summary.json").is_file():
+        family = read(run / "family" / "summary.json")
+        row["simulated_cables"] = family["datasets"]
+        row["simulated_cables_drawn"] = family["cables"]
+        row["family_source"] = family["source"]
+    return row
+
+
+def main(out: Path, spec: str, seed: int) -> None:
+    cables = sorted({p.name.rsplit("-", 1)[0] for p in out.glob("DLO*-with*")})
+    rows = {}
+    for cable in cables:
+        runs = {f: out / f"{cable}-{f}" for f in ("without", "with")}
+        if not all((r / "code-eval.json").is_file() for r in runs.values()):
+            continue
+        freeze = read(runs["without"] / "mean-eval.json")["freeze_score_cm"]
+        rows[cable] = {"freeze_cm": freeze, **{f: run_row(r) for f, r in runs.items()}}
+    TARGET.write_text(json.dumps({"spec": spec, "seed": seed, "cables": rows}, indent=1) + "\n")
+    for cable, row in rows.items():
+        print(cable, row)
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]))
