@@ -7,13 +7,16 @@
 # (--fine-tune code, 200 steps), and `dlo eval` scores each, and the mean code, on its eval
 # split. Results: OUT/CABLE-{with,without}/..., gathered by family_report.py into
 # examples/real_cables/family_leave_one_out.json.
-#   DEFORM=/path/to/DEFORM/data_set examples/real_cables/family_leave_one_out.sh [OUT] [SPEC] [SEED] [CABLES]
+# STEPS (optional) overrides the spec's update_steps; the report is then family_leave_one_out_STEPS.json.
+#   DEFORM=/path/to/DEFORM/data_set examples/real_cables/family_leave_one_out.sh [OUT] [SPEC] [SEED] [CABLES] [STEPS]
 set -euo pipefail
 DEFORM=${DEFORM:?set DEFORM to the folder holding DLO1 ... DLO4}
 OUT=${1:-runs/family_leave_one_out}
 SPEC=${2:-examples/real_cables/arc-mlp-coded-small.yaml}
 SEED=${3:-0}
 CABLES=${4:-16}
+STEPS=${5:-}
+steps=(); [ -z "$STEPS" ] || steps=(--update-steps "$STEPS")
 RODS=examples/calibration/results
 for c in DLO1 DLO2 DLO3 DLO4; do
   [ -f "$OUT/data/$c/dataset.h5" ] || dlo import --source "$DEFORM/$c" --out "$OUT/data/$c" --json > /dev/null
@@ -36,7 +39,7 @@ for held_out in DLO1 DLO2 DLO3 DLO4; do
         --cables "$CABLES" --train 8 --eval 2 --seed "$SEED" --out "$run/family" --overwrite --json > "$run/family.json"
       for d in "$run"/family/sim-*/dataset.h5; do trained+=(--data "$(dirname "$d")"); done
     fi
-    [ -f "$run/model/summary.json" ] || dlo train --spec "$SPEC" "${trained[@]}" --seed "$SEED" \
+    [ -f "$run/model/summary.json" ] || dlo train --spec "$SPEC" "${trained[@]}" "${steps[@]}" --seed "$SEED" \
       --out "$run/model" --overwrite --json > "$run/train.json"
     dlo eval --checkpoint "$run/model" --data "$OUT/data/$held_out" --json > "$run/mean-eval.json"
     for how in pick code; do
@@ -46,4 +49,4 @@ for held_out in DLO1 DLO2 DLO3 DLO4; do
     done
   done
 done
-python examples/real_cables/family_report.py "$OUT" "$SPEC" "$SEED"
+python examples/real_cables/family_report.py "$OUT" "$SPEC" "$SEED" $STEPS

@@ -3,7 +3,10 @@ per left-out cable, trained without and with the simulated family, the eval scor
 the mean code, the code picked from one recording (no gradient) and the code fitted to it
 alone, beside freezing the cable; with the family, how many simulated cables it held.
 
-    python examples/real_cables/family_report.py OUT SPEC SEED
+    python examples/real_cables/family_report.py OUT SPEC SEED [STEPS]
+
+With STEPS (the runs' update steps, where the script overrode the spec's) the file is
+family_leave_one_out_STEPS.json.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-TARGET = Path(__file__).resolve().parent / "family_leave_one_out.json"
+HERE = Path(__file__).resolve().parent
 
 
 def read(path: Path) -> dict:
@@ -39,7 +42,7 @@ def run_row(run: Path) -> dict:
     return row
 
 
-def main(out: Path, spec: str, seed: int) -> None:
+def main(out: Path, spec: str, seed: int, steps: int | None = None) -> None:
     cables = sorted({p.name.rsplit("-", 1)[0] for p in out.glob("DLO*-with*")})
     rows = {}
     for cable in cables:
@@ -48,10 +51,13 @@ def main(out: Path, spec: str, seed: int) -> None:
             continue
         freeze = read(runs["without"] / "mean-eval.json")["freeze_score_cm"]
         rows[cable] = {"freeze_cm": freeze, **{f: run_row(r) for f, r in runs.items()}}
-    TARGET.write_text(json.dumps({"spec": spec, "seed": seed, "cables": rows}, indent=1) + "\n")
+    target = HERE / (f"family_leave_one_out_{steps}.json" if steps else "family_leave_one_out.json")
+    report = {"spec": spec, "seed": seed, "update_steps": steps, "cables": rows}
+    target.write_text(json.dumps(report, indent=1) + "\n")
     for cable, row in rows.items():
         print(cable, row)
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]))
+    main(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]),
+         int(sys.argv[4]) if len(sys.argv) > 4 else None)  # fmt: skip
