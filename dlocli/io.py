@@ -6,8 +6,9 @@ import errno
 import json
 import os
 import resource
+import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -126,6 +127,21 @@ def prepare_run_dir(out: Path, overwrite: bool) -> Path:
         )
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def remove_unwritten(out: Path, patterns: Iterable[str], written: set[Path]) -> None:
+    """Delete what an earlier run left in ``out`` matching the glob ``patterns`` that this
+    run did not write (``written``), files and folders: a run over an earlier one
+    (``--overwrite``, where everything is dlo's: :func:`prepare_run_dir`) then holds its own
+    outputs alone. Called once the run's outputs are written, so a stop never empties it."""
+    for pattern in patterns:
+        for path in sorted(out.glob(pattern)):
+            if path in written:
+                continue
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink(missing_ok=True)
 
 
 def run_dir_entries(run_dir: Path) -> set[str]:

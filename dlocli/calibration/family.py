@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 import shlex
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,7 +48,7 @@ from dlocli.data import MarkerDataset
 from dlocli.data.markers import DEFAULT_RATE_HZ
 from dlocli.errors import BadInput, UnworkablePhysics
 from dlocli.events import Began, Callback, Event, ignore
-from dlocli.io import prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.io import prepare_run_dir, remove_unwritten, write_json_atomic, write_text_atomic
 from dlocli.recorded_cables import deform
 from dlocli.registry import backends
 from dlocli.rundir import owned, refuse_out_by_source
@@ -232,11 +231,11 @@ def run_family(
                 rows.append(_cable(spec, source, k, material, rod, out, progress, cancel, done))
         except KeyboardInterrupt as stop:
             if rows:
-                _remove_earlier_cables(out, rows)
+                remove_unwritten(out, ["sim-*"], _written(out, rows))
                 summary = _summary(spec, source, span, rows, out, type(stop).__name__)
                 write_json_atomic(out / "summary.json", summary)
             raise
-        _remove_earlier_cables(out, rows)
+        remove_unwritten(out, ["sim-*"], _written(out, rows))
         summary = _summary(spec, source, span, rows, out)
         write_json_atomic(out / "summary.json", summary)
     return summary
@@ -303,13 +302,9 @@ def _cable(
     return {**row, "dataset": str(out / name)}
 
 
-def _remove_earlier_cables(out: Path, rows: list[dict[str, Any]]) -> None:
-    """Delete the cables an earlier run left in ``out`` (``--overwrite``; everything there is
-    dlo's) that this one did not write, so the folder holds this run's cables only."""
-    kept = {row["cable"] for row in rows if row["dataset"]}
-    for folder in sorted(out.glob("sim-*")):
-        if folder.name not in kept and folder.is_dir() and not folder.is_symlink():
-            shutil.rmtree(folder)
+def _written(out: Path, rows: list[dict[str, Any]]) -> set[Path]:
+    """The cable folders this run wrote (a cable that kept no trajectory has none)."""
+    return {out / row["cable"] for row in rows if row["dataset"]}
 
 
 def _summary(

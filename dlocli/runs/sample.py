@@ -41,7 +41,13 @@ from dlocli.env.rollout import stream_seed
 from dlocli.env.shape_env import DLOShapeEnv, make_env
 from dlocli.errors import BadInput
 from dlocli.events import Began, Callback, Event, ignore
-from dlocli.io import atomic_path, prepare_run_dir, write_json_atomic, write_text_atomic
+from dlocli.io import (
+    atomic_path,
+    prepare_run_dir,
+    remove_unwritten,
+    write_json_atomic,
+    write_text_atomic,
+)
 from dlocli.limits import refuse_unless_fits
 from dlocli.recorded_cables.spec import UNITS
 from dlocli.rundir import owned
@@ -95,11 +101,11 @@ def run_sample(
                 _write_recordings(env, spec, layout, out, made, progress, cancel)
             except KeyboardInterrupt as stop:  # the recordings finished are kept
                 if any(made.values()):
-                    _remove_earlier_takes(out, made)
+                    remove_unwritten(out, [f"{split}/take_*" for split in made], _written(made))
                     summary = _summary(spec, layout.held, made, type(stop).__name__)
                     write_json_atomic(out / "summary.json", summary)
                 raise
-            _remove_earlier_takes(out, made)
+            remove_unwritten(out, [f"{split}/take_*" for split in made], _written(made))
             summary = _summary(spec, layout.held, made)
             write_json_atomic(out / "summary.json", summary)
     finally:
@@ -141,14 +147,9 @@ def _write_recordings(
         progress(Event("recording", index + 1, total, {"split": split, "file": path.name}))
 
 
-def _remove_earlier_takes(out: Path, made: dict[str, list[Path]]) -> None:
-    """Delete the recordings an earlier run left in ``out`` (``--overwrite``; everything there
-    is dlo's) that this one did not replace, so the folder holds this run's recordings only."""
-    kept = {path for paths in made.values() for path in paths}
-    for split in made:
-        for path in sorted((out / split).glob("take_*")) if (out / split).is_dir() else ():
-            if path not in kept and path.is_file():
-                path.unlink()
+def _written(made: dict[str, list[Path]]) -> set[Path]:
+    """The recordings this run wrote, all splits."""
+    return {path for paths in made.values() for path in paths}
 
 
 def _episode(
