@@ -32,11 +32,10 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
-from dlocli.calibration.fit import CALIBRATED_SPEC, calibrated_yaml, check_held
+from dlocli.calibration.fit import CALIBRATED_SPEC, calibrated_yaml, check_held, replay_settings
 from dlocli.calibration.parameters import PARAMETERS
 from dlocli.calibration.replay import (
     RecordedArcs,
-    ReplaySettings,
     check_end_pairs,
     check_rod_fits,
     grip_markers,
@@ -257,8 +256,7 @@ def _cable(
     row: dict[str, Any] = {"cable": name, **{n: material[n] for n in (*DRAWN, "length")},
                            "length_scale": material["length_scale"]}  # fmt: skip
     factor = material["length_scale"]
-    settings = ReplaySettings(spec.roll, spec.approach_s, spec.settle_s,
-                              tuple(bool(h) for h in source.held))  # fmt: skip
+    settings = replay_settings(spec, source.held)
     counts = {"train": spec.train, "eval": spec.eval}
     kept: dict[str, list[tuple[str, np.ndarray]]] = {}
     dropped = 0

@@ -14,6 +14,7 @@ with the recordings' control period and marker layout, :func:`recorded_task`) an
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,7 @@ from dlocli.calibration.replay import (
     grip_markers,
     replay,
 )
-from dlocli.calibration.spec import CalibrateSpec
+from dlocli.calibration.spec import CalibrateSpec, ReplaySpec
 from dlocli.cancel import CancelToken
 from dlocli.data import protocol
 from dlocli.env.observation import marker_layout
@@ -100,10 +101,9 @@ def check_held(held: np.ndarray, source: Path) -> None:
         )
 
 
-def replay_settings(spec: CalibrateSpec, cable: Cable) -> ReplaySettings:
-    """How ``spec`` replays ``cable``'s recordings."""
-    held = tuple(bool(h) for h in cable.held)
-    return ReplaySettings(spec.roll, spec.approach_s, spec.settle_s, held)
+def replay_settings(spec: ReplaySpec, held: Sequence[bool]) -> ReplaySettings:
+    """How ``spec`` replays recordings whose markers ``held`` (V,) the grippers hold."""
+    return ReplaySettings(spec.roll, spec.approach_s, spec.settle_s, tuple(bool(h) for h in held))
 
 
 # --------------------------------------------------------------------------- replays
@@ -155,7 +155,7 @@ class Replayer:
             for split, items in (("train", cable.train), ("eval", cable.eval))
             for n, r in items
         }
-        self.fixed = (cable.arc, replay_settings(spec, cable), spec.rate_hz)
+        self.fixed = (cable.arc, replay_settings(spec, cable.held), spec.rate_hz)
         # a cluster's CPUs are its own: there every recording is a call of its own
         self.slots = spec.workers if spec.ray_address is None else None
 

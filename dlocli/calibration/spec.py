@@ -39,7 +39,25 @@ class CableBackendSpec(BackendSpec):
     )
 
 
-class CalibrateSpec(ExecutorChoice):
+class ReplaySpec(Spec):
+    """How a recorded cable's held-marker motion is replayed on a simulated rod: the fields
+    `dlo calibrate` and `dlo family` share (:class:`dlocli.calibration.replay.ReplaySettings`)."""
+
+    roll: Literal["transported", "level"] = Field(
+        "transported",
+        description="How the grippers' unrecorded roll about the cable axis is chosen: "
+        "'transported' turns it with the axis (no spin), 'level' keeps the gripper's y axis "
+        "horizontal.",
+    )
+    approach_s: float = Field(
+        1.0, gt=0, le=10, description="Seconds to move the grippers from rest to frame 0."
+    )
+    settle_s: float = Field(
+        1.0, ge=0, le=10, description="Seconds the rod settles at frame 0 before the replay."
+    )
+
+
+class CalibrateSpec(ExecutorChoice, ReplaySpec):
     """`dlo calibrate`: fit a simulated rod's material to a recorded cable's motion. Its jobs
     are the replays of each generation's candidates (local processes or Ray tasks)."""
 
@@ -81,18 +99,6 @@ class CalibrateSpec(ExecutorChoice):
         description="Rod fields the optimiser fits "
         "(see `dlocli.calibration.parameters.PARAMETERS`).",
     )
-    roll: Literal["transported", "level"] = Field(
-        "transported",
-        description="How the grippers' unrecorded roll about the cable axis is chosen: "
-        "'transported' turns it with the axis (no spin), 'level' keeps the gripper's y axis "
-        "horizontal.",
-    )
-    approach_s: float = Field(
-        1.0, gt=0, le=10, description="Seconds to move the grippers from rest to frame 0."
-    )
-    settle_s: float = Field(
-        1.0, ge=0, le=10, description="Seconds the rod settles at frame 0 before the replay."
-    )
     train_trajectories: int = Field(
         8, ge=1, le=10000, description="Train recordings the optimiser replays (a seeded draw)."
     )
@@ -123,7 +129,7 @@ class CalibrateSpec(ExecutorChoice):
         return value
 
 
-class FamilySpec(Spec):
+class FamilySpec(ReplaySpec):
     """`dlo family`: many simulated cables whose materials span and exceed calibrated rods',
     each driven by a recorded cable's held-marker motion, written as marker datasets."""
 
@@ -179,17 +185,6 @@ class FamilySpec(Spec):
         description="Frames per second of the source's recordings; unless given, a `dlo "
         "import` run's own rate, else 100 (DEFORM's).",
     )  # fmt: skip
-    roll: Literal["transported", "level"] = Field(
-        "transported",
-        description="How the grippers' unrecorded roll about the cable axis is chosen (as in "
-        "`dlo calibrate`).",
-    )
-    approach_s: float = Field(
-        1.0, gt=0, le=10, description="Seconds to move the grippers from rest to frame 0."
-    )
-    settle_s: float = Field(
-        1.0, ge=0, le=10, description="Seconds the rod settles at frame 0 before the motion."
-    )
     seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of the materials and motions.")
     out: Path = Field(Path("runs/family"), description="Run directory.")
 

@@ -74,7 +74,7 @@ def replay_run(
     cable = load_cable(spec)
     if abs(cable.backend.rod.length - backend_spec.rod.length) > 1e-9:
         raise SystemExit(f"{run}: its rod is not {cable_yaml}'s ({backend_spec.rod.length})")
-    settings = replay_settings(spec, cable)
+    settings = replay_settings(spec, cable.held)
     backend = backends.get(backend_spec.name)(backend_spec, control_dt=1.0 / RATE_HZ)
     simulated, started = {}, time.time()
     try:

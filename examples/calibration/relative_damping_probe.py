@@ -59,7 +59,7 @@ def main(source: str, rates: str, *changes: str) -> None:
     backend_spec = BackendSpec.model_validate(rod)
     spec.backend.name = backend_spec.name
     cable = load_cable(spec)
-    settings = replay_settings(spec, cable)
+    settings = replay_settings(spec, cable.held)
     for rate in (float(r) for r in rates.split(",")):
         RelativelyDampedFlex.rate = rate
         backend = RelativelyDampedFlex(backend_spec, control_dt=1.0 / spec.rate_hz)

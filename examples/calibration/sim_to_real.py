@@ -56,7 +56,7 @@ def simulated_dataset(calibration: Path, out: Path) -> dict:
         yaml.safe_load((calibration / "calibrated.yaml").read_text())["backend"]
     )
     backend = backends.get(rod.name)(rod, control_dt=1.0 / spec.rate_hz)
-    settings = replay_settings(spec, cable)
+    settings = replay_settings(spec, cable.held)
     sims, dropped = simulate_markers(backend, [r for _, r in cable.train], cable.arc,
                                      SIMULATED, 0, settings)  # fmt: skip
     held = cable.held

@@ -115,7 +115,7 @@ def simulate(job: tuple[argparse.Namespace, str]) -> str:
     twin, spec, recorded = load_twin(cable, options)
     recordings = [r for _, r in recorded.train]
     backend = backends.get(twin.spec.backend.name)(twin.spec.backend, control_dt=1 / spec.rate_hz)
-    settings = replay_settings(spec, recorded)
+    settings = replay_settings(spec, recorded.held)
     sims, dropped = simulate_markers(backend, recordings, recorded.arc, SIMULATED, 0, settings)
     named = {"train": [(f"sim{i}", s) for i, s in enumerate(sims)]}
     data = MarkerDataset.from_trajectories(
