@@ -329,12 +329,19 @@ def refuse_out_by_source(spec: Any) -> None:
     """BadInput if ``spec.out`` lies inside ``spec.source``, a folder of recordings (`dlo
     import`, `dlo track`, `dlo calibrate`): the output would land among the recordings the
     next run reads; or holds it (--overwrite would put the recordings at stake)."""
-    out, source = resolved(spec.out, "--out"), resolved(spec.source, "--source")
-    if out == source or source in out.parents or out in source.parents:
-        raise BadInput(
-            f"--out {spec.out} lies inside or holds --source {spec.source}; write to a folder "
-            "apart from the recordings"
-        )
+    refuse_out_among(spec.out, [spec.source])
+
+
+def refuse_out_among(out: Path, sources: list[Path]) -> None:
+    """:func:`refuse_out_by_source` for a run that reads several folders of recordings."""
+    where = resolved(out, "--out")
+    for source in sources:
+        folder = resolved(source, "--source")
+        if where == folder or folder in where.parents or where in folder.parents:
+            raise BadInput(
+                f"--out {out} lies inside or holds --source {source}; write to a folder "
+                "apart from the recordings"
+            )
 
 
 def _run_of(path: Path, field: str) -> Path | None:

@@ -60,7 +60,9 @@ def made(tmp_path_factory) -> Path:
 
 def test_each_cable_is_a_marker_dataset_of_a_material_in_the_widened_span(made: Path) -> None:
     summary = json.loads((made / "family" / "summary.json").read_text())
-    assert summary["cables"] == summary["datasets"] == 2 and summary["markers"] == 12
+    assert summary["cables"] == summary["datasets"] == 2
+    [source] = summary["sources"]
+    assert source["markers"] == 12 and source["source"] == str(made / "cable")
     real = load_dataset(made / "real")
     for row in summary["rows"]:
         data = load_dataset(made / "family" / row["cable"])
@@ -76,7 +78,7 @@ def test_each_cable_is_a_marker_dataset_of_a_material_in_the_widened_span(made: 
             floor, ceiling = BOUNDS[name]
             assert max(low / 2, floor) <= row[name] <= min(high * 2, ceiling), (name, row)
         assert 0.8 <= row["length_scale"] <= 1.2
-        assert row["length"] == pytest.approx(summary["source_rod_length"] * row["length_scale"])
+        assert row["length"] == pytest.approx(source["rod_length"] * row["length_scale"])
         free = data.episodes("train")[0][:, ~data.held]
         assert np.isfinite(free).all() and np.ptp(free, axis=0).max() > 1e-3  # it moved
         rod = yaml.safe_load((made / "family" / row["cable"] / "rod.yaml").read_text())
@@ -90,13 +92,36 @@ def test_the_same_seed_draws_the_same_materials(made: Path) -> None:
 
     def drawn(seed: int) -> list[dict]:
         spec = FamilySpec(cables=5, seed=seed)
-        return draw_materials(spec, material_span(rods, spec.widen), 1.0)
+        return draw_materials(spec, material_span(rods, spec.widen), [1.0])
 
     assert drawn(3) == drawn(3) != drawn(4)
     rows = json.loads((made / "family" / "summary.json").read_text())["rows"]
-    again = draw_materials(FamilySpec(cables=2), material_span(rods, 2.0), 1.0)
+    again = draw_materials(FamilySpec(cables=2), material_span(rods, 2.0), [1.0])
     assert [r["young_bending"] for r in rows] == [a["young_bending"] for a in again]
     assert all(math.isfinite(v) for row in drawn(3) for v in row.values())
+
+
+def test_several_sources_drive_the_cables_in_turn_each_its_own_rod(made, tmp_path) -> None:
+    """Cable k is driven by source k mod 2 (the sampled cable's folder, then its import),
+    its rod that source's given length times its factor."""
+    sources = ["--source", str(made / "cable"), "--source", str(made / "real")]
+    argv = ["family", "--calibrated", str(made / "soft.yaml"), *sources, "--rod-length",
+            "0.9,1.1", "--cables", "3", "--train", "1", "--eval", "0", "--out",
+            str(tmp_path / "out")]  # fmt: skip
+    assert run_dlo(argv) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert [s["rod_length"] for s in summary["sources"]] == [0.9, 1.1]
+    driven = [(made / "cable", 0.9), (made / "real", 1.1), (made / "cable", 0.9)]
+    for row, (source, length) in zip(summary["rows"], driven, strict=True):
+        assert row["source"] == str(source)
+        assert row["length"] == pytest.approx(length * row["length_scale"])
+        data = load_dataset(tmp_path / "out" / row["cable"])
+        assert data.attrs["source"] == str(source)
+
+
+def test_a_spec_with_one_source_reads_as_before(made: Path) -> None:
+    spec = FamilySpec.model_validate({"source": str(made / "cable"), "rod_length": 1.0})
+    assert spec.source == [made / "cable"] and spec.rod_length == [1.0]
 
 
 def test_dlo_train_takes_a_recorded_cable_and_a_simulated_one_together(made: Path) -> None:
@@ -123,6 +148,9 @@ def test_dlo_train_takes_a_recorded_cable_and_a_simulated_one_together(made: Pat
         ("widen-0.5", "widen"),
         ("widen-nan", "widen"),
         ("length-scale", "--length-scale"),
+        ("lengths", "one length per --source"),
+        ("length-nan", "rod_length"),
+        ("length-4", "at most 3"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(made, tmp_path, capsys, case, says) -> None:
@@ -138,6 +166,9 @@ def test_bad_input_is_one_line_and_writes_nothing(made, tmp_path, capsys, case, 
         "widen-0.5": ["--calibrated", rod, *source, "--widen", "0.5"],
         "widen-nan": ["--calibrated", rod, *source, "--widen", "nan"],
         "length-scale": ["--calibrated", rod, *source, "--length-scale", "1.2,0.8"],
+        "lengths": ["--calibrated", rod, *source, "--rod-length", "0.9,1.1"],
+        "length-nan": ["--calibrated", rod, *source, "--rod-length", "nan"],
+        "length-4": ["--calibrated", rod, *source, "--rod-length", "4"],
     }[case]
     (tmp_path / "x.yaml").write_text("hello: 1\n")
     write_rod(tmp_path / "f.yaml", {}, "fish")

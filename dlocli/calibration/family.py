@@ -1,5 +1,6 @@
 """Many simulated cables from calibrated ones: a family of rods whose materials span and
-exceed the calibrated rods', each driven by a recorded cable's held-marker motion.
+exceed the calibrated rods', each driven by a recorded cable's held-marker motion (with
+several source cables, cable k by source k mod their count).
 
 Cable k's material is drawn log-uniformly, field by field (:data:`DRAWN`), between the
 smallest calibrated value / ``widen`` and the largest * ``widen``, within the range the
@@ -17,7 +18,8 @@ Folder (every file written atomically)::
     sim-NNN/dataset.h5      cable NNN's marker dataset (a `dlo import` run's layout: `dlo
                             train --data`, `dlo eval --data`); attrs: rate_hz, source, material
     sim-NNN/rod.yaml        its rod, a spec for any command's --spec
-    summary.json            one row per cable: its material, trajectories kept and dropped
+    summary.json            one row per cable: its material, source, trajectories kept and
+                            dropped; the sources read
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from dlocli.events import Began, Callback, Event, ignore
 from dlocli.io import prepare_run_dir, remove_unwritten, write_json_atomic, write_text_atomic
 from dlocli.recorded_cables import deform
 from dlocli.registry import backends
-from dlocli.rundir import owned, refuse_out_by_source
+from dlocli.rundir import owned, refuse_out_among
 from dlocli.specs import BackendSpec, RodSpec, format_validation_error
 
 #: the rod fields drawn per cable
@@ -68,9 +70,10 @@ SPLITS = ("train", "eval")
 
 @dataclass
 class Source:
-    """The recorded cable that drives the family: its recordings, where its markers sit on
-    its rod, which it holds, and its frame rate."""
+    """A recorded cable that drives cables of the family: its recordings, where its markers
+    sit on its rod, which it holds, and its frame rate."""
 
+    path: Path
     recordings: dict[str, list[np.ndarray]]  # per split
     arc: np.ndarray  # marker arc lengths from the rod's left grip (m)
     rod_length: float
@@ -115,29 +118,39 @@ def read_rods(paths: list[Path]) -> list[BackendSpec]:
     return rods
 
 
-def read_source(spec: FamilySpec, clamp_compliance: str) -> Source:
-    """The source cable's recordings, marker layout and rate; BadInput before anything is
-    written (as `dlo calibrate` reads a cable)."""
-    if spec.source is None:
+def read_sources(spec: FamilySpec, clamp_compliance: str) -> list[Source]:
+    """Every source cable's recordings, marker layout and rate; BadInput before anything is
+    written."""
+    if not spec.source:
         raise BadInput("no recordings given; pass --source FOLDER (holding train/ and eval/, "
                        "or a `dlo import` run)")  # fmt: skip
-    found, held = deform.read_recordings(spec.source)
-    check_held(held, spec.source)
-    named = {f"{spec.source}/{s}/{n}": r for s, items in found.items() for n, r in items}
+    lengths = spec.rod_length or [None] * len(spec.source)
+    return [read_source(path, length, spec.rate_hz, clamp_compliance)
+            for path, length in zip(spec.source, lengths, strict=True)]  # fmt: skip
+
+
+def read_source(
+    path: Path, rod_length: float | None, rate_hz: float | None, clamp_compliance: str
+) -> Source:
+    """One source cable's recordings, marker layout and rate (as `dlo calibrate` reads a
+    cable); its rod ``rod_length`` long, else its markers' mean span between the grips."""
+    found, held = deform.read_recordings(path)
+    check_held(held, path)
+    named = {f"{path}/{s}/{n}": r for s, items in found.items() for n, r in items}
     check_end_pairs(list(named.values()), list(named))
     train = [r for _, r in found["train"]]
     evaluation = [r for _, r in found.get("eval") or found["train"]]
     grip = grip_markers(held, clamp_compliance)
     arcs = RecordedArcs.from_recordings(train).between(grip)
-    rod_length = spec.rod_length or arcs.span(grip)
+    rod_length = rod_length or arcs.span(grip)
     check_rod_fits(rod_length, list(named.values()), list(named), grip)
-    imported = deform.imported(spec.source)
-    rate = spec.rate_hz or (imported.rate_hz if imported is not None else DEFAULT_RATE_HZ)
-    if imported is not None and spec.rate_hz and spec.rate_hz != imported.rate_hz:
-        raise BadInput(f"--rate-hz {spec.rate_hz:g}, but {spec.source} was imported at "
+    imported = deform.imported(path)
+    rate = rate_hz or (imported.rate_hz if imported is not None else DEFAULT_RATE_HZ)
+    if imported is not None and rate_hz and rate_hz != imported.rate_hz:
+        raise BadInput(f"--rate-hz {rate_hz:g}, but {path} was imported at "
                        f"{imported.rate_hz:g} Hz; drop --rate-hz")  # fmt: skip
     arc = arcs.arc * (rod_length / arcs.span(grip))
-    return Source({"train": train, "eval": evaluation}, arc, rod_length, held, rate)
+    return Source(Path(path), {"train": train, "eval": evaluation}, arc, rod_length, held, rate)
 
 
 def at_radius(rod: RodSpec, radius: float, backend: str) -> dict[str, float]:
@@ -168,11 +181,13 @@ def material_span(rods: list[BackendSpec], widen: float) -> dict[str, tuple[floa
 
 
 def draw_materials(spec: FamilySpec, span: dict[str, tuple[float, float]],
-                   base_length: float) -> list[dict[str, float]]:  # fmt: skip
-    """Each cable's drawn fields, its length factor and rod length: the same for a seed."""
+                   base_lengths: list[float]) -> list[dict[str, float]]:  # fmt: skip
+    """Each cable's drawn fields, its length factor and rod length (cable k's source's rod,
+    ``base_lengths[k mod their count]``, times the factor): the same for a seed."""
     rng = np.random.default_rng([spec.seed, 1])
     out = []
-    for _ in range(spec.cables):
+    for k in range(spec.cables):
+        base_length = base_lengths[k % len(base_lengths)]
         row = {n: float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
                for n, (lo, hi) in span.items()}  # fmt: skip
         row["length_scale"] = float(rng.uniform(*spec.length_scale))
@@ -212,10 +227,10 @@ def run_family(
     progress, cancel = progress or ignore, cancel or CancelToken()
     rods = read_rods(spec.calibrated)
     base = rods[0]
-    source = read_source(spec, base.rod.clamp_compliance)
-    refuse_out_by_source(spec)
+    sources = read_sources(spec, base.rod.clamp_compliance)
+    refuse_out_among(spec.out, spec.source)
     span = material_span(rods, spec.widen)
-    materials = draw_materials(spec, span, source.rod_length)
+    materials = draw_materials(spec, span, [s.rod_length for s in sources])
     built = [cable_rod(base, m) for m in materials]  # every rod checked before writing
     rows: list[dict[str, Any]] = []
     with owned(spec.out):
@@ -227,15 +242,16 @@ def run_family(
             for k, (material, rod) in enumerate(zip(materials, built, strict=True)):
                 cancel.raise_if_cancelled()
                 done = k * (spec.train + spec.eval)
+                source = sources[k % len(sources)]
                 rows.append(_cable(spec, source, k, material, rod, out, progress, cancel, done))
         except KeyboardInterrupt as stop:
             if rows:
                 remove_unwritten(out, ["sim-*"], _written(out, rows))
-                summary = _summary(spec, source, span, rows, out, type(stop).__name__)
+                summary = _summary(spec, sources, span, rows, out, type(stop).__name__)
                 write_json_atomic(out / "summary.json", summary)
             raise
         remove_unwritten(out, ["sim-*"], _written(out, rows))
-        summary = _summary(spec, source, span, rows, out)
+        summary = _summary(spec, sources, span, rows, out)
         write_json_atomic(out / "summary.json", summary)
     return summary
 
@@ -254,7 +270,8 @@ def _cable(
     """Simulate cable ``k`` and write its folder; its summary row."""
     name = f"sim-{k:03d}"
     row: dict[str, Any] = {"cable": name, **{n: material[n] for n in (*DRAWN, "length")},
-                           "length_scale": material["length_scale"]}  # fmt: skip
+                           "length_scale": material["length_scale"],
+                           "source": str(source.path)}  # fmt: skip
     factor = material["length_scale"]
     settings = replay_settings(spec, source.held)
     counts = {"train": spec.train, "eval": spec.eval}
@@ -292,7 +309,7 @@ def _cable(
     row["dropped_diverged"] = dropped
     if "train" not in kept:  # a dataset needs train trajectories
         return {**row, "dataset": None}
-    attrs = {"rate_hz": source.rate_hz, "source": str(spec.source), "material": row}
+    attrs = {"rate_hz": source.rate_hz, "source": str(source.path), "material": row}
     (out / name).mkdir(exist_ok=True)
     MarkerDataset.from_trajectories(kept, source.held, attrs).save(out / name / "dataset.h5")
     write_text_atomic(out / name / "rod.yaml",
@@ -307,7 +324,7 @@ def _written(out: Path, rows: list[dict[str, Any]]) -> set[Path]:
 
 def _summary(
     spec: FamilySpec,
-    source: Source,
+    sources: list[Source],
     span: dict[str, tuple[float, float]],
     rows: list[dict[str, Any]],
     out: Path,
@@ -320,10 +337,15 @@ def _summary(
     summary: dict[str, Any] = {
         "cables": len(rows),
         "datasets": len(written),
-        "source": str(spec.source),
-        "rate_hz": source.rate_hz,
-        "markers": len(source.held),
-        "source_rod_length": source.rod_length,
+        "sources": [
+            {
+                "source": str(s.path),
+                "rate_hz": s.rate_hz,
+                "markers": len(s.held),
+                "rod_length": s.rod_length,
+            }
+            for s in sources
+        ],  # fmt: skip
         "span": {n: list(v) for n, v in span.items()},
         "rows": rows,
         "next": f"dlo train {data} --cable-code 8 --out runs/NAME",

@@ -3,14 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import Field, field_validator
+from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from dlocli.calibration.parameters import PARAMETERS
 from dlocli.executors import ExecutorChoice
 from dlocli.limits import MAX_CLUSTER_WORKERS, MAX_COUNT, MAX_SEED
 from dlocli.specs import BackendSpec, RodSpec, Spec
+
+#: the longest source rod (m) `dlo family` takes
+MAX_SOURCE_ROD = 3.0
+
+
+def _as_list(value: Any) -> Any:
+    """One value where a list is taken (a spec written before the field became a list)."""
+    return [] if value is None else value if isinstance(value, (list, tuple)) else [value]
 
 
 class CableRodSpec(RodSpec):
@@ -145,11 +153,12 @@ class FamilySpec(ReplaySpec):
         "directory); repeat the flag, one per rod. Their materials set the span drawn from; "
         "the first sets everything not drawn (backend, segments, radius, clamps).",
     )
-    source: Path | None = Field(
-        None,
-        description="The cable whose recordings drive every simulated one: a folder in the "
-        "DEFORM layout (train/ and eval/) or a `dlo import` run directory. Its held markers' "
-        "motion, marker layout and frame rate are the simulated cables'.",
+    source: Annotated[list[Path], BeforeValidator(_as_list)] = Field(
+        [],
+        description="A recorded cable whose recordings drive simulated ones: a folder in the "
+        "DEFORM layout (train/ and eval/) or a `dlo import` run directory; repeat the flag, "
+        "one per cable: cable k is driven by source k mod the sources' count. A source's held "
+        "markers' motion, marker layout and frame rate are its simulated cables'.",
     )
     cables: int = Field(8, ge=1, le=10_000, description="Simulated cables to draw.")
     widen: float = Field(
@@ -173,20 +182,33 @@ class FamilySpec(ReplaySpec):
         4, ge=0, le=MAX_COUNT, description="Simulated eval trajectories per cable (driven by "
         "the source's eval recordings)."
     )  # fmt: skip
-    rod_length: float | None = Field(
-        None,
-        gt=0,
-        le=3,
-        description="Length (m) of the source cable's rod, the cable between its grip markers; "
-        "None = the markers' mean polyline length between them over the train recordings.",
+    rod_length: Annotated[list[float], BeforeValidator(_as_list)] = Field(
+        [],
+        description="Length (m) of each source cable's rod, the cable between its grip "
+        f"markers (at most {MAX_SOURCE_ROD:g}), one per --source in their order; unset = each "
+        "source's markers' mean polyline length between them over its train recordings.",
     )
     rate_hz: float | None = Field(
         None, ge=1.0, le=1000.0,
-        description="Frames per second of the source's recordings; unless given, a `dlo "
+        description="Frames per second of the sources' recordings; unless given, a `dlo "
         "import` run's own rate, else 100 (DEFORM's).",
     )  # fmt: skip
     seed: int = Field(0, ge=0, le=MAX_SEED, description="Seed of the materials and motions.")
     out: Path = Field(Path("runs/family"), description="Run directory.")
+
+    @model_validator(mode="after")
+    def _a_length_per_source(self) -> FamilySpec:
+        if not all(0 < length <= MAX_SOURCE_ROD for length in self.rod_length):
+            raise ValueError(
+                f"--rod-length {','.join(f'{v:g}' for v in self.rod_length)}: each length "
+                f"must be above 0 and at most {MAX_SOURCE_ROD:g} m"
+            )
+        if self.rod_length and len(self.rod_length) != len(self.source):
+            raise ValueError(
+                f"{len(self.rod_length)} rod lengths for {len(self.source)} sources; give "
+                "--rod-length one length per --source, in their order, or none"
+            )
+        return self
 
     @field_validator("length_scale")
     @classmethod

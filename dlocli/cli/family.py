@@ -14,13 +14,14 @@ from dlocli.processes import signal_token
 @handle_errors
 @spec_flags(FamilySpec)
 def family(run: RunFlags) -> None:
-    """Many simulated cables from calibrated rods, driven by a recorded cable's motion.
+    """Many simulated cables from calibrated rods, driven by recorded cables' motion.
 
     Draws --cables materials that span and exceed the --calibrated rods' (young_bending,
     density, bending_damping and air_damping each log-uniformly between the smallest
-    calibrated value / --widen and the largest * --widen; the rod the --source cable's times
-    a factor in --length-scale), drives each rod with the --source cable's recorded
-    held-marker motion (moved rigidly, scaled with the rod), and writes each cable as a marker
+    calibrated value / --widen and the largest * --widen; the rod its --source cable's times
+    a factor in --length-scale), drives each rod with its --source cable's recorded
+    held-marker motion (moved rigidly, scaled with the rod; with several --source, cable k
+    takes source k mod their count), and writes each cable as a marker
     dataset OUT/sim-NNN/dataset.h5 for `dlo train --data` and `dlo eval --data` (one cable
     code per dataset), with its rod (OUT/sim-NNN/rod.yaml, a spec for --spec) and
     OUT/summary.json: each cable's material and the trajectories kept (a draw whose

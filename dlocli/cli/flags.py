@@ -125,7 +125,7 @@ def shown_default(info: Any, flag: str, required: bool) -> str:
     if required:
         return "  [required]"
     value = info.default_factory() if info.default_factory is not None else info.default
-    if value is None:
+    if value is None or (isinstance(value, (list, tuple)) and not value):
         return ""
     if isinstance(value, bool):
         value = flag if value else f"no-{flag}"

@@ -3,10 +3,11 @@ per left-out cable, trained without and with the simulated family, the eval scor
 the mean code, the code picked from one recording (no gradient) and the code fitted to it
 alone, beside freezing the cable; with the family, how many simulated cables it held.
 
-    python examples/real_cables/family_report.py OUT SPEC SEED [STEPS]
+    python examples/real_cables/family_report.py OUT SPEC SEED [SOURCES [STEPS]]
 
 With STEPS (the runs' update steps, where the script overrode the spec's) the file is
-family_leave_one_out_STEPS.json.
+family_leave_one_out_STEPS.json; with SOURCES "all" (the family driven by every training
+cable's motion) its name ends in _all.
 """
 
 from __future__ import annotations
@@ -38,11 +39,12 @@ def run_row(run: Path) -> dict:
         family = read(run / "family" / "summary.json")
         row["simulated_cables"] = family["datasets"]
         row["simulated_cables_drawn"] = family["cables"]
-        row["family_source"] = family["source"]
+        sources = family.get("sources") or [{"source": family["source"]}]  # older summaries
+        row["family_sources"] = [s["source"] for s in sources]
     return row
 
 
-def main(out: Path, spec: str, seed: int, steps: int | None = None) -> None:
+def main(out: Path, spec: str, seed: int, sources: str = "first", steps: int | None = None) -> None:
     cables = sorted({p.name.rsplit("-", 1)[0] for p in out.glob("DLO*-with*")})
     rows = {}
     for cable in cables:
@@ -51,8 +53,9 @@ def main(out: Path, spec: str, seed: int, steps: int | None = None) -> None:
             continue
         freeze = read(runs["without"] / "mean-eval.json")["freeze_score_cm"]
         rows[cable] = {"freeze_cm": freeze, **{f: run_row(r) for f, r in runs.items()}}
-    target = HERE / (f"family_leave_one_out_{steps}.json" if steps else "family_leave_one_out.json")
-    report = {"spec": spec, "seed": seed, "update_steps": steps, "cables": rows}
+    name = "family_leave_one_out" + (f"_{steps}" if steps else "")
+    target = HERE / f"{name}{'_all' if sources == 'all' else ''}.json"
+    report = {"spec": spec, "seed": seed, "update_steps": steps, "sources": sources, "cables": rows}
     target.write_text(json.dumps(report, indent=1) + "\n")
     for cable, row in rows.items():
         print(cable, row)
@@ -60,4 +63,5 @@ def main(out: Path, spec: str, seed: int, steps: int | None = None) -> None:
 
 if __name__ == "__main__":
     main(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]),
-         int(sys.argv[4]) if len(sys.argv) > 4 else None)  # fmt: skip
+         sys.argv[4] if len(sys.argv) > 4 else "first",
+         int(sys.argv[5]) if len(sys.argv) > 5 else None)  # fmt: skip
