@@ -18,6 +18,13 @@ same draw of episodes, the same scoring), under four conditions:
     python examples/real_cables/online_code.py --model runs/oc/coded --data runs/oc/data \\
         --deform $DEFORM --episodes 6 --seeds 0,1,2
 
+Leave-one-out (a cable the model never saw): ``--model`` and ``--own-model`` may name each
+cable's own run with ``{cable}``, e.g. the folds of family_leave_one_out.sh: ``--model
+OUT/{cable}-with/model`` (trained without the cable; "mean" and "online" plan with it) and
+``--own-model OUT/{cable}-with/code`` (the same model with the code `dlo adapt` fitted to the
+cable's first recording: "own"); the recorded re-picks below are then skipped (the cable's own
+code is no candidate).
+
 Beside, the same re-picks on each cable's own eval recordings (the real cable, held out of
 training, its free markers given 2 mm of noise as on the twin): how often a window's pick is
 the cable's own code.
@@ -63,7 +70,8 @@ def controller(name: str, env: Any, options: argparse.Namespace, cable: str, see
 
     if name == "nothing":
         return None
-    model = load_planning_model(options.model)
+    run = run_of(options.own_model if name == "own" else options.model, cable)
+    model = load_planning_model(run)
     observe_with(model, env)  # the twin's markers (DLO1 has 13, the others 12)
     if name == "own":
         data = load_dataset(options.data / cable)
@@ -71,8 +79,13 @@ def controller(name: str, env: Any, options: argparse.Namespace, cable: str, see
     mpc = make_controller("mpc", env, seed=seed, model=model)
     if name != "online":
         return mpc
-    names = cable_names(options.model, model.cable_keys)
+    names = cable_names(run, model.cable_keys)
     return CodeAdapting(mpc, env, CodeFollower(model, names, options.every, options.window))
+
+
+def run_of(template: str, cable: str) -> Path:
+    """The run a ``--model``-style template names for ``cable``."""
+    return Path(template.replace("{cable}", cable))
 
 
 def evaluate(
@@ -130,8 +143,10 @@ def recorded_picks(options: argparse.Namespace) -> dict[str, dict[str, Any]]:
     from dlocli.models.code_pick import cable_names
 
     torch.set_num_threads(1)
-    model = load_planning_model(options.model)
-    names = cable_names(options.model, model.cable_keys)
+    if "{cable}" in options.model:  # leave-one-out: the cable's own code is no candidate
+        return {}
+    model = load_planning_model(Path(options.model))
+    names = cable_names(Path(options.model), model.cable_keys)
     rng = np.random.default_rng(0)
     found = {}
     for cable in options.cables:
@@ -186,7 +201,10 @@ def seed_spread(rows: list[dict]) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, required=True, help="the coded model's run")
+    parser.add_argument("--model", required=True,
+                        help="the coded model's run ({cable}: each cable's own)")  # fmt: skip
+    parser.add_argument("--own-model", default=None,
+                        help="the run 'own' plans with (default --model)")  # fmt: skip
     parser.add_argument("--data", type=Path, required=True, help="folder of DLO1..4 datasets")
     parser.add_argument("--deform", type=Path, default=Path(os.environ.get("DEFORM", "DEFORM")))
     parser.add_argument("--calibration", type=Path,
@@ -202,6 +220,7 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=100, help="--adapt-window")
     parser.add_argument("--result", type=Path, default=HERE / "online_code.json")
     options = parser.parse_args()
+    options.own_model = options.own_model or options.model
     options.out.mkdir(parents=True, exist_ok=True)
     study = load_study()
     rows: list[dict] = []
@@ -214,7 +233,8 @@ def main() -> None:
                     saved.write_text(json.dumps(found, indent=1))
                 rows += json.loads(saved.read_text())
     result = {
-        "model": str(options.model), "seeds": options.seeds, "episodes": options.episodes,
+        "model": options.model, "own_model": options.own_model, "seeds": options.seeds,
+        "episodes": options.episodes,
         "steps": options.steps, "adapt_every": options.every, "adapt_window": options.window,
         "summary": summarise(rows), "recorded_picks": recorded_picks(options), "rows": rows,
     }  # fmt: skip
