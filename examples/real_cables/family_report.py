@@ -7,7 +7,9 @@ alone, beside freezing the cable; with the family, how many simulated cables it 
 
 With STEPS (the runs' update steps, where the script overrode the spec's) the file is
 family_leave_one_out_STEPS.json; with SOURCES "all" (the family driven by every training
-cable's motion) its name ends in _all.
+cable's motion) its name ends in _all; a recipe other than arc-mlp-coded-small names it
+(family_leave_one_out_RECIPE...). A fold run with the family only (no OUT/CABLE-without) is
+reported with it alone.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+SMALL = "arc-mlp-coded-small"  # the script's default recipe: its files carry no recipe name
 
 
 def read(path: Path) -> dict:
@@ -49,12 +52,15 @@ def main(out: Path, spec: str, seed: int, sources: str = "first", steps: int | N
     rows = {}
     for cable in cables:
         runs = {f: out / f"{cable}-{f}" for f in ("without", "with")}
-        if not all((r / "code-eval.json").is_file() for r in runs.values()):
+        runs = {f: r for f, r in runs.items() if (r / "code-eval.json").is_file()}
+        if "with" not in runs:
             continue
-        freeze = read(runs["without"] / "mean-eval.json")["freeze_score_cm"]
+        freeze = read(runs["with"] / "mean-eval.json")["freeze_score_cm"]
         rows[cable] = {"freeze_cm": freeze, **{f: run_row(r) for f, r in runs.items()}}
-    name = "family_leave_one_out" + (f"_{steps}" if steps else "")
-    target = HERE / f"{name}{'_all' if sources == 'all' else ''}.json"
+    recipe = Path(spec).stem
+    name = "family_leave_one_out" + ("" if recipe == SMALL else f"_{recipe}")
+    name += (f"_{steps}" if steps else "") + ("_all" if sources == "all" else "")
+    target = HERE / f"{name}.json"
     report = {"spec": spec, "seed": seed, "update_steps": steps, "sources": sources, "cables": rows}
     target.write_text(json.dumps(report, indent=1) + "\n")
     for cable, row in rows.items():
