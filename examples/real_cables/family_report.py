@@ -8,8 +8,8 @@ alone, beside freezing the cable; with the family, how many simulated cables it 
 With STEPS (the runs' update steps, where the script overrode the spec's) the file is
 family_leave_one_out_STEPS.json; with SOURCES "all" (the family driven by every training
 cable's motion) its name ends in _all; a recipe other than arc-mlp-coded-small names it
-(family_leave_one_out_RECIPE...). A fold run with the family only (no OUT/CABLE-without) is
-reported with it alone.
+(family_leave_one_out_RECIPE...), a seed other than 0 ends it (..._seedS). A fold run with
+the family only (no OUT/CABLE-without) is reported with it alone.
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ def main(out: Path, spec: str, seed: int, sources: str = "first", steps: int | N
     recipe = Path(spec).stem
     name = "family_leave_one_out" + ("" if recipe == SMALL else f"_{recipe}")
     name += (f"_{steps}" if steps else "") + ("_all" if sources == "all" else "")
+    name += f"_seed{seed}" if seed else ""
     target = HERE / f"{name}.json"
     report = {"spec": spec, "seed": seed, "update_steps": steps, "sources": sources, "cables": rows}
     target.write_text(json.dumps(report, indent=1) + "\n")
