@@ -322,6 +322,12 @@ def _written(out: Path, rows: list[dict[str, Any]]) -> set[Path]:
     return {out / row["cable"] for row in rows if row["dataset"]}
 
 
+def _source_row(source: Source) -> dict[str, Any]:
+    """A source cable as the summary lists it."""
+    return {"source": str(source.path), "rate_hz": source.rate_hz,
+            "markers": len(source.held), "rod_length": source.rod_length}  # fmt: skip
+
+
 def _summary(
     spec: FamilySpec,
     sources: list[Source],
@@ -337,15 +343,7 @@ def _summary(
     summary: dict[str, Any] = {
         "cables": len(rows),
         "datasets": len(written),
-        "sources": [
-            {
-                "source": str(s.path),
-                "rate_hz": s.rate_hz,
-                "markers": len(s.held),
-                "rod_length": s.rod_length,
-            }
-            for s in sources
-        ],  # fmt: skip
+        "sources": [_source_row(s) for s in sources],
         "span": {n: list(v) for n, v in span.items()},
         "rows": rows,
         "next": f"dlo train {data} --cable-code 8 --out runs/NAME",
