@@ -18,6 +18,7 @@ from dlocli.calibration.family import (
     BOUNDS,
     DRAWN,
     draw_materials,
+    keeps_dataset,
     material_span,
     read_rods,
     run_family,
@@ -85,6 +86,13 @@ def test_each_cable_is_a_marker_dataset_of_a_material_in_the_widened_span(made: 
         assert rod["backend"]["rod"]["density"] == pytest.approx(row["density"])
     spec = json.loads((made / "family" / "spec.json").read_text())
     assert spec["cables"] == 2 and spec["widen"] == 2.0
+
+
+def test_a_cable_is_written_with_enough_trajectories_for_dlo_train_to_validate() -> None:
+    """A draw that diverged on all but one of its trajectories leaves a dataset `dlo train`
+    refuses (it holds a trajectory out for validation): not written, unless one was asked."""
+    assert [keeps_dataset(k, 8) for k in (0, 1, 2, 8)] == [False, False, True, True]
+    assert keeps_dataset(1, 1) and not keeps_dataset(0, 1)
 
 
 def test_the_same_seed_draws_the_same_materials(made: Path) -> None:

@@ -10,7 +10,9 @@ grip markers) times a length factor drawn uniformly from ``length_scale``; the s
 recorded motion is scaled by that factor about its centre, so the grips stay as far apart,
 relative to the rod, as the recorded ones. Its trajectories are :func:`simulate_markers`'s:
 the source's train recordings (eval recordings for the eval split), moved rigidly, replayed
-on the rod; a draw that diverges is dropped and counted.
+on the rod; a trajectory that diverges is dropped and counted, and a cable left with fewer
+train trajectories than `dlo train` validates with (two, or one where one was asked) is not
+written (:func:`keeps_dataset`).
 
 Folder (every file written atomically)::
 
@@ -307,7 +309,7 @@ def _cable(
     row["train_trajectories"] = len(kept.get("train", []))
     row["eval_trajectories"] = len(kept.get("eval", []))
     row["dropped_diverged"] = dropped
-    if "train" not in kept:  # a dataset needs train trajectories
+    if not keeps_dataset(row["train_trajectories"], spec.train):
         return {**row, "dataset": None}
     attrs = {"rate_hz": source.rate_hz, "source": str(source.path), "material": row}
     (out / name).mkdir(exist_ok=True)
@@ -315,6 +317,13 @@ def _cable(
     write_text_atomic(out / name / "rod.yaml",
                       calibrated_yaml(rod, {"control_dt": 1.0 / source.rate_hz}))  # fmt: skip
     return {**row, "dataset": str(out / name)}
+
+
+def keeps_dataset(kept: int, asked: int) -> bool:
+    """Whether a cable that kept ``kept`` of ``asked`` train trajectories is written: `dlo
+    train` holds trajectories of each dataset out for validation, so it needs two (one where
+    only one was asked: that family is trained with --val-fraction 0)."""
+    return kept >= min(2, asked)
 
 
 def _written(out: Path, rows: list[dict[str, Any]]) -> set[Path]:

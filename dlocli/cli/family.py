@@ -24,8 +24,9 @@ def family(run: RunFlags) -> None:
     takes source k mod their count), and writes each cable as a marker
     dataset OUT/sim-NNN/dataset.h5 for `dlo train --data` and `dlo eval --data` (one cable
     code per dataset), with its rod (OUT/sim-NNN/rod.yaml, a spec for --spec) and
-    OUT/summary.json: each cable's material and the trajectories kept (a draw whose
-    simulation diverges is dropped and counted)."""
+    OUT/summary.json: each cable's material and the trajectories kept (a trajectory whose
+    simulation diverges is dropped and counted; a cable left with fewer than two train
+    trajectories, too few for `dlo train` to validate on, is not written)."""
     with Bars(run.json, _describe) as bars:
         summary = run_family(run.spec(), run.overwrite, bars, signal_token())
     if not run.json:
