@@ -10,6 +10,11 @@ family_leave_one_out_STEPS.json; with SOURCES "all" (the family driven by every 
 cable's motion) its name ends in _all; a recipe other than arc-mlp-coded-small names it
 (family_leave_one_out_RECIPE...), a seed other than 0 ends it (..._seedS). A fold run with
 the family only (no OUT/CABLE-without) is reported with it alone.
+
+    python examples/real_cables/family_report.py seeds TARGET REPORT [REPORT ...]
+
+writes TARGET (a name in examples/real_cables/): per cable, each seed's report's scores
+side by side and their mean over the seeds.
 """
 
 from __future__ import annotations
@@ -68,7 +73,33 @@ def main(out: Path, spec: str, seed: int, sources: str = "first", steps: int | N
         print(cable, row)
 
 
-if __name__ == "__main__":
+#: the scores the seeds' summary averages, per training (without / with the family)
+SCORES = ("mean_code_cm", "picked_cm", "code_fitted_cm")
+
+
+def over_seeds(target: str, reports: list[Path]) -> None:
+    """Each cable's scores of every seed's report and their mean (module docstring)."""
+    found = [read(r) for r in reports]
+    summary: dict[str, dict] = {}
+    for cable in found[0]["cables"]:
+        for family in ("without", "with"):
+            rows = [f["cables"][cable][family] for f in found if cable in f["cables"]]
+            summary.setdefault(cable, {})[family] = {
+                key: {"seeds": [r[key] for r in rows],
+                      "mean": round(sum(r[key] for r in rows) / len(rows), 4)}
+                for key in SCORES
+            }  # fmt: skip
+    seeds = [f["seed"] for f in found]
+    out = {"spec": found[0]["spec"], "sources": found[0].get("sources"), "seeds": seeds,
+           "reports": [r.name for r in reports], "cables": summary}  # fmt: skip
+    (HERE / target).write_text(json.dumps(out, indent=1) + "\n")
+    for cable, row in summary.items():
+        print(cable, {f: {k: v["mean"] for k, v in row[f].items()} for f in row})
+
+
+if __name__ == "__main__" and sys.argv[1] == "seeds":
+    over_seeds(sys.argv[2], [Path(p) for p in sys.argv[3:]])
+elif __name__ == "__main__":
     main(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]),
          sys.argv[4] if len(sys.argv) > 4 else "first",
          int(sys.argv[5]) if len(sys.argv) > 5 else None)  # fmt: skip
