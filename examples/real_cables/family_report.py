@@ -14,7 +14,8 @@ the family only (no OUT/CABLE-without) is reported with it alone.
     python examples/real_cables/family_report.py seeds TARGET REPORT [REPORT ...]
 
 writes TARGET (a name in examples/real_cables/): per cable, each seed's report's scores
-side by side and their mean over the seeds.
+side by side and their mean over the seeds. The summary keeps every seed's scores, so the
+docs cite it alone and the seeds' own reports (..._seedS.json) need not be kept.
 """
 
 from __future__ import annotations
