@@ -7,10 +7,11 @@ each command in the environment of the run's backend).
                                                  [--max-step S] [--settle-steps S] [--trials N]
                                                  [--iteration K] [--set FIELD=JSON ...]
     python benchmarks/flex_control_gap.py sweep RUN [RUN ...] [--iteration K] [--trials N]
-                                                [--set FIELD=JSON ...]
+                                                [--set FIELD=JSON ...] [--controller NAME]
     python benchmarks/flex_control_gap.py latency RUN [--iteration K] [--steps T] [--rounds R]
+                                                  [--only "NAME;NAME"]
     python benchmarks/flex_control_gap.py pose RUN [--iteration K] [--trials N]
-                                               [--offset-mm D] [--turn-deg A]
+                                               [--offset-mm D] [--turn-deg A] [--roll]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
                                                   [--from-step S]
     python benchmarks/flex_control_gap.py retrain RUN K OUT [--seed S]
@@ -28,7 +29,8 @@ trial the final error, the mean and least error of the last 40 steps, and the er
 the grippers then stand still for 50 steps, and how far the grippers end from the goal's own
 gripper poses. ``sweep``: planner options (over the paper's: SWEEP_BASE) on iteration K's
 models of several runs, N trials each, as ``trials`` runs them: the share of the error closed
-over all trials and per run. ``latency``: the MPC's milliseconds per control step of the
+over all trials and per run (``--controller held-end``: the no-model servo from the same starts,
+with the same action noise). ``latency``: the MPC's milliseconds per control step of the
 paper's cost and of the options that damp the swing, through one model, taking turns
 (:func:`latency_report`). ``pose``: no model, the grippers driven straight to the goal's own gripper
 poses from the same starts (:func:`pose_report`). ``horizon``:
@@ -264,9 +266,12 @@ def model_report(run: Path) -> dict[str, Any]:
     return report
 
 
-def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[str, Any]:
+def trials_report(
+    run: Path, k: int, n: int, changes: dict[str, Any], controller: str | None = None
+) -> dict[str, Any]:
     """Iteration k's model driving n trials from iteration k's starts, ``changes`` applied to
-    the run's spec (nested dicts)."""
+    the run's spec (nested dicts); ``controller``: another registered controller instead of
+    the run's planner (e.g. the ``held-end`` reference), with the same action noise."""
     import torch
 
     from dlocli.controllers.base import make_controller
@@ -293,7 +298,8 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
         for j in range(1, n + 1):
             seed = stream_seed(spec.seed, TRIAL, k, j)
             model = load_planning_model(checkpoint, "cpu")
-            planner = make_controller(spec.planner, env, options=spec.mpc, seed=seed, model=model)
+            name = controller or spec.planner
+            planner = make_controller(name, env, options=spec.mpc, seed=seed, model=model)
             noise = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
             policy = NoisyPolicy(planner, noise, spec.noise_probability, spec.noise_std)
             episode = rollout(env, policy, seed)
@@ -319,6 +325,7 @@ def trials_report(run: Path, k: int, n: int, changes: dict[str, Any]) -> dict[st
 
 #: the planner options every ``sweep`` row sets, at the paper's (the runs' own specs may differ)
 SWEEP_BASE = {
+    "mpc.servo_cost": 0.0,
     "mpc.motion_cost": 0.0,
     "mpc.damping": 0.01,
     "mpc.settle_steps": 0,
@@ -328,14 +335,18 @@ SWEEP_BASE = {
 }
 
 
-def sweep_report(runs: list[Path], k: int, n: int, changes: dict[str, Any]) -> dict[str, Any]:
+def sweep_report(
+    runs: list[Path], k: int, n: int, changes: dict[str, Any], controller: str | None = None
+) -> dict[str, Any]:
     """``changes`` (over SWEEP_BASE) on iteration k's model of each run, n trials each: the
-    share of the initial error closed over all trials (1 - sum final / sum initial) and per run."""
+    share of the initial error closed over all trials (1 - sum final / sum initial) and per run
+    (``controller`` as :func:`trials_report` takes it)."""
     settings = {**SWEEP_BASE, **changes}
-    reports = [trials_report(run, k, n, settings) for run in runs]
+    reports = [trials_report(run, k, n, settings, controller) for run in runs]
     initial = sum(r["mean"]["initial_mm"] for r in reports)
     final = sum(r["mean"]["final_mm"] for r in reports)
-    return {"changes": changes, "runs": [str(r) for r in runs], "iteration": k, "trials": n,
+    return {"changes": changes, "controller": controller or "the run's planner",
+            "runs": [str(r) for r in runs], "iteration": k, "trials": n,
             "closed": round(1.0 - final / initial, 3),
             "per_run": [round(1.0 - r["mean"]["final_mm"] / r["mean"]["initial_mm"], 3)
                         for r in reports],
@@ -372,6 +383,13 @@ LATENCY_SETTINGS = {
         }
         for k, drift in ((5, False), (3, False), (5, True), (4, True), (3, True))
     },
+    "motion_cost 32, damping 1, servo_cost 0.001": {
+        **SWEEP_BASE,
+        "mpc.motion_cost": 32.0,
+        "mpc.damping": 1.0,
+        "mpc.servo_cost": 0.001,
+    },
+    "servo_cost 0.001": {**SWEEP_BASE, "mpc.servo_cost": 0.001},
     "motion_cost 32, damping 1, drift": {
         **SWEEP_BASE,
         "mpc.motion_cost": 32.0,
@@ -381,7 +399,9 @@ LATENCY_SETTINGS = {
 }
 
 
-def latency_report(run: Path, k: int, steps: int, rounds: int) -> dict[str, Any]:
+def latency_report(
+    run: Path, k: int, steps: int, rounds: int, only: list[str] | None = None
+) -> dict[str, Any]:
     """The MPC's time per control step (ms: median, mean) of each LATENCY_SETTINGS planner
     through iteration k's model, one thread, on the same starts, the planners taking turns
     episode by episode (so a busy host slows each alike); ``rounds`` episodes of ``steps``."""
@@ -397,10 +417,12 @@ def latency_report(run: Path, k: int, steps: int, rounds: int) -> dict[str, Any]
     checkpoint = (run / "checkpoints" / f"iter_{k:02d}.pt").read_bytes()
     torch.set_num_threads(1)
     env = make_env_from_spec(env_spec(spec))
-    times: dict[str, list[float]] = {name: [] for name in LATENCY_SETTINGS}
+    chosen = {name: LATENCY_SETTINGS[name] for name in ["paper", *(only or [])]}
+    chosen = chosen if only else LATENCY_SETTINGS
+    times: dict[str, list[float]] = {name: [] for name in chosen}
     try:
         for episode in range(-1, rounds):  # episode -1 warms torch and the simulator up
-            for name, settings in LATENCY_SETTINGS.items():
+            for name, settings in chosen.items():
                 options = spec.mpc.model_copy(
                     update={path.split(".", 1)[1]: value for path, value in settings.items()}
                 )
@@ -445,7 +467,7 @@ def gripper_offset(env: Any) -> tuple[float, float, float, float]:
 
 
 def pose_report(
-    run: Path, k: int, n: int, offset_mm: float = 0.0, turn_deg: float = 0.0
+    run: Path, k: int, n: int, offset_mm: float = 0.0, turn_deg: float = 0.0, roll: bool = False
 ) -> dict[str, Any]:
     """No model: from iteration k's first n starts, the grippers driven straight to the goal's
     own gripper poses at the task's velocity limits and held there to the episode's end (and
@@ -468,7 +490,7 @@ def pose_report(
             env.reset(seed=stream_seed(spec.seed, TRIAL, k, j))
             goal, moving, task = np.asarray(env.goal), env.backend.moving, env.task_spec
             rng = np.random.default_rng(j)
-            targets = misplaced(env.goal_gripper_poses, moving, offset_mm, turn_deg, rng)
+            targets = misplaced(env.goal_gripper_poses, moving, offset_mm, turn_deg, rng, roll)
             errors = [float(shape_error_mm(env.state_parts()["positions"], goal))]
             for _ in range(task.episode_steps + HOLD):
                 twists = gripper_twists_towards(env.backend.gripper_poses(), targets, task, moving)
@@ -482,7 +504,7 @@ def pose_report(
     finally:
         env.close()
     return {"run": str(run), "iteration": k, "trials": n, "offset_mm": offset_mm,
-            "turn_deg": turn_deg, "mean": per_key(np.mean, rows),
+            "turn_deg": turn_deg, "roll": roll, "mean": per_key(np.mean, rows),
             "median": per_key(np.median, rows), "per_trial": rows}  # fmt: skip
 
 
@@ -492,16 +514,29 @@ def per_key(statistic: Any, rows: list[dict[str, float]]) -> dict[str, float]:
 
 
 def misplaced(
-    poses: np.ndarray, moving: np.ndarray, offset_mm: float, turn_deg: float, rng: Any
+    poses: np.ndarray,
+    moving: np.ndarray,
+    offset_mm: float,
+    turn_deg: float,
+    rng: Any,
+    roll: bool = False,
 ) -> np.ndarray:
     """``poses`` with each moving gripper shifted by ``offset_mm`` and turned by ``turn_deg``
-    (world frame), each in a random direction."""
-    from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_normalize
+    (world frame), each in a random direction; with ``roll`` the turn is about the gripper's
+    own x axis."""
+    from dlocli.backends.rotations import (
+        quat_from_rotvec,
+        quat_multiply,
+        quat_normalize,
+        quat_rotate,
+    )
 
     out = poses.copy()
     for gripper in np.flatnonzero(moving):
         direction, axis = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
         out[gripper, :3] += direction * offset_mm / 1000.0
+        if roll:  # about the gripper's own x axis, the rod's where it is held, either way
+            axis = quat_rotate(out[gripper, 3:], np.array([1.0, 0.0, 0.0])) * rng.choice([-1, 1])
         turn = quat_from_rotvec(axis * np.radians(turn_deg))
         out[gripper, 3:] = quat_normalize(quat_multiply(turn, out[gripper, 3:]))
     return out
@@ -540,17 +575,23 @@ def main(argv: list[str] | None = None) -> None:
     many.add_argument("--iteration", type=int, default=3)
     many.add_argument("--trials", type=int, default=8)
     many.add_argument("--set", action="append", default=[], metavar="FIELD=JSON")
+    many.add_argument("--controller", help="a registered controller instead of the planner")
     timing = sub.add_parser("latency")
     timing.add_argument("run", type=Path)
     timing.add_argument("--iteration", type=int, default=3)
     timing.add_argument("--steps", type=int, default=100)
     timing.add_argument("--rounds", type=int, default=5)
+    timing.add_argument(
+        "--only", type=lambda text: text.split(";"), default=None,
+        help="the planners to time beside the paper's, by name, separated by ';'",
+    )  # fmt: skip
     pose = sub.add_parser("pose")
     pose.add_argument("run", type=Path)
     pose.add_argument("--iteration", type=int, default=3)
     pose.add_argument("--trials", type=int, default=10)
     pose.add_argument("--offset-mm", type=float, default=0.0)
     pose.add_argument("--turn-deg", type=float, default=0.0)
+    pose.add_argument("--roll", action="store_true", help="turn about the gripper's x axis")
     horizon = sub.add_parser("horizon")
     horizon.add_argument("run", type=Path)
     horizon.add_argument("--iteration", type=int, default=3)
@@ -584,11 +625,15 @@ def main(argv: list[str] | None = None) -> None:
         changes.update(spec_settings(args.set))
         report = trials_report(args.run, args.iteration, args.trials, changes)
     elif args.what == "sweep":
-        report = sweep_report(args.runs, args.iteration, args.trials, spec_settings(args.set))
+        report = sweep_report(
+            args.runs, args.iteration, args.trials, spec_settings(args.set), args.controller
+        )
     elif args.what == "latency":
-        report = latency_report(args.run, args.iteration, args.steps, args.rounds)
+        report = latency_report(args.run, args.iteration, args.steps, args.rounds, args.only)
     elif args.what == "pose":
-        report = pose_report(args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg)
+        report = pose_report(
+            args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg, args.roll
+        )
     elif args.what == "horizon":
         steps = tuple(int(h) for h in args.steps.split(","))
         report = horizon_report(args.run, args.iteration, steps, args.from_step)

@@ -11,7 +11,8 @@ examples/flex_planner.yaml), and each ``--count`` replacing one of the command's
 ``--count trials=8``: the job's own counts, which a spec file cannot change since the
 command's flags override it). A finished run is kept (delete it to measure again). ``report``:
 per rod and label, each seed's score (1 - final / initial, the summary's), the final error,
-doing nothing and random actions from the same starts, MPC milliseconds per control step and
+doing nothing, random actions and the held-end servo (no model) from the same starts, MPC
+milliseconds per control step and
 wall seconds as the run measured them; the mean and the worst score. The label ``default`` is
 the README's command as it is (its rod's planner defaults: on the flex rod motion_cost 32 and
 damping 1, on the composite cable the paper's cost); ``paper`` is the paper's planner,
@@ -83,11 +84,18 @@ def row(folder: Path) -> dict[str, Any]:
         "final_mm": round(summary["final_error_mm"], 1),
         "zero_mm": round(summary["zero_final_error_mm"], 1),
         "random_mm": round(summary["random_final_error_mm"], 1),
+        # runs before the held-end servo was a reference have none
+        "held_end_mm": rounded(summary["curve"][-1].get("held-end_final_error_mm_mean")),
         "mpc_ms_per_step": round(1000.0 * summary["mpc_seconds"] / steps, 2),
         "wall_s": round(summary["seconds"]),  # the run's own, from its start to its summary
         "motion_cost": spec["mpc"].get("motion_cost", 0.0),
         "damping": spec["mpc"].get("damping", 0.01),
+        "servo_cost": spec["mpc"].get("servo_cost", 0.0),
     }
+
+
+def rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 1)
 
 
 def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
@@ -98,8 +106,9 @@ def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
         groups.setdefault((r["backend"], r["label"], r["counts"]), []).append(r)
     lines = [
         "| rod | variant | iterations x trials, initial | seeds | scores | mean | worst | final "
-        "mm (mean) | doing nothing mm | random mm | MPC ms/step | wall s (max) |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "mm (mean) | doing nothing mm | random mm | held-end servo mm | MPC ms/step | "
+        "wall s (max) |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     summary: dict[str, Any] = {"rows": rows, "groups": {}}
     for (backend, label, counts), members in groups.items():
@@ -112,6 +121,7 @@ def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
                  "mean_score": round(sum(scores) / len(scores), 3), "worst_score": min(scores),
                  "final_mm": round(mean("final_mm"), 1), "zero_mm": round(mean("zero_mm"), 1),
                  "random_mm": round(mean("random_mm"), 1),
+                 "held_end_mm": servo_mean(members),
                  "mpc_ms_per_step": round(mean("mpc_ms_per_step"), 2),
                  "wall_s_max": max(m["wall_s"] for m in members)}  # fmt: skip
         summary["groups"][f"{backend}/{label}"] = group
@@ -119,7 +129,8 @@ def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
             f"| {backend} | {label} | {counts} | {', '.join(map(str, group['seeds']))} | "
             f"{' / '.join(f'{s:.3f}' for s in scores)} | {group['mean_score']:.3f} | "
             f"{group['worst_score']:.3f} | {group['final_mm']} | {group['zero_mm']} | "
-            f"{group['random_mm']} | {group['mpc_ms_per_step']} | {group['wall_s_max']} |"
+            f"{group['random_mm']} | {shown(group['held_end_mm'])} | "
+            f"{group['mpc_ms_per_step']} | {group['wall_s_max']} |"
         )
     lines.append(
         "\nMPC ms/step and wall s are as the runs measured them: with other runs on the same "
@@ -127,6 +138,16 @@ def report(outs: list[Path]) -> tuple[str, dict[str, Any]]:
         "through one model, taking turns (`benchmarks/flex_control_gap.py latency`)."
     )
     return "\n".join(lines) + "\n", summary
+
+
+def shown(value: float | None) -> str:
+    return "–" if value is None else str(value)
+
+
+def servo_mean(members: list[dict[str, Any]]) -> float | None:
+    """The held-end servo's mean final error over the members, None if one has none."""
+    found = [m.get("held_end_mm") for m in members]
+    return None if None in found else round(sum(found) / len(found), 1)
 
 
 def main() -> None:

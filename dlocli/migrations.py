@@ -87,8 +87,14 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "jacobian": "full",
         "disturbance": "none",
         "disturbance_gain": 0.2,
+        "servo_cost": 0.0,
     },
-    "mppi": {"motion_cost": 0.0, "disturbance": "none", "disturbance_gain": 0.2},
+    "mppi": {
+        "motion_cost": 0.0,
+        "disturbance": "none",
+        "disturbance_gain": 0.2,
+        "servo_cost": 0.0,
+    },
     "pilco": {"policy_scale_floor": 0.01},
 }
 

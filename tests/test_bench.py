@@ -141,7 +141,10 @@ def test_tiny_bench_resume_and_report(tmp_path: Path):
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
-        (["--agents", "sac,dqn"], "valid agents: mpc, mpc-offline, pilco, random, sac, td3"),
+        (
+            ["--agents", "sac,dqn"],
+            "valid agents: held-end, mpc, mpc-offline, pilco, random, sac, td3",
+        ),
         (["--budget", "10"], "less than one episode"),
         (["--executor", "ray", "--ray-address", "127.0.0.1:1"], "Ray"),
         (["--ray-address", "127.0.0.1:6379"], "needs --executor ray"),

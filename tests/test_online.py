@@ -121,9 +121,9 @@ def test_references_run_from_the_trials_starts(uninterrupted):
     error as the trial, their means in the curve and the summary."""
     out, summary = uninterrupted
     table = json.loads((out / "references.json").read_text())
-    assert sorted(table) == ["random", "zero"]
+    assert sorted(table) == ["held-end", "random", "zero"]
     rows = {(int(r["iteration"]), int(r["trial"])): r for r in read_rows(out)}
-    for name in ("zero", "random"):
+    for name in ("zero", "random", "held-end"):
         assert sorted(table[name]) == sorted(f"{k}/{j}" for k, j in rows)
         for (k, j), row in rows.items():
             ran = table[name][f"{k}/{j}"]
@@ -131,6 +131,8 @@ def test_references_run_from_the_trials_starts(uninterrupted):
     zero = [table["zero"][f"2/{j}"]["final_error_mm"] for j in (1, 2)]
     assert summary["zero_final_error_mm"] == pytest.approx(np.mean(zero))
     assert summary["random_final_error_mm"] != summary["zero_final_error_mm"]
+    servo = [table["held-end"][f"2/{j}"]["final_error_mm"] for j in (1, 2)]
+    assert summary["held_end_final_error_mm"] == pytest.approx(np.mean(servo))
     assert summary["reference_seconds"] > 0
 
 

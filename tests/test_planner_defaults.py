@@ -7,29 +7,32 @@ import json
 
 import pytest
 
-from dlocli.backends.facts import BackendFacts, FlexFacts
+from dlocli.backends.facts import SERVO_COST, BackendFacts, FlexFacts, MujocoFacts
 from dlocli.bench.spec import BenchSpec
 from dlocli.controllers.base import controller_spec
 from dlocli.controllers.specs import MPCSpec
 from dlocli.registry import backends
 from dlocli.runs.online.spec import OnlineSpec
 
-PAPER = {"motion_cost": MPCSpec().motion_cost, "damping": MPCSpec().damping}
+FIELDS = ("motion_cost", "damping", "servo_cost")
+PAPER = {field: getattr(MPCSpec(), field) for field in FIELDS}
 FLEX = dict(FlexFacts.planner_defaults["mpc"])
+CABLE = {**PAPER, **MujocoFacts.planner_defaults["mpc"]}
 
 
 def planned(spec_cls: type, data: dict) -> dict[str, float]:
     spec = spec_cls.model_validate(data)
-    return {"motion_cost": spec.mpc.motion_cost, "damping": spec.mpc.damping}
+    return {field: getattr(spec.mpc, field) for field in FIELDS}
 
 
 @pytest.mark.parametrize("spec_cls", [OnlineSpec, BenchSpec])
-def test_the_flex_rod_plans_with_its_defaults_the_others_with_the_papers(spec_cls):
-    assert FLEX == {"motion_cost": 32.0, "damping": 1.0} != PAPER
-    assert PAPER == {"motion_cost": 0.0, "damping": 0.01}
+def test_each_rod_plans_with_its_defaults_pybullet_with_the_papers(spec_cls):
+    assert FLEX == {"motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST} != PAPER
+    assert CABLE == {"motion_cost": 0.0, "damping": 0.01, "servo_cost": SERVO_COST}
+    assert PAPER == {"motion_cost": 0.0, "damping": 0.01, "servo_cost": 0.0}
     assert planned(spec_cls, {"backend": {"name": "mujoco-flex"}}) == FLEX
-    for name in ("mujoco", "pybullet"):
-        assert planned(spec_cls, {"backend": {"name": name}}) == PAPER
+    assert planned(spec_cls, {"backend": {"name": "mujoco"}}) == CABLE
+    assert planned(spec_cls, {"backend": {"name": "pybullet"}}) == PAPER
 
 
 def test_what_a_run_sets_is_kept_and_the_resolved_spec_saves_it():
@@ -53,7 +56,8 @@ def test_a_planner_without_defaults_on_the_rod_gets_none():
 def test_dlo_controls_options_take_the_backends_defaults():
     assert controller_spec("mpc", {}, "mujoco-flex").model_dump().items() >= FLEX.items()
     assert controller_spec("mpc", {"damping": 0.1}, "mujoco-flex").damping == 0.1
-    assert controller_spec("mpc", {}, "mujoco").model_dump().items() >= PAPER.items()
+    assert controller_spec("mpc", {}, "mujoco").model_dump().items() >= CABLE.items()
+    assert controller_spec("mpc", {}, "pybullet").model_dump().items() >= PAPER.items()
     assert controller_spec("zero", {}, "mujoco-flex") is None
 
 
@@ -76,9 +80,10 @@ def test_dlo_list_names_each_backends_planner_defaults():
     assert result.exit_code == 0, result.output
     listed = json.loads(result.output)["backends"]
     assert listed["mujoco-flex"].endswith(
-        "mpc plans with motion_cost 32, damping 1 unless a run sets them"
+        "mpc plans with motion_cost 32, damping 1, servo_cost 0.001 unless a run sets them"
     )
-    assert "plans with" not in listed["mujoco"]
+    assert listed["mujoco"].endswith("mpc plans with servo_cost 0.001 unless a run sets them")
+    assert "plans with" not in listed["pybullet"]
 
 
 def test_make_controller_gives_unnamed_options_the_envs_defaults():
@@ -93,13 +98,13 @@ def test_make_controller_gives_unnamed_options_the_envs_defaults():
                                     "lstm_layers": 1}), 20)  # fmt: skip
     env = dlocli.make_env(MUJOCO_ROD, "single", seed=0, episode_steps=5)
     try:
-        expected = PAPER if MUJOCO_ROD == "mujoco" else FLEX
+        expected = CABLE if MUJOCO_ROD == "mujoco" else FLEX
         made = make_controller("mpc", env, model=model).spec
-        assert {"motion_cost": made.motion_cost, "damping": made.damping} == expected
+        assert {field: getattr(made, field) for field in FIELDS} == expected
         named = make_controller("mpc", env, options={"damping": 0.5}, model=model).spec
         assert (named.motion_cost, named.damping) == (expected["motion_cost"], 0.5)
         whole = make_controller("mpc", env, options=MPCSpec(), model=model).spec
-        assert (whole.motion_cost, whole.damping) == (PAPER["motion_cost"], PAPER["damping"])
+        assert {field: getattr(whole, field) for field in FIELDS} == PAPER
     finally:
         env.close()
 
@@ -108,7 +113,7 @@ def test_help_says_a_backend_may_set_the_option():
     from dlocli.cli.flags import shown_default
     from dlocli.specs import field_info
 
-    for field in ("motion_cost", "damping"):
+    for field in FIELDS:
         shown = shown_default(field_info(MPCSpec, field), field, False)
         assert shown.endswith(", or the backend's planner default]"), shown
     assert shown_default(field_info(MPCSpec, "horizon"), "horizon", False) == "  [default: 5]"

@@ -30,7 +30,7 @@ def test_every_entry_is_what_its_stand_ins_say(kind):
 
 
 def test_controllers_say_what_they_are():
-    assert list(references()) == ["zero", "random"]
+    assert list(references()) == ["zero", "random", "held-end"]
     assert [n for n in registry.controllers.names() if is_planner(n)] == ["mpc", "mppi"]
 
 

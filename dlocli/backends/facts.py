@@ -36,8 +36,17 @@ class BackendFacts:
         return rod
 
 
+#: the pull of every planned action towards the held-end servo's, on the rods where it was
+#: measured (docs/benchmarks.md, the held ends decide the shape)
+SERVO_COST = 1e-3
+
+
 class MujocoFacts(BackendFacts):
     """MuJoCo's composite cable."""
+
+    planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {
+        "mpc": {"servo_cost": SERVO_COST}
+    }
 
     # the cable's own damping: stiffness-proportional joint damping of time 0.05 s (twist
     # (1 + poisson) times that) and no air damping
@@ -71,7 +80,7 @@ class FlexFacts(BackendFacts):
     # much as the curvature they scale (docs/benchmarks.md, a planner that damps the swing)
     # (measured for the gradient MPC only)
     planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {
-        "mpc": {"motion_cost": 32.0, "damping": 1.0}
+        "mpc": {"motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST}
     }
 
     # MuJoCo's flex damping time for bending and twist

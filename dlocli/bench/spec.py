@@ -52,9 +52,10 @@ class BenchSpec(EnvSpec, ExecutorChoice):
     )  # fmt: skip
 
     agents: list[str] = Field(
-        default_factory=lambda: ["zero", "random", "sac", "td3", "pilco", "mpc"],
-        description="Agents to compare: zero, random, sac, td3, pilco, mpc, mpc-offline "
-        "(zero and random are the references every result is read against).",
+        default_factory=lambda: ["zero", "random", "held-end", "sac", "td3", "pilco", "mpc"],
+        description="Agents to compare: zero, random, held-end, sac, td3, pilco, mpc, "
+        "mpc-offline (zero, random and held-end, the no-model servo to where the goal holds "
+        "the rod's ends, are the references every result is read against).",
     )
     budget: int = Field(
         5000, gt=0, le=MAX_TRANSITIONS, description="Env transitions each agent may learn from."

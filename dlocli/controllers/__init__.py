@@ -34,6 +34,11 @@ controllers.register(
     "zero", "dlocli.controllers.base:ZeroController", "all-zero actions: do nothing (reference)"
 )
 controllers.register(
+    "held-end",
+    "dlocli.controllers.held_end:HeldEndServo",
+    "no model: each moving gripper servoed to where the goal holds its end (reference)",
+)
+controllers.register(
     "sac",
     "dlocli.controllers.sb3_agents:SACAgent",
     "Soft Actor-Critic (stable-baselines3) on the flat observation",

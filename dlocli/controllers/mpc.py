@@ -12,6 +12,11 @@ iterating on the actions through the H-step rollout, projecting onto [-1, 1] aft
 step, and executes a_t (receding horizon). The first term is the paper's objective; the
 control-effort weight lambda (``action_cost``, default 1e-4 m^2) is ours and keeps
 directions the model barely sees (e.g. the gripper's roll about the rod axis) near zero.
+Two more terms are ours, each off in the paper's objective and on by a backend's planner
+defaults where they pay: ``motion_cost`` x the predicted motion (a plan that leaves the rod
+swinging pays for it) and ``servo_cost`` x each action's distance from the held-end servo's
+(:mod:`dlocli.controllers.held_end`: the grippers pulled to where the goal holds the ends,
+which decide the shape the rod rests in; the model refines the rest).
 
 Update rules (``optimizer``):
 

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from dlocli.controllers.base import Planner
+from dlocli.controllers.held_end import servo_action
 from dlocli.controllers.specs import PlannerSpec
 from dlocli.controllers.views import RodView, make_view
 
@@ -65,6 +66,7 @@ class ModelPlanner(Planner):
         self._replanned_from: tuple[torch.Tensor, torch.Tensor | None] | None = None
         self._expected: torch.Tensor | None = None  # (N, 3) positions predicted for this step
         self._disturbance: torch.Tensor | None = None  # (N, 3) averaged one-step error
+        self._servo: torch.Tensor | None = None  # (A,) the held-end servo's latest action
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -74,7 +76,7 @@ class ModelPlanner(Planner):
         self._plan = None
         self._cursor = 0
         self._observed = self._previous = self._evaluated = self._replanned_from = None
-        self._expected = self._disturbance = None
+        self._expected = self._disturbance = self._servo = None
         self.view.reset()
 
     @property
@@ -102,6 +104,7 @@ class ModelPlanner(Planner):
         if self._goal_pending:
             self._goal, self._goal_pending = self.view.goal(obs, self.goal), False
         state, before = self.view.observe(obs)
+        self._update_servo(obs)
         # act() is called once per control step, so the last state is s_{t-1} unless the
         # view estimates it itself
         self._previous = self._observed if before is None else before
@@ -123,6 +126,17 @@ class ModelPlanner(Planner):
             action = self._plan[0]
         self._expect(state, action)
         return action.cpu().numpy()
+
+    # ------------------------------------------------------------------ held-end servo
+    def _update_servo(self, obs: np.ndarray) -> None:
+        """With ``servo_cost``: the held-end servo's action for this observation, the point
+        every planned action is pulled towards (kept from the last step where the held ends
+        cannot be read)."""
+        if self.spec.servo_cost == 0.0:
+            return
+        action = servo_action(self.env, self.task, obs)
+        if action is not None:
+            self._servo = torch.as_tensor(action, dtype=torch.float32, device=self.device)
 
     # ------------------------------------------------------------------ disturbance
     def _expect(self, state: torch.Tensor, action: torch.Tensor) -> None:
@@ -180,7 +194,8 @@ class ModelPlanner(Planner):
 
     def predict_cost(self, state: torch.Tensor, plans: torch.Tensor) -> torch.Tensor:
         """Cost (B,) of plans (B, H, A) from state (1, N, 7): the model-predicted shape cost
-        plus ``action_cost * sum ||a||^2`` (see :mod:`dlocli.controllers.mpc`)."""
+        plus ``action_cost * sum ||a||^2`` and the optional terms (see
+        :mod:`dlocli.controllers.mpc`)."""
         return self.residuals(state, plans).square().sum(dim=1)
 
     def residuals(
@@ -189,9 +204,10 @@ class ModelPlanner(Planner):
         plans: torch.Tensor,
         previous: torch.Tensor | None | EllipsisType = ...,
     ) -> torch.Tensor:
-        """(B, (H+S)*N*3 + H*A): the terms whose squares sum to :meth:`predict_cost`, the
-        predicted position errors (m) over the horizon and the S settle steps, then
-        sqrt(action_cost) x the actions. ``previous`` is the state one
+        """(B, (H+S)*N*3 + H*A + ...): the terms whose squares sum to :meth:`predict_cost`,
+        the predicted position errors (m) over the horizon and the S settle steps, then
+        sqrt(action_cost) x the actions, and where asked the motion and the servo terms
+        (:meth:`residuals_of`). ``previous`` is the state one
         step before ``state`` (None: at rest); by default :meth:`previous_of` finds it."""
         return self.residuals_of(state, plans, self.predicted(state, plans, previous))
 
@@ -221,13 +237,16 @@ class ModelPlanner(Planner):
         self, state: torch.Tensor, plans: torch.Tensor, predicted: torch.Tensor
     ) -> torch.Tensor:
         """:meth:`residuals` given the predicted positions (B, H+S, N, 3): affine in both
-        plans and predictions."""
+        plans and predictions. With ``servo_cost``, sqrt(servo_cost) x each action's
+        distance from the held-end servo's (:mod:`dlocli.controllers.held_end`)."""
         assert self._goal is not None
         errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
         terms = [errors, effort]
         if self.spec.motion_cost > 0.0:
             terms.append(self._motion(state, predicted))
+        if self._servo is not None:
+            terms.append(self.spec.servo_cost**0.5 * (plans - self._servo).flatten(1))
         return torch.cat(terms, dim=1)
 
     def _motion(self, state: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:

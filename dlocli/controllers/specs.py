@@ -66,6 +66,18 @@ class PlannerSpec(Spec):
         "the planner damps it. 0 = the paper's objective; unset, the backend's planner default "
         "(`dlo list` names them; docs: a planner that damps the swing).",
     )
+    servo_cost: float = Field(
+        0.0,
+        ge=0,
+        le=1e2,
+        json_schema_extra=BACKEND_DEFAULT,
+        description="Weight of each planned action's distance from the held-end servo's action "
+        "(the reference `held-end`: each moving gripper driven to where the goal holds its "
+        "end), per unit action^2 like action_cost: the plan starts from where the goal's held "
+        "ends put the grippers and the model refines it. 0 = the paper's objective; unset, "
+        "the backend's planner default (`dlo list` names them; docs: the held ends decide "
+        "the shape).",
+    )
     disturbance: Literal["none", "offset", "drift"] = Field(
         "none",
         description="Correct the model's predictions by what it got wrong at the last steps "

@@ -1,12 +1,13 @@
 """The references of an online run: what the registered reference controllers (doing
-nothing, uniform random actions) get from exactly the starts and goals of its MPC trials.
+nothing, uniform random actions, the held-end servo) get from exactly the starts and goals of
+its MPC trials.
 
 A learning curve means little without them: on a task whose start and goal are close, doing
 nothing already ends near the goal. Every trial (k, j) starts from ``env.reset(seed=stream_seed
 (seed, TRIAL, k, j))``; each reference controller runs one episode from the same reset, so its
 initial error is the trial's. The results live in one JSON file in the run directory, written
 atomically after each iteration, so they resume like the trials. They cost simulation only,
-two episodes per trial, shared among the trial workers.
+one episode per reference and trial, shared among the trial workers.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ Run directory (every file written atomically)::
     data/iter_KK/trial_JJJ.h5      one file per finished trial: the dataset grows atomically
     checkpoints/iter_KK.pt         the model after iteration KK's training (+ Adam state)
     checkpoints/final.pt           the last iteration's model
-    references.json                doing nothing and random actions from every trial's start
+    references.json                the references (doing nothing, random, held-end) from each start
     metrics.csv                    iteration, trial, transitions, cumulative_reward, ...
     summary.json, plots/learning_curve.png
 

@@ -137,9 +137,10 @@ class OnlineResults:
             "final_error_mm": curve[-1]["final_error_mm_mean"] if curve else None,
             "score": curve[-1]["score_mean"] if curve else None,
             "cumulative_reward": curve[-1]["cumulative_reward_mean"] if curve else None,
-            # the same starts and goals, doing nothing and random actions
+            # the same starts and goals, doing nothing, random actions and the held-end servo
             "zero_final_error_mm": last.get("zero_final_error_mm_mean"),
             "random_final_error_mm": last.get("random_final_error_mm_mean"),
+            "held_end_final_error_mm": last.get("held-end_final_error_mm_mean"),
             "seconds": round(wall, 1),
             **self.time_shares(rows),
             "reference_seconds": round(table.seconds(), 1),
