@@ -12,6 +12,8 @@ each command in the environment of the run's backend).
                                                   [--only "NAME;NAME"]
     python benchmarks/flex_control_gap.py pose RUN [--iteration K] [--trials N]
                                                [--offset-mm D] [--turn-deg A] [--roll]
+    python benchmarks/flex_control_gap.py reference RUN [--iteration K] [--trials N]
+                                                    [--name held-end]
     python benchmarks/flex_control_gap.py horizon RUN [--iteration K] [--steps 1,5,10,20]
                                                   [--from-step S]
     python benchmarks/flex_control_gap.py retrain RUN K OUT [--seed S]
@@ -33,7 +35,9 @@ over all trials and per run (``--controller held-end``: the no-model servo from 
 with the same action noise). ``latency``: the MPC's milliseconds per control step of the
 paper's cost and of the options that damp the swing, through one model, taking turns
 (:func:`latency_report`). ``pose``: no model, the grippers driven straight to the goal's own gripper
-poses from the same starts (:func:`pose_report`). ``horizon``:
+poses from the same starts (:func:`pose_report`). ``reference``: a registered reference
+(``held-end`` by default) from iteration K's trial starts, as the run's references ran
+(:func:`reference_report`; a run folder without checkpoints will do). ``horizon``:
 iteration K's model open loop on the trials it drove (from step S on), its position error
 after 1, 5, 10, 20 steps beside the recorded motion over as many steps. ``retrain``:
 iteration 3's model retrained through K-step rollouts (:func:`retrain`), into a copy of the
@@ -508,6 +512,31 @@ def pose_report(
             "median": per_key(np.median, rows), "per_trial": rows}  # fmt: skip
 
 
+def reference_report(run: Path, k: int, n: int, name: str) -> dict[str, Any]:
+    """The registered reference ``name`` (no model, no checkpoint needed) from iteration k's
+    first n trial starts, as the run's own references ran: one episode each."""
+    from dlocli.env.rollout import stream_seed
+    from dlocli.env.shape_env import make_env_from_spec
+    from dlocli.resume import load_saved_spec
+    from dlocli.runs.online.spec import TRIAL, OnlineSpec
+    from dlocli.runs.online.trials import env_spec
+    from dlocli.runs.references import reference_episode_scores
+
+    spec = load_saved_spec(OnlineSpec, run / "spec.json")
+    env = make_env_from_spec(env_spec(spec))
+    try:
+        rows = [reference_episode_scores(env, name, stream_seed(spec.seed, TRIAL, k, j), j)
+                for j in range(1, n + 1)]  # fmt: skip
+    finally:
+        env.close()
+    keys = ("initial_error_mm", "final_error_mm", "score")
+    rows = [{key: row[key] for key in keys} for row in rows]
+    return {"run": str(run), "iteration": k, "trials": n, "reference": name,
+            "mean": per_key(np.mean, rows), "median": per_key(np.median, rows),
+            "closed": round(1.0 - sum(r["final_error_mm"] for r in rows)
+                            / sum(r["initial_error_mm"] for r in rows), 3)}  # fmt: skip
+
+
 def per_key(statistic: Any, rows: list[dict[str, float]]) -> dict[str, float]:
     """``statistic`` (np.mean, np.median) of each field over the trials' rows, rounded."""
     return {key: round(float(statistic([r[key] for r in rows])), 3) for key in rows[0]}
@@ -592,6 +621,11 @@ def main(argv: list[str] | None = None) -> None:
     pose.add_argument("--offset-mm", type=float, default=0.0)
     pose.add_argument("--turn-deg", type=float, default=0.0)
     pose.add_argument("--roll", action="store_true", help="turn about the gripper's x axis")
+    ref = sub.add_parser("reference")
+    ref.add_argument("run", type=Path)
+    ref.add_argument("--iteration", type=int, default=3)
+    ref.add_argument("--trials", type=int, default=10)
+    ref.add_argument("--name", default="held-end", help="a registered reference controller")
     horizon = sub.add_parser("horizon")
     horizon.add_argument("run", type=Path)
     horizon.add_argument("--iteration", type=int, default=3)
@@ -630,6 +664,8 @@ def main(argv: list[str] | None = None) -> None:
         )
     elif args.what == "latency":
         report = latency_report(args.run, args.iteration, args.steps, args.rounds, args.only)
+    elif args.what == "reference":
+        report = reference_report(args.run, args.iteration, args.trials, args.name)
     elif args.what == "pose":
         report = pose_report(
             args.run, args.iteration, args.trials, args.offset_mm, args.turn_deg, args.roll

@@ -11,7 +11,7 @@ import torch
 import dlocli
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_to_matrix
 from dlocli.controllers.base import make_controller, references
-from dlocli.controllers.held_end import end_tangent, servo_action, servo_targets
+from dlocli.controllers.held_end import end_tangent, roll_free, servo_action, servo_targets
 from dlocli.controllers.mpc import GradientMPC, MPCSpec
 from dlocli.env.metrics import shape_error_mm
 from dlocli.env.rollout import rollout
@@ -100,9 +100,11 @@ def test_the_servo_closes_most_of_the_error_on_the_rod(env, seed):
     assert finals["held-end"] < 0.25 * finals["zero"]
 
 
-def test_servo_cost_adds_each_actions_distance_from_the_servo(env):
-    """servo_cost w appends sqrt(w) x (action - the servo's action) for every planned action
-    after the paper's terms; a large w makes the plan the servo's action."""
+def test_servo_cost_adds_each_actions_distance_from_the_servo_but_the_roll(env):
+    """servo_cost w appends sqrt(w) x (action - the servo's action), the grippers' roll
+    projected out, for every planned action after the paper's terms; a large w brings the
+    plan nearer the servo's action than the paper's cost does (the roll, left to the model,
+    may take the plan to the action bounds, so not onto it)."""
     model = build_model(model_spec({"hidden": 16, "edge_layers": 1, "node_layers": 1,
                                     "lstm_layers": 1}), 20).eval()  # fmt: skip
     obs, _ = env.reset(seed=5)
@@ -110,14 +112,24 @@ def test_servo_cost_adds_each_actions_distance_from_the_servo(env):
     paper = GradientMPC(env, model, MPCSpec(servo_cost=0.0))
     for mpc in (pulled, paper):
         mpc.reset(env.goal)
-    action = pulled.act(obs)
+    action, unpulled = pulled.act(obs), paper.act(obs)
     servo = servo_action(env, env.task, obs)
     assert servo is not None and np.abs(servo).max() > 0.1
-    np.testing.assert_allclose(action, servo, atol=0.02)
+    read = roll_free(env.task, env.split_observation(obs)["grippers"])
+    roll = np.eye(6) - read  # the right gripper's turn about its own x axis, alone
+    assert np.linalg.matrix_rank(roll, tol=1e-6) == 1
+    np.testing.assert_allclose(roll[:3], 0.0, atol=1e-12)  # no linear part
+    near, far = (np.linalg.norm((a - servo) @ read) for a in (action, unpulled))
+    assert near < 0.5 * far
     state = pulled.state_tensor(obs)
     plan = torch.linspace(-0.6, 0.6, 30).view(1, 5, 6)
     with torch.no_grad():
         ours, theirs = pulled.residuals(state, plan, None), paper.residuals(state, plan, None)
-    extra = 10.0 * (plan - torch.as_tensor(servo, dtype=torch.float32)).flatten(1)
+        rolled = pulled.residuals(state, plan + torch.as_tensor(roll[5], dtype=torch.float32),
+                                  None)  # fmt: skip
+    servo_t, read_t = (torch.as_tensor(a, dtype=torch.float32) for a in (servo, read))
+    extra = 10.0 * ((plan - servo_t) @ read_t).flatten(1)
     torch.testing.assert_close(ours[:, : theirs.shape[1]], theirs)
     torch.testing.assert_close(ours[:, theirs.shape[1] :], extra)
+    # a turn about the roll axis leaves the servo's term as it was
+    torch.testing.assert_close(rolled[:, -extra.shape[1] :], extra, atol=1e-5, rtol=0)

@@ -11,7 +11,8 @@ task's speed limits. Estimating both tangents the same way from the points obser
 the estimate's bias cancel as the rod nears the goal.
 
 It runs beside doing nothing and random actions as a reference (``held-end``), and the
-planners' ``servo_cost`` pulls their plans towards its action.
+planners' ``servo_cost`` pulls their plans towards its action in all but the roll
+(:func:`roll_free`), which the model's shape cost is left to find.
 """
 
 from __future__ import annotations
@@ -91,6 +92,20 @@ def servo_action(env: Any, task: Any, obs: np.ndarray) -> np.ndarray | None:
         return None
     twists = gripper_twists_towards(parts["grippers"], targets, spec, task.moving)
     return np.asarray(task.from_grippers(twists / max_twist(spec)), dtype=np.float64)
+
+
+def roll_free(task: Any, grippers: np.ndarray) -> np.ndarray:
+    """(A, A) projection of an action onto what the servo reads from the goal: all but each
+    moving gripper's turn about its own x axis (the rod's axis where it is held), the roll the
+    goal barely shows, which the servo keeps rather than knows."""
+    size = int(np.asarray(task.from_grippers(np.zeros((2, 6)))).size)
+    projection = np.eye(size)
+    for k in np.flatnonzero(task.moving):
+        commands = np.zeros((2, 6))
+        commands[k, 3:] = quat_to_matrix(np.asarray(grippers[k, 3:], dtype=np.float64))[:, 0]
+        roll = np.asarray(task.from_grippers(commands), dtype=np.float64).ravel()
+        projection -= np.outer(roll, roll)
+    return projection
 
 
 class HeldEndServo(Controller):

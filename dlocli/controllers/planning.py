@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from dlocli.controllers.base import Planner
-from dlocli.controllers.held_end import servo_action
+from dlocli.controllers.held_end import roll_free, servo_action
 from dlocli.controllers.specs import PlannerSpec
 from dlocli.controllers.views import RodView, make_view
 
@@ -67,6 +67,7 @@ class ModelPlanner(Planner):
         self._expected: torch.Tensor | None = None  # (N, 3) positions predicted for this step
         self._disturbance: torch.Tensor | None = None  # (N, 3) averaged one-step error
         self._servo: torch.Tensor | None = None  # (A,) the held-end servo's latest action
+        self._servo_read: torch.Tensor | None = None  # (A, A) what of it the goal shows
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -76,7 +77,7 @@ class ModelPlanner(Planner):
         self._plan = None
         self._cursor = 0
         self._observed = self._previous = self._evaluated = self._replanned_from = None
-        self._expected = self._disturbance = self._servo = None
+        self._expected = self._disturbance = self._servo = self._servo_read = None
         self.view.reset()
 
     @property
@@ -130,13 +131,16 @@ class ModelPlanner(Planner):
     # ------------------------------------------------------------------ held-end servo
     def _update_servo(self, obs: np.ndarray) -> None:
         """With ``servo_cost``: the held-end servo's action for this observation, the point
-        every planned action is pulled towards (kept from the last step where the held ends
-        cannot be read)."""
+        every planned action is pulled towards in all but the grippers' roll (kept from the
+        last step where the held ends cannot be read)."""
         if self.spec.servo_cost == 0.0:
             return
         action = servo_action(self.env, self.task, obs)
-        if action is not None:
-            self._servo = torch.as_tensor(action, dtype=torch.float32, device=self.device)
+        if action is None:
+            return
+        read = roll_free(self.task, self.env.split_observation(obs)["grippers"])
+        self._servo = torch.as_tensor(action, dtype=torch.float32, device=self.device)
+        self._servo_read = torch.as_tensor(read, dtype=torch.float32, device=self.device)
 
     # ------------------------------------------------------------------ disturbance
     def _expect(self, state: torch.Tensor, action: torch.Tensor) -> None:
@@ -238,15 +242,17 @@ class ModelPlanner(Planner):
     ) -> torch.Tensor:
         """:meth:`residuals` given the predicted positions (B, H+S, N, 3): affine in both
         plans and predictions. With ``servo_cost``, sqrt(servo_cost) x each action's
-        distance from the held-end servo's (:mod:`dlocli.controllers.held_end`)."""
+        distance from the held-end servo's but for the grippers' roll
+        (:mod:`dlocli.controllers.held_end`)."""
         assert self._goal is not None
         errors = (predicted - self._goal).flatten(1)
         effort = self.spec.action_cost**0.5 * plans.flatten(1)
         terms = [errors, effort]
         if self.spec.motion_cost > 0.0:
             terms.append(self._motion(state, predicted))
-        if self._servo is not None:
-            terms.append(self.spec.servo_cost**0.5 * (plans - self._servo).flatten(1))
+        if self._servo is not None and self._servo_read is not None:
+            pulled = (plans - self._servo) @ self._servo_read
+            terms.append(self.spec.servo_cost**0.5 * pulled.flatten(1))
         return torch.cat(terms, dim=1)
 
     def _motion(self, state: torch.Tensor, predicted: torch.Tensor) -> torch.Tensor:

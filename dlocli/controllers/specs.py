@@ -73,8 +73,8 @@ class PlannerSpec(Spec):
         json_schema_extra=BACKEND_DEFAULT,
         description="Weight of each planned action's distance from the held-end servo's action "
         "(the reference `held-end`: each moving gripper driven to where the goal holds its "
-        "end), per unit action^2 like action_cost: the plan starts from where the goal's held "
-        "ends put the grippers and the model refines it. 0 = the paper's objective; unset, "
+        "end), per unit action^2 like action_cost, all but the grippers' roll (which the goal "
+        "barely shows: the model's shape cost finds it). 0 = the paper's objective; unset, "
         "the backend's planner default (`dlo list` names them; docs: the held ends decide "
         "the shape).",
     )
