@@ -105,6 +105,7 @@ def test_servo_cost_adds_each_actions_distance_from_the_servo_but_the_roll(env):
     projected out, for every planned action after the paper's terms; a large w brings the
     plan nearer the servo's action than the paper's cost does (the roll, left to the model,
     may take the plan to the action bounds, so not onto it)."""
+    torch.manual_seed(0)  # the untrained model's weights: the same whatever ran before
     model = build_model(model_spec({"hidden": 16, "edge_layers": 1, "node_layers": 1,
                                     "lstm_layers": 1}), 20).eval()  # fmt: skip
     obs, _ = env.reset(seed=5)
