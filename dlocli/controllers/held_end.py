@@ -82,11 +82,23 @@ def servo_targets(
 def servo_action(env: Any, task: Any, obs: np.ndarray) -> np.ndarray | None:
     """The held-end servo's action (A,) in [-1, 1] for the flat observation ``obs`` of
     ``env`` (full or markers), None where it cannot read the held ends."""
+    return action_of(env.split_observation(obs), env.task_spec, task)
+
+
+def servo_pull(env: Any, task: Any, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The servo's action and the projection onto what it reads (:func:`roll_free`) for the
+    flat observation ``obs``, from one reading of it; None where the held ends cannot be
+    read."""
     parts = env.split_observation(obs)
+    action = action_of(parts, env.task_spec, task)
+    return None if action is None else (action, roll_free(task, parts["grippers"]))
+
+
+def action_of(parts: dict[str, np.ndarray], spec: Any, task: Any) -> np.ndarray | None:
+    """:func:`servo_action` from the observation's parts and the task spec."""
     points = parts["positions"] if "positions" in parts else parts["markers"]
     if "visible" in parts:
         points = np.where(parts["visible"] > 0.5, points, np.nan)
-    spec = env.task_spec
     targets = servo_targets(points, parts["goal"], parts["grippers"], task.moving)
     if targets is None:
         return None

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from dlocli.controllers.base import Planner
-from dlocli.controllers.held_end import roll_free, servo_action
+from dlocli.controllers.held_end import servo_pull
 from dlocli.controllers.specs import PlannerSpec
 from dlocli.controllers.views import RodView, make_view
 
@@ -135,10 +135,10 @@ class ModelPlanner(Planner):
         last step where the held ends cannot be read)."""
         if self.spec.servo_cost == 0.0:
             return
-        action = servo_action(self.env, self.task, obs)
-        if action is None:
+        pull = servo_pull(self.env, self.task, obs)
+        if pull is None:
             return
-        read = roll_free(self.task, self.env.split_observation(obs)["grippers"])
+        action, read = pull
         self._servo = torch.as_tensor(action, dtype=torch.float32, device=self.device)
         self._servo_read = torch.as_tensor(read, dtype=torch.float32, device=self.device)
 
