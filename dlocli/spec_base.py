@@ -237,6 +237,8 @@ def format_validation_error(exc: ValidationError, source: str = "spec") -> str:
         return f"{source}: field '{at}{retired.field}' is retired{why}; {fix}"
     if err["type"] == "extra_forbidden":
         return f"{source}: unknown field '{field}'; remove it (see --help for valid fields)"
+    if not err["loc"]:  # a check across fields: its message names them; the input is the spec
+        return f"{source}: {err['msg'].removeprefix('Value error, ')}"
     return f"{source}: field '{field}': {err['msg']} (got {bounded_repr(err.get('input'))})"
 
 

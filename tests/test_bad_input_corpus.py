@@ -197,6 +197,7 @@ CORPUS: list[tuple[str, str, int]] = [
     ("servo-cost-inf", "online --servo-cost inf --out {out}", 2),
     ("servo-cost-negative", "online --servo-cost -1 --out {out}", 2),
     ("servo-cost-huge", "online --servo-cost 1e9 --out {out}", 2),
+    ("marker-online-epochs", "online --observation markers --epochs 10 --out {out}", 2),
     ("motion-cost-huge", "online --motion-cost 1e9 --out {out}", 2),
     ("motion-cost-text", "online --motion-cost abc --out {out}", 2),
     ("spec-json-infinity", "train --spec {bad}/inf_lr.json --data {data} --out {out}", 2),
@@ -330,6 +331,16 @@ def _format(argv: str, world: dict[str, Path], out: Path) -> list[str]:
         "bad": f"{world['root']}/bad",
     }
     return [part.format(**values) for part in argv.split()]
+
+
+def test_a_check_across_fields_says_what_to_change_not_the_whole_spec(tmp_path, capsys):
+    """A refusal from a check across a spec's fields is its own message, without the spec it
+    was given echoed after it."""
+    out = tmp_path / "out"
+    assert run_dlo(["online", "--observation", "markers", "--epochs", "10", "--out", str(out)]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert "--epochs" in line and "--update-steps" in line and "{" not in line
+    assert not out.exists()
 
 
 def test_corpus_is_large_enough():
