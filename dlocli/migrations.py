@@ -88,12 +88,14 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "disturbance": "none",
         "disturbance_gain": 0.2,
         "servo_cost": 0.0,
+        "roll_search": 0,
     },
     "mppi": {
         "motion_cost": 0.0,
         "disturbance": "none",
         "disturbance_gain": 0.2,
         "servo_cost": 0.0,
+        "roll_search": 0,
     },
     "pilco": {"policy_scale_floor": 0.01},
 }

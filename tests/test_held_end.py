@@ -11,7 +11,13 @@ import torch
 import dlocli
 from dlocli.backends.rotations import quat_from_rotvec, quat_multiply, quat_to_matrix
 from dlocli.controllers.base import make_controller, references
-from dlocli.controllers.held_end import end_tangent, roll_free, servo_action, servo_targets
+from dlocli.controllers.held_end import (
+    end_tangent,
+    roll_directions,
+    roll_free,
+    servo_action,
+    servo_targets,
+)
 from dlocli.controllers.mpc import GradientMPC, MPCSpec
 from dlocli.env.metrics import shape_error_mm
 from dlocli.env.rollout import rollout
@@ -134,3 +140,35 @@ def test_servo_cost_adds_each_actions_distance_from_the_servo_but_the_roll(env):
     torch.testing.assert_close(ours[:, theirs.shape[1] :], extra)
     # a turn about the roll axis leaves the servo's term as it was
     torch.testing.assert_close(rolled[:, -extra.shape[1] :], extra, atol=1e-5, rtol=0)
+
+
+def test_roll_search_pulls_towards_the_roll_the_model_predicts_nearest_the_goal(env):
+    """roll_search S: the pull's target is the servo's action with the moving gripper's roll
+    turned at one of ROLL_RATES, the one whose predicted positions after the horizon and S
+    still steps lie nearest the goal; the pull then covers the roll too."""
+    from dlocli.controllers.planning import ROLL_RATES
+
+    torch.manual_seed(0)
+    model = build_model(model_spec({"hidden": 16, "edge_layers": 1, "node_layers": 1,
+                                    "lstm_layers": 1}), 20).eval()  # fmt: skip
+    obs, _ = env.reset(seed=5)
+    planner = GradientMPC(env, model, MPCSpec(servo_cost=1.0, roll_search=3, horizon=2))
+    planner.reset(env.goal)
+    planner.act(obs)
+    servo = torch.as_tensor(servo_action(env, env.task, obs), dtype=torch.float32)
+    (roll,) = torch.as_tensor(roll_directions(env.task, env.split_observation(obs)["grippers"]),
+                              dtype=torch.float32)  # fmt: skip
+    candidates = torch.stack([(servo + r * roll).clamp(-1, 1) for r in ROLL_RATES])
+    chosen = int(torch.cdist(planner._servo[None], candidates).argmin())
+    torch.testing.assert_close(planner._servo, candidates[chosen], atol=1e-5, rtol=0)
+    assert planner._servo_read is None
+    plans = torch.cat([candidates[:, None].expand(-1, 2, -1), torch.zeros(3, 3, 6)], dim=1)
+    with torch.no_grad():
+        predicted = planner.view.predict(planner._observed, env.task.to_grippers(plans), None)
+    miss = (predicted[:, -1] - planner._goal).square().sum(dim=(1, 2))
+    assert miss[chosen] == miss.min()
+    no_search = GradientMPC(env, model, MPCSpec(servo_cost=1.0, horizon=2))
+    no_search.reset(env.goal)
+    no_search.act(obs)
+    assert no_search._servo_read is not None
+    torch.testing.assert_close(no_search._servo, servo)

@@ -12,7 +12,8 @@ the estimate's bias cancel as the rod nears the goal.
 
 It runs beside doing nothing and random actions as a reference (``held-end``), and the
 planners' ``servo_cost`` pulls their plans towards its action in all but the roll
-(:func:`roll_free`), which the model's shape cost is left to find.
+(:func:`roll_free`), which the model's shape cost is left to find (or, with ``roll_search``,
+a search over the roll through the model picks, :mod:`dlocli.controllers.planning`).
 """
 
 from __future__ import annotations
@@ -86,12 +87,12 @@ def servo_action(env: Any, task: Any, obs: np.ndarray) -> np.ndarray | None:
 
 
 def servo_pull(env: Any, task: Any, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The servo's action and the projection onto what it reads (:func:`roll_free`) for the
-    flat observation ``obs``, from one reading of it; None where the held ends cannot be
-    read."""
+    """The servo's action (A,) and each moving gripper's roll direction (K, A)
+    (:func:`roll_directions`) for the flat observation ``obs``, from one reading of it; None
+    where the held ends cannot be read."""
     parts = env.split_observation(obs)
     action = action_of(parts, env.task_spec, task)
-    return None if action is None else (action, roll_free(task, parts["grippers"]))
+    return None if action is None else (action, roll_directions(task, parts["grippers"]))
 
 
 def action_of(parts: dict[str, np.ndarray], spec: Any, task: Any) -> np.ndarray | None:
@@ -106,18 +107,23 @@ def action_of(parts: dict[str, np.ndarray], spec: Any, task: Any) -> np.ndarray 
     return np.asarray(task.from_grippers(twists / max_twist(spec)), dtype=np.float64)
 
 
-def roll_free(task: Any, grippers: np.ndarray) -> np.ndarray:
-    """(A, A) projection of an action onto what the servo reads from the goal: all but each
-    moving gripper's turn about its own x axis (the rod's axis where it is held), the roll the
-    goal barely shows, which the servo keeps rather than knows."""
-    size = int(np.asarray(task.from_grippers(np.zeros((2, 6)))).size)
-    projection = np.eye(size)
+def roll_directions(task: Any, grippers: np.ndarray) -> np.ndarray:
+    """(K, A) unit actions turning each of the K moving grippers about its own x axis (the
+    rod's axis where it is held): the roll the goal barely shows, which the servo keeps
+    rather than knows."""
+    size, directions = int(np.asarray(task.from_grippers(np.zeros((2, 6)))).size), []
     for k in np.flatnonzero(task.moving):
         commands = np.zeros((2, 6))
         commands[k, 3:] = quat_to_matrix(np.asarray(grippers[k, 3:], dtype=np.float64))[:, 0]
-        roll = np.asarray(task.from_grippers(commands), dtype=np.float64).ravel()
-        projection -= np.outer(roll, roll)
-    return projection
+        directions.append(np.asarray(task.from_grippers(commands), dtype=np.float64).ravel())
+    return np.array(directions, dtype=np.float64).reshape(len(directions), size)
+
+
+def roll_free(task: Any, grippers: np.ndarray) -> np.ndarray:
+    """(A, A) projection of an action onto what the servo reads from the goal: all but each
+    moving gripper's roll (:func:`roll_directions`)."""
+    rolls = roll_directions(task, grippers)
+    return np.eye(rolls.shape[1]) - rolls.T @ rolls
 
 
 class HeldEndServo(Controller):

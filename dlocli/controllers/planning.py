@@ -26,6 +26,9 @@ from dlocli.controllers.held_end import servo_pull
 from dlocli.controllers.specs import PlannerSpec
 from dlocli.controllers.views import RodView, make_view
 
+#: the roll rates (of the largest) a roll search tries per moving gripper
+ROLL_RATES = (-1.0, 0.0, 1.0)
+
 
 def shift_plan(plan: torch.Tensor, steps: int) -> torch.Tensor:
     """Drop the first ``steps`` actions of (..., H, A) and repeat the last one to refill H."""
@@ -105,11 +108,11 @@ class ModelPlanner(Planner):
         if self._goal_pending:
             self._goal, self._goal_pending = self.view.goal(obs, self.goal), False
         state, before = self.view.observe(obs)
-        self._update_servo(obs)
         # act() is called once per control step, so the last state is s_{t-1} unless the
         # view estimates it itself
         self._previous = self._observed if before is None else before
         self._observed = state
+        self._update_servo(obs)
         self._update_disturbance(state)
         if self._plan is not None and self._cursor < min(self.spec.replan_every, self.spec.horizon):
             action = self._plan[self._cursor]
@@ -132,15 +135,36 @@ class ModelPlanner(Planner):
     def _update_servo(self, obs: np.ndarray) -> None:
         """With ``servo_cost``: the held-end servo's action for this observation, the point
         every planned action is pulled towards in all but the grippers' roll (kept from the
-        last step where the held ends cannot be read)."""
+        last step where the held ends cannot be read); with ``roll_search``, in everything,
+        the roll the model predicts best."""
         if self.spec.servo_cost == 0.0:
             return
         pull = servo_pull(self.env, self.task, obs)
         if pull is None:
             return
-        action, read = pull
-        self._servo = torch.as_tensor(action, dtype=torch.float32, device=self.device)
-        self._servo_read = torch.as_tensor(read, dtype=torch.float32, device=self.device)
+        action, rolls = pull
+        tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
+        self._servo = tensor(action)
+        if self.spec.roll_search > 0 and len(rolls):
+            self._servo, self._servo_read = self._search_roll(self._servo, tensor(rolls)), None
+        else:
+            self._servo_read = tensor(np.eye(len(action)) - rolls.T @ rolls)
+
+    def _search_roll(self, servo: torch.Tensor, rolls: torch.Tensor) -> torch.Tensor:
+        """The servo's action (A,) with each moving gripper's roll (rolls (K, A)) turned at
+        one of ROLL_RATES, the candidate whose positions the model predicts nearest the goal
+        after the horizon and ``roll_search`` steps standing still."""
+        assert self._observed is not None and self._goal is not None
+        rates = torch.tensor(ROLL_RATES, device=self.device)
+        grid = torch.cartesian_prod(*[rates] * len(rolls)).reshape(-1, len(rolls))  # (C, K)
+        actions = (servo + grid @ rolls).clamp(-1.0, 1.0)  # (C, A)
+        moving = actions[:, None].expand(-1, self.spec.horizon, -1)
+        still = actions.new_zeros(len(actions), self.spec.roll_search, actions.shape[1])
+        commands = self.task.to_grippers(torch.cat([moving, still], dim=1))
+        with torch.no_grad():
+            predicted = self.view.predict(self._observed, commands, self._previous)
+        miss = (predicted[:, -1] - self._goal).square().sum(dim=(1, 2))
+        return actions[int(torch.argmin(miss))]
 
     # ------------------------------------------------------------------ disturbance
     def _expect(self, state: torch.Tensor, action: torch.Tensor) -> None:
@@ -250,8 +274,10 @@ class ModelPlanner(Planner):
         terms = [errors, effort]
         if self.spec.motion_cost > 0.0:
             terms.append(self._motion(state, predicted))
-        if self._servo is not None and self._servo_read is not None:
-            pulled = (plans - self._servo) @ self._servo_read
+        if self._servo is not None:
+            pulled = plans - self._servo
+            if self._servo_read is not None:  # None: the roll too (a roll search chose it)
+                pulled = pulled @ self._servo_read
             terms.append(self.spec.servo_cost**0.5 * pulled.flatten(1))
         return torch.cat(terms, dim=1)
 

@@ -78,6 +78,17 @@ class PlannerSpec(Spec):
         "the backend's planner default (`dlo list` names them; docs: the held ends decide "
         "the shape).",
     )
+    roll_search: int = Field(
+        0,
+        ge=0,
+        le=100,
+        description="With servo_cost: control steps a search over each moving gripper's roll "
+        "looks past the horizon with the grippers still. At every step the servo's action "
+        "with the roll turned at -1, 0 and +1 of the largest rate, held over the horizon, "
+        "goes through the model; the one whose predicted final positions lie nearest the goal "
+        "becomes the pull's target, roll included (the goal barely shows the roll; the model "
+        "may). 0 = off (docs: the held ends decide the shape).",
+    )
     disturbance: Literal["none", "offset", "drift"] = Field(
         "none",
         description="Correct the model's predictions by what it got wrong at the last steps "

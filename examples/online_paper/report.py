@@ -4,10 +4,11 @@
     python examples/online_paper/report.py plot OUT.png LABEL=RUN_DIR [LABEL=RUN_DIR ...]
 
 `table`: one Markdown row per iteration: final shape error of the iteration's MPC trials
-(mean, median, worst), doing nothing and random actions from the same starts and goals
-(means, from the run's references.json), and the trials' cumulative reward (mean ± std)
-beside doing nothing's. `plot`: each run's mean and median final error per iteration against
-doing nothing, on one log axis, e.g. `"flex rod (MuJoCo 4.0.1)=examples/online_paper_flex"
+(mean, median, worst), doing nothing, random actions and the held-end servo from the same
+starts and goals (means, from the run's references.json; "–" where a run predates the servo),
+and the trials' cumulative reward (mean ± std) beside doing nothing's. `plot`: each run's mean
+and median final error per iteration against doing nothing (and the servo, where the run has
+it), on one log axis, e.g. `"flex rod (MuJoCo 4.0.1)=examples/online_paper_flex"
 "composite cable (MuJoCo 3.17)=examples/online_paper"`.
 """
 
@@ -34,8 +35,10 @@ def by_iteration(rows: list[dict[str, str]], key: str) -> dict[int, list[float]]
 
 
 def reference_means(run: Path, kind: str, key: str) -> dict[int, float]:
+    """Per iteration, the mean of reference ``kind``'s ``key`` ({} where the run has none)."""
     grouped: dict[int, list[float]] = defaultdict(list)
-    for trial, values in json.loads((run / "references.json").read_text())[kind].items():
+    references = json.loads((run / "references.json").read_text()).get(kind, {})
+    for trial, values in references.items():
         grouped[int(trial.split("/")[0])].append(values[key])
     return {iteration: statistics.fmean(v) for iteration, v in grouped.items()}
 
@@ -44,20 +47,23 @@ def table(run: Path) -> str:
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     final, reward = by_iteration(rows, "final_error_mm"), by_iteration(rows, "cumulative_reward")
     transitions = by_iteration(rows, "transitions")
-    zero, random = (reference_means(run, k, "final_error_mm") for k in ("zero", "random"))
+    zero, random, servo = (
+        reference_means(run, k, "final_error_mm") for k in ("zero", "random", "held-end")
+    )
     zero_reward = reference_means(run, "zero", "cumulative_reward")
     lines = [
         "| iteration | transitions | final error (mm): mean | median | worst | doing nothing"
-        " | random actions | reward | doing nothing's reward |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        " | random actions | held-end servo | reward | doing nothing's reward |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for k in sorted(final):
         errors, rewards = final[k], reward[k]
         spread = statistics.pstdev(rewards)
+        held = f"{servo[k]:.1f}" if k in servo else "–"
         lines.append(
             f"| {k} | {max(transitions[k]):,.0f} | {statistics.fmean(errors):.1f}"
             f" | {statistics.median(errors):.1f} | {max(errors):.1f} | {zero[k]:.1f}"
-            f" | {random[k]:.1f} | {statistics.fmean(rewards):.1f} ± {spread:.1f}"
+            f" | {random[k]:.1f} | {held} | {statistics.fmean(rewards):.1f} ± {spread:.1f}"
             f" | {zero_reward[k]:.1f} |"
         )
     return "\n".join(lines)
@@ -77,6 +83,10 @@ def plot(out: Path, runs: dict[str, Path]) -> None:
         axes.plot(iterations, median, "s:", color=color, label=f"{label}: MPC, median")
         axes.plot(iterations, [zero[k] for k in iterations], "--", color=color, alpha=0.6,
                   label=f"{label}: doing nothing, mean")  # fmt: skip
+        servo = reference_means(run, "held-end", "final_error_mm")
+        if servo:
+            axes.plot(iterations, [servo[k] for k in iterations], "-.", color=color, alpha=0.6,
+                      label=f"{label}: held-end servo, mean")  # fmt: skip
     axes.set_yscale("log")
     axes.set_xlabel("iteration (50 MPC trials each)")
     axes.set_ylabel("final shape error (mm)")
