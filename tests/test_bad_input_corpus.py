@@ -197,6 +197,8 @@ CORPUS: list[tuple[str, str, int]] = [
     ("servo-cost-inf", "online --servo-cost inf --out {out}", 2),
     ("servo-cost-negative", "online --servo-cost -1 --out {out}", 2),
     ("servo-cost-huge", "online --servo-cost 1e9 --out {out}", 2),
+    ("roll-search-negative", "online --roll-search -1 --out {out}", 2),
+    ("roll-search-huge", "online --roll-search 1000 --out {out}", 2),
     ("marker-online-epochs", "online --observation markers --epochs 10 --out {out}", 2),
     ("motion-cost-huge", "online --motion-cost 1e9 --out {out}", 2),
     ("motion-cost-text", "online --motion-cost abc --out {out}", 2),
