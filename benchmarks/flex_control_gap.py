@@ -394,6 +394,16 @@ LATENCY_SETTINGS = {
         "mpc.servo_cost": 0.001,
     },
     "servo_cost 0.001": {**SWEEP_BASE, "mpc.servo_cost": 0.001},
+    **{
+        f"motion_cost 32, damping 1, servo_cost 0.001, roll_search {s}": {
+            **SWEEP_BASE,
+            "mpc.motion_cost": 32.0,
+            "mpc.damping": 1.0,
+            "mpc.servo_cost": 0.001,
+            "mpc.roll_search": s,
+        }
+        for s in (10, 20)
+    },
     "motion_cost 32, damping 1, drift": {
         **SWEEP_BASE,
         "mpc.motion_cost": 32.0,

@@ -95,7 +95,7 @@ def plot(out: Path, runs: dict[str, Path]) -> None:
     axes.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.18))
     figure.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=120)
+    figure.savefig(out, dpi=120, bbox_inches="tight")  # the legend sits below the axes
 
 
 def main(argv: list[str]) -> None:
