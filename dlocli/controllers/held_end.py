@@ -122,8 +122,12 @@ def roll_directions(task: Any, grippers: np.ndarray) -> np.ndarray:
 def roll_free(task: Any, grippers: np.ndarray) -> np.ndarray:
     """(A, A) projection of an action onto what the servo reads from the goal: all but each
     moving gripper's roll (:func:`roll_directions`)."""
-    rolls = roll_directions(task, grippers)
-    return np.eye(rolls.shape[1]) - rolls.T @ rolls
+    return without(roll_directions(task, grippers))
+
+
+def without(directions: np.ndarray) -> np.ndarray:
+    """(A, A) projection removing the orthonormal ``directions`` (K, A) from an action."""
+    return np.eye(directions.shape[1]) - directions.T @ directions
 
 
 class HeldEndServo(Controller):

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from dlocli.controllers.base import Planner
-from dlocli.controllers.held_end import servo_pull
+from dlocli.controllers.held_end import servo_pull, without
 from dlocli.controllers.specs import PlannerSpec
 from dlocli.controllers.views import RodView, make_view
 
@@ -148,7 +148,7 @@ class ModelPlanner(Planner):
         if self.spec.roll_search > 0 and len(rolls):
             self._servo, self._servo_read = self._search_roll(self._servo, tensor(rolls)), None
         else:
-            self._servo_read = tensor(np.eye(len(action)) - rolls.T @ rolls)
+            self._servo_read = tensor(without(rolls))
 
     def _search_roll(self, servo: torch.Tensor, rolls: torch.Tensor) -> torch.Tensor:
         """The servo's action (A,) with each moving gripper's roll (rolls (K, A)) turned at
