@@ -54,6 +54,10 @@ class Spec(BaseModel):
     #: the flagged fields the run cannot do without (--help says "required")
     cli_required: ClassVar[tuple[str, ...]] = ()
 
+    def check_resolved(self) -> None:
+        """Refuse (BadInput, one line) a combination of fields that does nothing, once the
+        values other parts fill in (a backend's planner defaults) are in; none by default."""
+
     @classmethod
     def field_of(cls, name: str) -> Any:
         """The FieldInfo of the field ``name`` (KeyError if there is none)."""

@@ -199,6 +199,7 @@ CORPUS: list[tuple[str, str, int]] = [
     ("servo-cost-huge", "online --servo-cost 1e9 --out {out}", 2),
     ("roll-search-negative", "online --roll-search -1 --out {out}", 2),
     ("roll-search-huge", "online --roll-search 1000 --out {out}", 2),
+    ("roll-search-without-pull", "online --roll-search 10 --servo-cost 0 --out {out}", 2),
     ("marker-online-epochs", "online --observation markers --epochs 10 --out {out}", 2),
     ("motion-cost-huge", "online --motion-cost 1e9 --out {out}", 2),
     ("motion-cost-text", "online --motion-cost abc --out {out}", 2),

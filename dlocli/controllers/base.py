@@ -204,7 +204,9 @@ def with_backend_defaults(options: Spec, planner: str, backend: str) -> Spec:
         for name, value in defaults.items()
         if name in type(options).model_fields and name not in options.model_fields_set
     }
-    return options.model_copy(update=unset) if unset else options
+    resolved = options.model_copy(update=unset) if unset else options
+    resolved.check_resolved()
+    return resolved
 
 
 def make_controller(

@@ -14,9 +14,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, SerializeAsAny, ValidationInfo
 
-from dlocli.backends.facts import BACKEND_DEFAULT
+from dlocli.backends.facts import BACKEND_DEFAULT, SERVO_COST
 from dlocli.controllers.base import is_planner, with_backend_defaults
-from dlocli.errors import UnknownName
+from dlocli.errors import BadInput, UnknownName
 from dlocli.limits import MAX_COUNT
 from dlocli.registry import controllers
 from dlocli.specs import Spec
@@ -110,6 +110,14 @@ class PlannerSpec(Spec):
         "model's prediction, predicts missing markers and bridges the latency; 'raw' plans "
         "from the report as it is (missing markers at their last seen place).",
     )
+
+    def check_resolved(self) -> None:
+        if self.roll_search and self.servo_cost == 0.0:
+            raise BadInput(
+                f"roll_search {self.roll_search} searches the roll of the servo's pull, and "
+                "servo_cost is 0 (no pull): set servo_cost > 0 (--servo-cost; the MuJoCo "
+                f"rods' default is {SERVO_COST:g}) or roll_search 0"
+            )
 
 
 class MPCSpec(PlannerSpec):
