@@ -12,11 +12,12 @@ transitions only, one with ``fit.mirror`` (every transition also as its mirrored
 other end acting; :mod:`dlocli.models.mirror`). Each, and the model the job itself learned
 online, then controls the rod with the bench's MPC on the bench's bimanual task (the seed's
 fixed goal, its evaluation starts: the same episodes as the job's ``bimanual`` row) and on
-the single-gripper task it learned on. Doing nothing and random actions on the same episodes
-are the references. ``--model mlp`` trains the structure-free baseline instead of the bench's
-model (the paper's argument for the Interaction Network is this kind of reuse; the online
-model is then left out). Fresh models, not fine-tuned ones: a model's normalisation is fitted on
-its first data, and single-gripper data give the left gripper's commands no spread.
+the single-gripper task it learned on. Doing nothing, random actions and the held-end servo
+(no model) on the same episodes are the references. ``--model mlp`` trains the
+structure-free baseline instead of the bench's model (the paper's argument for the
+Interaction Network is this kind of reuse; the online model is then left out). Fresh models,
+not fine-tuned ones: a model's normalisation is fitted on its first data, and single-gripper
+data give the left gripper's commands no spread.
 
 ``--online-only`` evaluates just the job's own final model (no training: minutes, not
 hours); ``--goals fixed,random`` adds the seed's random-goal evaluation episodes, where no
@@ -84,7 +85,7 @@ def evaluate_all(
                 name: GradientMPC(env, model, spec.mpc, seed=controller_seed)
                 for name, model in models.items()
             }
-            for reference in ("zero", "random"):
+            for reference in ("zero", "random", "held-end"):
                 controllers[reference] = make_controller(reference, env, seed=controller_seed)
             for name, controller in controllers.items():
                 row = {"model": name, "eval_task": task, "eval_goals": goals, "seed": seed}
