@@ -14,9 +14,9 @@ from dlocli.controllers.base import make_controller, references
 from dlocli.controllers.held_end import (
     end_tangent,
     roll_directions,
-    roll_free,
     servo_action,
     servo_targets,
+    without,
 )
 from dlocli.controllers.mpc import GradientMPC, MPCSpec
 from dlocli.env.metrics import shape_error_mm
@@ -122,7 +122,7 @@ def test_servo_cost_adds_each_actions_distance_from_the_servo_but_the_roll(env):
     action, unpulled = pulled.act(obs), paper.act(obs)
     servo = servo_action(env, env.task, obs)
     assert servo is not None and np.abs(servo).max() > 0.1
-    read = roll_free(env.task, env.split_observation(obs)["grippers"])
+    read = without(roll_directions(env.task, env.split_observation(obs)["grippers"]))
     roll = np.eye(6) - read  # the right gripper's turn about its own x axis, alone
     assert np.linalg.matrix_rank(roll, tol=1e-6) == 1
     np.testing.assert_allclose(roll[:3], 0.0, atol=1e-12)  # no linear part

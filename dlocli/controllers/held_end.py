@@ -12,8 +12,9 @@ the estimate's bias cancel as the rod nears the goal.
 
 It runs beside doing nothing and random actions as a reference (``held-end``), and the
 planners' ``servo_cost`` pulls their plans towards its action in all but the roll
-(:func:`roll_free`), which the model's shape cost is left to find (or, with ``roll_search``,
-a search over the roll through the model picks, :mod:`dlocli.controllers.planning`).
+(:func:`without` the :func:`roll_directions`), which the model's shape cost is left to find
+(or, with ``roll_search``, a search over the roll through the model picks,
+:mod:`dlocli.controllers.planning`).
 """
 
 from __future__ import annotations
@@ -117,12 +118,6 @@ def roll_directions(task: Any, grippers: np.ndarray) -> np.ndarray:
         commands[k, 3:] = quat_to_matrix(np.asarray(grippers[k, 3:], dtype=np.float64))[:, 0]
         directions.append(np.asarray(task.from_grippers(commands), dtype=np.float64).ravel())
     return np.array(directions, dtype=np.float64).reshape(len(directions), size)
-
-
-def roll_free(task: Any, grippers: np.ndarray) -> np.ndarray:
-    """(A, A) projection of an action onto what the servo reads from the goal: all but each
-    moving gripper's roll (:func:`roll_directions`)."""
-    return without(roll_directions(task, grippers))
 
 
 def without(directions: np.ndarray) -> np.ndarray:
