@@ -89,6 +89,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "disturbance_gain": 0.2,
         "servo_cost": 0.0,
         "roll_search": 0,
+        "servo_above_mm": 0.0,
     },
     "mppi": {
         "motion_cost": 0.0,
@@ -96,6 +97,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "disturbance_gain": 0.2,
         "servo_cost": 0.0,
         "roll_search": 0,
+        "servo_above_mm": 0.0,
     },
     "pilco": {"policy_scale_floor": 0.01},
 }

@@ -172,3 +172,38 @@ def test_roll_search_pulls_towards_the_roll_the_model_predicts_nearest_the_goal(
     no_search.act(obs)
     assert no_search._servo_read is not None
     torch.testing.assert_close(no_search._servo, servo)
+
+
+def test_servo_above_hands_the_grippers_to_the_servo_while_the_model_misses(env):
+    """servo_above_mm: the planner keeps the average of its one-step prediction error's mean
+    distance; above the threshold the servo's action goes out (and is what the next step's
+    error is measured against), below it the plan's. An untrained model misses by far more
+    than a micrometre and by far less than a metre."""
+    torch.manual_seed(0)
+    model = build_model(model_spec({"hidden": 16, "edge_layers": 1, "node_layers": 1,
+                                    "lstm_layers": 1}), 20).eval()  # fmt: skip
+    for threshold, serves in ((1e-3, True), (1e3, False)):
+        obs, _ = env.reset(seed=5)
+        planner = GradientMPC(env, model, MPCSpec(servo_cost=1e-3, servo_above_mm=threshold))
+        plain = GradientMPC(env, model, MPCSpec(servo_cost=1e-3))
+        for mpc in (planner, plain):
+            mpc.reset(env.goal)
+        first = planner.act(obs)
+        np.testing.assert_allclose(first, plain.act(obs), atol=1e-6)  # no error measured yet
+        assert planner._miss is None and "served" not in planner.last_stats
+        expected = planner._expected.clone()
+        obs, *_ = env.step(first)
+        action = planner.act(obs)
+        observed = planner._observed[0, :, :3]
+        miss = float((observed - expected).norm(dim=-1).mean())
+        assert planner._miss == pytest.approx(miss, rel=1e-6)
+        assert 1e-6 < miss < 1.0
+        servo = servo_action(env, env.task, obs)
+        assert servo is not None
+        if serves:
+            np.testing.assert_allclose(action, servo, atol=1e-6)
+            assert planner.last_stats["served"] == 1.0
+        else:
+            assert "served" not in planner.last_stats
+            np.testing.assert_allclose(action, planner.plan[0].numpy(), atol=1e-6)
+        assert planner._disturbance is None  # the disturbance option stays off

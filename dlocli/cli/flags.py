@@ -53,6 +53,7 @@ ALIASES: dict[str, str] = {
     "mpc.motion_cost": "motion-cost",
     "mpc.servo_cost": "servo-cost",
     "mpc.roll_search": "roll-search",
+    "mpc.servo_above_mm": "servo-above-mm",
     "task.envelope.max_linear_speed": "max-linear-speed",
     "task.envelope.max_angular_speed": "max-angular-speed",
     "task.envelope.max_linear_acceleration": "max-linear-acceleration",

@@ -69,6 +69,7 @@ class ModelPlanner(Planner):
         self._replanned_from: tuple[torch.Tensor, torch.Tensor | None] | None = None
         self._expected: torch.Tensor | None = None  # (N, 3) positions predicted for this step
         self._disturbance: torch.Tensor | None = None  # (N, 3) averaged one-step error
+        self._miss: float | None = None  # m, the averaged one-step error's mean distance
         self._servo: torch.Tensor | None = None  # (A,) the held-end servo's latest action
         self._servo_read: torch.Tensor | None = None  # (A, A) what of it the goal shows
 
@@ -81,6 +82,7 @@ class ModelPlanner(Planner):
         self._cursor = 0
         self._observed = self._previous = self._evaluated = self._replanned_from = None
         self._expected = self._disturbance = self._servo = self._servo_read = None
+        self._miss = None
         self.view.reset()
 
     @property
@@ -128,8 +130,18 @@ class ModelPlanner(Planner):
             self._replanned_from = (state, self._previous)
             self.last_stats = stats
             action = self._plan[0]
+        if self._serving():
+            assert self._servo is not None
+            action = self._servo
+            self.last_stats = {**self.last_stats, "served": 1.0}
         self._expect(state, action)
         return action.cpu().numpy()
+
+    def _serving(self) -> bool:
+        """With ``servo_above_mm``: whether the model's recent one-step error is above it, so
+        the servo's action goes out instead of the plan's."""
+        threshold = self.spec.servo_above_mm / 1000.0
+        return bool(threshold) and self._servo is not None and (self._miss or 0.0) > threshold
 
     # ------------------------------------------------------------------ held-end servo
     def _update_servo(self, obs: np.ndarray) -> None:
@@ -168,20 +180,26 @@ class ModelPlanner(Planner):
 
     # ------------------------------------------------------------------ disturbance
     def _expect(self, state: torch.Tensor, action: torch.Tensor) -> None:
-        """With the disturbance option: the positions (N, 3) the model predicts for the next
-        observation under ``action`` (A,), one step of its rollout."""
-        if self.spec.disturbance == "none":
+        """With the disturbance or servo_above_mm option: the positions (N, 3) the model
+        predicts for the next observation under ``action`` (A,), one step of its rollout."""
+        if self.spec.disturbance == "none" and not self.spec.servo_above_mm:
             return
         commands = self.task.to_grippers(action.clamp(-1.0, 1.0)[None, None])
         with torch.no_grad():
             self._expected = self.view.predict(state, commands, self._previous)[0, 0]
 
     def _update_disturbance(self, state: torch.Tensor) -> None:
-        """Average the one-step prediction error of the positions into the disturbance."""
+        """Average the one-step prediction error of the positions into the disturbance (and
+        its mean distance into the miss the servo_above_mm option reads)."""
         if self._expected is None:
             return
         error = state[0, :, :3] - self._expected
         gain = self.spec.disturbance_gain
+        if self.spec.servo_above_mm:
+            miss = float(error.norm(dim=-1).mean())  # a host sync, with the option only
+            self._miss = miss if self._miss is None else self._miss + gain * (miss - self._miss)
+        if self.spec.disturbance == "none":
+            return
         old = self._disturbance
         self._disturbance = error * gain if old is None else old + gain * (error - old)
 

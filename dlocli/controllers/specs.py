@@ -89,6 +89,17 @@ class PlannerSpec(Spec):
         "becomes the pull's target, roll included (the goal barely shows the roll; the model "
         "may). 0 = off (docs: the held ends decide the shape).",
     )
+    servo_above_mm: float = Field(
+        0.0,
+        ge=0,
+        le=1e3,
+        description="With servo_cost: the held-end servo's action is executed instead of the "
+        "plan's while the model's recent one-step prediction error (the mean distance of its "
+        "predicted positions from the observed, averaged with weight disturbance_gain) is above "
+        "this many mm; the plan is still made every step. A model that mispredicts this rod "
+        "hands the grippers to the servo, one that predicts it refines the servo's pose. "
+        "0 = off (docs: the held ends decide the shape).",
+    )
     disturbance: Literal["none", "offset", "drift"] = Field(
         "none",
         description="Correct the model's predictions by what it got wrong at the last steps "
@@ -101,8 +112,8 @@ class PlannerSpec(Spec):
         0.2,
         gt=0,
         le=1,
-        description="Weight of the latest one-step prediction error in the running average "
-        "the disturbance option adds (1 = the latest error alone).",
+        description="Weight of the latest one-step prediction error in the running averages "
+        "the disturbance and servo_above_mm options read (1 = the latest error alone).",
     )
     tracking: Literal["estimate", "raw"] = Field(
         "estimate",
@@ -117,6 +128,12 @@ class PlannerSpec(Spec):
                 f"roll_search {self.roll_search} searches the roll of the servo's pull, and "
                 "servo_cost is 0 (no pull): set servo_cost > 0 (--servo-cost; the MuJoCo "
                 f"rods' default is {SERVO_COST:g}) or roll_search 0"
+            )
+        if self.servo_above_mm and self.servo_cost == 0.0:
+            raise BadInput(
+                f"servo_above_mm {self.servo_above_mm:g} hands the grippers to the servo of the "
+                "pull, and servo_cost is 0 (no pull): set servo_cost > 0 (--servo-cost; the "
+                f"MuJoCo rods' default is {SERVO_COST:g}) or servo_above_mm 0"
             )
 
 
