@@ -336,6 +336,7 @@ SWEEP_BASE = {
     "mpc.jacobian": "full",
     "mpc.curvature_every": 25,
     "mpc.disturbance": "none",
+    "mpc.servo_above_mm": 0.0,
 }
 
 
@@ -394,6 +395,13 @@ LATENCY_SETTINGS = {
         "mpc.servo_cost": 0.001,
     },
     "servo_cost 0.001": {**SWEEP_BASE, "mpc.servo_cost": 0.001},
+    "motion_cost 32, damping 1, servo_cost 0.001, servo_above_mm 0.2": {
+        **SWEEP_BASE,
+        "mpc.motion_cost": 32.0,
+        "mpc.damping": 1.0,
+        "mpc.servo_cost": 0.001,
+        "mpc.servo_above_mm": 0.2,
+    },
     **{
         f"motion_cost 32, damping 1, servo_cost 0.001, roll_search {s}": {
             **SWEEP_BASE,

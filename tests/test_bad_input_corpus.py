@@ -200,7 +200,6 @@ CORPUS: list[tuple[str, str, int]] = [
     ("roll-search-negative", "online --roll-search -1 --out {out}", 2),
     ("roll-search-huge", "online --roll-search 1000 --out {out}", 2),
     ("roll-search-without-pull", "online --roll-search 10 --servo-cost 0 --out {out}", 2),
-    ("servo-above-without-pull", "online --servo-above-mm 0.2 --servo-cost 0 --out {out}", 2),
     ("servo-above-negative", "online --servo-above-mm -1 --out {out}", 2),
     ("marker-online-epochs", "online --observation markers --epochs 10 --out {out}", 2),
     ("motion-cost-huge", "online --motion-cost 1e9 --out {out}", 2),

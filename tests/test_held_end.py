@@ -177,15 +177,15 @@ def test_roll_search_pulls_towards_the_roll_the_model_predicts_nearest_the_goal(
 def test_servo_above_hands_the_grippers_to_the_servo_while_the_model_misses(env):
     """servo_above_mm: the planner keeps the average of its one-step prediction error's mean
     distance; above the threshold the servo's action goes out (and is what the next step's
-    error is measured against), below it the plan's. An untrained model misses by far more
-    than a micrometre and by far less than a metre."""
+    error is measured against), below it the plan's, with or without the pull. An untrained
+    model misses by far more than a micrometre and by far less than a metre."""
     torch.manual_seed(0)
     model = build_model(model_spec({"hidden": 16, "edge_layers": 1, "node_layers": 1,
                                     "lstm_layers": 1}), 20).eval()  # fmt: skip
-    for threshold, serves in ((1e-3, True), (1e3, False)):
+    for threshold, serves, pull in ((1e-3, True, 1e-3), (1e3, False, 1e-3), (1e-3, True, 0.0)):
         obs, _ = env.reset(seed=5)
-        planner = GradientMPC(env, model, MPCSpec(servo_cost=1e-3, servo_above_mm=threshold))
-        plain = GradientMPC(env, model, MPCSpec(servo_cost=1e-3))
+        planner = GradientMPC(env, model, MPCSpec(servo_cost=pull, servo_above_mm=threshold))
+        plain = GradientMPC(env, model, MPCSpec(servo_cost=pull))
         for mpc in (planner, plain):
             mpc.reset(env.goal)
         first = planner.act(obs)

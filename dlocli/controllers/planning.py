@@ -145,11 +145,11 @@ class ModelPlanner(Planner):
 
     # ------------------------------------------------------------------ held-end servo
     def _update_servo(self, obs: np.ndarray) -> None:
-        """With ``servo_cost``: the held-end servo's action for this observation, the point
-        every planned action is pulled towards in all but the grippers' roll (kept from the
-        last step where the held ends cannot be read); with ``roll_search``, in everything,
-        the roll the model predicts best."""
-        if self.spec.servo_cost == 0.0:
+        """With ``servo_cost`` (or ``servo_above_mm``): the held-end servo's action for this
+        observation, the point every planned action is pulled towards in all but the
+        grippers' roll (kept from the last step where the held ends cannot be read); with
+        ``roll_search``, in everything, the roll the model predicts best."""
+        if self.spec.servo_cost == 0.0 and not self.spec.servo_above_mm:
             return
         pull = servo_pull(self.env, self.task, obs)
         if pull is None:
@@ -292,7 +292,7 @@ class ModelPlanner(Planner):
         terms = [errors, effort]
         if self.spec.motion_cost > 0.0:
             terms.append(self._motion(state, predicted))
-        if self._servo is not None:
+        if self._servo is not None and self.spec.servo_cost > 0.0:
             pulled = plans - self._servo
             if self._servo_read is not None:  # None: the roll too (a roll search chose it)
                 pulled = pulled @ self._servo_read

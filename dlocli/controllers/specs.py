@@ -93,11 +93,11 @@ class PlannerSpec(Spec):
         0.0,
         ge=0,
         le=1e3,
-        description="With servo_cost: the held-end servo's action is executed instead of the "
-        "plan's while the model's recent one-step prediction error (the mean distance of its "
-        "predicted positions from the observed, averaged with weight disturbance_gain) is above "
-        "this many mm; the plan is still made every step. A model that mispredicts this rod "
-        "hands the grippers to the servo, one that predicts it refines the servo's pose. "
+        description="The held-end servo's action (the reference `held-end`) is executed "
+        "instead of the plan's while the model's recent one-step prediction error (the mean "
+        "distance of its predicted positions from the observed, averaged with weight "
+        "disturbance_gain) is above this many mm; the plan is still made every step. A model "
+        "that mispredicts the rod hands the grippers to the servo; one that predicts it plans. "
         "0 = off (docs: the held ends decide the shape).",
     )
     disturbance: Literal["none", "offset", "drift"] = Field(
@@ -128,12 +128,6 @@ class PlannerSpec(Spec):
                 f"roll_search {self.roll_search} searches the roll of the servo's pull, and "
                 "servo_cost is 0 (no pull): set servo_cost > 0 (--servo-cost; the MuJoCo "
                 f"rods' default is {SERVO_COST:g}) or roll_search 0"
-            )
-        if self.servo_above_mm and self.servo_cost == 0.0:
-            raise BadInput(
-                f"servo_above_mm {self.servo_above_mm:g} hands the grippers to the servo of the "
-                "pull, and servo_cost is 0 (no pull): set servo_cost > 0 (--servo-cost; the "
-                f"MuJoCo rods' default is {SERVO_COST:g}) or servo_above_mm 0"
             )
 
 
