@@ -146,7 +146,15 @@ def test_the_papers_table_is_its_bench_summary_cell_by_cell() -> None:
         assert row[8] == (bimanual[5] if bimanual else "– (6-D policy)"), agent
 
 
-@pytest.mark.parametrize("run", ["online_paper", "online_paper_flex", "online_paper_flex_servo"])
+@pytest.mark.parametrize(
+    "run",
+    [
+        "online_paper",
+        "online_paper_flex",
+        "online_paper_flex_servo",
+        "online_paper_flex_servo_above",
+    ],
+)
 def test_a_paper_scale_runs_table_is_its_metrics(run: str) -> None:
     """The table of examples/RUN/README.md is what report.py prints from the run's files."""
     import runpy
