@@ -201,6 +201,8 @@ CORPUS: list[tuple[str, str, int]] = [
     ("roll-search-huge", "online --roll-search 1000 --out {out}", 2),
     ("roll-search-without-pull", "online --roll-search 10 --servo-cost 0 --out {out}", 2),
     ("servo-above-negative", "online --servo-above-mm -1 --out {out}", 2),
+    ("servo-above-nan", "online --servo-above-mm nan --out {out}", 2),
+    ("servo-above-huge", "online --servo-above-mm 1e9 --out {out}", 2),
     ("marker-online-epochs", "online --observation markers --epochs 10 --out {out}", 2),
     ("motion-cost-huge", "online --motion-cost 1e9 --out {out}", 2),
     ("motion-cost-text", "online --motion-cost abc --out {out}", 2),
