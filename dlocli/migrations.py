@@ -90,6 +90,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "servo_cost": 0.0,
         "roll_search": 0,
         "servo_above_mm": 0.0,
+        "rest_roll": False,
     },
     "mppi": {
         "motion_cost": 0.0,
@@ -98,6 +99,7 @@ LEGACY_VALUES: dict[str, dict[str, Any]] = {
         "servo_cost": 0.0,
         "roll_search": 0,
         "servo_above_mm": 0.0,
+        "rest_roll": False,
     },
     "pilco": {"policy_scale_floor": 0.01},
 }

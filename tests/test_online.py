@@ -109,6 +109,11 @@ def test_reduced_run_writes_everything(uninterrupted):
 
     for name in ("iter_01.pt", "final.pt"):  # the period the model steps by
         assert read_checkpoint(out / "checkpoints" / name)["control_dt"] == 0.02
+    # where the rod rested: iteration 1's data (2 episodes), then 2 trials more, each start
+    # and the ends where the grippers stood still (the planner's rest_roll reads them)
+    rests = [len(read_checkpoint(out / "checkpoints" / name)["rest_states"]["grippers"])
+             for name in ("iter_01.pt", "iter_02.pt")]  # fmt: skip
+    assert 2 <= rests[0] <= 4 and rests[0] + 2 <= rests[1] <= rests[0] + 4
     # where the time went: model updates, planning, the rest of the trials (simulation)
     assert summary["train_seconds"] > 0 and summary["mpc_seconds"] > 0
     assert summary["simulation_seconds"] > 0

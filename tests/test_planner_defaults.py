@@ -14,7 +14,7 @@ from dlocli.controllers.specs import MPCSpec
 from dlocli.registry import backends
 from dlocli.runs.online.spec import OnlineSpec
 
-FIELDS = ("motion_cost", "damping", "servo_cost")
+FIELDS = ("motion_cost", "damping", "servo_cost", "rest_roll")
 PAPER = {field: getattr(MPCSpec(), field) for field in FIELDS}
 FLEX = dict(FlexFacts.planner_defaults["mpc"])
 CABLE = {**PAPER, **MujocoFacts.planner_defaults["mpc"]}
@@ -27,9 +27,13 @@ def planned(spec_cls: type, data: dict) -> dict[str, float]:
 
 @pytest.mark.parametrize("spec_cls", [OnlineSpec, BenchSpec])
 def test_each_rod_plans_with_its_defaults_pybullet_with_the_papers(spec_cls):
-    assert FLEX == {"motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST} != PAPER
-    assert CABLE == {"motion_cost": 0.0, "damping": 0.01, "servo_cost": SERVO_COST}
-    assert PAPER == {"motion_cost": 0.0, "damping": 0.01, "servo_cost": 0.0}
+    assert FLEX == {
+        "motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST, "rest_roll": True,
+    } != PAPER  # fmt: skip
+    assert CABLE == {
+        "motion_cost": 0.0, "damping": 0.01, "servo_cost": SERVO_COST, "rest_roll": False,
+    }  # fmt: skip
+    assert PAPER == {"motion_cost": 0.0, "damping": 0.01, "servo_cost": 0.0, "rest_roll": False}
     assert planned(spec_cls, {"backend": {"name": "mujoco-flex"}}) == FLEX
     assert planned(spec_cls, {"backend": {"name": "mujoco"}}) == CABLE
     assert planned(spec_cls, {"backend": {"name": "pybullet"}}) == PAPER
@@ -80,7 +84,8 @@ def test_dlo_list_names_each_backends_planner_defaults():
     assert result.exit_code == 0, result.output
     listed = json.loads(result.output)["backends"]
     assert listed["mujoco-flex"].endswith(
-        "mpc plans with motion_cost 32, damping 1, servo_cost 0.001 unless a run sets them"
+        "mpc plans with motion_cost 32, damping 1, servo_cost 0.001, rest_roll true unless a "
+        "run sets them"
     )
     assert listed["mujoco"].endswith("mpc plans with servo_cost 0.001 unless a run sets them")
     assert "plans with" not in listed["pybullet"]

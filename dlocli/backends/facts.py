@@ -79,8 +79,10 @@ class FlexFacts(BackendFacts):
     # leaves (it damps the swing instead of chasing it), and Gauss-Newton steps are damped as
     # much as the curvature they scale (docs/benchmarks.md, a planner that damps the swing)
     # (measured for the gradient MPC only)
+    # and the servo's roll is read from the rod's earlier rest states (docs/benchmarks.md, the
+    # roll the rod rests best at)
     planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {
-        "mpc": {"motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST}
+        "mpc": {"motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST, "rest_roll": True}
     }
 
     # MuJoCo's flex damping time for bending and twist

@@ -54,6 +54,7 @@ ALIASES: dict[str, str] = {
     "mpc.servo_cost": "servo-cost",
     "mpc.roll_search": "roll-search",
     "mpc.servo_above_mm": "servo-above-mm",
+    "mpc.rest_roll": "rest-roll",
     "task.envelope.max_linear_speed": "max-linear-speed",
     "task.envelope.max_angular_speed": "max-angular-speed",
     "task.envelope.max_linear_acceleration": "max-linear-acceleration",

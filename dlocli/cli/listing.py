@@ -45,6 +45,11 @@ def _what(kind: str, reg: registry.Registry, name: str) -> str:
         return summary
     defaults = reg.facts(name).planner_defaults
     for planner, options in defaults.items():
-        fields = ", ".join(f"{field} {value:g}" for field, value in options.items())
+        fields = ", ".join(f"{field} {_spelled(value)}" for field, value in options.items())
         summary += f"; {planner} plans with {fields} unless a run sets them"
     return summary
+
+
+def _spelled(value: float | bool) -> str:
+    """An option's value as a spec file spells it (true/false, 32, 0.001)."""
+    return str(value).lower() if isinstance(value, bool) else f"{value:g}"

@@ -23,6 +23,7 @@ import torch
 
 from dlocli.controllers.base import Planner
 from dlocli.controllers.held_end import servo_pull, without
+from dlocli.controllers.rest_roll import RestMap
 from dlocli.controllers.specs import PlannerSpec
 from dlocli.controllers.views import RodView, make_view
 
@@ -72,6 +73,8 @@ class ModelPlanner(Planner):
         self._miss: float | None = None  # m, the averaged one-step error's mean distance
         self._servo: torch.Tensor | None = None  # (A,) the held-end servo's latest action
         self._servo_read: torch.Tensor | None = None  # (A, A) what of it the goal shows
+        # the roll the rod's earlier rest states say it rests best at (rest_roll)
+        self.rest = RestMap.of_model(model, self.task.moving) if self.spec.rest_roll else None
 
     def reset(self, goal: np.ndarray) -> None:
         """New episode towards ``goal`` (N, 3) metres: forget the plan."""
@@ -148,7 +151,8 @@ class ModelPlanner(Planner):
         """With ``servo_cost`` (or ``servo_above_mm``): the held-end servo's action for this
         observation, the point every planned action is pulled towards in all but the
         grippers' roll (kept from the last step where the held ends cannot be read); with
-        ``roll_search``, in everything, the roll the model predicts best."""
+        ``roll_search``, in everything, the roll the model predicts best; with ``rest_roll``,
+        in everything where the rest states say which roll rests best."""
         if self.spec.servo_cost == 0.0 and not self.spec.servo_above_mm:
             return
         pull = servo_pull(self.env, self.task, obs)
@@ -156,11 +160,26 @@ class ModelPlanner(Planner):
             return
         action, rolls = pull
         tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
-        self._servo = tensor(action)
+        rested = self._rested(obs, action, rolls)
+        self._servo = tensor(action if rested is None else rested)
         if self.spec.roll_search > 0 and len(rolls):
             self._servo, self._servo_read = self._search_roll(self._servo, tensor(rolls)), None
         else:
-            self._servo_read = tensor(without(rolls))
+            self._servo_read = None if rested is not None else tensor(without(rolls))
+
+    def _rested(self, obs: np.ndarray, action: np.ndarray, rolls: np.ndarray) -> np.ndarray | None:
+        """The servo's ``action`` (A,) with each moving gripper's roll (``rolls`` (K, A)) turned
+        towards the roll the rest states say the rod rests nearest the goal at, at most at the
+        largest rate; None without rest states near the grippers' poses."""
+        if self.rest is None or not len(rolls):
+            return None
+        grippers = self.env.split_observation(obs)["grippers"]
+        offsets = self.rest.roll_offsets(grippers, np.asarray(self.goal, dtype=np.float64))
+        if offsets is None:
+            return None
+        spec = self.env.task_spec
+        rates = np.clip(offsets / (spec.max_angular_velocity * spec.control_dt), -1.0, 1.0)
+        return action @ without(rolls) + rates @ rolls
 
     def _search_roll(self, servo: torch.Tensor, rolls: torch.Tensor) -> torch.Tensor:
         """The servo's action (A,) with each moving gripper's roll (rolls (K, A)) turned at

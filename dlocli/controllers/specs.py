@@ -100,6 +100,18 @@ class PlannerSpec(Spec):
         "that mispredicts the rod hands the grippers to the servo; one that predicts it plans. "
         "0 = off (docs: the held ends decide the shape).",
     )
+    rest_roll: bool = Field(
+        False,
+        json_schema_extra=BACKEND_DEFAULT,
+        description="With servo_cost: turn each moving gripper's roll about the rod's axis "
+        "(which the goal barely shows and the servo keeps) to where the rod's earlier rest "
+        "states say it rests nearest the goal: a locally weighted linear map from the "
+        "grippers' poses to the rest positions, fitted around the current poses to the rest "
+        "states the model's checkpoint carries (an online run's: each trial's start and its "
+        "end where the grippers stood still). Where few rest states lie near, the roll is "
+        "kept. false = off; unset, the backend's planner default (`dlo list` names them; "
+        "docs: the roll the rod rests best at).",
+    )
     disturbance: Literal["none", "offset", "drift"] = Field(
         "none",
         description="Correct the model's predictions by what it got wrong at the last steps "

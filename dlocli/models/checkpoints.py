@@ -46,6 +46,9 @@ FINAL_CHECKPOINT = Path("checkpoints") / "final.pt"
 #: the payload key of the control period (s) of the data a model learned from: one model step
 #: is one such period (checkpoints written before it have none, and are taken as they are)
 CONTROL_DT = "control_dt"
+#: the payload key of the rod's rest states an online run's model learned beside
+#: (:mod:`dlocli.controllers.rest_roll`): {"grippers": (R, 2, 7), "positions": (R, N, 3)}
+REST_STATES = "rest_states"
 #: the payload key of a marker model's cable keys, one per row of its codes (in order)
 CABLE_KEYS = "cable_keys"
 #: the payload key of the model's form, and the forms a checkpoint may hold
@@ -267,7 +270,25 @@ def with_weights(
     dt = payload.get(CONTROL_DT)
     #: the control period (s) of the model's training data; None: not recorded (older ones)
     model.control_dt = float(dt) if isinstance(dt, (int, float)) and dt > 0 else None
+    #: where the rod came to rest in that data (arrays by name), None where not recorded
+    model.rest_states = rest_states_of(payload, path)
     return model
+
+
+def rest_states_of(payload: dict[str, Any], path: Path | str) -> dict[str, Any] | None:
+    """The checkpoint's rest states as float64 arrays, None where it holds none; BadInput
+    where they are not finite arrays of matching counts."""
+    held = payload.get(REST_STATES)
+    if held is None:
+        return None
+    grippers, positions = (held.get(name) if isinstance(held, dict) else None
+                           for name in ("grippers", "positions"))  # fmt: skip
+    if not (torch.is_tensor(grippers) and torch.is_tensor(positions)
+            and grippers.dim() == 3 and grippers.shape[1:] == (2, 7) and positions.dim() == 3
+            and len(grippers) == len(positions) and bool(torch.isfinite(grippers).all())
+            and bool(torch.isfinite(positions).all())):  # fmt: skip
+        raise BadInput(f"checkpoint {path} holds unreadable rest states; retrain it or drop them")
+    return {"grippers": grippers.double().numpy(), "positions": positions.double().numpy()}
 
 
 def _check_scales(model: torch.nn.Module, path: Path | str) -> None:

@@ -15,9 +15,11 @@ import numpy as np
 
 import dlocli.runs.online.trials as trials
 from dlocli.cancel import CancelToken
+from dlocli.controllers.rest_roll import rest_states
 from dlocli.data import Dataset, load_dataset
 from dlocli.env.rollout import stream_seed
 from dlocli.env.shape_env import make_env_from_spec
+from dlocli.env.tasks import make_task
 from dlocli.errors import DloError
 from dlocli.events import Began, Callback, Event, ignore
 from dlocli.executors import ClusterLost, LocalExecutor
@@ -98,7 +100,12 @@ class OnlineRun:
         import torch
 
         from dlocli.models.base import build_model, resolve_device
-        from dlocli.models.checkpoints import load_model, read_checkpoint, save_checkpoint
+        from dlocli.models.checkpoints import (
+            REST_STATES,
+            load_model,
+            read_checkpoint,
+            save_checkpoint,
+        )
         from dlocli.models.update_steps import update_model
 
         if self.paths.checkpoint(k).is_file():
@@ -131,6 +138,7 @@ class OnlineRun:
             )
             threads = torch.get_num_threads()
         extra = {"steps": result.steps, "best_step": result.best_step} if result.steps else {}
+        extra[REST_STATES] = self.rest_states(data)
         save_checkpoint(
             model,
             self.paths.checkpoint(k),
@@ -145,6 +153,16 @@ class OnlineRun:
                 **extra,
             },
         )
+
+    def rest_states(self, data: Dataset) -> dict[str, Any]:
+        """Where the rod came to rest in ``data`` (:mod:`dlocli.controllers.rest_roll`), as
+        tensors for the checkpoint: the planner's ``rest_roll`` reads the roll from them."""
+        import torch
+
+        moving = make_task(self.spec.task.name).moving
+        found = rest_states(data.grippers, data.positions, data.episode_lengths, moving,
+                            self.spec.task.control_dt)  # fmt: skip
+        return {name: torch.from_numpy(array) for name, array in found.items()}
 
     def update_marker_model(self, k: int, data: Dataset) -> None:
         """The update of the marker form (the markers observation,

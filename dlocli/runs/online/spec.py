@@ -32,9 +32,10 @@ class OnlineSpec(EnvSpec, ExecutorChoice):
     cli_flags: ClassVar[tuple[str, ...]] = (
         "iters", "trials", "task.episode_steps", "fit.schedule", "fit.epochs", "fit.update_steps",
         "initial_episodes", "planner", "mpc.horizon", "mpc.settle_steps", "mpc.motion_cost",
-        "mpc.servo_cost", "mpc.roll_search", "mpc.servo_above_mm", "fit.lr", MODEL_OPTIONS,
-        "task.goal", "task.name", "task.shapes", "backend.name", "fit.device", "noise_probability",
-        "noise_std", "workers", "threads", "executor", "ray_address", "fit.mirror", "offline",
+        "mpc.servo_cost", "mpc.roll_search", "mpc.servo_above_mm", "mpc.rest_roll", "fit.lr",
+        MODEL_OPTIONS, "task.goal", "task.name", "task.shapes", "backend.name", "fit.device",
+        "noise_probability", "noise_std", "workers", "threads", "executor", "ray_address",
+        "fit.mirror", "offline",
         "seed", "out", "task.observation.kind", "task.observation.markers",
         "task.observation.noise_mm", "task.observation.latency_steps", "task.observation.dropout",
         "task.observation.occlusion_probability", "fit.rollout_steps",
