@@ -271,11 +271,14 @@ def model_report(run: Path) -> dict[str, Any]:
 
 
 def trials_report(
-    run: Path, k: int, n: int, changes: dict[str, Any], controller: str | None = None
-) -> dict[str, Any]:
+    run: Path, k: int, n: int, changes: dict[str, Any], controller: str | None = None,
+    rest_from_data: bool = False,
+) -> dict[str, Any]:  # fmt: skip
     """Iteration k's model driving n trials from iteration k's starts, ``changes`` applied to
     the run's spec (nested dicts); ``controller``: another registered controller instead of
-    the run's planner (e.g. the ``held-end`` reference), with the same action noise."""
+    the run's planner (e.g. the ``held-end`` reference), with the same action noise;
+    ``rest_from_data``: the model given the rest states of the run's data before iteration k,
+    as a run writes them into its checkpoints now (for runs made before they did)."""
     import torch
 
     from dlocli.controllers.base import make_controller
@@ -297,11 +300,14 @@ def trials_report(
     checkpoint = (run / "checkpoints" / f"iter_{k:02d}.pt").read_bytes()
     torch.set_num_threads(1)  # as the run's trials
     env = make_env_from_spec(env_spec(spec))
+    rest = run_rest_states(run, spec, k) if rest_from_data else None
     rows, start = [], time.perf_counter()
     try:
         for j in range(1, n + 1):
             seed = stream_seed(spec.seed, TRIAL, k, j)
             model = load_planning_model(checkpoint, "cpu")
+            if rest is not None:
+                model.rest_states = rest
             name = controller or spec.planner
             planner = make_controller(name, env, options=spec.mpc, seed=seed, model=model)
             noise = np.random.default_rng(stream_seed(spec.seed, NOISE, k, j))
@@ -325,6 +331,21 @@ def trials_report(
     return {"run": str(run), "iteration": k, "trials": n, "changes": changes,
             "mean": per_key(np.mean, rows),
             "seconds": round(time.perf_counter() - start, 1), "per_trial": rows}  # fmt: skip
+
+
+def run_rest_states(run: Path, spec: Any, k: int) -> dict[str, np.ndarray]:
+    """The rest states (:mod:`dlocli.controllers.rest_roll`) of run's data before iteration k:
+    its initial episodes and iterations 1 to k - 1's trials."""
+    from dlocli.controllers.rest_roll import rest_states
+    from dlocli.data import load_dataset
+    from dlocli.env.tasks import make_task
+
+    files = [run / "data" / f"iter_{it:02d}" / f"trial_{j:03d}.h5"
+             for it in range(1, k) for j in range(1, spec.trials + 1)]  # fmt: skip
+    data = load_dataset(run / "data" / "initial.h5").concat(*map(load_dataset, files))
+    found = rest_states(data.grippers, data.positions, data.episode_lengths,
+                        make_task(spec.task.name).moving, spec.task.control_dt)  # fmt: skip
+    return {name: array.astype(np.float64) for name, array in found.items()}
 
 
 #: the planner options every ``sweep`` row sets, at the paper's (the runs' own specs may differ)
@@ -617,6 +638,9 @@ def main(argv: list[str] | None = None) -> None:
     trials.add_argument("--settle-steps", type=int)
     trials.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
                         help="any other spec field, e.g. mpc.motion_cost=4")  # fmt: skip
+    trials.add_argument("--rest-from-data", action="store_true",
+                        help="give the model the rest states of the run's data before the "
+                        "iteration (runs made before checkpoints carried them)")  # fmt: skip
     many = sub.add_parser("sweep")
     many.add_argument("runs", type=Path, nargs="+")
     many.add_argument("--iteration", type=int, default=3)
@@ -675,7 +699,8 @@ def main(argv: list[str] | None = None) -> None:
             if value is not None
         }
         changes.update(spec_settings(args.set))
-        report = trials_report(args.run, args.iteration, args.trials, changes)
+        report = trials_report(args.run, args.iteration, args.trials, changes,
+                               rest_from_data=args.rest_from_data)  # fmt: skip
     elif args.what == "sweep":
         report = sweep_report(
             args.runs, args.iteration, args.trials, spec_settings(args.set), args.controller

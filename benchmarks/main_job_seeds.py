@@ -91,6 +91,7 @@ def row(folder: Path) -> dict[str, Any]:
         "motion_cost": spec["mpc"].get("motion_cost", 0.0),
         "damping": spec["mpc"].get("damping", 0.01),
         "servo_cost": spec["mpc"].get("servo_cost", 0.0),
+        "rest_roll": spec["mpc"].get("rest_roll", False),
     }
 
 
