@@ -358,6 +358,7 @@ SWEEP_BASE = {
     "mpc.curvature_every": 25,
     "mpc.disturbance": "none",
     "mpc.servo_above_mm": 0.0,
+    "mpc.rest_roll": False,
 }
 
 
@@ -416,6 +417,13 @@ LATENCY_SETTINGS = {
         "mpc.servo_cost": 0.001,
     },
     "servo_cost 0.001": {**SWEEP_BASE, "mpc.servo_cost": 0.001},
+    "motion_cost 32, damping 1, servo_cost 0.001, rest_roll": {
+        **SWEEP_BASE,
+        "mpc.motion_cost": 32.0,
+        "mpc.damping": 1.0,
+        "mpc.servo_cost": 0.001,
+        "mpc.rest_roll": True,
+    },
     "motion_cost 32, damping 1, servo_cost 0.001, servo_above_mm 0.2": {
         **SWEEP_BASE,
         "mpc.motion_cost": 32.0,
@@ -443,11 +451,13 @@ LATENCY_SETTINGS = {
 
 
 def latency_report(
-    run: Path, k: int, steps: int, rounds: int, only: list[str] | None = None
-) -> dict[str, Any]:
+    run: Path, k: int, steps: int, rounds: int, only: list[str] | None = None,
+    rest_from_data: bool = False,
+) -> dict[str, Any]:  # fmt: skip
     """The MPC's time per control step (ms: median, mean) of each LATENCY_SETTINGS planner
     through iteration k's model, one thread, on the same starts, the planners taking turns
-    episode by episode (so a busy host slows each alike); ``rounds`` episodes of ``steps``."""
+    episode by episode (so a busy host slows each alike); ``rounds`` episodes of ``steps``;
+    ``rest_from_data`` as in :func:`trials_report`."""
     import torch
 
     from dlocli.controllers.base import make_controller
@@ -462,6 +472,7 @@ def latency_report(
     env = make_env_from_spec(env_spec(spec))
     chosen = {name: LATENCY_SETTINGS[name] for name in ["paper", *(only or [])]}
     chosen = chosen if only else LATENCY_SETTINGS
+    rest = run_rest_states(run, spec, k) if rest_from_data else None
     times: dict[str, list[float]] = {name: [] for name in chosen}
     try:
         for episode in range(-1, rounds):  # episode -1 warms torch and the simulator up
@@ -470,6 +481,8 @@ def latency_report(
                     update={path.split(".", 1)[1]: value for path, value in settings.items()}
                 )
                 model = load_planning_model(checkpoint, "cpu")
+                if rest is not None:
+                    model.rest_states = rest
                 planner = make_controller("mpc", env, options=options, seed=episode, model=model)
                 obs, _ = env.reset(seed=max(episode, 0))
                 planner.reset(env.goal)
@@ -656,6 +669,7 @@ def main(argv: list[str] | None = None) -> None:
         "--only", type=lambda text: text.split(";"), default=None,
         help="the planners to time beside the paper's, by name, separated by ';'",
     )  # fmt: skip
+    timing.add_argument("--rest-from-data", action="store_true")
     pose = sub.add_parser("pose")
     pose.add_argument("run", type=Path)
     pose.add_argument("--iteration", type=int, default=3)
@@ -706,7 +720,8 @@ def main(argv: list[str] | None = None) -> None:
             args.runs, args.iteration, args.trials, spec_settings(args.set), args.controller
         )
     elif args.what == "latency":
-        report = latency_report(args.run, args.iteration, args.steps, args.rounds, args.only)
+        report = latency_report(args.run, args.iteration, args.steps, args.rounds, args.only,
+                                args.rest_from_data)  # fmt: skip
     elif args.what == "reference":
         report = reference_report(args.run, args.iteration, args.trials, args.name)
     elif args.what == "pose":
