@@ -27,7 +27,7 @@ class BackendFacts:
     unset_rod_values: ClassVar[Mapping[str, float]] = {}
     #: per planner name, options (fields of its spec) that a run on this backend plans with
     #: unless it sets them: what its rod's motion asks of the planner (none: the paper's)
-    planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {}
+    planner_defaults: ClassVar[Mapping[str, Mapping[str, float | bool]]] = {}
 
     @classmethod
     def effective_rod(cls, rod: RodSpec) -> RodSpec:
@@ -44,7 +44,7 @@ SERVO_COST = 1e-3
 class MujocoFacts(BackendFacts):
     """MuJoCo's composite cable."""
 
-    planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {
+    planner_defaults: ClassVar[Mapping[str, Mapping[str, float | bool]]] = {
         "mpc": {"servo_cost": SERVO_COST}
     }
 
@@ -77,11 +77,10 @@ class FlexFacts(BackendFacts):
 
     # its sideways swing decays 4x slower than the cable's: the plan pays for the motion it
     # leaves (it damps the swing instead of chasing it), and Gauss-Newton steps are damped as
-    # much as the curvature they scale (docs/benchmarks.md, a planner that damps the swing)
-    # (measured for the gradient MPC only)
-    # and the servo's roll is read from the rod's earlier rest states (docs/benchmarks.md, the
-    # roll the rod rests best at)
-    planner_defaults: ClassVar[Mapping[str, Mapping[str, float]]] = {
+    # much as the curvature they scale (docs/benchmarks.md, a planner that damps the swing);
+    # the servo's roll is read from the rod's earlier rest states (docs/benchmarks.md, the roll
+    # the rod rests best at). Measured for the gradient MPC only.
+    planner_defaults: ClassVar[Mapping[str, Mapping[str, float | bool]]] = {
         "mpc": {"motion_cost": 32.0, "damping": 1.0, "servo_cost": SERVO_COST, "rest_roll": True}
     }
 
