@@ -153,6 +153,7 @@ def test_the_papers_table_is_its_bench_summary_cell_by_cell() -> None:
         "online_paper_flex",
         "online_paper_flex_servo",
         "online_paper_flex_servo_above",
+        "online_paper_flex_rest_roll",
     ],
 )
 def test_a_paper_scale_runs_table_is_its_metrics(run: str) -> None:
