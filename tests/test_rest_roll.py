@@ -153,16 +153,42 @@ def test_the_planner_pulls_the_roll_where_the_rest_states_say(env, rested):
     assert bare._servo_read is not None
 
 
-def test_a_checkpoint_carries_its_rest_states_and_refuses_broken_ones(rested, tmp_path):
+def held_states(states: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    return {name: torch.from_numpy(array.astype(np.float32)) for name, array in states.items()}
+
+
+def test_a_checkpoint_carries_its_rest_states(rested, tmp_path):
     _, states, _ = rested
-    held = {name: torch.from_numpy(array.astype(np.float32)) for name, array in states.items()}
+    held = held_states(states)
     path = save_checkpoint(tiny_model(None), tmp_path / "model.pt", {REST_STATES: held})
     loaded = load_model(path)
     for name, array in states.items():
         np.testing.assert_allclose(loaded.rest_states[name], array, atol=1e-6)
     assert load_model(save_checkpoint(tiny_model(None), tmp_path / "bare.pt")).rest_states is None
-    broken = dict(held, positions=held["positions"].clone())
-    broken["positions"][0, 0, 0] = float("nan")
-    save_checkpoint(tiny_model(None), tmp_path / "broken.pt", {REST_STATES: broken})
-    with pytest.raises(BadInput, match="rest states"):
-        load_model(tmp_path / "broken.pt")
+
+
+@pytest.mark.parametrize("breaking", ["nan", "inf", "pose of 6", "counts differ", "a string",
+                                      "no positions", "a list"])  # fmt: skip
+def test_broken_rest_states_are_refused_in_one_line(rested, tmp_path, breaking):
+    _, states, _ = rested
+    held: object = held_states(states)
+    grippers, positions = held["grippers"].clone(), held["positions"].clone()
+    if breaking == "nan":
+        positions[0, 0, 0] = float("nan")
+    elif breaking == "inf":
+        grippers[1, 1, 3] = float("inf")
+    elif breaking == "pose of 6":
+        grippers = grippers[:, :, :6]
+    elif breaking == "counts differ":
+        positions = positions[:-1]
+    held = {"grippers": grippers, "positions": positions}
+    if breaking == "a string":
+        held = {"grippers": "rest", "positions": positions}
+    elif breaking == "no positions":
+        held = {"grippers": grippers}
+    elif breaking == "a list":
+        held = [grippers, positions]
+    path = save_checkpoint(tiny_model(None), tmp_path / "broken.pt", {REST_STATES: held})
+    with pytest.raises(BadInput, match="unreadable rest states") as refused:
+        load_model(path)
+    assert "\n" not in str(refused.value)
