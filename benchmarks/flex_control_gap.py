@@ -343,8 +343,7 @@ def run_rest_states(run: Path, spec: Any, k: int) -> dict[str, np.ndarray]:
     files = [run / "data" / f"iter_{it:02d}" / f"trial_{j:03d}.h5"
              for it in range(1, k) for j in range(1, spec.trials + 1)]  # fmt: skip
     data = load_dataset(run / "data" / "initial.h5").concat(*map(load_dataset, files))
-    found = rest_states(data.grippers, data.positions, data.episode_lengths,
-                        make_task(spec.task.name).moving, spec.task.control_dt)  # fmt: skip
+    found = rest_states(data, make_task(spec.task.name).moving, spec.task.control_dt)
     return {name: array.astype(np.float64) for name, array in found.items()}
 
 

@@ -80,7 +80,7 @@ def test_rest_states_are_each_start_and_each_end_the_grippers_stood_still_throug
     rng = np.random.default_rng(0)
     moving = rollout(env, ActionSequence(rng.uniform(-1, 1, (steps, 6))), seed=2)
     data = Dataset.from_episodes([still, moving])
-    found = rest_states(data.grippers, data.positions, data.episode_lengths, RIGHT, 0.02)
+    found = rest_states(data, RIGHT, 0.02)
     window = int(round(REST_WINDOW_S / 0.02))
     np.testing.assert_allclose(found["grippers"], np.stack(
         [still.grippers[0], still.grippers[-1], moving.grippers[0]]), atol=1e-6)  # fmt: skip

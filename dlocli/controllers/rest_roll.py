@@ -43,24 +43,18 @@ RIDGE = 1e-6
 MAX_ROLL = np.radians(45.0)
 
 
-def rest_states(
-    grippers: np.ndarray, positions: np.ndarray, lengths: np.ndarray, moving: np.ndarray,
-    control_dt: float,
-) -> dict[str, np.ndarray]:  # fmt: skip
-    """Rest states of episodes stored back to back: ``grippers`` (S, 2, 7) and ``positions``
-    (S, N, 3) over every episode's T+1 states, ``lengths`` (E,) their T. Returns
+def rest_states(data: Any, moving: np.ndarray, control_dt: float) -> dict[str, np.ndarray]:
+    """Rest states of a rod dataset's episodes (:class:`~dlocli.data.Dataset`). Returns
     {"grippers": (R, 2, 7), "positions": (R, N, 3)} float32."""
     window = max(int(round(REST_WINDOW_S / control_dt)), 1)
     found_grippers, found_positions = [], []
-    start = 0
-    for length in np.asarray(lengths, dtype=np.int64):
-        end = start + int(length) + 1
-        found_grippers.append(grippers[start])
-        found_positions.append(positions[start])
-        if length >= window and _stood_still(grippers[end - window : end, moving]):
-            found_grippers.append(grippers[end - 1])
-            found_positions.append(positions[end - window : end].mean(axis=0))
-        start = end
+    for start, length in zip(data.state_offsets(), data.episode_lengths, strict=True):
+        end = int(start + length + 1)
+        found_grippers.append(data.grippers[start])
+        found_positions.append(data.positions[start])
+        if length >= window and _stood_still(data.grippers[end - window : end, moving]):
+            found_grippers.append(data.grippers[end - 1])
+            found_positions.append(data.positions[end - window : end].mean(axis=0))
     return {
         "grippers": np.asarray(found_grippers, dtype=np.float32),
         "positions": np.asarray(found_positions, dtype=np.float32),

@@ -160,8 +160,7 @@ class OnlineRun:
         import torch
 
         moving = make_task(self.spec.task.name).moving
-        found = rest_states(data.grippers, data.positions, data.episode_lengths, moving,
-                            self.spec.task.control_dt)  # fmt: skip
+        found = rest_states(data, moving, self.spec.task.control_dt)
         return {name: torch.from_numpy(array) for name, array in found.items()}
 
     def update_marker_model(self, k: int, data: Dataset) -> None:
